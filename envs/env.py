@@ -1,0 +1,350 @@
+"""``UrbanCollision-v0``: the imminent-collision gymnasium environment.
+
+Spaces and timing (DESIGN.md section 3):
+
+* step 1/15 s (the paper's 15 FPS), dynamics and collisions sub-stepped ``substeps`` times per step;
+* action ``Box(-1, 1, (2,))`` = [steer, throttle/brake]: steer -1..1 is maximum left..maximum right;
+  throttle/brake -1..0 asks for 9.8..0 m/s^2 of deceleration, 0..1 for up to ``VehicleParams.max_accel``.
+  [0, 0] holds the current speed, the constant-velocity motion TTC is defined by;
+* observation ``Dict(seg=Box(0, 12, (S, S), uint8), speed=Box(0, 40, (1,), float32))``; with
+  ``camera=False`` the segmentation frame is all zeros and no pybullet client is created.
+
+Episodes end (``terminated``) on a crash with a car or a static object, or when the ego leaves the scene.
+They are truncated at ``min(max_episode_s, ttc + horizon_after_ttc_s)``; pass ``horizon_after_ttc_s=None``
+for data collection (15 s). Stopping does not end an episode: a stopped car can still be hit.
+
+``info`` on every step: ``collisions`` registered this step (kind, participant id, impact speed, delta-v of
+each car, injury probability per participant, people involved), ``reward_r1``, ``reward_r2``, the ego state
+(``x``, ``y``, ``heading``, ``speed``, ``steer_angle``, ``lane_offset``) and ``lane_departure``. On the last step
+``info["outcome"]`` holds the paper's section IV-C metrics for the episode.
+"""
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from . import geometry
+from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
+from .injury import occupant_injury, pedestrian_injury, plastic_delta_v
+from .rewards import REWARDS, collision_rewards
+from .scenario import ScenarioSpec, sample_scenario
+from .scene import CLASS_NAMES, EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
+from .vehicle import VehicleParams, VehicleState, integrate
+
+DT = 1.0 / 15.0
+MAX_SPEED_OBS = 40.0
+
+
+class UrbanCollisionEnv(gym.Env):
+    """See the module docstring. Keyword arguments are the env config (``conf/env/urban.yaml``).
+
+    camera: render the segmentation frame (False: zeros, for scripted evaluation and planners).
+    image_size, fov_deg: the camera. reward: 'r1' or 'r2'. horizon_after_ttc_s: agent-episode length
+    after the TTC (None: ``max_episode_s``). mu: tyre-road friction. occupants_per_car: people per car.
+    ego_mass, car_mass: kg, for delta-v. substeps: collision/dynamics sub-steps per 1/15 s step.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 15}
+
+    def __init__(self, camera: bool = True, image_size: int = 64, fov_deg: float = 90.0, reward: str = "r2",
+                 horizon_after_ttc_s: float | None = 3.0, max_episode_s: float = 15.0, mu: float = 1.0,
+                 occupants_per_car: int = 1, ego_mass: float = 1500.0, car_mass: float = 1500.0,
+                 substeps: int = 8, render_mode: str | None = None):
+        checks = {
+            "image_size": image_size >= 8, "fov_deg": 10.0 <= fov_deg <= 170.0, "mu": mu > 0.0,
+            "max_episode_s": max_episode_s > 0.0, "occupants_per_car": occupants_per_car >= 1,
+            "ego_mass": ego_mass > 0.0, "car_mass": car_mass > 0.0, "substeps": substeps >= 1,
+            "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
+            "reward": reward in REWARDS, "render_mode": render_mode in (None, "rgb_array"),
+        }
+        for key, ok in checks.items():
+            if not ok:
+                raise ValueError(f"env config {key}={locals()[key]!r} is invalid")
+        self.camera = bool(camera)
+        self.image_size = int(image_size)
+        self.fov_deg = float(fov_deg)
+        self.reward_name = reward
+        self.horizon_after_ttc_s = horizon_after_ttc_s
+        self.max_episode_s = float(max_episode_s)
+        self.occupants_per_car = int(occupants_per_car)
+        self.ego_mass, self.car_mass = float(ego_mass), float(car_mass)
+        self.substeps = int(substeps)
+        self.render_mode = render_mode
+        self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
+
+        s = self.image_size
+        self.observation_space = spaces.Dict({
+            "seg": spaces.Box(0, NUM_CLASSES - 1, (s, s), np.uint8),
+            "speed": spaces.Box(0.0, MAX_SPEED_OBS, (1,), np.float32),
+        })
+        self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+        self._client = None
+        self._pool = None
+        self._camera = None
+        if self.camera or self.render_mode is not None:
+            self._connect()
+        self.scenario: ScenarioSpec | None = None
+        self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, 0.0)
+        self._hl = self.params.length / 2
+        self._hw = self.params.width / 2
+        self._car_radius = math.hypot(self._hl, self._hw)
+
+    # ------------------------------------------------------------------ pybullet
+    def _connect(self) -> None:
+        import pybullet as p
+
+        from .actors import CAR_POOL, PEDESTRIAN_POOL
+        from .camera import SegmentationCamera
+        from .scene import BodyPool
+
+        self._client = p.connect(p.DIRECT)
+        vehicle_size = (self.params.length, self.params.width, self.params.height)
+        self._pool = BodyPool(self._client, CAR_POOL, PEDESTRIAN_POOL, vehicle_size, PEDESTRIAN_HALF_SIZE)
+        self._camera = SegmentationCamera(self._client, self._pool.lut, self.image_size, self.fov_deg)
+
+    def close(self) -> None:
+        if self._client is not None:
+            import pybullet as p
+
+            try:
+                p.disconnect(physicsClientId=self._client)
+            except Exception:  # already gone at interpreter exit
+                pass
+            self._client = None
+
+    def __del__(self):
+        self.close()
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        spec = (options or {}).get("scenario")
+        if spec is None:
+            spec = sample_scenario(self.np_random)
+        elif isinstance(spec, dict):
+            spec = ScenarioSpec.from_dict(spec)
+        elif not isinstance(spec, ScenarioSpec):
+            raise TypeError(f"options['scenario'] must be a ScenarioSpec or dict, not {type(spec).__name__}")
+        self.scenario = spec
+
+        rng = np.random.default_rng(spec.seed)
+        self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, float(spec.ego_speed))
+        self.actors, junction_x = build_actors(spec, rng, 0.0, self._hl, self.params.length, self.params.width)
+        self.layout: StaticLayout = sample_layout(rng, junction_x)
+        self._prepare_static()
+
+        self.t_step = 0
+        after = self.horizon_after_ttc_s
+        horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
+        self.horizon_steps = max(1, int(math.ceil(horizon_s / DT - 1e-9)))
+        self.collisions: list[dict] = []
+        self.returns = {"r1": 0.0, "r2": 0.0}
+        self.ever_departed = False
+        self.min_speed = self.ego.v
+        self._last_end = None
+
+        if self._pool is not None:
+            self._pool.apply_layout(self.layout)
+        return self._observe(), self._info([], 0.0, 0.0)
+
+    def _prepare_static(self) -> None:
+        rects, circles = self.layout.rects, self.layout.circles
+        self._rect_centres = rects[:, :2]
+        self._rect_radius = np.hypot(rects[:, 2], rects[:, 3])
+        self._circle_centres = circles[:, :2]
+        self._circle_radius = circles[:, 2]
+
+    def step(self, action):
+        if self.scenario is None:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (2,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be 2 finite numbers [steer, throttle/brake], got {action!r}")
+        steer, pedal = float(min(1.0, max(-1.0, a[0]))), float(min(1.0, max(-1.0, a[1])))
+
+        ego, act, p = self.ego, self.actors, self.params
+        sub_dt = DT / self.substeps
+        reach = self._car_radius + (ego.v + 3.0) * DT + 1.0
+        lo = np.array([ego.x - reach, ego.y - reach])
+        hi = np.array([ego.x + reach, ego.y + reach])
+        car_idx = geometry.near(act.car_xy, self._car_radius + np.abs(act.car_vel).sum(1) * DT, lo, hi)
+        car_idx = [i for i in car_idx if act.car_active[i]]
+        ped_idx = geometry.near(act.ped_xy, PEDESTRIAN_RADIUS + np.abs(act.ped_vel).sum(1) * DT, lo, hi)
+        ped_idx = [i for i in ped_idx if act.ped_active[i]]
+        rect_idx = geometry.near(self._rect_centres, self._rect_radius, lo, hi)
+        circ_idx = geometry.near(self._circle_centres, self._circle_radius, lo, hi)
+
+        hits: list[dict] = []
+        crashed = False
+        done_sub = self.substeps
+        t0 = self.t_step * DT
+        for k in range(1, self.substeps + 1):
+            integrate(ego, steer, pedal, sub_dt, p)
+            c, s = math.cos(ego.psi), math.sin(ego.psi)
+            tau = k * sub_dt
+            for i in ped_idx:
+                if not act.ped_active[i]:
+                    continue
+                px = act.ped_xy[i, 0] + act.ped_vel[i, 0] * tau
+                py = act.ped_xy[i, 1] + act.ped_vel[i, 1] * tau
+                if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, px, py, PEDESTRIAN_RADIUS):
+                    act.ped_active[i] = False
+                    hits.append(self._pedestrian_hit(i, t0 + tau))
+            for i in car_idx:
+                cx = act.car_xy[i, 0] + act.car_vel[i, 0] * tau
+                cy = act.car_xy[i, 1] + act.car_vel[i, 1] * tau
+                h = act.car_heading[i]
+                if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw,
+                                      cx, cy, math.cos(h), math.sin(h), self._hl, self._hw):
+                    hits.append(self._vehicle_crash(i, t0 + tau, c, s))
+                    crashed = True
+            for i in rect_idx:
+                cx, cy, hx, hy, cls = self.layout.rects[i]
+                if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, 1.0, 0.0, hx, hy):
+                    hits.append(self._static_crash(int(i), int(cls), t0 + tau))
+                    crashed = True
+            for i in circ_idx:
+                cx, cy, r, cls = self.layout.circles[i]
+                if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, r):
+                    hits.append(self._static_crash(int(i), int(cls), t0 + tau))
+                    crashed = True
+            if crashed:
+                done_sub = k
+                break
+        act.advance(done_sub * sub_dt)
+        self.t_step += 1
+
+        self.collisions.extend(hits)
+        r1, r2 = collision_rewards(hits)
+        self.returns["r1"] += r1
+        self.returns["r2"] += r2
+        self.min_speed = min(self.min_speed, ego.v)
+        departed = abs(ego.y - EGO_LANE_Y) > LANE_WIDTH / 2
+        self.ever_departed |= departed
+
+        left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > 25.0
+        terminated = crashed or left_scene
+        truncated = not terminated and self.t_step >= self.horizon_steps
+        if crashed:
+            self._last_end = "crash"
+        elif left_scene:
+            self._last_end = "left_scene"
+        elif truncated:
+            self._last_end = "horizon"
+        reward = r1 if self.reward_name == "r1" else r2
+        info = self._info(hits, r1, r2)
+        if terminated or truncated:
+            info["outcome"] = self.outcome()
+        return self._observe(), reward, terminated, truncated, info
+
+    # ------------------------------------------------------------------ collisions
+    def _pedestrian_hit(self, i: int, t: float) -> dict:
+        risk = pedestrian_injury(self.ego.v)
+        return {"kind": "pedestrian", "id": int(i), "class": "Pedestrians", "time": t,
+                "hazard": bool(self.actors.ped_hazard[i]), "impact_speed": self.ego.v,
+                "relative_speed": self.ego.v, "delta_v_ego": 0.0, "delta_v_other": self.ego.v,
+                "injury": [risk], "n_involved": 1, "injury_sum": risk, "pedestrian_injury": risk,
+                "occupant_injury": 0.0, "ego_occupant_injury": 0.0}
+
+    def _vehicle_crash(self, i: int, t: float, c: float, s: float) -> dict:
+        ego = self.ego
+        vx, vy = self.actors.car_vel[i]
+        rel = math.hypot(ego.v * c - vx, ego.v * s - vy)
+        dv_ego, dv_other = plastic_delta_v(self.ego_mass, self.car_mass, rel)
+        p_ego, p_other = occupant_injury(dv_ego), occupant_injury(dv_other)
+        n = self.occupants_per_car
+        injury = [p_ego] * n + [p_other] * n
+        return {"kind": "vehicle", "id": int(i), "class": "Vehicles", "time": t,
+                "hazard": bool(self.actors.car_hazard[i]), "impact_speed": ego.v, "relative_speed": rel,
+                "delta_v_ego": dv_ego, "delta_v_other": dv_other, "injury": injury, "n_involved": 2 * n,
+                "injury_sum": float(sum(injury)), "pedestrian_injury": 0.0,
+                "occupant_injury": float(sum(injury)), "ego_occupant_injury": n * p_ego}
+
+    def _static_crash(self, i: int, cls: int, t: float) -> dict:
+        # A static object is rigid: the ego stops dead, so its delta-v is its whole speed.
+        dv = self.ego.v
+        n = self.occupants_per_car
+        risk = occupant_injury(dv)
+        return {"kind": "static", "id": i, "class": CLASS_NAMES[cls], "time": t, "hazard": False,
+                "impact_speed": dv, "relative_speed": dv, "delta_v_ego": dv, "delta_v_other": 0.0,
+                "injury": [risk] * n, "n_involved": n, "injury_sum": n * risk, "pedestrian_injury": 0.0,
+                "occupant_injury": n * risk, "ego_occupant_injury": n * risk}
+
+    # ------------------------------------------------------------------ observation / info
+    def _observe(self) -> dict:
+        if self.camera:
+            self._sync_bodies()
+            seg = self._camera.render(self.ego.x, self.ego.y, self.ego.psi)
+        else:
+            seg = np.zeros((self.image_size, self.image_size), dtype=np.uint8)
+        return {"seg": seg, "speed": np.array([min(self.ego.v, MAX_SPEED_OBS)], dtype=np.float32)}
+
+    def _sync_bodies(self) -> None:
+        a = self.actors
+        self._pool.place_actors(a.car_xy, a.car_heading, a.car_active, a.ped_xy, a.ped_active)
+
+    def _info(self, hits: list[dict], r1: float, r2: float) -> dict:
+        e = self.ego
+        return {"t": self.t_step * DT, "step": self.t_step, "collisions": hits, "reward_r1": r1, "reward_r2": r2,
+                "x": e.x, "y": e.y, "heading": e.psi, "speed": e.v, "steer_angle": e.delta,
+                "lane_offset": e.y - EGO_LANE_Y, "lane_departure": abs(e.y - EGO_LANE_Y) > LANE_WIDTH / 2,
+                "hazard": self.scenario.hazard, "ttc": self.scenario.ttc}
+
+    def outcome(self) -> dict:
+        """The paper's section IV-C metrics for the episode so far, as flat scalars."""
+        cols = self.collisions
+        kinds = {c["kind"] for c in cols}
+        first = cols[0]["impact_speed"] if cols else float("nan")
+        spec = self.scenario
+        return {
+            "hazard": spec.hazard, "ttc": spec.ttc, "ego_speed": spec.ego_speed,
+            "pedestrian_collision": int("pedestrian" in kinds),
+            "vehicle_collision": int("vehicle" in kinds),
+            "static_collision": int("static" in kinds),
+            "hazard_collision": int(any(c["hazard"] for c in cols)),
+            "n_pedestrians_hit": sum(c["kind"] == "pedestrian" for c in cols),
+            "pedestrian_injury": float(sum(c["pedestrian_injury"] for c in cols)),
+            "occupant_injury": float(sum(c["occupant_injury"] for c in cols)),
+            "ego_occupant_injury": float(sum(c["ego_occupant_injury"] for c in cols)),
+            "speed_at_collision": float(first),
+            "lane_departure": int(self.ever_departed),
+            "min_speed": float(self.min_speed), "final_speed": float(self.ego.v),
+            "steps": self.t_step, "return_r1": self.returns["r1"], "return_r2": self.returns["r2"],
+            "end": self._last_end or "running",
+        }
+
+    def hazard_pixels(self) -> int:
+        """Pixels of the hazard participants in the last rendered frame (0 without a camera)."""
+        if self._camera is None:
+            return 0
+        a = self.actors
+        uids = [u for u, hz in zip(self._pool.cars, a.car_hazard) if hz]
+        uids += [u for u, hz, on in zip(self._pool.pedestrians, a.ped_hazard, a.ped_active) if hz and on]
+        return int(np.isin(self._camera.last_uids, uids).sum()) if uids else 0
+
+    # ------------------------------------------------------------------ rendering for people
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from .camera import colorize
+
+        self._sync_bodies()
+        e = self.ego
+        seg = self._camera.render(e.x, e.y, e.psi)
+        self._pool.place_ego(e.x, e.y, e.psi, visible=True)
+        bev_uids = self._camera.birds_eye(e.x, e.y, e.psi, size=128)
+        self._pool.place_ego(e.x, e.y, e.psi, visible=False)
+        bev = colorize(self._pool.lut[bev_uids + 1])
+        bev[bev_uids == self._pool.ego] = (255, 255, 255)  # the ego in white
+        scale = 256 // self.image_size
+        seg_img = np.kron(colorize(seg), np.ones((scale, scale, 1), dtype=np.uint8)).astype(np.uint8)
+        bev_img = np.kron(bev, np.ones((2, 2, 1), dtype=np.uint8)).astype(np.uint8)
+        h = max(seg_img.shape[0], bev_img.shape[0])
+        canvas = np.zeros((h, seg_img.shape[1] + bev_img.shape[1] + 8, 3), dtype=np.uint8)
+        canvas[: seg_img.shape[0], : seg_img.shape[1]] = seg_img
+        canvas[: bev_img.shape[0], seg_img.shape[1] + 8:] = bev_img
+        return canvas

@@ -1,0 +1,164 @@
+"""Imminent-collision scenarios: the paper's distributions (section IV-A), validation and the test bank.
+
+A scenario is a plain, frozen dataclass. Everything random about an episode that is not in its fields
+(hazard side and angle, traffic and pedestrian placement, the static layout) is drawn from ``seed``, so
+``env.reset(options={"scenario": spec})`` replays an episode exactly.
+
+The hazard geometry is defined so that, at constant ego speed (action [0, 0]), first contact happens at
+exactly t = TTC: the hazard pedestrian's centre, or the near side of the hazard car, is at the point the
+ego's front bumper reaches at TTC.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+# The paper's sampling ranges (Porav & Newman 2018, section IV-A).
+TTC_RANGE = (0.25, 1.5)
+EGO_SPEED_RANGE = (1.0, 30.0)
+PEDESTRIAN_SPEED_RANGE = (1.0, 5.0)
+MAX_OTHERS = 10
+# Not given by the paper: a car emerging from a side street at urban junction speeds.
+HAZARD_CAR_SPEED_RANGE = (4.0, 12.0)
+
+# What a spec may hold (wider than the sampling ranges so that stress tests can go beyond them).
+_LIMITS = {
+    "ttc": (0.0, 10.0),
+    "ego_speed": (0.0, 40.0),
+    "pedestrian_speed": (0.0, 10.0),
+    "hazard_car_speed": (0.0, 30.0),
+}
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """One imminent-collision scenario.
+
+    ttc: time to collision at constant ego speed (s). ego_speed: the collision speed v_c (m/s).
+    pedestrian_speed: v_p of the hazard pedestrian (m/s). n_cars, n_pedestrians: other traffic.
+    p_pedestrian, p_car: the paper's infraction draws; a hazard of that kind exists when > 0.5.
+    hazard_car_speed: speed of the crossing car (m/s). seed: everything else about the episode.
+    """
+
+    seed: int
+    ttc: float
+    ego_speed: float
+    pedestrian_speed: float = 2.0
+    n_cars: int = 0
+    n_pedestrians: int = 0
+    p_pedestrian: float = 0.0
+    p_car: float = 0.0
+    hazard_car_speed: float = 8.0
+
+    def __post_init__(self):
+        for name, (lo, hi) in _LIMITS.items():
+            value = getattr(self, name)
+            if not (lo < value <= hi) or value != value:
+                raise ValueError(f"scenario field {name}={value!r} is out of range: it must be in ({lo}, {hi}]")
+        for name in ("n_cars", "n_pedestrians"):
+            value = getattr(self, name)
+            if int(value) != value or not 0 <= value <= MAX_OTHERS:
+                raise ValueError(f"scenario field {name}={value!r} is out of range: it must be an integer in 0..{MAX_OTHERS}")
+        for name in ("p_pedestrian", "p_car"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"scenario field {name}={value!r} is out of range: it must be in [0, 1]")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise ValueError(f"scenario field seed={self.seed!r} must be a non-negative integer")
+
+    @property
+    def pedestrian_hazard(self) -> bool:
+        return self.p_pedestrian > 0.5
+
+    @property
+    def car_hazard(self) -> bool:
+        return self.p_car > 0.5
+
+    @property
+    def hazard(self) -> str:
+        """'pedestrian', 'car', 'both' or 'none'."""
+        if self.pedestrian_hazard and self.car_hazard:
+            return "both"
+        if self.pedestrian_hazard:
+            return "pedestrian"
+        return "car" if self.car_hazard else "none"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ScenarioSpec":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown scenario fields: {sorted(unknown)}")
+        return cls(**d)
+
+
+def sample_scenario(rng: np.random.Generator) -> ScenarioSpec:
+    """Draw a scenario from the paper's distributions."""
+    return ScenarioSpec(
+        seed=int(rng.integers(0, 2**31 - 1)),
+        ttc=float(rng.uniform(*TTC_RANGE)),
+        ego_speed=float(rng.uniform(*EGO_SPEED_RANGE)),
+        pedestrian_speed=float(rng.uniform(*PEDESTRIAN_SPEED_RANGE)),
+        n_cars=int(rng.integers(0, MAX_OTHERS + 1)),
+        n_pedestrians=int(rng.integers(0, MAX_OTHERS + 1)),
+        p_pedestrian=float(rng.uniform(0.0, 1.0)),
+        p_car=float(rng.uniform(0.0, 1.0)),
+        hazard_car_speed=float(rng.uniform(*HAZARD_CAR_SPEED_RANGE)),
+    )
+
+
+# ----------------------------------------------------------------------------- test bank
+BANK_TTCS = (0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5)
+BANK_SPEEDS = (10.0, 20.0, 30.0)
+BANK_HAZARDS = ("pedestrian", "car", "both")
+
+
+@dataclass(frozen=True)
+class BankEntry:
+    scenario_id: int
+    hazard: str
+    ttc: float
+    speed: float
+    index: int        # position within its cell
+    spec: ScenarioSpec
+
+
+def test_bank(ttcs=BANK_TTCS, speeds=BANK_SPEEDS, hazards=BANK_HAZARDS, per_cell: int = 20,
+              seed: int = 2018) -> list[BankEntry]:
+    """The seeded evaluation bank (DESIGN.md section 6).
+
+    A scenario's free parameters depend only on (seed, hazard, TTC, speed, index), not on which other cells
+    are requested, so a smaller bank is a subset of a larger one and every policy sees the same scenarios.
+    """
+    if per_cell < 1:
+        raise ValueError(f"per_cell={per_cell} must be at least 1")
+    entries = []
+    for hazard in hazards:
+        if hazard not in BANK_HAZARDS:
+            raise ValueError(f"hazard={hazard!r} must be one of {BANK_HAZARDS}")
+        for ttc in ttcs:
+            for speed in speeds:
+                for i in range(per_cell):
+                    key = [seed, BANK_HAZARDS.index(hazard), int(round(ttc * 1000)), int(round(speed * 1000)), i]
+                    rng = np.random.default_rng(key)
+                    spec = ScenarioSpec(
+                        seed=int(rng.integers(0, 2**31 - 1)),
+                        ttc=float(ttc),
+                        ego_speed=float(speed),
+                        pedestrian_speed=float(rng.uniform(*PEDESTRIAN_SPEED_RANGE)),
+                        n_cars=int(rng.integers(0, MAX_OTHERS + 1)),
+                        n_pedestrians=int(rng.integers(0, MAX_OTHERS + 1)),
+                        p_pedestrian=1.0 if hazard in ("pedestrian", "both") else 0.0,
+                        p_car=1.0 if hazard in ("car", "both") else 0.0,
+                        hazard_car_speed=float(rng.uniform(*HAZARD_CAR_SPEED_RANGE)),
+                    )
+                    entries.append(BankEntry(len(entries), hazard, float(ttc), float(speed), i, spec))
+    return entries

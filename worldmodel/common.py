@@ -1,0 +1,179 @@
+"""Plumbing shared by every stage: paths, config composition, checkpoints, seeding, clear errors.
+
+Every stage of ``experiment=NAME`` reads and writes under two fixed roots:
+``data/NAME/`` for datasets and ``runs/NAME/<stage>/`` for checkpoints, TensorBoard and reports.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import os
+import random
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+PROJECT_ROOT = CONF_DIR.parent
+
+
+class StageError(RuntimeError):
+    """A problem the user can fix (missing input, bad config, corrupt file).
+
+    The message names what is wrong and what to do; stage entry points print it without a traceback.
+    """
+
+
+class NonFiniteLossError(StageError):
+    pass
+
+
+# ----------------------------------------------------------------------------- config
+def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
+    """Compose the real Hydra config of ``stage`` (for tests and notebooks)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return hydra_compose(config_name=stage, overrides=list(overrides))
+
+
+def hydra_main(stage: str) -> Callable[[Callable], Callable]:
+    """Wrap a stage's ``run(cfg)`` as its command-line entry point.
+
+    ``StageError`` is printed as one readable line and exits with status 2, so a missing input reads as an
+    instruction rather than a traceback.
+    """
+    import hydra
+
+    def decorate(run: Callable):
+        @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
+        def main(cfg):
+            try:
+                return run(cfg)
+            except StageError as err:
+                print(f"\n[{stage}] error: {err}", file=sys.stderr)
+                sys.exit(2)
+
+        return main
+
+    return decorate
+
+
+def data_dir(cfg) -> Path:
+    return Path(cfg.paths.data)
+
+
+def runs_dir(cfg, stage: str) -> Path:
+    return Path(cfg.paths.runs) / stage
+
+
+def stage_command(stage: str, cfg) -> str:
+    """The command a user runs to produce a stage's outputs for this experiment."""
+    return f"python -m worldmodel.{stage} experiment={cfg.experiment} scale=<smoke|quick|paper>"
+
+
+def require(path: Path, what: str, stage: str, cfg) -> Path:
+    """Stop at once, naming the missing file and the command that makes it."""
+    path = Path(path)
+    if not path.exists():
+        raise StageError(f"{what} not found at {path}. Run `{stage_command(stage, cfg)}` first.")
+    return path
+
+
+def positive(cfg_section, *keys: str, where: str) -> None:
+    """Reject impossible sizes before any work starts, naming the key."""
+    for key in keys:
+        value = cfg_section[key]
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+            raise StageError(f"config {where}.{key}={value!r} is impossible: it must be a positive number.")
+
+
+# ----------------------------------------------------------------------------- files
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def atomic_torch_save(obj: Any, path: Path) -> None:
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:
+    """Load a checkpoint written by ``atomic_torch_save``; a missing or unreadable one is a StageError."""
+    import torch
+
+    require(path, what, stage, cfg)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # truncated or not a torch file
+        raise StageError(
+            f"{what} at {path} cannot be read ({type(err).__name__}: {err}). "
+            f"Delete it and rerun `{stage_command(stage, cfg)}`."
+        ) from err
+
+
+# ----------------------------------------------------------------------------- seeding
+def seed_everything(seed: int) -> None:
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def rng_state() -> dict:
+    import torch
+
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+
+
+def set_rng_state(state: dict) -> None:
+    import torch
+
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+
+
+def set_threads(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(max(1, int(n)))
+
+
+def check_finite(value: float, what: str, step: int, last_good: Path) -> None:
+    """Stop on a NaN/inf loss; the last good checkpoint on disk is left untouched."""
+    if not math.isfinite(value):
+        raise NonFiniteLossError(
+            f"{what} became {value} at step {step}. Training stopped; the last good checkpoint is {last_good}. "
+            "Lower the learning rate or check the data, then resume with resume=true."
+        )
+
+
+def cached(fn):
+    return functools.lru_cache(maxsize=None)(fn)
