@@ -32,16 +32,17 @@ class Actors:
     ped_vel: np.ndarray
     ped_active: np.ndarray    # False once hit or unused
     ped_hazard: np.ndarray
-    ped_stop_y: np.ndarray    # a crossing pedestrian stops once |y| passes this on the far side (inf = never)
+    ped_stop_y: np.ndarray    # a crossing pedestrian stops once it walks past this y (nan = never)
     collision_point: tuple[float, float] | None  # where the ego's front bumper is at TTC
 
     def advance(self, dt: float) -> None:
         self.car_xy += self.car_vel * dt
         self.ped_xy += self.ped_vel * dt
-        arrived = np.abs(self.ped_xy[:, 1]) > self.ped_stop_y
+        with np.errstate(invalid="ignore"):
+            arrived = (self.ped_xy[:, 1] - self.ped_stop_y) * np.sign(self.ped_vel[:, 1]) > 0.0
         if arrived.any():
             self.ped_vel[arrived] = 0.0
-            self.ped_stop_y[arrived] = np.inf
+            self.ped_stop_y[arrived] = np.nan
 
 
 def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, ego_front: float,
@@ -56,7 +57,7 @@ def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, eg
     ped_vel = np.zeros((PEDESTRIAN_POOL, 2))
     ped_active = np.zeros(PEDESTRIAN_POOL, dtype=bool)
     ped_hazard = np.zeros(PEDESTRIAN_POOL, dtype=bool)
-    ped_stop_y = np.full(PEDESTRIAN_POOL, np.inf)
+    ped_stop_y = np.full(PEDESTRIAN_POOL, np.nan)
 
     bumper_at_ttc = ego_x0 + ego_front + spec.ego_speed * spec.ttc
     collision_point = (bumper_at_ttc, EGO_LANE_Y) if spec.hazard != "none" else None
@@ -84,7 +85,7 @@ def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, eg
         direction = np.array([math.sin(angle), -side * math.cos(angle)])
         ped_xy[0] = np.array(meet) - direction * reach
         ped_vel[0] = direction * v
-        ped_stop_y[0] = SIDEWALK_OUTER - 1.0
+        ped_stop_y[0] = side * -(SIDEWALK_OUTER - 1.0)   # on the far sidewalk
         ped_active[0] = ped_hazard[0] = True
         n_ped = 1
 

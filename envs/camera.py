@@ -18,7 +18,7 @@ from .scene import PALETTE
 EYE_FORWARD = 0.5
 EYE_HEIGHT = 1.6
 PITCH_DEG = 8.0
-NEAR, FAR = 0.1, 120.0
+NEAR, FAR = 0.1, 70.0
 
 
 class SegmentationCamera:

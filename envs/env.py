@@ -107,7 +107,7 @@ class UrbanCollisionEnv(gym.Env):
         self._camera = SegmentationCamera(self._client, self._pool.lut, self.image_size, self.fov_deg)
 
     def close(self) -> None:
-        if self._client is not None:
+        if getattr(self, "_client", None) is not None:
             import pybullet as p
 
             try:
@@ -117,7 +117,10 @@ class UrbanCollisionEnv(gym.Env):
             self._client = None
 
     def __del__(self):
-        self.close()
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: pybullet may already be unloaded
+            pass
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):

@@ -61,7 +61,11 @@ class NoisyAutopilot:
         delta = math.atan(2.0 * self.params.wheelbase * math.sin(alpha) / lookahead)
         steer = -delta / self.params.max_steer          # positive action steers right
         pedal = 0.5 * (self.target_speed - v)
-        action = np.array([steer, pedal]) + self.rng.normal(0.0, [self.steer_noise, self.throttle_noise])
+        # Steering noise is a share of the grip-limited wheel angle at this speed: the same action noise
+        # that is a gentle wobble at 5 m/s would saturate the tyres at 30 m/s.
+        grip_steer = math.atan(self.params.mu * 9.81 * self.params.wheelbase / max(v, 1.0) ** 2)
+        steer_sigma = self.steer_noise * min(1.0, grip_steer / self.params.max_steer)
+        action = np.array([steer, pedal]) + self.rng.normal(0.0, [steer_sigma, self.throttle_noise])
 
         if self.excursion_left == 0 and self.rng.random() < self.excursion_rate:
             self.excursion_left = max(1, int(self.rng.uniform(*self.excursion_s) / self.dt))

@@ -48,7 +48,11 @@ PARK_Z = -60.0              # where unused pool bodies wait, far below the groun
 
 @dataclass(frozen=True)
 class Template:
-    """One kind of pooled body: a box (half extents) or a cylinder (radius, height)."""
+    """One kind of pooled body: a box (half extents) or a post (radius, height).
+
+    Posts collide as circles but render as square boxes: pybullet tessellates cylinders into hundreds of
+    triangles, which made TinyRenderer several times slower for no visible gain at 64x64.
+    """
     cls: int
     shape: str
     size: tuple
@@ -59,10 +63,10 @@ class Template:
 TEMPLATES: dict[str, Template] = {
     "building_long": Template(BUILDINGS, "box", (8.0, 5.0, 12.0), 16),
     "building_short": Template(BUILDINGS, "box", (4.5, 5.0, 12.0), 16),
-    "pole": Template(POLES, "cylinder", (0.12, 6.0), 28),
-    "sign_post": Template(POLES, "cylinder", (0.06, 2.2), 10),
+    "pole": Template(POLES, "post", (0.12, 6.0), 28),
+    "sign_post": Template(POLES, "post", (0.06, 2.2), 10),
     "sign_plate": Template(TRAFFICSIGNS, "box", (0.04, 0.35, 0.35), 10),
-    "trunk": Template(VEGETATION, "cylinder", (0.2, 3.0), 16),
+    "trunk": Template(VEGETATION, "post", (0.2, 3.0), 16),
     "crown": Template(VEGETATION, "box", (1.4, 1.4, 1.2), 16),
     "hedge": Template(VEGETATION, "box", (2.0, 0.5, 0.5), 10),
     "fence": Template(FENCES, "box", (4.0, 0.05, 0.6), 10),
@@ -76,10 +80,9 @@ TEMPLATES: dict[str, Template] = {
 _X_MID = 0.5 * (SCENE_X[0] + SCENE_X[1])
 _X_HALF = 0.5 * (SCENE_X[1] - SCENE_X[0]) + 40.0
 FIXED_BOXES = (
-    (OTHER, (_X_HALF, 80.0, 0.05), (_X_MID, 0.0, -0.06)),                       # open ground
     (ROADS, (_X_HALF, ROAD_HALF_WIDTH, 0.01), (_X_MID, 0.0, 0.0)),              # carriageway
-    (SIDEWALKS, (_X_HALF, 9.0, SIDEWALK_HEIGHT / 2), (_X_MID, ROAD_HALF_WIDTH + 9.0, SIDEWALK_HEIGHT / 2 - 0.01)),
-    (SIDEWALKS, (_X_HALF, 9.0, SIDEWALK_HEIGHT / 2), (_X_MID, -ROAD_HALF_WIDTH - 9.0, SIDEWALK_HEIGHT / 2 - 0.01)),
+    (SIDEWALKS, (_X_HALF, 20.0, SIDEWALK_HEIGHT / 2), (_X_MID, ROAD_HALF_WIDTH + 20.0, SIDEWALK_HEIGHT / 2 - 0.01)),
+    (SIDEWALKS, (_X_HALF, 20.0, SIDEWALK_HEIGHT / 2), (_X_MID, -ROAD_HALF_WIDTH - 20.0, SIDEWALK_HEIGHT / 2 - 0.01)),
     (ROADLINES, (_X_HALF, 0.08, 0.012), (_X_MID, ROAD_HALF_WIDTH - 0.2, 0.0)),  # solid edge lines
     (ROADLINES, (_X_HALF, 0.08, 0.012), (_X_MID, -ROAD_HALF_WIDTH + 0.2, 0.0)),
 )
@@ -146,7 +149,7 @@ def sample_layout(rng: np.random.Generator, junction_x: float) -> StaticLayout:
                 if near_junction(x, half):
                     continue
                 cy = side * y_abs
-                if tmpl.shape == "cylinder":
+                if tmpl.shape == "post":
                     r, h = tmpl.size
                     placed[name].append((x, cy, h / 2))
                     circles.append((x, cy, r, tmpl.cls))
@@ -189,7 +192,7 @@ class BodyPool:
             if shape == "box":
                 vs = p.createVisualShape(p.GEOM_BOX, halfExtents=list(size), rgbaColor=colour, physicsClientId=client)
             else:
-                vs = p.createVisualShape(p.GEOM_CYLINDER, radius=size[0], length=size[1], rgbaColor=colour,
+                vs = p.createVisualShape(p.GEOM_BOX, halfExtents=[size[0], size[0], size[1] / 2], rgbaColor=colour,
                                          physicsClientId=client)
             uid = p.createMultiBody(baseMass=0, baseVisualShapeIndex=vs, basePosition=list(pos),
                                     physicsClientId=client)

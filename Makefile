@@ -1,0 +1,30 @@
+# Two commands do everything: `make run` (the whole pipeline at scale=quick) and `make test`.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+EXPERIMENT ?= quick
+
+.PHONY: setup run test bench preview clean-venv
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: requirements.lock pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q -r requirements.lock
+	$(PY) -m pip install -q --no-deps -e .
+	touch $@
+
+run: setup
+	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) -m benchmarks.run
+
+preview: setup
+	$(PY) -m envs.preview --out runs/preview/episode.gif
+
+clean-venv:
+	rm -rf $(VENV)

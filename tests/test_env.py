@@ -1,0 +1,240 @@
+"""The simulator through the real pybullet scene: spaces, TTC placement, dynamics, collisions, injury,
+determinism and what the camera sees."""
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import envs
+from envs import DT, ScenarioSpec, UrbanCollisionEnv, occupant_injury, pedestrian_injury, sample_scenario, test_bank
+from envs.scene import PEDESTRIANS, VEHICLES
+
+
+def run_episode(env, spec, action=(0.0, 0.0)):
+    obs, info = env.reset(options={"scenario": spec})
+    frames, infos = [obs], [info]
+    while True:
+        obs, reward, terminated, truncated, info = env.step(np.array(action, dtype=np.float32))
+        frames.append(obs)
+        infos.append(info)
+        if terminated or truncated:
+            return frames, infos
+
+
+def test_registered_and_check_env_passes():
+    env = gym.make(envs.ENV_ID, camera=True)
+    check_env(env.unwrapped)
+    obs, _ = env.reset(seed=3)
+    assert obs["seg"].dtype == np.uint8 and obs["seg"].shape == (64, 64)
+    assert obs["speed"].dtype == np.float32 and obs["speed"].shape == (1,)
+    assert env.action_space.shape == (2,) and env.action_space.dtype == np.float32
+    assert env.observation_space["seg"].high.max() == 12
+    env.close()
+
+
+@pytest.mark.parametrize("field,value", [("ttc", -0.5), ("ego_speed", 55.0), ("pedestrian_speed", 0.0),
+                                         ("n_cars", 11), ("n_pedestrians", -1), ("p_car", 1.5)])
+def test_invalid_scenario_names_the_field(field, value):
+    kwargs = dict(seed=1, ttc=1.0, ego_speed=10.0)
+    kwargs[field] = value
+    with pytest.raises(ValueError, match=field):
+        ScenarioSpec(**kwargs)
+
+
+def test_invalid_env_config_names_the_key():
+    with pytest.raises(ValueError, match="reward"):
+        UrbanCollisionEnv(camera=False, reward="r3")
+
+
+def test_hazard_reaches_collision_point_at_ttc_and_collides():
+    """Under [0, 0] the hazard meets the ego's bumper at the sampled TTC, for 200+ paper-distribution draws."""
+    env = UrbanCollisionEnv(camera=False)
+    rng = np.random.default_rng(0)
+    checked = 0
+    while checked < 200:
+        spec = sample_scenario(rng)
+        if spec.hazard == "none":
+            continue
+        obs, info = env.reset(options={"scenario": spec})
+        a = env.actors
+        k_car = np.flatnonzero(a.car_hazard)
+        k_ped = np.flatnonzero(a.ped_hazard)
+        start = {"car": a.car_xy[k_car].copy(), "ped": a.ped_xy[k_ped].copy()}
+        first = None
+        while True:
+            obs, r, term, trunc, info = env.step([0.0, 0.0])
+            if info["collisions"] and first is None:
+                first = info["collisions"]
+            if term or trunc:
+                break
+        assert first is not None, f"no collision in {spec}"
+        assert all(c["hazard"] for c in first), f"first contact was not the hazard: {first}"
+        sub_dt = DT / env.substeps
+        for c in first:
+            assert abs(c["time"] - spec.ttc) <= sub_dt + 1e-9, (spec, c)
+        # Where the hazard is at TTC (straight-line kinematics from its start): at the collision point.
+        bumper = env.params.length / 2 + spec.ego_speed * spec.ttc
+        if spec.car_hazard:
+            near_side = start["car"][0] + a.car_vel[k_car[0]] * spec.ttc
+            assert abs(near_side[0] - env.params.width / 2 - bumper) < 1e-9
+            assert abs(near_side[1] - (-1.75)) < 1e-9
+        checked += 1
+    env.close()
+
+
+def test_full_brake_decelerates_at_9_8_and_zero_action_holds_speed():
+    env = UrbanCollisionEnv(camera=False)
+    spec = ScenarioSpec(seed=5, ttc=1.5, ego_speed=20.0)
+    env.reset(options={"scenario": spec})
+    speeds = [env.ego.v]
+    for _ in range(10):
+        _, _, _, _, info = env.step([0.0, -1.0])
+        speeds.append(info["speed"])
+    decel = -np.diff(speeds) / DT
+    assert np.allclose(decel, 9.8, atol=1e-6)
+    env.reset(options={"scenario": spec})
+    for _ in range(20):
+        _, _, _, _, info = env.step([0.0, 0.0])
+    assert info["speed"] == pytest.approx(20.0, abs=1e-12)
+    assert info["y"] == pytest.approx(-1.75, abs=1e-12)
+
+
+def test_car_stops_and_stays_stopped_under_braking():
+    env = UrbanCollisionEnv(camera=False)
+    env.reset(options={"scenario": ScenarioSpec(seed=5, ttc=1.5, ego_speed=5.0)})
+    for _ in range(20):
+        _, _, term, trunc, info = env.step([0.0, -1.0])
+    assert info["speed"] == 0.0 and not term
+
+
+@pytest.mark.parametrize("speed", [2.0, 30.0])
+def test_pedestrian_hit_registered_once_with_impact_speed(speed):
+    env = UrbanCollisionEnv(camera=False)
+    spec = ScenarioSpec(seed=11, ttc=1.0, ego_speed=speed, pedestrian_speed=3.0, p_pedestrian=1.0)
+    _, infos = run_episode(env, spec)
+    hits = [c for i in infos for c in i["collisions"] if c["kind"] == "pedestrian"]
+    assert len(hits) == 1
+    assert hits[0]["impact_speed"] == pytest.approx(speed)
+    assert hits[0]["injury"][0] == pytest.approx(pedestrian_injury(speed))
+    outcome = infos[-1]["outcome"]
+    assert outcome["pedestrian_collision"] == 1 and outcome["n_pedestrians_hit"] == 1
+    assert outcome["speed_at_collision"] == pytest.approx(speed)
+    # The episode continues after a pedestrian hit, to the horizon.
+    assert outcome["end"] == "horizon"
+
+
+def test_injury_models_match_hand_computed_values():
+    assert pedestrian_injury(50 / 3.6) == pytest.approx(1 / (1 + math.exp(6.9 - 4.5)), rel=1e-12)
+    assert pedestrian_injury(50 / 3.6) == pytest.approx(0.083, abs=0.001)
+    thirty_mph = 30 / 0.621 / 3.6
+    assert occupant_injury(thirty_mph) == pytest.approx((30 / 71) ** 4, rel=1e-9)
+    assert occupant_injury(thirty_mph) == pytest.approx(0.032, abs=0.001)
+    assert occupant_injury(60.0) == 1.0
+
+
+def test_vehicle_crash_delta_v_and_rewards():
+    env = UrbanCollisionEnv(camera=False, reward="r1")
+    spec = ScenarioSpec(seed=3, ttc=0.8, ego_speed=20.0, p_car=1.0, hazard_car_speed=8.0)
+    _, infos = run_episode(env, spec)
+    crash = [c for i in infos for c in i["collisions"] if c["kind"] == "vehicle"][0]
+    rel = math.hypot(20.0, 8.0)
+    assert crash["relative_speed"] == pytest.approx(rel)
+    assert crash["delta_v_ego"] == pytest.approx(rel / 2) and crash["delta_v_other"] == pytest.approx(rel / 2)
+    assert crash["n_involved"] == 2
+    out = infos[-1]["outcome"]
+    assert out["end"] == "crash" and out["vehicle_collision"] == 1
+    assert out["return_r1"] == -2.0
+    assert out["return_r2"] == pytest.approx(-2 * occupant_injury(rel / 2))
+
+
+def _trace(env, spec, actions):
+    obs, info = env.reset(options={"scenario": spec})
+    out = [(obs["seg"].copy(), obs["speed"].copy(), info)]
+    for a in actions:
+        obs, r, term, trunc, info = env.step(a)
+        out.append((obs["seg"].copy(), obs["speed"].copy(), info, r, term, trunc))
+        if term or trunc:
+            break
+    return out
+
+
+def test_same_seed_same_actions_bit_identical_across_instances_and_resets():
+    spec = ScenarioSpec(seed=21, ttc=0.9, ego_speed=15.0, n_cars=6, n_pedestrians=6, p_pedestrian=1.0, p_car=1.0)
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(40, 2)).astype(np.float32)
+    a, b = UrbanCollisionEnv(camera=True), UrbanCollisionEnv(camera=True)
+    first = _trace(a, spec, actions)
+    for trace in (_trace(b, spec, actions), _trace(a, spec, actions)):
+        assert len(trace) == len(first)
+        for x, y in zip(first, trace):
+            assert np.array_equal(x[0], y[0]) and np.array_equal(x[1], y[1])
+            assert repr(x[2:]) == repr(y[2:])
+    # A seed alone also replays: the scenario is drawn from it.
+    assert a.reset(seed=4)[1]["ttc"] == b.reset(seed=4)[1]["ttc"]
+    a.close(), b.close()
+
+
+def test_camera_on_and_off_give_identical_outcomes():
+    spec = ScenarioSpec(seed=8, ttc=0.7, ego_speed=25.0, n_cars=8, n_pedestrians=8, p_pedestrian=1.0)
+    actions = np.tile([[0.6, -0.5]], (60, 1)).astype(np.float32)
+    on = _trace(UrbanCollisionEnv(camera=True), spec, actions)
+    off = _trace(UrbanCollisionEnv(camera=False), spec, actions)
+    assert len(on) == len(off)
+    for x, y in zip(on, off):
+        assert repr(x[2:]) == repr(y[2:])
+    assert on[-1][2]["outcome"] == off[-1][2]["outcome"]
+
+
+def test_car_straight_ahead_shows_vehicle_pixels_in_centre():
+    env = UrbanCollisionEnv(camera=True)
+    env.reset(options={"scenario": ScenarioSpec(seed=2, ttc=1.5, ego_speed=10.0)})
+    assert not (env._observe()["seg"][28:36, 28:36] == VEHICLES).any()
+    env.actors.car_xy[0] = (env.ego.x + 8.0, env.ego.y)
+    env.actors.car_heading[0] = 0.0
+    env.actors.car_active[0] = True
+    seg = env._observe()["seg"]
+    assert (seg[29:35, 29:35] == VEHICLES).all()
+    env.close()
+
+
+def test_crossing_pedestrian_shows_pedestrian_pixels():
+    env = UrbanCollisionEnv(camera=True)
+    spec = ScenarioSpec(seed=4, ttc=1.2, ego_speed=8.0, pedestrian_speed=2.0, p_pedestrian=1.0)
+    obs, _ = env.reset(options={"scenario": spec})
+    seen = []
+    for _ in range(12):
+        obs, *_ = env.step([0.0, 0.0])
+        seen.append(int((obs["seg"] == PEDESTRIANS).sum()))
+    assert max(seen) > 10
+    assert env.hazard_pixels() > 0
+    env.close()
+
+
+def test_test_bank_is_seeded_and_subsets_agree():
+    full = test_bank(per_cell=3)
+    assert len(full) == 3 * 7 * 3 * 3
+    again = test_bank(per_cell=3)
+    assert [e.spec for e in full] == [e.spec for e in again]
+    small = test_bank(ttcs=(0.5,), speeds=(30.0,), hazards=("car",), per_cell=2)
+    lookup = {(e.hazard, e.ttc, e.speed, e.index): e.spec for e in full}
+    for e in small:
+        assert lookup[(e.hazard, e.ttc, e.speed, e.index)] == e.spec
+        assert e.spec.car_hazard and not e.spec.pedestrian_hazard
+
+
+def test_noisy_autopilot_keeps_lane_without_excursions():
+    env = UrbanCollisionEnv(camera=False, horizon_after_ttc_s=None, max_episode_s=8.0)
+    pilot = envs.NoisyAutopilot(steer_noise=0.05, throttle_noise=0.05, excursion_rate=0.0)
+    pilot.reset(1)
+    obs, info = env.reset(options={"scenario": ScenarioSpec(seed=1, ttc=1.5, ego_speed=15.0, n_cars=0)})
+    worst = 0.0
+    while True:
+        obs, r, term, trunc, info = env.step(pilot.act(obs, info))
+        worst = max(worst, abs(info["lane_offset"]))
+        if term or trunc:
+            break
+    assert worst < 0.5
+    assert abs(info["speed"] - 15.0) < 1.5
