@@ -1,0 +1,226 @@
+"""Phase 0: drive the noisy lane-keeping autopilot through paper-distribution scenarios, record to HDF5.
+
+    python -m worldmodel.collect experiment=NAME scale=smoke|quick|paper [resume=true]
+
+Episode i always uses the scenario drawn from ``(seed, i)`` and the autopilot seeded the same way, whatever
+the worker count, so two runs with the same config write identical data. Shards appear only when complete;
+after a kill (even SIGKILL) ``resume=true`` writes exactly the missing shards, and the result is identical
+to an uninterrupted run.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from .common import StageError, atomic_write_text, data_dir, hydra_main, positive
+from .data import SCHEMA_VERSION, clean_temporaries, shard_name, write_shard
+
+STAGE = "collect"
+
+
+def rollout_dir(cfg) -> Path:
+    return data_dir(cfg) / "rollouts"
+
+
+def episode_spec(seed: int, index: int):
+    from envs import sample_scenario
+
+    return sample_scenario(np.random.default_rng([seed, index]))
+
+
+def _collection_settings(cfg) -> dict:
+    c = cfg.collect
+    return {
+        "schema_version": SCHEMA_VERSION, "seed": int(cfg.seed), "episodes": int(c.episodes),
+        "episodes_per_shard": int(c.episodes_per_shard), "max_episode_s": float(c.max_episode_s),
+        "autopilot": OmegaConf.to_container(c.autopilot, resolve=True),
+        "env": {"image_size": int(cfg.env.image_size), "fov_deg": float(cfg.env.fov_deg), "mu": float(cfg.env.mu),
+                "occupants_per_car": int(cfg.env.occupants_per_car)},
+    }
+
+
+# ----------------------------------------------------------------------------- worker side
+_ENV = None
+
+
+def _worker_env(settings: dict):
+    global _ENV
+    if _ENV is None:
+        from envs import UrbanCollisionEnv
+
+        e = settings["env"]
+        _ENV = UrbanCollisionEnv(camera=True, image_size=e["image_size"], fov_deg=e["fov_deg"], mu=e["mu"],
+                                 occupants_per_car=e["occupants_per_car"], horizon_after_ttc_s=None,
+                                 max_episode_s=settings["max_episode_s"])
+    return _ENV
+
+
+def record_episode(env, settings: dict, index: int) -> dict:
+    from envs import NoisyAutopilot
+
+    spec = episode_spec(settings["seed"], index)
+    ap = settings["autopilot"]
+    pilot = NoisyAutopilot(ap["steer_noise"], ap["throttle_noise"], ap["excursion_rate"], tuple(ap["excursion_s"]))
+    pilot.reset(spec.seed)
+    obs, info = env.reset(options={"scenario": spec})
+    seg, speed, action, r1, r2 = [obs["seg"]], [obs["speed"][0]], [], [], []
+    while True:
+        a = pilot.act(obs, info)
+        obs, _, terminated, truncated, info = env.step(a)
+        action.append(a)
+        r1.append(info["reward_r1"])
+        r2.append(info["reward_r2"])
+        seg.append(obs["seg"])
+        speed.append(obs["speed"][0])
+        if terminated or truncated:
+            break
+    n = len(seg)
+    done = np.zeros(n, np.uint8)
+    done[-2:] = 1
+    pad = np.zeros((1, 2), np.float32)
+    return {
+        "index": index, "seed": spec.seed, "n_steps": n - 1, "terminated": bool(terminated),
+        "scenario": spec.to_json(), "outcome": json.dumps(info["outcome"], sort_keys=True),
+        "seg": np.stack(seg).astype(np.uint8), "speed": np.asarray(speed, np.float32),
+        "action": np.concatenate([np.asarray(action, np.float32), pad]),
+        "reward_r1": np.asarray(r1 + [0.0], np.float32), "reward_r2": np.asarray(r2 + [0.0], np.float32),
+        "done": done,
+        "_outcome": info["outcome"], "_hazard": spec.hazard,
+    }
+
+
+def collect_shard(task: tuple[dict, str, int, list[int]]) -> dict:
+    """Record the episodes of one shard and write it atomically; returns its statistics."""
+    settings, root, k, indices = task
+    env = _worker_env(settings)
+    episodes = [record_episode(env, settings, i) for i in indices]
+    meta = {"class_names": json.dumps(__import__("envs").CLASS_NAMES), "dt": 1.0 / 15.0,
+            "settings": json.dumps(settings, sort_keys=True)}
+    write_shard(Path(root) / shard_name(k), episodes, meta)
+    return {
+        "shard": k,
+        "lengths": {e["index"]: len(e["seg"]) for e in episodes},
+        "hazards": [e["_hazard"] for e in episodes],
+        "outcomes": [e["_outcome"] for e in episodes],
+    }
+
+
+# ----------------------------------------------------------------------------- driver
+def _split(seed: int, episodes: int, fraction: float) -> dict:
+    order = np.random.default_rng([seed, 7919]).permutation(episodes)
+    n_val = max(1, int(round(fraction * episodes))) if episodes > 1 else 0
+    return {"train": sorted(int(i) for i in order[n_val:]), "validation": sorted(int(i) for i in order[:n_val])}
+
+
+def validate_config(cfg) -> None:
+    positive(cfg.collect, "episodes", "num_workers", "episodes_per_shard", "max_episode_s", where="collect")
+    if not 0.0 <= cfg.collect.validation_fraction < 1.0:
+        raise StageError(f"config collect.validation_fraction={cfg.collect.validation_fraction} must be in [0, 1)")
+
+
+def run(cfg) -> dict:
+    validate_config(cfg)
+    root = rollout_dir(cfg)
+    settings = _collection_settings(cfg)
+    manifest_path = root / "manifest.json"
+    config_path = root / "collect_config.json"
+
+    if config_path.exists():
+        previous = json.loads(config_path.read_text())
+        if previous != settings:
+            raise StageError(f"{root} was collected with different settings ({config_path}). Use another "
+                             f"experiment=NAME, or delete {root} to start again.")
+        if manifest_path.exists():
+            print(f"[collect] {root} is already complete; nothing to do.")
+            return json.loads(manifest_path.read_text())["summary"]
+        if not cfg.resume:
+            raise StageError(f"{root} holds a partial collection. Pass resume=true to finish it, or delete it.")
+    root.mkdir(parents=True, exist_ok=True)
+    clean_temporaries(root)
+    atomic_write_text(config_path, json.dumps(settings, indent=2, sort_keys=True))
+    split = _split(settings["seed"], settings["episodes"], float(cfg.collect.validation_fraction))
+    atomic_write_text(root / "split.json", json.dumps(split))
+
+    per = settings["episodes_per_shard"]
+    shards = [(k, list(range(k * per, min(settings["episodes"], (k + 1) * per))))
+              for k in range((settings["episodes"] + per - 1) // per)]
+    todo = [(settings, str(root), k, ids) for k, ids in shards if not (root / shard_name(k)).exists()]
+    done_stats = _stats_of_existing(root, [k for k, _ in shards if (root / shard_name(k)).exists()])
+
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    workers = min(int(cfg.collect.num_workers), max(1, len(todo)))
+    new_stats = []
+    with tqdm(total=settings["episodes"], initial=sum(len(s["lengths"]) for s in done_stats),
+              unit="episode", desc="collect") as bar:
+        if workers == 1:
+            for task in todo:
+                new_stats.append(collect_shard(task))
+                bar.update(len(task[3]))
+        else:
+            with mp.get_context("spawn").Pool(workers) as pool:
+                for stats in pool.imap_unordered(collect_shard, todo):
+                    new_stats.append(stats)
+                    bar.update(len(stats["lengths"]))
+    wall = time.perf_counter() - t0
+
+    all_stats = done_stats + new_stats
+    summary = _summarise(all_stats, wall, sum(sum(s["lengths"].values()) for s in new_stats))
+    lengths = {str(i): n for s in all_stats for i, n in s["lengths"].items()}
+    manifest = {"schema_version": SCHEMA_VERSION, "episodes": settings["episodes"],
+                "shards": [shard_name(k) for k, _ in shards], "lengths": lengths, "summary": summary}
+    atomic_write_text(manifest_path, json.dumps(manifest, indent=1, sort_keys=True))
+    _print_summary(root, summary)
+    return summary
+
+
+def _stats_of_existing(root: Path, ks: list[int]) -> list[dict]:
+    import h5py
+
+    from .data import check_shard, episode_key
+
+    stats = []
+    for k in ks:
+        path = root / shard_name(k)
+        ids = check_shard(path, full=False)
+        with h5py.File(path, "r") as f:
+            eps = [f[episode_key(i)] for i in ids]
+            stats.append({"shard": k, "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, eps)},
+                          "hazards": [json.loads(g.attrs["scenario"]) for g in eps],
+                          "outcomes": [json.loads(g.attrs["outcome"]) for g in eps]})
+        # scenario JSON -> hazard name, as a fresh run reports it
+        from envs import ScenarioSpec
+
+        stats[-1]["hazards"] = [ScenarioSpec.from_dict(h).hazard for h in stats[-1]["hazards"]]
+    return stats
+
+
+def _summarise(stats: list[dict], wall: float, new_frames: int) -> dict:
+    outcomes = [o for s in stats for o in s["outcomes"]]
+    hazards = [h for s in stats for h in s["hazards"]]
+    frames = sum(sum(s["lengths"].values()) for s in stats)
+    return {
+        "episodes": len(outcomes), "frames": frames,
+        "hazards": {k: hazards.count(k) for k in ("pedestrian", "car", "both", "none")},
+        "collisions": {k: int(sum(o[f"{k}_collision"] for o in outcomes)) for k in ("pedestrian", "vehicle", "static")},
+        "ended_by": {k: sum(o["end"] == k for o in outcomes) for k in ("crash", "left_scene", "horizon")},
+        "wall_s": round(wall, 2), "frames_per_s_this_run": round(new_frames / wall, 1) if wall > 0 else None,
+    }
+
+
+def _print_summary(root: Path, s: dict) -> None:
+    print(f"[collect] {root}: {s['episodes']} episodes, {s['frames']} frames; hazards {s['hazards']}; "
+          f"collisions {s['collisions']}; ended by {s['ended_by']}; {s['wall_s']} s wall, "
+          f"{s['frames_per_s_this_run']} frames/s")
+
+
+main = hydra_main(STAGE)(run)
+
+if __name__ == "__main__":
+    main()

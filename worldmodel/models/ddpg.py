@@ -1,0 +1,278 @@
+"""DDPG (Lillicrap et al. 2015, "Continuous control with deep reinforcement learning").
+
+A deterministic actor mu(s) in [-1, 1]^act_dim and a critic Q(s, a), each with a slowly tracking target
+copy. The critic regresses onto
+
+    y = r + gamma * (1 - terminated) * Q'(s', mu'(s'))
+
+and the actor ascends Q(s, mu(s)). Written in the spirit of CleanRL's ``ddpg_continuous_action.py`` but as
+an importable module: the training loop (environment, warm-up, logging, checkpoint files) lives in the stage
+that uses it. A typical loop::
+
+    agent = DDPG(obs_dim, act_dim, DDPGConfig.from_mapping(cfg.agent), seed=cfg.seed)
+    buffer = ReplayBuffer(agent.cfg.buffer_size, obs_dim, act_dim)
+    for step in range(total_steps):
+        action = agent.random_action() if step < agent.cfg.warmup_steps else agent.act(obs, explore=True)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        buffer.add(obs, action, reward, next_obs, terminated)   # not `terminated or truncated`
+        if step >= agent.cfg.warmup_steps:
+            agent.update(buffer.sample(agent.cfg.batch_size, agent.rng))
+
+Everything random after construction (exploration noise, warm-up actions, minibatch indices when the caller
+passes ``agent.rng``) comes from one ``np.random.Generator`` whose state is part of ``state_dict()``, so a
+resumed run continues exactly where it stopped.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+@dataclass
+class DDPGConfig:
+    actor_hidden: tuple[int, ...] = (400, 300)
+    """widths of the actor's hidden layers (Lillicrap: 400, 300)"""
+    critic_hidden: tuple[int, ...] = (400, 300)
+    """widths of the critic's hidden layers (Lillicrap: 400, 300)"""
+    actor_lr: float = 1e-4
+    """Adam learning rate of the actor (Lillicrap: 1e-4)"""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the critic (Lillicrap: 1e-3); faster than the actor so Q stays a usable guide"""
+    gamma: float = 0.99
+    """discount factor (Lillicrap: 0.99)"""
+    tau: float = 0.005
+    """target-network tracking rate per update. Lillicrap use 0.001 over ~1M steps; our runs are 20-60k steps,
+    so targets must follow faster (0.005 is the TD3/CleanRL value)"""
+    batch_size: int = 64
+    """minibatch size per update (Lillicrap: 64)"""
+    buffer_size: int = 100_000
+    """replay capacity in transitions. Lillicrap use 1e6; ours holds every transition of a `paper` run"""
+    exploration_noise: float = 0.2
+    """std of the Gaussian noise added to actions (action units, actions in [-1, 1]). Lillicrap use
+    Ornstein-Uhlenbeck noise with sigma 0.2; uncorrelated Gaussian noise works as well (Fujimoto et al. 2018)
+    and carries no state that a resumed run would have to restore"""
+    warmup_steps: int = 1000
+    """environment steps with uniform random actions before the first update, so early minibatches are not
+    all drawn from the same few transitions"""
+
+    @classmethod
+    def from_mapping(cls, m: Mapping[str, Any]) -> "DDPGConfig":
+        """Build from a dict-like (e.g. the OmegaConf ``agent`` section); keys that are not fields are ignored,
+        since that section also holds settings of the training loop (total_steps, checkpoint_every, ...)."""
+        kwargs = {}
+        for f in fields(cls):
+            if f.name not in m:
+                continue
+            value = m[f.name]
+            default = f.default
+            # OmegaConf hands lists over as ListConfig and YAML may write 1000 as 1.0e3: cast to the field's type.
+            if isinstance(default, tuple):
+                value = tuple(int(v) for v in value)
+            else:
+                value = type(default)(value)
+            kwargs[f.name] = value
+        return cls(**kwargs)
+
+
+def mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:
+    """Linear layers with ReLU between them; the last layer is linear so the caller picks the squashing."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(in_dim, width), nn.ReLU()]
+        in_dim = width
+    layers.append(nn.Linear(in_dim, out_dim))
+    return nn.Sequential(*layers)
+
+
+def init_final_layer(layer: nn.Linear, bound: float = 3e-3) -> None:
+    # Lillicrap sec. 7: a near-zero final layer makes initial actions and Q-values close to zero, so the
+    # first updates are not dominated by an arbitrary random policy or value estimate.
+    nn.init.uniform_(layer.weight, -bound, bound)
+    nn.init.uniform_(layer.bias, -bound, bound)
+
+
+class Actor(nn.Module):
+    """Deterministic policy mu(s) with actions in [-1, 1]^act_dim."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300)):
+        super().__init__()
+        self.net = mlp(obs_dim, hidden, act_dim)
+        init_final_layer(self.net[-1])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(obs))
+
+
+class Critic(nn.Module):
+    """Q(s, a). The action joins at the input (as in CleanRL) rather than at the second layer (Lillicrap);
+    for our low-dimensional latent inputs the difference does not matter and this keeps one plain MLP."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300)):
+        super().__init__()
+        self.net = mlp(obs_dim + act_dim, hidden, 1)
+        init_final_layer(self.net[-1])
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Returns Q with shape (batch,)."""
+        return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class ReplayBuffer:
+    """Fixed-capacity circular store of transitions in preallocated float32 arrays.
+
+    ``terminated`` is 1.0 only for true terminal states (collision, stop). A transition cut by a time limit
+    is stored with terminated=0 so its value is bootstrapped from ``next_obs``.
+    """
+
+    FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int):
+        self.capacity = int(capacity)
+        self.obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
+        self.actions = np.zeros((self.capacity, act_dim), dtype=np.float32)
+        self.rewards = np.zeros(self.capacity, dtype=np.float32)
+        self.next_obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
+        self.terminated = np.zeros(self.capacity, dtype=np.float32)
+        self.pos = 0  # where the next transition goes; once full, also the oldest one
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs, action, reward: float, next_obs, terminated: bool) -> None:
+        i = self.pos
+        self.obs[i] = obs
+        self.actions[i] = action
+        self.rewards[i] = reward
+        self.next_obs[i] = next_obs
+        self.terminated[i] = float(terminated)
+        self.pos = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        """Uniform sample with replacement. Keys: obs, actions, rewards, next_obs, terminated."""
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty replay buffer")
+        idx = rng.integers(0, self.size, size=batch_size)
+        # Fancy indexing copies, so the tensors never alias the buffer that later adds overwrite.
+        return {name: torch.from_numpy(getattr(self, name)[idx]) for name in self.FIELDS}
+
+    def state_dict(self) -> dict[str, Any]:
+        # Only the filled part: a checkpoint early in a run stays small. Slots keep their positions, so
+        # sampling after a restore draws exactly the transitions it would have drawn before.
+        state = {name: getattr(self, name)[: self.size].copy() for name in self.FIELDS}
+        state.update(capacity=self.capacity, pos=self.pos, size=self.size)
+        return state
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(
+                f"replay buffer was saved with capacity {state['capacity']} but this one has {self.capacity}; "
+                "resume with the same agent.buffer_size"
+            )
+        size = int(state["size"])
+        for name in self.FIELDS:
+            getattr(self, name)[:size] = state[name]
+        self.pos = int(state["pos"])
+        self.size = size
+
+
+class DDPG:
+    """Actor, critic, their targets and optimisers, and the agent's own random generator."""
+
+    def __init__(self, obs_dim: int, act_dim: int, cfg: DDPGConfig, seed: int):
+        self.obs_dim, self.act_dim, self.cfg = int(obs_dim), int(act_dim), cfg
+        self.rng = np.random.default_rng(seed)
+        # Initialise the networks from `seed` without consuming or resetting the global torch RNG,
+        # which the caller may be using for something else.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden)
+            self.critic = Critic(obs_dim, act_dim, cfg.critic_hidden)
+            self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden)
+            self.critic_target = Critic(obs_dim, act_dim, cfg.critic_hidden)
+        self.actor_target.load_state_dict(self.actor.state_dict())
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        # Targets are only ever read under no_grad and moved by soft_update.
+        self.actor_target.requires_grad_(False)
+        self.critic_target.requires_grad_(False)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+
+    # ------------------------------------------------------------------ acting
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        """mu(obs), plus Gaussian noise if ``explore``; float32 in [-1, 1]. ``obs`` may be one observation
+        (obs_dim,) or a batch (n, obs_dim)."""
+        with torch.inference_mode():
+            # as_tensor shares memory with a float32 array, so acting allocates nothing the size of the input.
+            action = self.actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        if explore:
+            action = action + self.rng.normal(0.0, self.cfg.exploration_noise, size=action.shape)
+        return np.clip(action, -1.0, 1.0).astype(np.float32, copy=False)
+
+    def random_action(self) -> np.ndarray:
+        """Uniform in [-1, 1]^act_dim, for the warm-up phase."""
+        return self.rng.uniform(-1.0, 1.0, size=self.act_dim).astype(np.float32)
+
+    # ------------------------------------------------------------------ learning
+    @torch.no_grad()
+    def td_target(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """y = r + gamma * (1 - terminated) * Q'(s', mu'(s')), from the target networks.
+
+        Only true terminations stop the bootstrap; a time-limit truncation must be stored with terminated=0.
+        """
+        next_obs = batch["next_obs"]
+        next_q = self.critic_target(next_obs, self.actor_target(next_obs))
+        return batch["rewards"] + self.cfg.gamma * (1.0 - batch["terminated"]) * next_q
+
+    def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
+        """One gradient step on critic and actor, then a soft update of both targets."""
+        target = self.td_target(batch)
+        q = self.critic(batch["obs"], batch["actions"])
+        critic_loss = F.mse_loss(q, target)
+        self.critic_optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic_optimizer.step()
+
+        # The actor is judged by the critic just updated (as in Lillicrap's Algorithm 1). The gradients this
+        # leaves on the critic's parameters are discarded by the critic's zero_grad on the next update.
+        actor_loss = -self.critic(batch["obs"], self.actor(batch["obs"])).mean()
+        self.actor_optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor_optimizer.step()
+
+        self.soft_update()
+        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(), "q_mean": q.mean().item()}
+
+    @torch.no_grad()
+    def soft_update(self) -> None:
+        """target <- (1 - tau) * target + tau * online, for actor and critic."""
+        for online, target in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
+            for p, tp in zip(online.parameters(), target.parameters()):
+                tp.lerp_(p, self.cfg.tau)
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "actor_target": self.actor_target.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.actor_target.load_state_dict(state["actor_target"])
+        self.critic_target.load_state_dict(state["critic_target"])
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.rng.bit_generator.state = state["rng"]
