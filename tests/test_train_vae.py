@@ -1,0 +1,76 @@
+"""Phase 1 on real smoke-scale rollouts: resume continues exactly; errors name what to do."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from worldmodel import collect, train_vae
+from worldmodel.common import StageError
+
+
+def scalar_steps(logdir, tag):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(logdir))
+    acc.Reload()
+    return [e.step for e in acc.Scalars(tag)]
+
+
+@pytest.fixture
+def rollouts(stage_cfg, tmp_path):
+    collect.run(stage_cfg("collect"))
+    return tmp_path
+
+
+def test_missing_dataset_names_the_collect_command(stage_cfg):
+    with pytest.raises(StageError, match="worldmodel.collect experiment=t"):
+        train_vae.run(stage_cfg("train_vae"))
+
+
+def test_train_one_epoch_then_resume_one_more_equals_two_epochs(stage_cfg, rollouts, tmp_path):
+    overrides = ("vae.batch_size=8",)
+    train_vae.run(stage_cfg("train_vae", *overrides, "vae.epochs=1"))
+    out = tmp_path / "runs" / "t" / "vae"
+    first = torch.load(out / "last.pt", weights_only=False)
+    steps_one = first["step"]
+    assert first["epoch"] == 1 and steps_one > 0
+
+    with pytest.raises(StageError, match="resume=true"):
+        train_vae.run(stage_cfg("train_vae", *overrides, "vae.epochs=2"))
+    metrics = train_vae.run(stage_cfg("train_vae", *overrides, "vae.epochs=2", "resume=true"))
+    resumed = torch.load(out / "last.pt", weights_only=False)
+    assert resumed["epoch"] == 2 and resumed["step"] == 2 * steps_one
+    adam_steps = {int(s["step"]) for s in resumed["optimizer"]["state"].values()}
+    assert adam_steps == {2 * steps_one}
+    logged = scalar_steps(out, "val/pixel_accuracy")
+    assert logged == [steps_one, 2 * steps_one]
+
+    # The same two epochs without the interruption give the same weights.
+    straight = tmp_path / "straight"
+    collect.run(stage_cfg("collect", root=straight))
+    train_vae.run(stage_cfg("train_vae", *overrides, "vae.epochs=2", root=straight))
+    ref = torch.load(straight / "runs" / "t" / "vae" / "last.pt", weights_only=False)
+    for k, v in ref["model"].items():
+        assert torch.allclose(v, resumed["model"][k], atol=1e-6), k
+
+    saved = json.loads((out / "metrics.json").read_text())
+    assert set(saved["iou"]) == {"None", "Buildings", "Fences", "Other", "Pedestrians", "Poles", "RoadLines",
+                                 "Roads", "Sidewalks", "Vegetation", "Vehicles", "Walls", "TrafficSigns"}
+    assert 0.0 <= saved["pixel_accuracy"] <= 1.0 and saved == metrics
+
+
+def test_latent_size_mismatch_with_checkpoint_is_named(stage_cfg, rollouts):
+    train_vae.run(stage_cfg("train_vae", "vae.batch_size=8"))
+    with pytest.raises(StageError, match="latent"):
+        train_vae.run(stage_cfg("train_vae", "vae.batch_size=8", "vae.latent_dim=64", "resume=true"))
+    with pytest.raises(StageError, match="vae.latent_dim"):
+        train_vae.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
+
+
+@pytest.mark.parametrize("override,key", [("vae.batch_size=0", "vae.batch_size"), ("vae.lr=-1", "vae.lr"),
+                                          ("vae.free_bits=-0.5", "vae.free_bits")])
+def test_impossible_config_stops_before_work(stage_cfg, override, key):
+    with pytest.raises(StageError, match=key):
+        train_vae.run(stage_cfg("train_vae", override))
