@@ -1,0 +1,352 @@
+"""Tests of worldmodel.report on hand-built evaluation rows whose every aggregate is known in advance.
+
+The synthetic bank (hazards pedestrian/car/both × TTC {0.5, 1.5} × speed {10, 30} × 4 scenarios):
+
+* ``braking`` hits the pedestrian in every pedestrian/both scenario (injury ``inj(ttc, speed)``) and the car in every
+  car/both scenario (occupant injury ``occ(speed)``); speed at collision = speed / 2.
+* ``agent_r2`` hits the pedestrian in even-numbered scenarios at TTC 0.5 only (never at 1.5), never hits a car, but
+  hits a pole (static, occupant injury 0.01) in odd-numbered car/both scenarios.
+* ``agent_r1`` behaves like braking with twice the occupant injury, so its occupant improvement is negative.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from worldmodel import report  # noqa: E402
+
+HAZARDS = ("pedestrian", "car", "both")
+N = 4
+
+
+def inj(ttc: float, speed: float) -> float:
+    return speed / 100.0 * (2.0 if ttc == 0.5 else 1.0)  # 0.2, 0.6 at TTC 0.5; 0.1, 0.3 at TTC 1.5
+
+
+def occ(speed: float) -> float:
+    return 0.003 * speed  # 0.03 at 10 m/s, 0.09 at 30 m/s
+
+
+def make_row(policy, sid, hazard, ttc, speed, **outcome):
+    row = dict(
+        policy=policy,
+        scenario_id=sid,
+        hazard=hazard,
+        ttc=float(ttc),
+        speed=float(speed),
+        seed=1000 + sid,
+        pedestrian_collision=0,
+        vehicle_collision=0,
+        static_collision=0,
+        lane_departure=0,
+        n_pedestrians_hit=0,
+        pedestrian_injury=0.0,
+        occupant_injury=0.0,
+        ego_occupant_injury=0.0,
+        speed_at_collision=math.nan,
+        steps=30,
+        return_r1=0.0,
+        return_r2=0.0,
+    )
+    row.update(outcome)
+    return row
+
+
+def bank(policies=("braking", "agent_r1", "agent_r2"), ttcs=(0.5, 1.5), speeds=(10, 30)):
+    rows, sid = [], 0
+    for hazard in HAZARDS:
+        for ttc in ttcs:
+            for speed in speeds:
+                for k in range(N):
+                    sid += 1
+                    ped = hazard in ("pedestrian", "both")
+                    car = hazard in ("car", "both")
+                    for policy in policies:
+                        out = {}
+                        if policy in ("braking", "agent_r1", "oracle"):
+                            if ped:
+                                out.update(pedestrian_collision=1, n_pedestrians_hit=1, pedestrian_injury=inj(ttc, speed))
+                            if car:
+                                factor = 2.0 if policy == "agent_r1" else 1.0
+                                out.update(vehicle_collision=1, occupant_injury=factor * occ(speed),
+                                           ego_occupant_injury=occ(speed) / 2)
+                            if ped or car:
+                                out.update(speed_at_collision=speed / 2, return_r1=-1.0, return_r2=-2.0)
+                        elif policy == "agent_r2":
+                            if ped and ttc == 0.5 and k % 2 == 0:
+                                out.update(pedestrian_collision=1, n_pedestrians_hit=1, pedestrian_injury=inj(ttc, speed),
+                                           speed_at_collision=speed / 2)
+                            if car and k % 2 == 1:
+                                out.update(static_collision=1, lane_departure=1, occupant_injury=0.01,
+                                           ego_occupant_injury=0.01, speed_at_collision=speed / 4)
+                        rows.append(make_row(policy, sid, hazard, ttc, speed, **out))
+    return rows
+
+
+def cell(summary, policy, hazard, ttc, speed):
+    hits = [c for c in summary["policies"][policy]["cells"]
+            if c["hazard"] == hazard and c["ttc"] == ttc and c["speed"] == speed]
+    assert len(hits) == 1, hits
+    return hits[0]
+
+
+def table_rows(md: str, title_start: str) -> dict[str, list[str]]:
+    """Label -> cell strings of the Markdown table under the heading that starts with ``title_start``."""
+    section = md.split("### " + title_start, 1)[1].split("\n### ", 1)[0]
+    out = {}
+    for line in section.splitlines():
+        if line.startswith("| ") and not line.startswith("| ---"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            out[cells[0]] = cells[1:]
+    return out
+
+
+def no_nan(text: str):
+    def reject(name):
+        raise AssertionError(f"non-finite constant {name} in JSON")
+
+    return json.loads(text, parse_constant=reject)
+
+
+# ----------------------------------------------------------------------------- summary
+def test_summary_numbers_and_json():
+    rows = bank()
+    summary = no_nan(json.dumps(report.summarize(rows), allow_nan=False))
+    assert summary["grid"]["ttcs"] == [0.5, 1.5] and summary["grid"]["speeds"] == [10.0, 30.0]
+    assert summary["grid"]["hazards"] == ["pedestrian", "car", "both"]
+    assert summary["grid"]["policies"] == ["braking", "agent_r1", "agent_r2"]
+    assert summary["grid"]["scenarios_per_cell"] == {"min": N, "max": N}
+
+    b = cell(summary, "braking", "pedestrian", 0.5, 30.0)
+    assert b["count"] == N
+    assert b["pedestrian_collision_rate"] == 1.0 and b["vehicle_collision_rate"] == 0.0
+    assert b["pedestrian_severe_injury"] == pytest.approx(0.6)
+    assert b["mean_speed_at_collision"] == pytest.approx(15.0)
+
+    r2 = cell(summary, "agent_r2", "pedestrian", 0.5, 30.0)
+    assert r2["pedestrian_collision_rate"] == 0.5
+    assert r2["pedestrian_severe_injury"] == pytest.approx(0.3)
+    assert r2["mean_speed_at_collision"] == pytest.approx(15.0)  # NaN of the misses ignored
+
+    quiet = cell(summary, "agent_r2", "pedestrian", 1.5, 10.0)  # no collision at all
+    assert quiet["pedestrian_collision_rate"] == 0.0 and quiet["mean_speed_at_collision"] is None
+
+    car = cell(summary, "agent_r2", "car", 1.5, 10.0)
+    assert car["vehicle_collision_rate"] == 0.0
+    assert car["static_collision_rate"] == 0.5 and car["lane_departure_rate"] == 0.5
+    assert car["occupant_severe_injury"] == pytest.approx(0.005)
+    assert car["mean_speed_at_collision"] == pytest.approx(2.5)
+
+    overall = summary["policies"]["braking"]["overall"]
+    assert overall["count"] == 3 * 2 * 2 * N
+    assert overall["pedestrian_collision_rate"] == pytest.approx(2 / 3)
+    assert overall["vehicle_collision_rate"] == pytest.approx(2 / 3)
+    by_ttc = summary["policies"]["agent_r2"]["pedestrian_collision_rate_by_ttc"]
+    assert [(d["ttc"], d["rate"], d["count"]) for d in by_ttc] == [(0.5, 0.5, 2 * 2 * N), (1.5, 0.0, 2 * 2 * N)]
+    assert summary["policies"]["agent_r2"]["label"] == "Brake&Steer, reward 2"
+    # improvement in points, same as improvement_grids
+    imp = summary["improvement"]["agent_r2"]["pedestrian_collision"]
+    assert imp["ttcs"] == [0.5, 1.5] and imp["values"] == [[50.0, 50.0], [100.0, 100.0]]
+    assert "braking" not in summary["improvement"]
+
+
+# ----------------------------------------------------------------------------- tables
+def test_tables_values_layout_and_references():
+    md = report.tables_markdown(bank())
+
+    t1 = table_rows(md, "Table I.")
+    labels = list(t1)
+    assert labels[0] == "Policy type" and labels[1] == "*speed (m/s)*"
+    assert labels[2:5] == ["Straight-line braking", "Brake&Steer, reward 1", "Brake&Steer, reward 2"]
+    assert t1["Policy type"] == ["TTC 0.5 s", "", "TTC 1.5 s", ""]
+    assert t1["*speed (m/s)*"] == ["10", "30", "10", "30"]
+    assert t1["Straight-line braking"] == ["20.000", "60.000", "10.000", "30.000"]
+    assert t1["Brake&Steer, reward 2"] == ["10.000", "30.000", "0.000", "0.000"]
+    assert t1["Straight-line braking (paper, CARLA)"] == ["0.886", "6.08", "0.0", "0.0"]
+    assert t1["Brake&Steer, reward 2 (paper, CARLA)"] == ["0.054", "3.487", "0.0", "0.0"]
+
+    t2 = table_rows(md, "Table II.")
+    assert t2["Straight-line braking"] == ["2.000", "6.000", "2.000", "6.000"]
+    assert t2["Brake&Steer, reward 1"] == ["4.000", "12.000", "4.000", "12.000"]
+    assert t2["Brake&Steer, reward 2"] == ["0.333", "0.333", "0.333", "0.333"]
+    assert t2["Brake&Steer, reward 1 (paper, CARLA)"] == ["0.001", "0.579", "0.0", "0.0"]
+
+    t3 = table_rows(md, "Table III.")
+    assert t3["TTC (s)"] == ["0.5", "1.5"]
+    assert t3["Straight-line braking"] == ["100.0", "100.0"]
+    assert t3["Brake&Steer, reward 2"] == ["50.0", "0.0"]
+    assert t3["Porav & Newman R2 (paper)"] == ["21.8", "0.0"]
+    assert t3["Chae et al. (paper)"] == ["NA", "0.0"]
+
+    # each table states how many scenarios a cell averages
+    sections = md.split("\n### ")
+    assert "averages 8 scenarios" in sections[1]  # pedestrian + both, 4 each
+    assert "averages 12 scenarios" in sections[2] and "static" in sections[2]  # all hazards
+    assert "averages 16 scenarios" in sections[3]  # 2 speeds x 2 hazards x 4
+
+
+def test_tables_subset_grid_references_only_where_the_paper_has_them():
+    rows = bank(ttcs=(0.75, 1.3), speeds=(20, 30))
+    md = report.tables_markdown(rows)
+    t1 = table_rows(md, "Table I.")
+    assert t1["Policy type"] == ["TTC 0.75 s", "", "TTC 1.3 s", ""]
+    assert t1["Straight-line braking (paper, CARLA)"] == ["0.360", "1.650", "—", "—"]
+    t3 = table_rows(md, "Table III.")
+    assert t3["Chae et al. (paper)"] == ["NA", "0.74"]
+
+    md = report.tables_markdown(bank(ttcs=(0.9, 1.1), speeds=(10, 20)))
+    t1 = table_rows(md, "Table I.")
+    assert not any("(paper, CARLA)" in label for label in t1)  # no overlap with the paper's columns
+    assert table_rows(md, "Table III.")["Chae et al. (paper)"] == ["61.29", "18.85"]
+
+
+def test_other_policies_follow_the_named_ones():
+    rows = bank(policies=("oracle", "agent_r2", "braking"))
+    md = report.tables_markdown(rows)
+    assert list(table_rows(md, "Table III."))[1:4] == ["Straight-line braking", "Brake&Steer, reward 2", "oracle"]
+    assert list(report.improvement_grids(rows)) == ["agent_r2", "oracle"]
+
+
+# ----------------------------------------------------------------------------- improvement grids
+def test_improvement_grids_values_and_sign():
+    grids = report.improvement_grids(bank())
+    assert set(grids) == {"agent_r1", "agent_r2"}
+    assert set(grids["agent_r2"]) == {"pedestrian_collision", "pedestrian_injury", "car_collision", "occupant_injury"}
+
+    ttcs, speeds, arr = grids["agent_r2"]["pedestrian_collision"]
+    assert list(ttcs) == [0.5, 1.5] and list(speeds) == [10.0, 30.0]
+    assert arr.shape == (2, 2)  # rows = TTC, columns = speed
+    np.testing.assert_allclose(arr, [[50, 50], [100, 100]])
+    np.testing.assert_allclose(grids["agent_r2"]["pedestrian_injury"][2], [[10, 30], [10, 30]])
+    np.testing.assert_allclose(grids["agent_r2"]["car_collision"][2], [[100, 100], [100, 100]])
+    np.testing.assert_allclose(grids["agent_r2"]["occupant_injury"][2], [[2 - 1 / 3, 6 - 1 / 3]] * 2)
+
+    # agent_r1: same collisions as braking (zero improvement), doubled occupant injury (negative = worse)
+    np.testing.assert_allclose(grids["agent_r1"]["pedestrian_collision"][2], 0.0)
+    np.testing.assert_allclose(grids["agent_r1"]["occupant_injury"][2], [[-2, -6], [-2, -6]])
+
+
+def test_improvement_grid_nan_where_no_scenario_and_missing_baseline():
+    rows = [r for r in bank() if r["hazard"] == "car"]
+    grids = report.improvement_grids(rows)
+    assert np.isnan(grids["agent_r2"]["pedestrian_collision"][2]).all()
+    np.testing.assert_allclose(grids["agent_r2"]["car_collision"][2], 100.0)
+    with pytest.raises(ValueError, match="baseline"):
+        report.improvement_grids([r for r in rows if r["policy"] != "braking"])
+
+
+# ----------------------------------------------------------------------------- CSV
+def test_csv_round_trip(tmp_path):
+    rows = bank(policies=("braking", "agent_r2"))
+    rows[0]["extra_note"] = "x"
+    rows[1]["pedestrian_injury"] = np.float32(0.125)  # numpy scalars are written as plain numbers
+    rows[1]["steps"] = np.int64(17)
+    rows[2]["return_r2"] = -1 / 3  # needs all 17 significant digits to survive
+    rows[2]["speed_at_collision"] = 12.345678901234567
+    path = tmp_path / "results.csv"
+    report.write_results_csv(rows, path)
+    assert os.listdir(tmp_path) == ["results.csv"]  # no temporary file left behind
+    back = report.read_results_csv(path)
+    assert len(back) == len(rows)
+    for a, b in zip(rows, back):
+        for key in report.COLUMNS:
+            va, vb = a[key], b[key]
+            assert type(vb) is {**{k: int for k in report.INT_COLUMNS}, **{k: float for k in report.FLOAT_COLUMNS},
+                                **{k: str for k in report.STR_COLUMNS}}[key], (key, vb)
+            if isinstance(va, (float, np.floating)) and math.isnan(va):
+                assert math.isnan(vb), key
+            else:
+                assert vb == va, (key, va, vb)
+    assert back[0]["extra_note"] == "x" and back[1]["extra_note"] is None
+    assert any(math.isnan(r["speed_at_collision"]) for r in back)
+    assert report.summarize(back) == report.summarize(rows)
+    assert report.tables_markdown(back) == report.tables_markdown(rows)
+
+
+# ----------------------------------------------------------------------------- figure and files
+def png_size(data: bytes) -> tuple[int, int]:
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
+    assert data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+def heatmap_titles(fig) -> list[str]:
+    return [ax.get_title() for ax in fig.axes if ax.get_title()]
+
+
+def test_write_report_files_and_tensorboard(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    rows = bank(policies=("braking", "agent_r1", "agent_r2", "oracle"))
+    writer = SummaryWriter(log_dir=str(tmp_path / "tb"))
+    try:
+        summary = report.write_report(rows, tmp_path / "out", tb_writer=writer, step=3)
+    finally:
+        writer.close()
+    out = tmp_path / "out"
+    assert sorted(os.listdir(out)) == ["heatmaps.png", "summary.json", "tables.md"]
+    assert no_nan((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
+    assert (out / "tables.md").read_text() == report.tables_markdown(rows)
+    data = (out / "heatmaps.png").read_bytes()
+    width, height = png_size(data)
+    assert width >= 800 and height >= 300 and 20_000 < len(data) < 5_000_000
+
+    events = b"".join(p.read_bytes() for p in (tmp_path / "tb").rglob("events.out.tfevents.*"))
+    for tag in (b"report/heatmaps", b"report/tables", b"report/agent_r2/pedestrian_collision_rate"):
+        assert tag in events, tag
+    assert b"\x89PNG" in events  # the figure went in as an image
+
+
+def test_heatmap_layout_rows_columns_and_shared_symmetric_range():
+    # "a_swerve" (no collisions at all) sorts before agent_r1 alphabetically but must come after the named policies
+    rows = bank(policies=("oracle", "a_swerve", "agent_r2", "braking", "agent_r1"))
+    fig = report.heatmaps_figure(rows)
+    titles = heatmap_titles(fig)
+    assert len(titles) == 4 * 4
+    assert titles[0].startswith("Brake&Steer, reward 1") and "(a)" in titles[0] and "(d)" in titles[3]
+    assert titles[4].startswith("Brake&Steer, reward 2")
+    assert titles[8].startswith("a_swerve") and titles[12].startswith("oracle")
+    assert "improvement" in fig._suptitle.get_text()
+    images = [ax.images[0] for ax in fig.axes if ax.images]
+    assert len(images) == 16
+    for col in range(4):
+        clims = {images[row * 4 + col].get_clim() for row in range(4)}
+        assert len(clims) == 1  # shared down the column
+        lo, hi = clims.pop()
+        assert lo == -hi and hi > 0  # centred at zero
+    assert images[0].get_clim() == (-100.0, 100.0)  # column (a) peaks at a 100-point gain
+    assert images[3].get_clim() == pytest.approx((-6.0, 6.0))  # column (d): agent_r1's 6-point loss, a_swerve's gain
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert texts == ["0.0"] * 4  # agent_r1 pedestrian collision: no change anywhere
+
+
+def test_baseline_only_and_no_baseline_never_crash(tmp_path):
+    rows = bank(policies=("braking",))
+    summary = report.write_report(rows, tmp_path)
+    assert summary["improvement"] == {} and list(summary["policies"]) == ["braking"]
+    fig = report.heatmaps_figure(rows)
+    titles = heatmap_titles(fig)
+    assert len(titles) == 4 and all(t.startswith("Straight-line braking") for t in titles)
+    assert "absolute" in fig._suptitle.get_text()
+    images = [ax.images[0] for ax in fig.axes if ax.images]
+    np.testing.assert_allclose(images[0].get_array().filled(np.nan), [[100, 100], [100, 100]])  # collision %
+    png_size((tmp_path / "heatmaps.png").read_bytes())
+    assert table_rows((tmp_path / "tables.md").read_text(), "Table III.")["Straight-line braking"] == ["100.0", "100.0"]
+
+    agents = bank(policies=("agent_r2",))
+    assert report.improvement_grids(agents, baseline="agent_r2") == {}
+    fig = report.heatmaps_figure(agents)  # baseline missing: absolute values, no exception
+    assert "missing" in fig._suptitle.get_text()
+
+    empty = report.write_report([], tmp_path / "empty")
+    assert empty["policies"] == {} and empty["grid"]["n_rows"] == 0
+    png_size((tmp_path / "empty" / "heatmaps.png").read_bytes())

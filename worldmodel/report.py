@@ -1,0 +1,717 @@
+"""Reports of the evaluation test bank: CSV, JSON summary, the paper's Tables I–III and a Fig. 5-style heatmap.
+
+Input is one *row* (a dict) per test scenario and policy, as produced by the evaluation stage::
+
+    policy, scenario_id, hazard, ttc, speed, seed,
+    pedestrian_collision, vehicle_collision, static_collision, lane_departure,   # 0/1
+    n_pedestrians_hit, pedestrian_injury, occupant_injury, ego_occupant_injury,
+    speed_at_collision (NaN if no collision), steps, return_r1, return_r2
+
+Any subset of the grid hazard × TTC × speed and any set of policies is accepted; the grid is read off the rows.
+
+Choices made here (the paper is silent on them):
+
+* A cell is (hazard, TTC, speed). A metric of a cell is the plain mean over that cell's scenarios.
+* "Hazard involves a pedestrian" means hazard ``pedestrian`` or ``both``; "involves a car" means ``car`` or ``both``.
+  Pedestrian metrics (Table I, Table III, Fig. 5 a/b) average over pedestrian-involving scenarios only, so a
+  car-only scenario, where no pedestrian is in danger, does not dilute them. Car-collision rate (Fig. 5 c) averages
+  over car-involving scenarios. Occupant injury (Table II, Fig. 5 d) averages over *all* scenarios: swerving
+  away from a pedestrian into a pole hurts the occupants too and must count against the policy.
+* Improvement is ``baseline − policy`` in percentage points (×100), so positive means better than straight-line
+  braking, as in the paper's Fig. 5 ("the more red, the lower the rate compared to braking").  Because every
+  policy runs the *same* seeded scenarios, the difference of means equals the mean paired difference.
+* Figures are built on ``matplotlib.figure.Figure`` with an explicit Agg canvas and never through ``pyplot``, so
+  importing or calling this module never switches the backend of a notebook or opens a window.
+* Every file is written atomically (temporary file + ``os.replace``), so a crash never leaves half a report.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from worldmodel.common import atomic_write_bytes, atomic_write_text
+
+# ----------------------------------------------------------------------------- row schema
+INT_COLUMNS = (
+    "scenario_id",
+    "seed",
+    "pedestrian_collision",
+    "vehicle_collision",
+    "static_collision",
+    "lane_departure",
+    "n_pedestrians_hit",
+    "steps",
+)
+FLOAT_COLUMNS = (
+    "ttc",
+    "speed",
+    "pedestrian_injury",
+    "occupant_injury",
+    "ego_occupant_injury",
+    "speed_at_collision",
+    "return_r1",
+    "return_r2",
+)
+STR_COLUMNS = ("policy", "hazard")
+COLUMNS = (
+    "policy",
+    "scenario_id",
+    "hazard",
+    "ttc",
+    "speed",
+    "seed",
+    "pedestrian_collision",
+    "vehicle_collision",
+    "static_collision",
+    "lane_departure",
+    "n_pedestrians_hit",
+    "pedestrian_injury",
+    "occupant_injury",
+    "ego_occupant_injury",
+    "speed_at_collision",
+    "steps",
+    "return_r1",
+    "return_r2",
+)
+
+POLICY_ORDER = ("braking", "agent_r1", "agent_r2")
+POLICY_LABELS = {
+    "braking": "Straight-line braking",
+    "agent_r1": "Brake&Steer, reward 1",
+    "agent_r2": "Brake&Steer, reward 2",
+}
+HAZARD_ORDER = ("pedestrian", "car", "both")
+
+# Per-cell metrics of summarize(): name -> (row key, how to average).  "nanmean" ignores NaN (no collision).
+CELL_METRICS = {
+    "pedestrian_collision_rate": "pedestrian_collision",
+    "vehicle_collision_rate": "vehicle_collision",
+    "static_collision_rate": "static_collision",
+    "lane_departure_rate": "lane_departure",
+    "pedestrian_severe_injury": "pedestrian_injury",
+    "occupant_severe_injury": "occupant_injury",
+    "ego_occupant_severe_injury": "ego_occupant_injury",
+    "mean_pedestrians_hit": "n_pedestrians_hit",
+    "mean_speed_at_collision": "speed_at_collision",
+    "mean_steps": "steps",
+    "mean_return_r1": "return_r1",
+    "mean_return_r2": "return_r2",
+}
+
+# Fig. 5 columns: key -> (title, row key, which scenarios count).
+IMPROVEMENT_METRICS = {
+    "pedestrian_collision": ("(a) pedestrian collision rate", "pedestrian_collision", "pedestrian"),
+    "pedestrian_injury": ("(b) pedestrian severe-injury risk", "pedestrian_injury", "pedestrian"),
+    "car_collision": ("(c) car collision rate", "vehicle_collision", "car"),
+    "occupant_injury": ("(d) occupant severe-injury risk", "occupant_injury", "all"),
+}
+
+# ----------------------------------------------------------------------------- the paper's numbers
+# Porav & Newman 2018, Tables I and II (CARLA): values in %, kept as the paper prints them.
+_PAPER_TTCS = (0.5, 0.75, 1.0, 1.5)
+_PAPER_SPEEDS = (10.0, 20.0, 30.0)
+
+
+def _paper_table(values: dict[str, str]) -> dict[str, dict[tuple[float, float], str]]:
+    out = {}
+    for policy, text in values.items():
+        cells = text.split()
+        assert len(cells) == len(_PAPER_TTCS) * len(_PAPER_SPEEDS)
+        keys = [(t, s) for t in _PAPER_TTCS for s in _PAPER_SPEEDS]
+        out[policy] = dict(zip(keys, cells))
+    return out
+
+
+PAPER_TABLE_I = _paper_table(
+    {
+        "braking": "0.886 5.40 6.08  0.263 0.360 1.650  0.015 0.064 0.828  0.0 0.0 0.0",
+        "agent_r1": "0.168 2.462 2.860  0.0 0.189 1.799  0.0 0.0 0.0  0.0 0.0 0.0",
+        "agent_r2": "0.054 1.087 3.487  0.0 0.172 1.633  0.0 0.0 0.0  0.0 0.0 0.0",
+    }
+)
+PAPER_TABLE_II = _paper_table(
+    {
+        "braking": "0.0 0.372 0.829  0.008 0.603 1.240  0.006 0.042 0.015  0.001 0.002 0.245",
+        "agent_r1": "0.001 0.467 0.579  0.001 0.754 0.495  0.0 0.052 0.001  0.0 0.0 0.0",
+        "agent_r2": "0.0 0.001 0.663  0.0 0.124 0.0  0.0 0.0158 0.0  0.0 0.0 0.0",
+    }
+)
+# Table III: pedestrian collision rate (%) by TTC.
+PAPER_TABLE_III = {
+    "Porav & Newman R2 (paper)": {0.5: "21.8", 0.75: "5.0", 0.9: "1.4", 1.1: "0.0", 1.3: "0.0", 1.5: "0.0"},
+    "Chae et al. (paper)": {0.5: "NA", 0.75: "NA", 0.9: "61.29", 1.1: "18.85", 1.3: "0.74", 1.5: "0.0"},
+}
+
+MISSING = "—"
+
+
+# ----------------------------------------------------------------------------- small helpers
+def _key(x: Any) -> float:
+    """Grid coordinate used for grouping (robust to float noise from CSV or arithmetic)."""
+    return round(float(x), 6)
+
+
+def _involves(hazard: str, who: str) -> bool:
+    h = str(hazard).lower()
+    if who == "all":
+        return True
+    if who == "pedestrian":
+        return h == "both" or "pedestrian" in h
+    if who == "car":
+        return h == "both" or "car" in h or "vehicle" in h
+    raise ValueError(f"unknown participant {who!r}")
+
+
+def _ordered(values: Iterable[str], order: Sequence[str]) -> list[str]:
+    values = set(values)
+    head = [v for v in order if v in values]
+    return head + sorted(values - set(head))
+
+
+def policy_order(rows: Sequence[dict]) -> list[str]:
+    """Policies in report order: braking, agent_r1, agent_r2, then the rest alphabetically."""
+    return _ordered((r["policy"] for r in rows), POLICY_ORDER)
+
+
+def policy_label(policy: str) -> str:
+    return POLICY_LABELS.get(policy, policy)
+
+
+def grid_of(rows: Sequence[dict]) -> dict[str, list]:
+    """The hazards, TTCs and speeds present in ``rows`` (sorted; hazards in pedestrian, car, both order)."""
+    return {
+        "hazards": _ordered((str(r["hazard"]) for r in rows), HAZARD_ORDER),
+        "ttcs": sorted({_key(r["ttc"]) for r in rows}),
+        "speeds": sorted({_key(r["speed"]) for r in rows}),
+    }
+
+
+def _values(rows: Sequence[dict], column: str) -> np.ndarray:
+    vals = []
+    for r in rows:
+        v = r.get(column)
+        vals.append(np.nan if v is None else float(v))
+    return np.asarray(vals, dtype=float)
+
+
+def _mean(rows: Sequence[dict], column: str) -> float:
+    """Mean of ``column`` ignoring NaN/None; NaN when there is nothing to average."""
+    vals = _values(rows, column)
+    vals = vals[np.isfinite(vals)]
+    return float(vals.mean()) if vals.size else math.nan
+
+
+def _json_number(x: float) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _fmt_ttc(t: float) -> str:
+    return f"{t:.1f}" if float(t).is_integer() else f"{t:g}"
+
+
+def _fmt_speed(s: float) -> str:
+    return f"{s:g}"
+
+
+# ----------------------------------------------------------------------------- CSV
+def _csv_cell(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, (bool, np.bool_)):
+        return str(int(v))
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))  # shortest exact round-trip form; NaN -> "nan"
+    return str(v)
+
+
+def _parse_cell(column: str, text: str) -> Any:
+    if column in STR_COLUMNS:
+        return text
+    if column in FLOAT_COLUMNS:
+        return math.nan if text == "" else float(text)
+    if column in INT_COLUMNS:
+        if text == "":
+            return None
+        try:
+            return int(text)
+        except ValueError:
+            return int(float(text))
+    # A column this module does not know: infer int, then float, else keep the string.
+    if text == "":
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def write_results_csv(rows: Sequence[dict], path: str | Path) -> Path:
+    """Write one line per row, known columns first, extra keys after them in sorted order. Atomic."""
+    extra = sorted({k for r in rows for k in r} - set(COLUMNS))
+    fields = list(COLUMNS) + extra
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(fields)
+    for r in rows:
+        writer.writerow([_csv_cell(r.get(k)) for k in fields])
+    path = Path(path)
+    atomic_write_text(path, buf.getvalue())
+    return path
+
+
+def read_results_csv(path: str | Path) -> list[dict]:
+    """Read a CSV written by ``write_results_csv`` with its types restored (ints, floats incl. NaN, strs)."""
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        return [{k: _parse_cell(k, v) for k, v in line.items()} for line in reader]
+
+
+# ----------------------------------------------------------------------------- summary
+def _metrics(rows: Sequence[dict]) -> dict[str, Any]:
+    out: dict[str, Any] = {name: _json_number(_mean(rows, col)) for name, col in CELL_METRICS.items()}
+    any_hit = [
+        float(bool(r.get("pedestrian_collision")) or bool(r.get("vehicle_collision")) or bool(r.get("static_collision")))
+        for r in rows
+    ]
+    out["any_collision_rate"] = _json_number(float(np.mean(any_hit))) if any_hit else None
+    out["count"] = len(rows)
+    return out
+
+
+def _group(rows: Sequence[dict], *fields: str) -> dict[tuple, list[dict]]:
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        key = tuple(_key(r[f]) if f in ("ttc", "speed") else str(r[f]) for f in fields)
+        groups.setdefault(key, []).append(r)
+    return groups
+
+
+def _grid_to_json(ttcs, speeds, arr) -> dict:
+    return {
+        "ttcs": list(ttcs),
+        "speeds": list(speeds),
+        "values": [[_json_number(float(v)) for v in line] for line in np.asarray(arr)],
+    }
+
+
+def summarize(rows: Sequence[dict], baseline: str = "braking") -> dict:
+    """Aggregate rows per policy and per cell (hazard, TTC, speed). JSON-serialisable, no NaN (None instead).
+
+    Structure::
+
+        {"schema": 1,
+         "grid": {"hazards": [...], "ttcs": [...], "speeds": [...], "policies": [...], "n_rows": int,
+                  "scenarios_per_cell": {"min": int, "max": int}},
+         "baseline": "braking",
+         "policies": {name: {"label": str,
+                             "overall": {metric: value, ..., "count": int},          # every scenario
+                             "by_hazard": [{"hazard": str, metric: value, ..., "count": int}],
+                             "pedestrian_collision_rate_by_ttc": [{"ttc", "rate", "count"}],  # Table III
+                             "cells": [{"hazard", "ttc", "speed", metric: value, ..., "count"}]}},
+         "improvement": {policy: {metric: {"ttcs", "speeds", "values" (percentage points, None = no data)}}}}
+
+    Metrics are fractions (rates in 0..1, injuries as mean probabilities); only "improvement" is in points.
+    """
+    rows = list(rows)
+    grid = grid_of(rows)
+    policies = policy_order(rows)
+    counts = [len(g) for g in _group(rows, "policy", "hazard", "ttc", "speed").values()]
+    out: dict[str, Any] = {
+        "schema": 1,
+        "grid": {
+            **grid,
+            "policies": policies,
+            "n_rows": len(rows),
+            "scenarios_per_cell": {"min": min(counts) if counts else 0, "max": max(counts) if counts else 0},
+        },
+        "baseline": baseline,
+        "policies": {},
+        "improvement": {},
+    }
+    hazard_rank = {h: i for i, h in enumerate(grid["hazards"])}
+    for policy in policies:
+        prow = [r for r in rows if r["policy"] == policy]
+        cells = []
+        for (hazard, ttc, speed), group in sorted(
+            _group(prow, "hazard", "ttc", "speed").items(), key=lambda kv: (hazard_rank[kv[0][0]], kv[0][1], kv[0][2])
+        ):
+            cells.append({"hazard": hazard, "ttc": ttc, "speed": speed, **_metrics(group)})
+        by_hazard = [
+            {"hazard": h, **_metrics(g)}
+            for (h,), g in sorted(_group(prow, "hazard").items(), key=lambda kv: hazard_rank[kv[0][0]])
+        ]
+        ped = [r for r in prow if _involves(r["hazard"], "pedestrian")]
+        by_ttc = [
+            {"ttc": t, "rate": _json_number(_mean(g, "pedestrian_collision")), "count": len(g)}
+            for (t,), g in sorted(_group(ped, "ttc").items())
+        ]
+        out["policies"][policy] = {
+            "label": policy_label(policy),
+            "overall": _metrics(prow),
+            "by_hazard": by_hazard,
+            "pedestrian_collision_rate_by_ttc": by_ttc,
+            "cells": cells,
+        }
+    if baseline in policies:
+        for policy, metrics in improvement_grids(rows, baseline).items():
+            out["improvement"][policy] = {m: _grid_to_json(*g) for m, g in metrics.items()}
+    return out
+
+
+# ----------------------------------------------------------------------------- grids (Fig. 5)
+def _metric_grid(rows: Sequence[dict], column: str, who: str, ttcs, speeds) -> np.ndarray:
+    """Mean of ``column`` per (TTC, speed) over scenarios involving ``who``; NaN where there are none."""
+    arr = np.full((len(ttcs), len(speeds)), np.nan)
+    groups = _group([r for r in rows if _involves(r["hazard"], who)], "ttc", "speed")
+    for i, t in enumerate(ttcs):
+        for j, s in enumerate(speeds):
+            if (t, s) in groups:
+                arr[i, j] = _mean(groups[(t, s)], column)
+    return arr
+
+
+def absolute_grids(rows: Sequence[dict], policy: str) -> dict[str, tuple[list, list, np.ndarray]]:
+    """metric -> (ttcs, speeds, array[len(ttcs), len(speeds)]) of ``policy``'s own values in % (×100)."""
+    grid = grid_of(rows)
+    prow = [r for r in rows if r["policy"] == policy]
+    return {
+        m: (grid["ttcs"], grid["speeds"], 100.0 * _metric_grid(prow, col, who, grid["ttcs"], grid["speeds"]))
+        for m, (_, col, who) in IMPROVEMENT_METRICS.items()
+    }
+
+
+def improvement_grids(rows: Sequence[dict], baseline: str = "braking") -> dict[str, dict[str, tuple]]:
+    """policy -> metric -> (ttcs, speeds, array[len(ttcs), len(speeds)]) of baseline − policy in percentage points.
+
+    Positive = the policy is better (fewer collisions / lower injury risk) than ``baseline``. Metrics:
+    ``pedestrian_collision`` and ``pedestrian_injury`` over pedestrian/both hazards, ``car_collision`` over
+    car/both hazards, ``occupant_injury`` over all hazards. NaN where either side has no scenario in that cell.
+    Every policy other than the baseline appears; ``ValueError`` if the baseline has no rows.
+    """
+    rows = list(rows)
+    policies = policy_order(rows)
+    if baseline not in policies:
+        raise ValueError(f"baseline policy {baseline!r} has no rows (policies present: {policies})")
+    base = absolute_grids(rows, baseline)
+    out = {}
+    for policy in policies:
+        if policy == baseline:
+            continue
+        mine = absolute_grids(rows, policy)
+        out[policy] = {m: (base[m][0], base[m][1], base[m][2] - mine[m][2]) for m in IMPROVEMENT_METRICS}
+    return out
+
+
+def _draw_heatmap(fig, ax, ttcs, speeds, arr, vmin, vmax, cmap, title):
+    data = np.ma.masked_invalid(np.asarray(arr, dtype=float))
+    cmap = _cmap(cmap)
+    im = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, origin="lower", aspect="auto")
+    ax.set_xticks(range(len(speeds)), [_fmt_speed(s) for s in speeds])
+    ax.set_yticks(range(len(ttcs)), [_fmt_ttc(t) for t in ttcs])
+    ax.set_xlabel("initial speed (m/s)")
+    ax.set_ylabel("TTC (s)")
+    ax.set_title(title, fontsize=9)
+    span = max(abs(vmin), abs(vmax)) or 1.0
+    digits = 1 if span >= 5 else 2 if span >= 0.5 else 3  # paper-scale injury risks are fractions of a point
+    small = len(ttcs) * len(speeds) > 40
+    for i in range(len(ttcs)):
+        for j in range(len(speeds)):
+            v = float(np.asarray(arr)[i, j])
+            if math.isfinite(v):
+                v = 0.0 if round(v, digits) == 0 else v  # no "-0.0" from float noise
+                text, colour = f"{v:.{digits}f}", ("white" if abs(v) > 0.6 * span else "black")
+            else:
+                text, colour = "n/a", "0.35"
+            ax.text(j, i, text, ha="center", va="center", fontsize=6 if small else 8, color=colour)
+    fig.colorbar(im, ax=ax, fraction=0.08, pad=0.03)
+
+
+def _cmap(name: str):
+    import matplotlib
+
+    return matplotlib.colormaps[name].with_extremes(bad="0.85")
+
+
+def heatmaps_figure(rows: Sequence[dict], baseline: str = "braking"):
+    """Fig. 5 of the paper: one row per non-baseline policy, columns (a)–(d), improvement over the baseline.
+
+    Each panel is TTC (y) × initial speed (x), diverging colormap centred at 0 (red = better than the
+    baseline), with a symmetric colour range shared down each column. With nothing to compare (only the
+    baseline, or no baseline at all) it draws every present policy's absolute values in % instead and says so
+    in the title. Returns a ``matplotlib.figure.Figure`` (Agg canvas, pyplot untouched).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = list(rows)
+    policies = policy_order(rows)
+    metrics = list(IMPROVEMENT_METRICS)
+    if baseline in policies and len(policies) > 1:
+        grids = improvement_grids(rows, baseline)
+        panel_rows = [(p, grids[p]) for p in policies if p != baseline]
+        mode = "improvement"
+    else:
+        panel_rows = [(p, absolute_grids(rows, p)) for p in policies]
+        mode = "absolute"
+
+    n_rows = max(1, len(panel_rows))
+    grid = grid_of(rows)
+    row_h = 1.1 + 0.35 * max(3, len(grid["ttcs"]))  # titles and tick labels + the TTC cells
+    fig = Figure(figsize=(4.2 * len(metrics), row_h * n_rows + 0.5), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(n_rows, len(metrics), squeeze=False)
+
+    if not panel_rows:  # no rows at all
+        for ax, m in zip(axes[0], metrics):
+            ax.set_title(IMPROVEMENT_METRICS[m][0], fontsize=9)
+            ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes)
+            ax.set_axis_off()
+        fig.suptitle("No evaluation rows to report")
+        return fig
+
+    for col, m in enumerate(metrics):
+        finite = [np.abs(g[m][2][np.isfinite(g[m][2])]) for _, g in panel_rows]
+        peak = max((float(f.max()) for f in finite if f.size), default=0.0)
+        peak = peak if peak > 0 else 1.0
+        for row, (policy, g) in enumerate(panel_rows):
+            ttcs, speeds, arr = g[m]
+            title = f"{policy_label(policy)}\n{IMPROVEMENT_METRICS[m][0]}"
+            if mode == "improvement":
+                _draw_heatmap(fig, axes[row, col], ttcs, speeds, arr, -peak, peak, "RdBu_r", title + " (pp)")
+            else:
+                _draw_heatmap(fig, axes[row, col], ttcs, speeds, arr, 0.0, peak, "Reds", title + " (%)")
+    if mode == "improvement":
+        fig.suptitle(
+            f"Percentage-point improvement over {policy_label(baseline).lower()} "
+            "(baseline − policy; red/positive = better)"
+        )
+    else:
+        who = ", ".join(policy_label(p) for p, _ in panel_rows)
+        why = "only the baseline was evaluated" if baseline in policies else f"baseline {baseline!r} missing"
+        fig.suptitle(f"No policy to compare ({why}): absolute values (%) for {who}")
+    return fig
+
+
+# ----------------------------------------------------------------------------- tables (Tables I–III)
+def _md_row(cells: Sequence[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _fmt(v: float, digits: int) -> str:
+    return MISSING if v is None or not math.isfinite(v) else f"{v:.{digits}f}"
+
+
+def _count_note(counts: Iterable[int], what: str) -> str:
+    counts = sorted({c for c in counts if c > 0})
+    if not counts:
+        return f"_No scenarios with {what} in this grid._"
+    if len(counts) == 1:
+        return f"_Each cell averages {counts[0]} scenario{'s' if counts[0] != 1 else ''} ({what}) per policy._"
+    return f"_Each cell averages between {counts[0]} and {counts[-1]} scenarios ({what}) per policy._"
+
+
+def _ttc_speed_table(rows, column: str, who: str, reference: dict, title: str, what: str, notes: list[str]) -> str:
+    grid = grid_of(rows)
+    ttcs, speeds = grid["ttcs"], grid["speeds"]
+    policies = policy_order(rows)
+    lines = [f"### {title}", ""]
+    header = ["Policy type"]
+    for t in ttcs:
+        header += [f"TTC {_fmt_ttc(t)} s"] + [""] * (len(speeds) - 1)
+    lines.append(_md_row(header))
+    lines.append(_md_row(["---"] + ["---:"] * (len(ttcs) * len(speeds))))
+    lines.append(_md_row(["*speed (m/s)*"] + [_fmt_speed(s) for _ in ttcs for s in speeds]))
+    counts = []
+    for policy in policies:
+        prow = [r for r in rows if r["policy"] == policy]
+        groups = _group([r for r in prow if _involves(r["hazard"], who)], "ttc", "speed")
+        cells = []
+        for t in ttcs:
+            for s in speeds:
+                g = groups.get((t, s), [])
+                counts.append(len(g))
+                cells.append(_fmt(100.0 * _mean(g, column), 3) if g else MISSING)
+        lines.append(_md_row([policy_label(policy)] + cells))
+    overlap = [(t, s) for t in ttcs for s in speeds if (t, s) in next(iter(reference.values()))]
+    if overlap:
+        for policy, values in reference.items():
+            cells = [values.get((t, s), MISSING) for t in ttcs for s in speeds]
+            lines.append(_md_row([f"{policy_label(policy)} (paper, CARLA)"] + cells))
+    lines.append("")
+    lines.append(_count_note(counts, what))
+    lines += notes
+    if overlap:
+        lines.append(
+            "_Rows marked (paper, CARLA) are Porav & Newman's published values (CARLA simulator, their own test "
+            f"bank), shown where the paper has that TTC × speed cell; {MISSING} = not reported._"
+        )
+    else:
+        lines.append("_No TTC × speed cell of this grid is in the paper's table, so no reference row is shown._")
+    return "\n".join(lines)
+
+
+def table_i_markdown(rows: Sequence[dict]) -> str:
+    return _ttc_speed_table(
+        rows,
+        "pedestrian_injury",
+        "pedestrian",
+        PAPER_TABLE_I,
+        "Table I. Pedestrian probability (%) of severe injury",
+        "hazard: pedestrian or both",
+        [
+            "_Value = 100 × mean over scenarios of the summed Rosen & Sander severe-injury probability of the "
+            "pedestrians hit (0 when none is hit)._"
+        ],
+    )
+
+
+def table_ii_markdown(rows: Sequence[dict]) -> str:
+    return _ttc_speed_table(
+        rows,
+        "occupant_injury",
+        "all",
+        PAPER_TABLE_II,
+        "Table II. Car occupant probability (%) of severe injury",
+        "all hazards: pedestrian, car and both",
+        [
+            "_Value = 100 × mean over **all** scenarios of the summed Joksch severe-injury probability of every car "
+            "occupant involved (ego and other car). Crashes into static objects (e.g. poles, walls) after a swerve "
+            "count too._"
+        ],
+    )
+
+
+def table_iii_markdown(rows: Sequence[dict]) -> str:
+    ttcs = grid_of(rows)["ttcs"]
+    lines = ["### Table III. Pedestrian collision rate (%) by TTC", ""]
+    lines.append(_md_row(["TTC (s)"] + [_fmt_ttc(t) for t in ttcs]))
+    lines.append(_md_row(["---"] + ["---:"] * len(ttcs)))
+    counts = []
+    for policy in policy_order(rows):
+        groups = _group(
+            [r for r in rows if r["policy"] == policy and _involves(r["hazard"], "pedestrian")], "ttc"
+        )
+        cells = []
+        for t in ttcs:
+            g = groups.get((t,), [])
+            counts.append(len(g))
+            cells.append(_fmt(100.0 * _mean(g, "pedestrian_collision"), 1) if g else MISSING)
+        lines.append(_md_row([policy_label(policy)] + cells))
+    for name, values in PAPER_TABLE_III.items():
+        lines.append(_md_row([name] + [values.get(t, MISSING) for t in ttcs]))
+    lines.append("")
+    lines.append(_count_note(counts, "all speeds; hazard: pedestrian or both"))
+    lines.append(
+        "_Reference rows: Porav & Newman's R2 policy (CARLA) and Chae et al.'s DRL braking system as published; "
+        f"NA = not available in the paper, {MISSING} = no published value at this TTC._"
+    )
+    return "\n".join(lines)
+
+
+def other_outcomes_markdown(rows: Sequence[dict]) -> str:
+    """Secondary outcomes over every scenario of each policy (not in the paper, but needed to read Tables I–II)."""
+    lines = ["### Other outcomes (all scenarios)", ""]
+    head = [
+        "Policy",
+        "scenarios",
+        "pedestrian coll. %",
+        "vehicle coll. %",
+        "static coll. %",
+        "lane departure %",
+        "mean speed at collision (m/s)",
+    ]
+    lines.append(_md_row(head))
+    lines.append(_md_row(["---"] + ["---:"] * (len(head) - 1)))
+    for policy in policy_order(rows):
+        prow = [r for r in rows if r["policy"] == policy]
+        lines.append(
+            _md_row(
+                [policy_label(policy), str(len(prow))]
+                + [
+                    _fmt(100.0 * _mean(prow, c), 1)
+                    for c in ("pedestrian_collision", "vehicle_collision", "static_collision", "lane_departure")
+                ]
+                + [_fmt(_mean(prow, "speed_at_collision"), 2)]
+            )
+        )
+    return "\n".join(lines)
+
+
+def tables_markdown(rows: Sequence[dict]) -> str:
+    """Tables I, II and III laid out as in the paper, plus a table of secondary outcomes, as Markdown."""
+    rows = list(rows)
+    if not rows:
+        return "# Evaluation report\n\n_No evaluation rows._\n"
+    grid = grid_of(rows)
+    intro = (
+        "# Evaluation report\n\n"
+        f"Test bank: hazards {', '.join(grid['hazards'])}; TTC {', '.join(_fmt_ttc(t) for t in grid['ttcs'])} s; "
+        f"speeds {', '.join(_fmt_speed(s) for s in grid['speeds'])} m/s; "
+        f"policies {', '.join(policy_label(p) for p in policy_order(rows))}."
+    )
+    parts = [intro, table_i_markdown(rows), table_ii_markdown(rows), table_iii_markdown(rows), other_outcomes_markdown(rows)]
+    return "\n\n".join(parts) + "\n"
+
+
+# ----------------------------------------------------------------------------- everything at once
+def _render_rgb(fig) -> np.ndarray:
+    """Draw ``fig`` once on its Agg canvas and return the pixels as an (H, W, 3) uint8 array."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = fig.canvas if isinstance(fig.canvas, FigureCanvasAgg) else FigureCanvasAgg(fig)
+    canvas.draw()
+    return np.array(canvas.buffer_rgba())[..., :3]
+
+
+def _png_bytes(rgb: np.ndarray, dpi: float) -> bytes:
+    from matplotlib.image import imsave
+
+    buf = io.BytesIO()
+    imsave(buf, rgb, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def write_report(rows: Sequence[dict], out_dir: str | Path, tb_writer=None, step: int = 0, baseline: str = "braking") -> dict:
+    """Write ``summary.json``, ``tables.md`` and ``heatmaps.png`` into ``out_dir`` (atomically); return the summary.
+
+    With a ``torch.utils.tensorboard.SummaryWriter`` it also logs the heatmap figure as an image
+    (``report/heatmaps``, the same pixels ``add_figure`` would log, from a single draw), the
+    tables as text (``report/tables``) and each policy's overall rates as scalars (``report/<policy>/<metric>``).
+    """
+    rows = list(rows)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary = summarize(rows, baseline=baseline)
+    tables = tables_markdown(rows)
+    fig = heatmaps_figure(rows, baseline=baseline)
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    atomic_write_text(out_dir / "tables.md", tables)
+    rgb = _render_rgb(fig)  # drawn once (constrained layout is the slow part), reused for the PNG and TensorBoard
+    atomic_write_bytes(out_dir / "heatmaps.png", _png_bytes(rgb, fig.dpi))
+    if tb_writer is not None:
+        # Exactly what SummaryWriter.add_figure logs (canvas pixels, RGB, as an image), minus a second draw.
+        tb_writer.add_image("report/heatmaps", rgb, global_step=step, dataformats="HWC")
+        tb_writer.add_text("report/tables", tables, global_step=step)
+        for policy, entry in summary["policies"].items():
+            for metric in (
+                "pedestrian_collision_rate",
+                "vehicle_collision_rate",
+                "static_collision_rate",
+                "pedestrian_severe_injury",
+                "occupant_severe_injury",
+            ):
+                value = entry["overall"][metric]
+                if value is not None:
+                    tb_writer.add_scalar(f"report/{policy}/{metric}", value, global_step=step)
+        tb_writer.flush()
+    return summary

@@ -1,0 +1,308 @@
+"""Phase 2: train the 512-unit LSTM world model on (z_t, a_t) -> z_{t+1}.
+
+    python -m worldmodel.train_rnn experiment=NAME scale=smoke|quick|paper [resume=true]
+
+The dataset is encoded once by the VAE into ``data/NAME/latents.h5`` (re-encoded automatically when the VAE
+checkpoint changes). Training sequences are windows of ``rnn.seq_len`` steps, with z resampled from the stored
+mu, sigma for every batch (hardmaru's WorldModelsExperiments). Windows start from a zero LSTM state
+(truncated back-propagation), as at the start of an episode; episodes shorter than a window are padded and
+masked.
+
+Writes ``runs/NAME/rnn/``: checkpoints, TensorBoard (losses and a Fig. 2-style strip per epoch: decoded z_{t-1},
+z_t, predicted z_{t+1} and the real next frame), and ``metrics.json`` with held-out next-frame IoU of the decoded
+prediction for Vehicles and Pedestrians, beside the persistence baseline (z_{t+1} = z_t).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .common import (StageError, atomic_write_text, check_finite, data_dir, hydra_main, positive, runs_dir,
+                     seed_everything, set_threads)
+from .latents import Latents, encode_dataset, file_sha256, is_current, latents_path
+from .training import Checkpoints, GracefulStop, tensorboard
+
+STAGE = "rnn"
+LOG_EVERY = 10
+VEHICLES, PEDESTRIANS = 10, 4
+
+
+def rnn_dir(cfg) -> Path:
+    return runs_dir(cfg, STAGE)
+
+
+def validate_config(cfg) -> None:
+    positive(cfg.rnn, "hidden", "batch_size", "epochs", "lr", "seq_len", "gaussians", where="rnn")
+    if cfg.rnn.head not in ("mdn", "gaussian", "mse"):
+        raise StageError(f"config rnn.head={cfg.rnn.head!r} must be one of mdn, gaussian, mse")
+
+
+def build_model(cfg):
+    from .models.rnn import WorldRNN
+
+    return WorldRNN(latent_dim=int(cfg.vae.latent_dim), action_dim=2, hidden=int(cfg.rnn.hidden),
+                    head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians))
+
+
+def load_rnn(cfg, which: str = "best"):
+    """The trained LSTM of this experiment (eval mode); a clear error if missing or of the wrong size."""
+    from .common import load_checkpoint
+
+    path = rnn_dir(cfg) / f"{which}.pt"
+    state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
+    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head)):
+        if state[key] != want:
+            raise StageError(f"{path} has {key}={state[key]!r} but the config says rnn/vae {key}={want!r}. "
+                             "Use the checkpoint's value or retrain the LSTM.")
+    model = build_model(cfg)
+    model.load_state_dict(state["model"])
+    model.eval()
+    return model, path
+
+
+def ensure_latents(cfg, store, vae, vae_path: Path) -> tuple[Path, bool]:
+    """Encode the dataset unless an encoding by this exact VAE checkpoint exists. Returns (path, re-encoded)."""
+    path = latents_path(data_dir(cfg))
+    if is_current(path, file_sha256(vae_path)):
+        return path, False
+    print(f"[rnn] encoding the dataset with {vae_path} -> {path}")
+    encode_dataset(store, vae, vae_path, path)
+    return path, True
+
+
+def windows(lengths: dict[int, int], episodes: list[int], seq_len: int) -> list[tuple[int, int, int]]:
+    """(episode, start, steps) units covering every transition t -> t+1 once."""
+    out = []
+    for i in episodes:
+        transitions = lengths[i] - 1
+        for s in range(0, transitions, seq_len):
+            out.append((i, s, min(seq_len, transitions - s)))
+    return out
+
+
+def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Generator):
+    """Inputs z, a (B, L, .), targets z_next and a mask, with z resampled from the stored mu, sigma."""
+    B = len(units)
+    mu = np.zeros((B, seq_len + 1, latent_dim), np.float32)
+    logvar = np.zeros_like(mu)
+    act = np.zeros((B, seq_len, 2), np.float32)
+    mask = np.zeros((B, seq_len), bool)
+    for b, (i, s, n) in enumerate(units):
+        m, lv, a = lat.episode(i, slice(s, s + n + 1))
+        mu[b, : n + 1], logvar[b, : n + 1], act[b, :n] = m, lv, a[:n]
+        mask[b, :n] = True
+    mu_t, logvar_t = torch.from_numpy(mu), torch.from_numpy(logvar)
+    z = mu_t + torch.exp(0.5 * logvar_t) * torch.randn(mu_t.shape, generator=gen)
+    return z[:, :-1], torch.from_numpy(act), z[:, 1:], torch.from_numpy(mask)
+
+
+def masked_loss(model, out: dict, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The head's loss over the valid (unpadded) steps only."""
+    picked = {k: v[mask].unsqueeze(0) for k, v in out.items()}
+    return model.loss(picked, target[mask].unsqueeze(0))
+
+
+@torch.inference_mode()
+def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frames: int = 3000) -> dict:
+    """Held-out next-frame IoU of decoded predictions, persistence (z_{t+1} = z_t) and reconstruction.
+
+    Targets are the real next segmentation frames, not VAE reconstructions, so the VAE's own error is in every
+    number; the reconstruction row is the ceiling a perfect latent prediction could reach.
+    """
+    from .models.vae import confusion, iou_from_confusion
+
+    conf = {k: np.zeros((13, 13), np.int64) for k in ("model", "persistence", "reconstruction")}
+    sq_err = {"model": 0.0, "persistence": 0.0}
+    n = 0
+    for i in episodes:
+        mu, _, act = lat.episode(i)
+        if len(mu) < 2:
+            continue
+        z = torch.from_numpy(mu).unsqueeze(0)
+        a = torch.from_numpy(act).unsqueeze(0)
+        out, _ = rnn(z[:, :-1], a[:, :-1])
+        zhat = rnn.predict(out)[0]
+        target = torch.from_numpy(store.read(i, "seg")[1:])
+        for name, latent in (("model", zhat), ("persistence", z[0, :-1]), ("reconstruction", z[0, 1:])):
+            conf[name] += confusion(vae.decode(latent).argmax(1), target, 13)
+        sq_err["model"] += float(((zhat - z[0, 1:]) ** 2).sum())
+        sq_err["persistence"] += float(((z[0, :-1] - z[0, 1:]) ** 2).sum())
+        n += len(target)
+        if n >= max_frames:
+            break
+    result = {"frames": n}
+    for name, c in conf.items():
+        iou = iou_from_confusion(c)
+        result[name] = {"vehicles_iou": _num(iou[VEHICLES]), "pedestrians_iou": _num(iou[PEDESTRIANS]),
+                        "mean_iou": _num(np.nanmean(iou)), "pixel_accuracy": float(np.trace(c) / max(c.sum(), 1))}
+    for name, e in sq_err.items():
+        result[name]["latent_mse"] = e / max(n, 1) / lat.f.attrs["latent_dim"]
+    return result
+
+
+def _num(x) -> float | None:
+    return None if x is None or np.isnan(x) else float(x)
+
+
+@torch.inference_mode()
+def fig2_strip(rnn, vae, store, lat: Latents, episode: int, times=(4, 8, 12)) -> np.ndarray:
+    """Rows of [decoded z_{t-1} | decoded z_t | decoded predicted z_{t+1} | real frame t+1] (paper Fig. 2)."""
+    from envs import PALETTE
+
+    mu, _, act = lat.episode(episode)
+    T = len(mu)
+    out, _ = rnn(torch.from_numpy(mu[:-1]).unsqueeze(0), torch.from_numpy(act[:-1]).unsqueeze(0))
+    zhat = rnn.predict(out)[0]
+    seg = store.read(episode, "seg")
+    rows = []
+    for t in times:
+        t = min(max(1, t), T - 2)
+        if t < 1:
+            continue
+        dec = vae.decode(torch.stack([torch.from_numpy(mu[t - 1]), torch.from_numpy(mu[t]), zhat[t]])).argmax(1)
+        panels = [PALETTE[d] for d in dec.numpy()] + [PALETTE[seg[t + 1]]]
+        rows.append(np.concatenate(panels, axis=1))
+    if not rows:
+        return np.zeros((64, 256, 3), np.uint8)
+    return np.concatenate(rows, axis=0)
+
+
+def run(cfg) -> dict:
+    from .train_vae import load_vae, open_rollouts
+
+    validate_config(cfg)
+    set_threads(cfg.threads)
+    vae, vae_path = load_vae(cfg, "best")
+    store = open_rollouts(cfg)
+    lat_path, reencoded = ensure_latents(cfg, store, vae, vae_path)
+    lat = Latents(lat_path)
+    if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
+        raise StageError(f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
+                         f"{cfg.vae.latent_dim}; delete it to re-encode")
+
+    out_dir = rnn_dir(cfg)
+    ckpts = Checkpoints(out_dir, "train_rnn", cfg)
+    if (out_dir / "metrics.json").exists() and not cfg.resume:
+        raise StageError(f"{out_dir} holds a finished LSTM. Pass resume=true to keep it, or delete {out_dir}.")
+    seed_everything(int(cfg.seed))
+    model = build_model(cfg)
+    opt = torch.optim.Adam(model.parameters(), lr=float(cfg.rnn.lr))
+    epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
+    state = ckpts.resume_state(bool(cfg.resume))
+    if state is not None:
+        for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head)):
+            if state[key] != want:
+                raise StageError(f"{ckpts.last} has {key}={state[key]!r}, the config says {want!r}; "
+                                 f"use the same value or delete {out_dir}")
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], state["best_val"]
+        print(f"[rnn] resuming from {ckpts.last}: epoch {epoch}, step {step}")
+
+    L, D, B = int(cfg.rnn.seq_len), int(cfg.vae.latent_dim), int(cfg.rnn.batch_size)
+    train_eps = store.episodes("train")
+    val_eps = store.episodes("validation") or train_eps
+    train_units = windows(store.lengths, train_eps, L)
+    val_units = windows(store.lengths, val_eps, L)
+    epochs = int(cfg.rnn.epochs)
+
+    def snapshot(best=False):
+        ckpts.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                    "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
+                    "latent_dim": int(cfg.vae.latent_dim), "hidden": int(cfg.rnn.hidden), "head": str(cfg.rnn.head),
+                    "vae_sha256": lat.f.attrs["vae_sha256"]}, best=best)
+
+    from tqdm import tqdm
+
+    writer = tensorboard(out_dir, purge_step=step + 1 if state is not None else None)
+    t0 = time.perf_counter()
+    stopped = False
+    with GracefulStop() as stop:
+        while epoch < epochs and not stopped:
+            rng = np.random.default_rng([int(cfg.seed), epoch])
+            gen = torch.Generator().manual_seed(int(cfg.seed) * 1000 + epoch)
+            order = rng.permutation(len(train_units))
+            n_batches = (len(order) + B - 1) // B
+            bar = tqdm(total=n_batches, initial=batch_in_epoch, desc=f"rnn epoch {epoch + 1}/{epochs}", unit="batch")
+            for b in range(n_batches):
+                units = [train_units[u] for u in order[b * B: (b + 1) * B]]
+                z, a, z_next, mask = make_batch(lat, units, L, D, gen)   # drawn even when skipped: same noise
+                if b < batch_in_epoch:
+                    continue
+                out, _ = model(z, a)
+                loss = masked_loss(model, out, z_next, mask)
+                check_finite(loss.item(), "LSTM loss", step, ckpts.last)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+                opt.step()
+                step += 1
+                batch_in_epoch = b + 1
+                bar.update(1)
+                if step % LOG_EVERY == 0:
+                    writer.add_scalar("loss/train", loss.item(), step)
+                    writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
+                if stop.requested:
+                    stopped = True
+                    break
+            bar.close()
+            if stopped:
+                snapshot()
+                print(f"[rnn] stopped at step {step}; resume with resume=true")
+                break
+            val_loss = _validation_loss(model, lat, val_units, L, D, B, int(cfg.seed))
+            writer.add_scalar("loss/validation", val_loss, step)
+            model.eval()
+            writer.add_image("fig2: z_{t-1} | z_t | predicted z_{t+1} | real t+1",
+                             fig2_strip(model, vae, store, lat, val_eps[0]), step, dataformats="HWC")
+            model.train()
+            epoch += 1
+            batch_in_epoch = 0
+            improved = val_loss < best_val
+            best_val = min(best_val, val_loss)
+            snapshot(best=improved)
+            print(f"[rnn] epoch {epoch}: validation loss {val_loss:.4f}")
+    writer.close()
+    lat.close()
+    if stopped:
+        return {"stopped": True, "step": step}
+
+    model, best_path = load_rnn(cfg, "best")
+    lat = Latents(lat_path)
+    scores = prediction_iou(model, vae, store, lat, val_eps)
+    lat.close()
+    metrics = {"checkpoint": str(best_path), "epochs": epochs, "steps": step, "head": str(cfg.rnn.head),
+               "validation_loss": best_val, "reencoded_latents": reencoded, **scores,
+               "wall_s": round(time.perf_counter() - t0, 1)}
+    m, p = scores["model"], scores["persistence"]
+    for cls in ("vehicles_iou", "pedestrians_iou"):
+        if m[cls] is not None and p[cls] is not None:
+            metrics[f"{cls}_gain_over_persistence"] = m[cls] - p[cls]
+    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2))
+    print(f"[rnn] next-frame IoU vehicles {m['vehicles_iou']} (persistence {p['vehicles_iou']}), pedestrians "
+          f"{m['pedestrians_iou']} (persistence {p['pedestrians_iou']}); wrote {out_dir / 'metrics.json'}")
+    return metrics
+
+
+@torch.inference_mode()
+def _validation_loss(model, lat, units, L, D, B, seed) -> float:
+    model.eval()
+    gen = torch.Generator().manual_seed(seed + 99)
+    total, count = 0.0, 0
+    for b in range(0, len(units), B):
+        z, a, z_next, mask = make_batch(lat, units[b: b + B], L, D, gen)
+        out, _ = model(z, a)
+        total += masked_loss(model, out, z_next, mask).item() * int(mask.sum())
+        count += int(mask.sum())
+    model.train()
+    return total / max(count, 1)
+
+
+main = hydra_main("train_rnn")(run)
+
+if __name__ == "__main__":
+    main()
