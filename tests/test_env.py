@@ -227,7 +227,7 @@ def test_test_bank_is_seeded_and_subsets_agree():
 
 def test_noisy_autopilot_keeps_lane_without_excursions():
     env = UrbanCollisionEnv(camera=False, horizon_after_ttc_s=None, max_episode_s=8.0)
-    pilot = envs.NoisyAutopilot(steer_noise=0.05, throttle_noise=0.05, excursion_rate=0.0)
+    pilot = envs.NoisyAutopilot(steer_noise=0.05, throttle_noise=0.05, excursion_rate=0.0, onset_excursion_prob=0.0)
     pilot.reset(1)
     obs, info = env.reset(options={"scenario": ScenarioSpec(seed=1, ttc=1.5, ego_speed=15.0, n_cars=0)})
     worst = 0.0
@@ -238,3 +238,25 @@ def test_noisy_autopilot_keeps_lane_without_excursions():
             break
     assert worst < 0.5
     assert abs(info["speed"] - 15.0) < 1.5
+
+
+def test_autopilot_excursions_cover_brake_and_steer_and_are_seeded():
+    env = UrbanCollisionEnv(camera=False, horizon_after_ttc_s=None, max_episode_s=6.0)
+    actions = []
+    for seed in range(12):
+        pilot = envs.NoisyAutopilot(excursion_rate=0.05, onset_excursion_prob=1.0)
+        pilot.reset(seed)
+        obs, info = env.reset(options={"scenario": ScenarioSpec(seed=seed, ttc=1.5, ego_speed=12.0)})
+        while True:
+            a = pilot.act(obs, info)
+            actions.append(a)
+            obs, r, term, trunc, info = env.step(a)
+            if term or trunc:
+                break
+    actions = np.array(actions)
+    assert (actions[:, 1] < -0.5).mean() > 0.05       # sustained braking appears
+    assert (np.abs(actions[:, 0]) > 0.3).mean() > 0.05  # and real steering, not just noise
+    p1, p2 = envs.NoisyAutopilot(), envs.NoisyAutopilot()
+    p1.reset(3), p2.reset(3)
+    info = {"speed": 10.0, "y": -1.75, "heading": 0.0}
+    assert all(np.array_equal(p1.act(None, info), p2.act(None, info)) for _ in range(50))

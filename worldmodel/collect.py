@@ -65,7 +65,7 @@ def record_episode(env, settings: dict, index: int) -> dict:
 
     spec = episode_spec(settings["seed"], index)
     ap = settings["autopilot"]
-    pilot = NoisyAutopilot(ap["steer_noise"], ap["throttle_noise"], ap["excursion_rate"], tuple(ap["excursion_s"]))
+    pilot = NoisyAutopilot(**{**ap, "excursion_s": tuple(ap["excursion_s"])})
     pilot.reset(spec.seed)
     obs, info = env.reset(options={"scenario": spec})
     seg, speed, action, r1, r2 = [obs["seg"]], [obs["speed"][0]], [], [], []

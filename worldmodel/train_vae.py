@@ -170,6 +170,7 @@ def run(cfg) -> dict:
                 if stop.requested:
                     stopped = True
                     break
+            bar.total = bar.n   # the batch count was an upper bound; end the bar at 100 %
             bar.close()
             if stopped:
                 snapshot()
