@@ -156,6 +156,7 @@ def vae_loss(
     logvar: torch.Tensor,
     kl_weight: float = 1.0,
     free_bits: float = 0.0,
+    class_weights: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Return ``(total, recon, kl)`` with ``total = recon + kl_weight * kl``.
 
@@ -168,6 +169,9 @@ def vae_loss(
     (Kingma et al. 2016), so dimensions under the budget get no gradient pushing them to the prior. The
     returned ``kl`` is the clamped value actually penalised (so the identity above always holds); use
     :func:`kl_per_dim` for the raw rate.
+
+    ``class_weights`` (C,) reweights each pixel's cross-entropy by its true class, so that small but
+    decisive classes (pedestrians, vehicles: ~1 % of pixels) are not drowned by road and sky.
     """
     if logits.dim() != 4 or target.shape != (logits.shape[0], *logits.shape[2:]):
         raise ValueError(
@@ -176,7 +180,7 @@ def vae_loss(
     if free_bits < 0:
         raise ValueError(f"free_bits must be >= 0, got {free_bits}")
     batch = logits.shape[0]
-    recon = F.cross_entropy(logits, target.long(), reduction="sum") / batch
+    recon = F.cross_entropy(logits, target.long(), weight=class_weights, reduction="sum") / batch
     per_dim = kl_per_dim(mu, logvar)
     if free_bits > 0:
         per_dim = per_dim.clamp(min=free_bits)
