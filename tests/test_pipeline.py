@@ -94,3 +94,12 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
     # ...and the camera does not change any outcome.
     env = train_agent.make_env(cfg, camera=True)
     assert repr(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False)) == repr(runs[0])
+
+
+def test_parallel_evaluation_equals_one_process(experiment):
+    cfg = smoke_cfg(experiment, "evaluate")
+    entries = evaluate.bank(cfg)[:6]
+    for name in ("braking", "agent_r2"):
+        one = evaluate.evaluate_policy(cfg, name, entries, workers=1)
+        two = evaluate.evaluate_policy(cfg, name, entries, workers=2)
+        assert repr(one) == repr(two)

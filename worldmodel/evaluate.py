@@ -8,6 +8,8 @@ seeded scenarios per cell; every policy sees exactly the same scenarios. Writes 
 ``heatmaps.png`` (Fig. 5 layout) and the same figures in TensorBoard.
 
 Straight-line braking runs without the camera (outcomes are identical with it on, and it is ~10x faster).
+Scenarios are spread over ``evaluate.num_workers`` processes in fixed chunks; every scenario is independent and
+deterministic, so the rows are identical to a single-process run (tested).
 """
 from __future__ import annotations
 
@@ -53,12 +55,68 @@ def run_policy(env, policy, entries, desc: str | None = None) -> list[dict]:
     return rows
 
 
+_WORKER: dict = {}
+
+
+def _policy_for(cfg, name: str):
+    from envs import StraightLineBraking
+
+    from .agent_obs import LearnedPolicy
+    from .train_agent import load_actor, load_world_model
+
+    if name == "braking":
+        return StraightLineBraking()
+    actor, _ = load_actor(cfg, name.removeprefix("agent_"))
+    return LearnedPolicy(name, load_world_model(cfg), actor)
+
+
+def _run_chunk(task) -> list[dict]:
+    """Worker side: (config, policy name, entries) -> rows. Env and policy are built once per process."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from .train_agent import make_env
+
+    cfg_dict, name, entries = task
+    torch.set_num_threads(1)
+    key = name
+    if key not in _WORKER:
+        cfg = OmegaConf.create(cfg_dict)
+        _WORKER[key] = (make_env(cfg, camera=name != "braking"), _policy_for(cfg, name))
+    env, policy = _WORKER[key]
+    return run_policy(env, policy, entries, desc=False)
+
+
+def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
+    """Rows of one policy over ``entries``, in bank order, using ``workers`` processes."""
+    import multiprocessing as mp
+
+    from omegaconf import OmegaConf
+    from tqdm import tqdm
+
+    cfg_dict = OmegaConf.to_container(cfg, resolve=True)
+    chunk = max(1, min(25, len(entries) // (4 * max(1, workers)) or 1))
+    tasks = [(cfg_dict, name, entries[i: i + chunk]) for i in range(0, len(entries), chunk)]
+    rows: list[dict] = []
+    with tqdm(total=len(entries), desc=name, unit="scenario") as bar:
+        if workers <= 1:
+            for t in tasks:
+                rows += _run_chunk(t)
+                bar.update(len(t[2]))
+        else:
+            with mp.get_context("spawn").Pool(workers) as pool:
+                for part in pool.imap(_run_chunk, tasks):
+                    rows += part
+                    bar.update(len(part))
+    return rows
+
+
 def trained_agents(cfg) -> list[str]:
     return [r for r in ("r1", "r2") if (runs_dir(cfg, f"agent_{r}") / "last.pt").exists()]
 
 
 def validate_config(cfg) -> None:
-    positive(cfg.evaluate, "per_cell", where="evaluate")
+    positive(cfg.evaluate, "per_cell", "num_workers", where="evaluate")
     if not cfg.evaluate.ttcs or not cfg.evaluate.speeds or not cfg.evaluate.hazards:
         raise StageError("config evaluate.ttcs, evaluate.speeds and evaluate.hazards must not be empty")
     for key in ("ttcs", "speeds"):
@@ -67,11 +125,7 @@ def validate_config(cfg) -> None:
 
 
 def run(cfg) -> dict:
-    from envs import StraightLineBraking
-
-    from .agent_obs import LearnedPolicy
     from .report import write_report, write_results_csv
-    from .train_agent import load_actor, load_world_model, make_env
     from .training import tensorboard
 
     validate_config(cfg)
@@ -80,20 +134,14 @@ def run(cfg) -> dict:
     out = eval_dir(cfg)
     t0 = time.perf_counter()
 
-    rows = []
-    env = make_env(cfg, camera=False)
-    rows += run_policy(env, StraightLineBraking(), entries)
-    env.close()
-
+    workers = int(cfg.evaluate.num_workers)
     agents = trained_agents(cfg)
-    if agents:
-        env = make_env(cfg, camera=True)
-        for reward in agents:
-            actor, _ = load_actor(cfg, reward)
-            policy = LearnedPolicy(f"agent_{reward}", load_world_model(cfg), actor)
-            rows += run_policy(env, policy, entries)
-        env.close()
-    else:
+    for reward in agents:   # fail fast on a broken checkpoint, before any scenario runs
+        _policy_for(cfg, f"agent_{reward}")
+    rows = evaluate_policy(cfg, "braking", entries, workers)
+    for reward in agents:
+        rows += evaluate_policy(cfg, f"agent_{reward}", entries, workers)
+    if not agents:
         print(f"[eval] no trained agents under {Path(cfg.paths.runs)}; evaluating braking only. "
               "Train one with `python -m worldmodel.train_agent experiment=... reward=r1`.")
 
