@@ -363,3 +363,19 @@ def test_mdn_rnn_learns_simple_dynamics():
     with torch.no_grad():
         end = F.mse_loss(model.predict(model(z, a)[0]), z_next).item()
     assert end < 0.1 * start, (start, end)
+
+
+def test_residual_head_starts_at_persistence_and_can_be_turned_off():
+    torch.manual_seed(0)
+    z = torch.randn(2, 5, 16)
+    a = torch.randn(2, 5, 2)
+    for head in ("mdn", "gaussian", "mse"):
+        rnn = WorldRNN(latent_dim=16, hidden=32, head=head, gaussians=3)
+        torch.nn.init.zeros_(rnn.fc.weight)
+        torch.nn.init.zeros_(rnn.fc.bias)
+        out, _ = rnn(z, a)
+        assert torch.allclose(WorldRNN.predict(out), z)      # zero head output = persistence
+        plain = WorldRNN(latent_dim=16, hidden=32, head=head, gaussians=3, residual=False)
+        plain.load_state_dict(rnn.state_dict())
+        out, _ = plain(z, a)
+        assert torch.allclose(WorldRNN.predict(out), torch.zeros_like(z))

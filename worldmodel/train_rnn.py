@@ -45,7 +45,7 @@ def build_model(cfg):
     from .models.rnn import WorldRNN
 
     return WorldRNN(latent_dim=int(cfg.vae.latent_dim), action_dim=2, hidden=int(cfg.rnn.hidden),
-                    head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians))
+                    head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians), residual=bool(cfg.rnn.residual))
 
 
 def load_rnn(cfg, which: str = "best"):
@@ -54,8 +54,9 @@ def load_rnn(cfg, which: str = "best"):
 
     path = rnn_dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
-    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head)):
-        if state[key] != want:
+    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head),
+                      ("residual", cfg.rnn.residual)):
+        if state.get(key, False) != want:
             raise StageError(f"{path} has {key}={state[key]!r} but the config says rnn/vae {key}={want!r}. "
                              "Use the checkpoint's value or retrain the LSTM.")
     model = build_model(cfg)
@@ -84,8 +85,12 @@ def windows(lengths: dict[int, int], episodes: list[int], seq_len: int) -> list[
     return out
 
 
-def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Generator):
-    """Inputs z, a (B, L, .), targets z_next and a mask, with z resampled from the stored mu, sigma."""
+def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Generator, sample_inputs: bool = True):
+    """Inputs z, a (B, L, .), targets z_next and a mask, with z resampled from the stored mu, sigma.
+
+    Targets are always samples. Inputs are samples too when ``sample_inputs`` (World Models), or the means,
+    which is what the agent feeds at decision time (z_t = mu(obs_t)).
+    """
     B = len(units)
     mu = np.zeros((B, seq_len + 1, latent_dim), np.float32)
     logvar = np.zeros_like(mu)
@@ -97,7 +102,8 @@ def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Ge
         mask[b, :n] = True
     mu_t, logvar_t = torch.from_numpy(mu), torch.from_numpy(logvar)
     z = mu_t + torch.exp(0.5 * logvar_t) * torch.randn(mu_t.shape, generator=gen)
-    return z[:, :-1], torch.from_numpy(act), z[:, 1:], torch.from_numpy(mask)
+    inputs = z[:, :-1] if sample_inputs else mu_t[:, :-1]
+    return inputs, torch.from_numpy(act), z[:, 1:], torch.from_numpy(mask)
 
 
 def masked_loss(model, out: dict, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -214,7 +220,7 @@ def run(cfg) -> dict:
         ckpts.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                     "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
                     "latent_dim": int(cfg.vae.latent_dim), "hidden": int(cfg.rnn.hidden), "head": str(cfg.rnn.head),
-                    "vae_sha256": lat.f.attrs["vae_sha256"]}, best=best)
+                    "residual": bool(cfg.rnn.residual), "vae_sha256": lat.f.attrs["vae_sha256"]}, best=best)
 
     from tqdm import tqdm
 
@@ -230,7 +236,8 @@ def run(cfg) -> dict:
             bar = tqdm(total=n_batches, initial=batch_in_epoch, desc=f"rnn epoch {epoch + 1}/{epochs}", unit="batch")
             for b in range(n_batches):
                 units = [train_units[u] for u in order[b * B: (b + 1) * B]]
-                z, a, z_next, mask = make_batch(lat, units, L, D, gen)   # drawn even when skipped: same noise
+                # drawn even when skipped, so a resumed epoch sees the same noise
+                z, a, z_next, mask = make_batch(lat, units, L, D, gen, bool(cfg.rnn.sample_inputs))
                 if b < batch_in_epoch:
                     continue
                 out, _ = model(z, a)

@@ -81,6 +81,7 @@ class WorldRNN(nn.Module):
         hidden: int = 512,
         head: str = "mdn",
         gaussians: int = 5,
+        residual: bool = True,
     ):
         super().__init__()
         if head not in HEADS:
@@ -92,6 +93,10 @@ class WorldRNN(nn.Module):
         self.hidden = int(hidden)
         self.head = head
         self.gaussians = int(gaussians) if head == "mdn" else 1
+        # Residual: the head predicts z_{t+1} - z_t, so an untrained model is the persistence baseline and
+        # training only has to learn motion. Without it, a short run predicted worse than persistence
+        # (quick scale: vehicles IoU 0.52 vs 0.59).
+        self.residual = bool(residual)
 
         self.lstm = nn.LSTM(latent_dim + action_dim, hidden, batch_first=True)
         D, K = self.latent_dim, self.gaussians
@@ -116,19 +121,20 @@ class WorldRNN(nn.Module):
             )
         return torch.cat([z, a.to(z.dtype)], dim=-1)
 
-    def _head(self, h: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Map LSTM outputs ``(..., hidden)`` to the distribution parameters of ``z_{t+1}``."""
+    def _head(self, h: torch.Tensor, z: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Map LSTM outputs ``(..., hidden)`` (and the input ``z_t``) to the parameters of ``z_{t+1}``."""
         y = self.fc(h)
         lead, D, K = y.shape[:-1], self.latent_dim, self.gaussians
+        base = z if self.residual else torch.zeros_like(z)
         if self.head == "mse":
-            return {"mu": y}
+            return {"mu": y + base}
         if self.head == "gaussian":
             mu, logsigma = y.split([D, D], dim=-1)
-            return {"mu": mu, "logsigma": logsigma.clamp(LOGSIGMA_MIN, LOGSIGMA_MAX)}
+            return {"mu": mu + base, "logsigma": logsigma.clamp(LOGSIGMA_MIN, LOGSIGMA_MAX)}
         logits, mu, logsigma = y.split([K, K * D, K * D], dim=-1)
         return {
             "logpi": F.log_softmax(logits, dim=-1),
-            "mu": mu.reshape(*lead, K, D),
+            "mu": mu.reshape(*lead, K, D) + base.unsqueeze(-2),
             "logsigma": logsigma.reshape(*lead, K, D).clamp(LOGSIGMA_MIN, LOGSIGMA_MAX),
         }
 
@@ -145,7 +151,7 @@ class WorldRNN(nn.Module):
             state = self.initial_state(x.shape[0])
         h0, c0 = state
         y, (h, c) = self.lstm(x, (h0.unsqueeze(0).contiguous(), c0.unsqueeze(0).contiguous()))
-        return self._head(y), (h.squeeze(0), c.squeeze(0))
+        return self._head(y, z), (h.squeeze(0), c.squeeze(0))
 
     def step(
         self, z: torch.Tensor, a: torch.Tensor, state: State | None = None
@@ -162,7 +168,7 @@ class WorldRNN(nn.Module):
         i, f, g, o = gates.chunk(4, dim=-1)
         c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
         h = torch.sigmoid(o) * torch.tanh(c)
-        return self._head(h), (h, c)
+        return self._head(h, z), (h, c)
 
     # ------------------------------------------------------------------ training / use
     def loss(
