@@ -189,9 +189,9 @@ def run(cfg) -> dict:
                 frames_seen += len(x)
                 bar.update(1)
                 if step % LOG_EVERY == 0:
-                    writer.add_scalar("loss/total", float(loss), step)
-                    writer.add_scalar("loss/recon", float(recon), step)
-                    writer.add_scalar("loss/kl", float(kl), step)
+                    writer.add_scalar("loss/total", loss.item(), step)
+                    writer.add_scalar("loss/recon", recon.item(), step)
+                    writer.add_scalar("loss/kl", kl.item(), step)
                     writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
                     writer.add_scalar("speed/frames_per_s", frames_seen / (time.perf_counter() - t0), step)
                 if stop.requested:
