@@ -74,3 +74,17 @@ def test_latent_size_mismatch_with_checkpoint_is_named(stage_cfg, rollouts):
 def test_impossible_config_stops_before_work(stage_cfg, override, key):
     with pytest.raises(StageError, match=key):
         train_vae.run(stage_cfg("train_vae", override))
+
+
+def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(stage_cfg, rollouts, tmp_path):
+    from worldmodel.common import NonFiniteLossError
+
+    train_vae.run(stage_cfg("train_vae", "vae.batch_size=8"))
+    last = tmp_path / "runs" / "t" / "vae" / "last.pt"
+    good = last.read_bytes()
+    # A NaN KL weight injects a non-finite loss on the first step after resuming.
+    with pytest.raises(NonFiniteLossError, match=str(last)):
+        train_vae.run(stage_cfg("train_vae", "vae.batch_size=8", "vae.epochs=2", "vae.kl_weight=nan", "resume=true"))
+    assert last.read_bytes() == good
+    state = torch.load(last, weights_only=False)
+    assert all(torch.isfinite(v).all() for v in state["model"].values())
