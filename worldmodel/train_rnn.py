@@ -48,17 +48,23 @@ def build_model(cfg):
                     head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians), residual=bool(cfg.rnn.residual))
 
 
+def check_architecture(state: dict, cfg, path: Path) -> None:
+    """Refuse a checkpoint whose shape settings differ from the config, naming the key."""
+    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head),
+                      ("residual", cfg.rnn.residual)):
+        have = state.get(key)
+        if have != want:
+            raise StageError(f"{path} has {key}={have!r} but the config says {want!r}. "
+                             "Use the checkpoint's value, or delete the LSTM run and retrain it.")
+
+
 def load_rnn(cfg, which: str = "best"):
     """The trained LSTM of this experiment (eval mode); a clear error if missing or of the wrong size."""
     from .common import load_checkpoint
 
     path = rnn_dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
-    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head),
-                      ("residual", cfg.rnn.residual)):
-        if state.get(key, False) != want:
-            raise StageError(f"{path} has {key}={state[key]!r} but the config says rnn/vae {key}={want!r}. "
-                             "Use the checkpoint's value or retrain the LSTM.")
+    check_architecture(state, cfg, path)
     model = build_model(cfg)
     model.load_state_dict(state["model"])
     model.eval()
@@ -200,10 +206,7 @@ def run(cfg) -> dict:
     epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
     state = ckpts.resume_state(bool(cfg.resume))
     if state is not None:
-        for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head)):
-            if state[key] != want:
-                raise StageError(f"{ckpts.last} has {key}={state[key]!r}, the config says {want!r}; "
-                                 f"use the same value or delete {out_dir}")
+        check_architecture(state, cfg, ckpts.last)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], state["best_val"]
