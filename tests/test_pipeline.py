@@ -17,8 +17,8 @@ OUTPUTS = [
     "data/t/rollouts/manifest.json", "data/t/latents.h5",
     "runs/t/vae/best.pt", "runs/t/vae/last.pt", "runs/t/vae/metrics.json",
     "runs/t/rnn/best.pt", "runs/t/rnn/last.pt", "runs/t/rnn/metrics.json",
-    "runs/t/agent_r1/last.pt", "runs/t/agent_r1/metrics.json",
-    "runs/t/agent_r2/last.pt", "runs/t/agent_r2/metrics.json",
+    "runs/t/agent_r1/seed0/last.pt", "runs/t/agent_r1/seed0/metrics.json",
+    "runs/t/agent_r2/seed0/last.pt", "runs/t/agent_r2/seed0/metrics.json",
     "runs/t/eval/results.csv", "runs/t/eval/summary.json", "runs/t/eval/tables.md", "runs/t/eval/heatmaps.png",
     "runs/t/pipeline.json",
 ]
@@ -65,12 +65,12 @@ def test_agent_resume_continues_step_count(experiment, tmp_path):
     shutil.copytree(experiment, root)
     shutil.rmtree(root / "runs/t/agent_r1")
     train_agent.run(smoke_cfg(root, "train_agent", "reward=r1", "agent.total_steps=150"))
-    first = torch.load(root / "runs/t/agent_r1/last.pt", weights_only=False)
+    first = torch.load(root / "runs/t/agent_r1/seed0/last.pt", weights_only=False)
     assert first["step"] == 150
     with pytest.raises(StageError, match="resume=true"):
         train_agent.run(smoke_cfg(root, "train_agent", "reward=r1", "agent.total_steps=300"))
     train_agent.run(smoke_cfg(root, "train_agent", "reward=r1", "agent.total_steps=300", "resume=true"))
-    second = torch.load(root / "runs/t/agent_r1/last.pt", weights_only=False)
+    second = torch.load(root / "runs/t/agent_r1/seed0/last.pt", weights_only=False)
     assert second["step"] == 300 and len(second["buffer"]["obs"]) == 300
     assert np.array_equal(second["buffer"]["obs"][:150], first["buffer"]["obs"][:150])
 
@@ -99,7 +99,7 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
 def test_parallel_evaluation_equals_one_process(experiment):
     cfg = smoke_cfg(experiment, "evaluate")
     entries = evaluate.bank(cfg)[:6]
-    for name in ("braking", "agent_r2"):
+    for name in ("braking", "agent_r2/seed0"):
         one = evaluate.evaluate_policy(cfg, name, entries, workers=1)
         two = evaluate.evaluate_policy(cfg, name, entries, workers=2)
         assert repr(one) == repr(two)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from .common import StageError, hydra_main, positive, runs_dir, set_threads
+from .train_agent import trained_agents
 
 ROW_META = ("policy", "scenario_id", "hazard", "ttc", "speed", "seed")
 
@@ -66,8 +67,19 @@ def _policy_for(cfg, name: str):
 
     if name == "braking":
         return StraightLineBraking()
-    actor, _ = load_actor(cfg, name.removeprefix("agent_"))
-    return LearnedPolicy(name, load_world_model(cfg), actor)
+    reward, seed = parse_agent(name)
+    actor, _ = load_actor(cfg, reward, seed=seed)
+    return LearnedPolicy(f"agent_{reward}", load_world_model(cfg), actor)
+
+
+def agent_key(reward: str, seed: int) -> str:
+    """How evaluation names one trained agent: ``agent_r1/seed0``."""
+    return f"agent_{reward}/seed{seed}"
+
+
+def parse_agent(key: str) -> tuple[str, int]:
+    name, seed = key.split("/seed")
+    return name.removeprefix("agent_"), int(seed)
 
 
 def _run_chunk(task) -> list[dict]:
@@ -111,10 +123,6 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
     return rows
 
 
-def trained_agents(cfg) -> list[str]:
-    return [r for r in ("r1", "r2") if (runs_dir(cfg, f"agent_{r}") / "last.pt").exists()]
-
-
 def validate_config(cfg) -> None:
     positive(cfg.evaluate, "per_cell", "num_workers", where="evaluate")
     if not cfg.evaluate.ttcs or not cfg.evaluate.speeds or not cfg.evaluate.hazards:
@@ -135,12 +143,12 @@ def run(cfg) -> dict:
     t0 = time.perf_counter()
 
     workers = int(cfg.evaluate.num_workers)
-    agents = trained_agents(cfg)
-    for reward in agents:   # fail fast on a broken checkpoint, before any scenario runs
-        _policy_for(cfg, f"agent_{reward}")
+    agents = [agent_key(r, s) for r, s in trained_agents(cfg)]
+    for key in agents:   # fail fast on a broken checkpoint, before any scenario runs
+        _policy_for(cfg, key)
     rows = evaluate_policy(cfg, "braking", entries, workers)
-    for reward in agents:
-        rows += evaluate_policy(cfg, f"agent_{reward}", entries, workers)
+    for key in agents:
+        rows += evaluate_policy(cfg, key, entries, workers)
     if not agents:
         print(f"[eval] no trained agents under {Path(cfg.paths.runs)}; evaluating braking only. "
               "Train one with `python -m worldmodel.train_agent experiment=... reward=r1`.")

@@ -61,8 +61,8 @@ def stages(cfg) -> list[tuple[str, Path, callable, dict]]:
         ("collect", data_dir(cfg) / "rollouts" / "manifest.json", collect.run, {}),
         ("vae", runs_dir(cfg, "vae") / "metrics.json", train_vae.run, {}),
         ("rnn", runs_dir(cfg, "rnn") / "metrics.json", train_rnn.run, {}),
-        ("agent_r1", runs_dir(cfg, "agent_r1") / "metrics.json", train_agent.run, {"reward": {"name": "r1"}}),
-        ("agent_r2", runs_dir(cfg, "agent_r2") / "metrics.json", train_agent.run, {"reward": {"name": "r2"}}),
+        ("agent_r1", train_agent.agent_dir(cfg, "r1") / "metrics.json", train_agent.run, {"reward": {"name": "r1"}}),
+        ("agent_r2", train_agent.agent_dir(cfg, "r2") / "metrics.json", train_agent.run, {"reward": {"name": "r2"}}),
         ("eval", runs_dir(cfg, "eval") / "summary.json", evaluate.run, {}),
     ]
 

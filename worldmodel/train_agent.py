@@ -7,7 +7,9 @@ Episodes are the paper's scenarios (section IV-A, including ones with no hazard,
 harm), truncated ``env.horizon_after_ttc_s`` after the TTC. The reward is 0 except on the step of a collision
 (R1 = -people involved, R2 = -sum of injury probabilities), exactly as in the paper.
 
-Writes ``runs/NAME/agent_r1/`` (or ``agent_r2``): ``last.pt`` (actor, critic, targets, optimisers, replay buffer,
+    python -m worldmodel.train_agent -m experiment=NAME reward=r1,r2 seed=0,1,2   # a seed sweep
+
+Writes ``runs/NAME/agent_r1/seed0/`` (reward, then training seed): ``last.pt`` (actor, critic, targets, optimisers, replay buffer,
 step, RNG) every ``agent.checkpoint_every`` steps, ``best.pt`` (best rolling return), TensorBoard (episodic return,
 collision rate by kind, injury sums, losses, Q, steps/s) and ``metrics.json`` when finished. A resumed run starts
 a fresh episode at the saved step; the buffer and all optimiser state carry over.
@@ -28,8 +30,19 @@ from .training import Checkpoints, GracefulStop, tensorboard
 ROLLING = 100
 
 
-def agent_dir(cfg, reward: str | None = None) -> Path:
-    return runs_dir(cfg, f"agent_{reward or cfg.reward.name}")
+def agent_dir(cfg, reward: str | None = None, seed: int | None = None) -> Path:
+    """``runs/NAME/agent_r1/seed0``: one directory per reward and training seed, so seed sweeps sit side by side."""
+    return runs_dir(cfg, f"agent_{reward or cfg.reward.name}") / f"seed{int(cfg.seed if seed is None else seed)}"
+
+
+def trained_agents(cfg) -> list[tuple[str, int]]:
+    """(reward, training seed) of every agent of the experiment that has a checkpoint, sorted."""
+    found = []
+    for path in Path(cfg.paths.runs).glob("agent_r*/seed*/last.pt"):
+        reward, seed = path.parent.parent.name.removeprefix("agent_"), path.parent.name.removeprefix("seed")
+        if reward in ("r1", "r2") and seed.isdigit():
+            found.append((reward, int(seed)))
+    return sorted(found)
 
 
 def validate_config(cfg) -> None:
@@ -62,12 +75,12 @@ def load_world_model(cfg):
     return WorldModelEncoder(vae, rnn, use_speed=bool(cfg.agent.use_speed))
 
 
-def load_actor(cfg, reward: str, which: str = "last"):
-    """The trained actor for ``reward`` (eval mode)."""
+def load_actor(cfg, reward: str, which: str = "last", seed: int | None = None):
+    """The trained actor for ``reward`` and training ``seed`` (default ``cfg.seed``), in eval mode."""
     from .common import load_checkpoint
     from .models.ddpg import Actor
 
-    path = agent_dir(cfg, reward) / f"{which}.pt"
+    path = agent_dir(cfg, reward, seed) / f"{which}.pt"
     state = load_checkpoint(path, f"{reward} agent checkpoint", "train_agent", cfg)
     actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
     actor.load_state_dict(state["agent"]["actor"])
