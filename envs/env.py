@@ -20,6 +20,7 @@ each car, injury probability per participant, people involved), ``reward_r1``, `
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gymnasium as gym
@@ -243,6 +244,42 @@ class UrbanCollisionEnv(gym.Env):
         if terminated or truncated:
             info["outcome"] = self.outcome()
         return self._observe(), reward, terminated, truncated, info
+
+    # ------------------------------------------------------------------ planning
+    def snapshot(self) -> dict:
+        """Everything that changes during an episode, copied: ``restore`` on this env or on a camera-less
+        ``planning_twin`` continues bit-identically. For privileged planners, which re-simulate from the present."""
+        if self.scenario is None:
+            raise RuntimeError("call reset() before snapshot()")
+        a = self.actors
+        return {"scenario": self.scenario, "layout": self.layout, "horizon_steps": self.horizon_steps,
+                "ego": self.ego.copy(), "t_step": self.t_step, "collisions": list(self.collisions),
+                "returns": dict(self.returns), "ever_departed": self.ever_departed, "min_speed": self.min_speed,
+                "last_end": self._last_end,
+                "actors": dataclasses.replace(a, **{f.name: getattr(a, f.name).copy() for f in dataclasses.fields(a)
+                                                    if isinstance(getattr(a, f.name), np.ndarray)})}
+
+    def restore(self, snap: dict) -> None:
+        new_layout = getattr(self, "layout", None) is not snap["layout"]
+        self.scenario, self.layout, self.horizon_steps = snap["scenario"], snap["layout"], snap["horizon_steps"]
+        if new_layout:
+            self._prepare_static()
+            if self._pool is not None:
+                self._pool.apply_layout(self.layout)
+        a = snap["actors"]
+        self.actors = dataclasses.replace(a, **{f.name: getattr(a, f.name).copy() for f in dataclasses.fields(a)
+                                                if isinstance(getattr(a, f.name), np.ndarray)})
+        self.ego = snap["ego"].copy()
+        self.t_step, self.collisions, self.returns = snap["t_step"], list(snap["collisions"]), dict(snap["returns"])
+        self.ever_departed, self.min_speed, self._last_end = snap["ever_departed"], snap["min_speed"], snap["last_end"]
+
+    def planning_twin(self) -> "UrbanCollisionEnv":
+        """A camera-less env with the same physics, rewards and horizon, to ``restore`` snapshots into."""
+        return UrbanCollisionEnv(camera=False, image_size=self.image_size, fov_deg=self.fov_deg,
+                                 reward=self.reward_name, horizon_after_ttc_s=self.horizon_after_ttc_s,
+                                 max_episode_s=self.max_episode_s, mu=self.params.mu,
+                                 occupants_per_car=self.occupants_per_car, ego_mass=self.ego_mass,
+                                 car_mass=self.car_mass, substeps=self.substeps)
 
     # ------------------------------------------------------------------ collisions
     def _pedestrian_hit(self, i: int, t: float) -> dict:

@@ -40,16 +40,17 @@ def test_pipeline_produces_every_output(experiment):
     for rel in OUTPUTS:
         assert (experiment / rel).exists(), rel
     rows = read_results_csv(experiment / "runs/t/eval/results.csv")
-    assert {r["policy"] for r in rows} == {"braking", "agent_r1", "agent_r2"}
+    assert {r["policy"] for r in rows} == {"braking", "agent_r1", "agent_r2", "oracle"}
     per_policy = len(evaluate.bank(smoke_cfg(experiment, "evaluate")))
-    assert len(rows) == 3 * per_policy
+    assert len(rows) == 4 * per_policy
     summary = json.loads((experiment / "runs/t/eval/summary.json").read_text())
-    assert set(summary["policies"]) == {"braking", "agent_r1", "agent_r2"}
+    assert set(summary["policies"]) == {"braking", "agent_r1", "agent_r2", "oracle"}
+    assert set(summary["achievable_share"]["policies"]) == {"agent_r1", "agent_r2", "oracle"}
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
     assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "eval"}
     assert all(t["wall_s"] > 0 and t["peak_rss_mb"] > 0 for t in timings.values())
     tables = (experiment / "runs/t/eval/tables.md").read_text()
-    assert "Brake&Steer, reward 1" in tables and "Table III" in tables
+    assert "Brake&Steer, reward 1" in tables and "Table III" in tables and "Table IV" in tables
 
 
 def test_second_run_skips_finished_stages(experiment, capsys):
@@ -99,7 +100,7 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
 def test_parallel_evaluation_equals_one_process(experiment):
     cfg = smoke_cfg(experiment, "evaluate")
     entries = evaluate.bank(cfg)[:6]
-    for name in ("braking", "agent_r2/seed0"):
+    for name in ("braking", "oracle", "agent_r2/seed0"):
         one = evaluate.evaluate_policy(cfg, name, entries, workers=1)
         two = evaluate.evaluate_policy(cfg, name, entries, workers=2)
         assert repr(one) == repr(two)

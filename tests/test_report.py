@@ -39,6 +39,7 @@ def occ(speed: float) -> float:
 def make_row(policy, sid, hazard, ttc, speed, **outcome):
     row = dict(
         policy=policy,
+        policy_seed=0,
         scenario_id=sid,
         hazard=hazard,
         ttc=float(ttc),
@@ -212,7 +213,8 @@ def test_tables_subset_grid_references_only_where_the_paper_has_them():
 def test_other_policies_follow_the_named_ones():
     rows = bank(policies=("oracle", "agent_r2", "braking"))
     md = report.tables_markdown(rows)
-    assert list(table_rows(md, "Table III."))[1:4] == ["Straight-line braking", "Brake&Steer, reward 2", "oracle"]
+    assert list(table_rows(md, "Table III."))[1:4] == ["Straight-line braking", "Brake&Steer, reward 2",
+                                                        "Privileged planner (oracle)"]
     assert list(report.improvement_grids(rows)) == ["agent_r2", "oracle"]
 
 
@@ -311,13 +313,17 @@ def test_heatmap_layout_rows_columns_and_shared_symmetric_range():
     rows = bank(policies=("oracle", "a_swerve", "agent_r2", "braking", "agent_r1"))
     fig = report.heatmaps_figure(rows)
     titles = heatmap_titles(fig)
-    assert len(titles) == 4 * 4
+    assert len(titles) == 4 * 5  # with the planner present, column (e) is the share of the achievable improvement
     assert titles[0].startswith("Brake&Steer, reward 1") and "(a)" in titles[0] and "(d)" in titles[3]
-    assert titles[4].startswith("Brake&Steer, reward 2")
-    assert titles[8].startswith("a_swerve") and titles[12].startswith("oracle")
+    assert "(e) share of achievable" in titles[4]
+    assert titles[5].startswith("Brake&Steer, reward 2")
+    assert titles[10].startswith("Privileged planner") and titles[15].startswith("a_swerve")
     assert "improvement" in fig._suptitle.get_text()
     images = [ax.images[0] for ax in fig.axes if ax.images]
-    assert len(images) == 16
+    assert len(images) == 20
+    # this bank's planner is no better than braking anywhere, so no share is defined
+    assert [t.get_text() for t in [ax for ax in fig.axes if ax.images][4].texts] == ["n/a"] * 4
+    images = [im for k, im in enumerate(images) if k % 5 != 4]
     for col in range(4):
         clims = {images[row * 4 + col].get_clim() for row in range(4)}
         assert len(clims) == 1  # shared down the column
@@ -350,3 +356,51 @@ def test_baseline_only_and_no_baseline_never_crash(tmp_path):
     empty = report.write_report([], tmp_path / "empty")
     assert empty["policies"] == {} and empty["grid"]["n_rows"] == 0
     png_size((tmp_path / "empty" / "heatmaps.png").read_bytes())
+
+
+# ----------------------------------------------------------------------------- the planner and seed sweeps
+def test_share_of_achievable_improvement():
+    """Braking hurts 0.4 per pedestrian scenario, the planner 0.1, agent_r1 0.25 (half-way), agent_r2 0.7."""
+    rows = []
+    for sid, (hazard, ttc) in enumerate([("pedestrian", 0.5), ("pedestrian", 1.5), ("car", 0.5), ("car", 1.5)]):
+        for policy, injury in (("braking", 0.4), ("oracle", 0.1), ("agent_r1", 0.25), ("agent_r2", 0.7)):
+            ped = hazard == "pedestrian" and ttc == 0.5  # elsewhere nobody is hurt, so nothing is achievable
+            rows.append(make_row(policy, sid, hazard, ttc, 10, pedestrian_injury=injury if ped else 0.0))
+    shares = report.achievable_share_grids(rows)
+    assert list(shares) == ["agent_r1", "agent_r2", "oracle"]
+    ttcs, speeds, arr = shares["agent_r1"]
+    assert ttcs == [0.5, 1.5] and speeds == [10.0]
+    assert arr[0, 0] == pytest.approx(50.0) and np.isnan(arr[1, 0])
+    assert shares["agent_r2"][2][0, 0] == pytest.approx(-100.0)   # worse than braking: negative
+    assert shares["oracle"][2][0, 0] == pytest.approx(100.0)
+    summary = report.summarize(rows)
+    assert summary["achievable_share"]["policies"]["agent_r1"]["overall"] == pytest.approx(50.0)
+    assert summary["achievable_share"]["policies"]["agent_r1"]["cells"]["values"] == [[pytest.approx(50.0)], [None]]
+    table = table_rows(report.tables_markdown(rows), "Table IV.")
+    assert table["Brake&Steer, reward 1: share (%)"] == ["50", "50", "—"]
+    assert table["Brake&Steer, reward 2: share (%)"][0] == "-100"
+    # without the planner there is no ceiling and no share
+    assert report.achievable_share_grids([r for r in rows if r["policy"] != "oracle"]) == {}
+    assert "Table IV." not in report.tables_markdown([r for r in rows if r["policy"] != "oracle"])
+
+
+def test_seed_sweep_reports_mean_and_spread(tmp_path):
+    rows = []
+    for seed, hits in ((0, 1), (1, 0), (2, 1)):   # seed 1 never hits the pedestrian
+        for sid in range(4):
+            rows.append(make_row("agent_r1", sid, "pedestrian", 0.5, 10, policy_seed=seed,
+                                 pedestrian_collision=hits if sid < 2 else 0))
+    rows += [make_row("braking", sid, "pedestrian", 0.5, 10, pedestrian_collision=1) for sid in range(4)]
+    summary = report.summarize(rows)
+    entry = summary["policies"]["agent_r1"]
+    assert entry["seeds"] == [0, 1, 2] and summary["policies"]["braking"]["seeds"] == [0]
+    assert "seed_spread" not in summary["policies"]["braking"]
+    spread = entry["seed_spread"]["spread"]["pedestrian_collision_rate"]
+    assert spread["mean"] == pytest.approx(1 / 3) and spread["std"] == pytest.approx(np.std([0.5, 0, 0.5], ddof=1))
+    assert (spread["min"], spread["max"]) == (0.0, 0.5)
+    assert entry["seed_spread"]["by_seed"]["1"]["pedestrian_collision_rate"] == 0.0
+    assert entry["overall"]["pedestrian_collision_rate"] == pytest.approx(1 / 3)   # pooled = mean over seeds
+    table = table_rows(report.tables_markdown(rows), "Spread over training seeds")
+    assert table["Brake&Steer, reward 1"][:2] == ["0, 1, 2", "33.3 ± 28.9 (0.0–50.0)"]
+    # the seed survives the CSV round trip
+    assert [r["policy_seed"] for r in report.read_results_csv(report.write_results_csv(rows, tmp_path / "r.csv"))][:5] == [0] * 4 + [1]

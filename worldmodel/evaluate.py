@@ -1,4 +1,4 @@
-"""Evaluation on the seeded test bank: straight-line braking vs every trained agent of the experiment.
+"""Evaluation on the seeded test bank: straight-line braking, the privileged planner and every trained agent.
 
     python -m worldmodel.evaluate experiment=NAME scale=...
 
@@ -7,7 +7,11 @@ seeded scenarios per cell; every policy sees exactly the same scenarios. Writes 
 ``results.csv`` (one row per scenario and policy), ``summary.json``, ``tables.md`` (paper Tables I-III),
 ``heatmaps.png`` (Fig. 5 layout) and the same figures in TensorBoard.
 
-Straight-line braking runs without the camera (outcomes are identical with it on, and it is ~10x faster).
+Policies: ``evaluate.policies`` names the scripted ones (``braking``, the floor, is required; ``oracle`` is the
+privileged planner of ``envs.planner``, the ceiling), and every agent under ``runs/NAME/agent_*/seed*/`` is added;
+its rows carry the training seed in ``policy_seed`` so seed sweeps report mean and spread over seeds.
+
+Straight-line braking and the planner run without the camera (outcomes are identical with it on, and it is ~10x faster).
 Scenarios are spread over ``evaluate.num_workers`` processes in fixed chunks; every scenario is independent and
 deterministic, so the rows are identical to a single-process run (tested).
 """
@@ -19,7 +23,8 @@ from pathlib import Path
 from .common import StageError, hydra_main, positive, runs_dir, set_threads
 from .train_agent import trained_agents
 
-ROW_META = ("policy", "scenario_id", "hazard", "ttc", "speed", "seed")
+ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")
+SCRIPTED = ("braking", "oracle")
 
 
 def eval_dir(cfg) -> Path:
@@ -34,20 +39,23 @@ def bank(cfg):
                      seed=int(e.bank_seed))
 
 
-def run_policy(env, policy, entries, desc: str | None = None) -> list[dict]:
-    """Roll ``policy`` through every bank entry; one row per scenario with the paper's section IV-C metrics."""
+def run_policy(env, policy, entries, desc: str | None = None, policy_seed: int = 0) -> list[dict]:
+    """Roll ``policy`` through every bank entry; one row per scenario with the paper's section IV-C metrics.
+    A policy with ``bind(env)`` (the privileged planner) is handed the env after each reset."""
     from tqdm import tqdm
 
     rows = []
     for entry in tqdm(entries, desc=desc or policy.name, unit="scenario", disable=desc is False):
         obs, info = env.reset(options={"scenario": entry.spec})
         policy.reset(entry.spec.seed)
+        if hasattr(policy, "bind"):
+            policy.bind(env)
         while True:
             obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
             if terminated or truncated:
                 break
         o = info["outcome"]
-        rows.append({"policy": policy.name, "scenario_id": entry.scenario_id, "hazard": entry.hazard,
+        rows.append({"policy": policy.name, "policy_seed": policy_seed, "scenario_id": entry.scenario_id, "hazard": entry.hazard,
                      "ttc": entry.ttc, "speed": entry.speed, "seed": entry.spec.seed,
                      **{k: o[k] for k in ("pedestrian_collision", "vehicle_collision", "static_collision",
                                           "lane_departure", "n_pedestrians_hit", "pedestrian_injury",
@@ -59,6 +67,15 @@ def run_policy(env, policy, entries, desc: str | None = None) -> list[dict]:
 _WORKER: dict = {}
 
 
+def make_oracle(cfg):
+    from envs import DT
+    from envs.planner import PrivilegedPlanner
+
+    o = cfg.evaluate.oracle
+    return PrivilegedPlanner(replan_every=max(1, round(float(o.replan_every_s) / DT)), pedals=list(o.pedals),
+                             steers=list(o.steers), delays_s=list(o.delays_s), lane_change_s=list(o.lane_change_s))
+
+
 def _policy_for(cfg, name: str):
     from envs import StraightLineBraking
 
@@ -67,6 +84,8 @@ def _policy_for(cfg, name: str):
 
     if name == "braking":
         return StraightLineBraking()
+    if name == "oracle":
+        return make_oracle(cfg)
     reward, seed = parse_agent(name)
     actor, _ = load_actor(cfg, reward, seed=seed)
     return LearnedPolicy(f"agent_{reward}", load_world_model(cfg), actor)
@@ -94,9 +113,9 @@ def _run_chunk(task) -> list[dict]:
     key = name
     if key not in _WORKER:
         cfg = OmegaConf.create(cfg_dict)
-        _WORKER[key] = (make_env(cfg, camera=name != "braking"), _policy_for(cfg, name))
+        _WORKER[key] = (make_env(cfg, camera=name not in SCRIPTED), _policy_for(cfg, name))
     env, policy = _WORKER[key]
-    return run_policy(env, policy, entries, desc=False)
+    return run_policy(env, policy, entries, desc=False, policy_seed=0 if name in SCRIPTED else parse_agent(name)[1])
 
 
 def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
@@ -130,6 +149,17 @@ def validate_config(cfg) -> None:
     for key in ("ttcs", "speeds"):
         if any(v <= 0 for v in cfg.evaluate[key]):
             raise StageError(f"config evaluate.{key}={list(cfg.evaluate[key])} must all be positive")
+    policies = list(cfg.evaluate.policies)
+    if "braking" not in policies or any(p not in SCRIPTED for p in policies):
+        raise StageError(f"config evaluate.policies={policies} must include 'braking' (the baseline) and may add "
+                         f"'oracle'; trained agents are found by themselves")
+    if "oracle" in policies:
+        if float(cfg.evaluate.oracle.replan_every_s) <= 0:
+            raise StageError(f"config evaluate.oracle.replan_every_s={cfg.evaluate.oracle.replan_every_s} must be > 0")
+        try:
+            make_oracle(cfg)
+        except ValueError as err:
+            raise StageError(f"config evaluate.oracle: {err}") from None
 
 
 def run(cfg) -> dict:
@@ -146,8 +176,8 @@ def run(cfg) -> dict:
     agents = [agent_key(r, s) for r, s in trained_agents(cfg)]
     for key in agents:   # fail fast on a broken checkpoint, before any scenario runs
         _policy_for(cfg, key)
-    rows = evaluate_policy(cfg, "braking", entries, workers)
-    for key in agents:
+    rows = []
+    for key in [p for p in SCRIPTED if p in cfg.evaluate.policies] + agents:
         rows += evaluate_policy(cfg, key, entries, workers)
     if not agents:
         print(f"[eval] no trained agents under {Path(cfg.paths.runs)}; evaluating braking only. "
@@ -157,7 +187,8 @@ def run(cfg) -> dict:
     writer = tensorboard(out)
     summary = write_report(rows, out, tb_writer=writer)
     writer.close()
-    print(f"[eval] {len(entries)} scenarios x {1 + len(agents)} policies in {time.perf_counter() - t0:.0f} s. "
+    n_policies = len(agents) + len(list(cfg.evaluate.policies))
+    print(f"[eval] {len(entries)} scenarios x {n_policies} policies in {time.perf_counter() - t0:.0f} s. "
           f"Tables: {out / 'tables.md'}  Heatmaps: {out / 'heatmaps.png'}")
     return summary
 

@@ -39,6 +39,7 @@ from worldmodel.common import atomic_write_bytes, atomic_write_text
 
 # ----------------------------------------------------------------------------- row schema
 INT_COLUMNS = (
+    "policy_seed",
     "scenario_id",
     "seed",
     "pedestrian_collision",
@@ -61,6 +62,7 @@ FLOAT_COLUMNS = (
 STR_COLUMNS = ("policy", "hazard")
 COLUMNS = (
     "policy",
+    "policy_seed",
     "scenario_id",
     "hazard",
     "ttc",
@@ -80,12 +82,17 @@ COLUMNS = (
     "return_r2",
 )
 
-POLICY_ORDER = ("braking", "agent_r1", "agent_r2")
+POLICY_ORDER = ("braking", "agent_r1", "agent_r2", "oracle")
 POLICY_LABELS = {
     "braking": "Straight-line braking",
     "agent_r1": "Brake&Steer, reward 1",
     "agent_r2": "Brake&Steer, reward 2",
+    "oracle": "Privileged planner (oracle)",
 }
+CEILING = "oracle"
+# Below this gap in mean total injury between the baseline and the ceiling, a cell has nothing to gain and the
+# share of the achievable improvement is undefined (n/a) rather than a ratio of float noise.
+MIN_ACHIEVABLE_GAIN = 1e-6
 HAZARD_ORDER = ("pedestrian", "car", "both")
 
 # Per-cell metrics of summarize(): name -> (row key, how to average).  "nanmean" ignores NaN (no collision).
@@ -102,7 +109,11 @@ CELL_METRICS = {
     "mean_steps": "steps",
     "mean_return_r1": "return_r1",
     "mean_return_r2": "return_r2",
+    "total_severe_injury": "total_injury",
 }
+# Metrics whose mean and spread over training seeds are reported for policies evaluated with several seeds.
+SEED_METRICS = ("pedestrian_collision_rate", "vehicle_collision_rate", "static_collision_rate", "lane_departure_rate",
+                "pedestrian_severe_injury", "occupant_severe_injury", "total_severe_injury")
 
 # Fig. 5 columns: key -> (title, row key, which scenarios count).
 IMPROVEMENT_METRICS = {
@@ -195,7 +206,8 @@ def grid_of(rows: Sequence[dict]) -> dict[str, list]:
 def _values(rows: Sequence[dict], column: str) -> np.ndarray:
     vals = []
     for r in rows:
-        v = r.get(column)
+        # total_injury: everyone's severe-injury probabilities summed, the quantity R2 penalises and the planner minimises
+        v = r["pedestrian_injury"] + r["occupant_injury"] if column == "total_injury" else r.get(column)
         vals.append(np.nan if v is None else float(v))
     return np.asarray(vals, dtype=float)
 
@@ -318,8 +330,12 @@ def summarize(rows: Sequence[dict], baseline: str = "braking") -> dict:
                              "by_hazard": [{"hazard": str, metric: value, ..., "count": int}],
                              "pedestrian_collision_rate_by_ttc": [{"ttc", "rate", "count"}],  # Table III
                              "cells": [{"hazard", "ttc", "speed", metric: value, ..., "count"}]}},
-         "improvement": {policy: {metric: {"ttcs", "speeds", "values" (percentage points, None = no data)}}}}
+         "improvement": {policy: {metric: {"ttcs", "speeds", "values" (percentage points, None = no data)}}},
+         "achievable_share": {"ceiling": "oracle", "definition": str,          # only with oracle rows
+                              "policies": {policy: {"overall": %, "cells": {"ttcs", "speeds", "values" (%)}}}}}
 
+    Each policy also has "seeds" (training seeds present; 0 for scripted policies) and, with two or more seeds,
+    "seed_spread" (see ``seed_spread``); its other numbers pool every seed's rows.
     Metrics are fractions (rates in 0..1, injuries as mean probabilities); only "improvement" is in points.
     """
     rows = list(rows)
@@ -365,6 +381,19 @@ def summarize(rows: Sequence[dict], baseline: str = "braking") -> dict:
     if baseline in policies:
         for policy, metrics in improvement_grids(rows, baseline).items():
             out["improvement"][policy] = {m: _grid_to_json(*g) for m, g in metrics.items()}
+    shares = achievable_share_grids(rows, baseline)
+    if shares:
+        out["achievable_share"] = {
+            "ceiling": CEILING,
+            "definition": "100 * (baseline - policy) / (baseline - ceiling) of the mean total severe-injury risk",
+            "policies": {p: {"overall": _json_number(overall_achievable_share(rows, p, baseline)),
+                             "cells": _grid_to_json(*g)} for p, g in shares.items()},
+        }
+    for policy in policies:
+        out["policies"][policy]["seeds"] = policy_seeds(rows, policy)
+        spread = seed_spread(rows, policy, baseline)
+        if spread is not None:
+            out["policies"][policy]["seed_spread"] = spread
     return out
 
 
@@ -412,6 +441,78 @@ def improvement_grids(rows: Sequence[dict], baseline: str = "braking") -> dict[s
     return out
 
 
+def _share(base: float, policy: float, ceiling: float) -> float:
+    gain = base - ceiling
+    return 100.0 * (base - policy) / gain if math.isfinite(gain) and gain > MIN_ACHIEVABLE_GAIN else math.nan
+
+
+def achievable_share_grids(rows: Sequence[dict], baseline: str = "braking",
+                           ceiling: str = CEILING) -> dict[str, tuple[list, list, np.ndarray]]:
+    """policy -> (ttcs, speeds, array) of the share of the achievable improvement in %, per TTC × speed cell:
+    100 × (baseline − policy) / (baseline − ceiling) of the mean total severe-injury risk over all scenarios of
+    the cell. 100 = as good as the privileged planner, 0 = no better than braking, negative = worse than braking.
+    NaN where the planner cannot improve on braking (gap below ``MIN_ACHIEVABLE_GAIN``). Empty without a ceiling."""
+    rows = list(rows)
+    policies = policy_order(rows)
+    if baseline not in policies or ceiling not in policies:
+        return {}
+    grid = grid_of(rows)
+    ttcs, speeds = grid["ttcs"], grid["speeds"]
+
+    def totals(policy):
+        return _metric_grid([r for r in rows if r["policy"] == policy], "total_injury", "all", ttcs, speeds)
+
+    base, top = totals(baseline), totals(ceiling)
+    out = {}
+    for policy in policies:
+        if policy == baseline:
+            continue
+        mine = totals(policy)
+        arr = np.vectorize(_share)(base, mine, top) if base.size else base
+        out[policy] = (ttcs, speeds, np.asarray(arr, dtype=float))
+    return out
+
+
+def overall_achievable_share(rows: Sequence[dict], policy: str, baseline: str = "braking",
+                             ceiling: str = CEILING) -> float:
+    """The share of the achievable improvement over the whole bank, in % (NaN without a ceiling or a gap)."""
+    def total(p):
+        return _mean([r for r in rows if r["policy"] == p], "total_injury")
+
+    return _share(total(baseline), total(policy), total(ceiling))
+
+
+def policy_seeds(rows: Sequence[dict], policy: str) -> list[int]:
+    return sorted({int(r.get("policy_seed") or 0) for r in rows if r["policy"] == policy})
+
+
+def seed_spread(rows: Sequence[dict], policy: str, baseline: str = "braking") -> dict | None:
+    """Mean, standard deviation (n − 1), min and max over training seeds of ``SEED_METRICS`` and of the share of
+    the achievable improvement, with each seed's own values; None for a policy evaluated with one seed."""
+    seeds = policy_seeds(rows, policy)
+    if len(seeds) < 2:
+        return None
+    others = [r for r in rows if r["policy"] != policy]
+    per_seed = {}
+    for seed in seeds:
+        mine = [r for r in rows if r["policy"] == policy and int(r.get("policy_seed") or 0) == seed]
+        metrics = {m: _mean(mine, CELL_METRICS[m]) for m in SEED_METRICS}
+        metrics["achievable_share"] = overall_achievable_share(others + mine, policy, baseline)
+        per_seed[seed] = metrics
+    spread = {}
+    for metric in (*SEED_METRICS, "achievable_share"):
+        vals = np.array([per_seed[s][metric] for s in seeds], dtype=float)
+        vals = vals[np.isfinite(vals)]
+        spread[metric] = {
+            "mean": _json_number(float(vals.mean())) if vals.size else None,
+            "std": _json_number(float(vals.std(ddof=1))) if vals.size > 1 else None,
+            "min": _json_number(float(vals.min())) if vals.size else None,
+            "max": _json_number(float(vals.max())) if vals.size else None,
+        }
+    return {"seeds": seeds, "spread": spread,
+            "by_seed": {str(s): {m: _json_number(v) for m, v in per_seed[s].items()} for s in seeds}}
+
+
 def _draw_heatmap(fig, ax, ttcs, speeds, arr, vmin, vmax, cmap, title):
     data = np.ma.masked_invalid(np.asarray(arr, dtype=float))
     cmap = _cmap(cmap)
@@ -456,20 +557,23 @@ def heatmaps_figure(rows: Sequence[dict], baseline: str = "braking"):
     rows = list(rows)
     policies = policy_order(rows)
     metrics = list(IMPROVEMENT_METRICS)
+    shares: dict = {}
     if baseline in policies and len(policies) > 1:
         grids = improvement_grids(rows, baseline)
         panel_rows = [(p, grids[p]) for p in policies if p != baseline]
         mode = "improvement"
+        shares = achievable_share_grids(rows, baseline)
     else:
         panel_rows = [(p, absolute_grids(rows, p)) for p in policies]
         mode = "absolute"
+    n_cols = len(metrics) + (1 if shares else 0)
 
     n_rows = max(1, len(panel_rows))
     grid = grid_of(rows)
     row_h = 1.1 + 0.35 * max(3, len(grid["ttcs"]))  # titles and tick labels + the TTC cells
-    fig = Figure(figsize=(4.2 * len(metrics), row_h * n_rows + 0.5), dpi=110, layout="constrained")
+    fig = Figure(figsize=(4.2 * n_cols, row_h * n_rows + 0.5), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(n_rows, len(metrics), squeeze=False)
+    axes = fig.subplots(n_rows, n_cols, squeeze=False)
 
     if not panel_rows:  # no rows at all
         for ax, m in zip(axes[0], metrics):
@@ -490,6 +594,10 @@ def heatmaps_figure(rows: Sequence[dict], baseline: str = "braking"):
                 _draw_heatmap(fig, axes[row, col], ttcs, speeds, arr, -peak, peak, "RdBu_r", title + " (pp)")
             else:
                 _draw_heatmap(fig, axes[row, col], ttcs, speeds, arr, 0.0, peak, "Reds", title + " (%)")
+    for row, (policy, _) in enumerate(panel_rows if shares else []):
+        # Fixed range: 100 % = as good as the planner; values past +-100 keep their number, saturate in colour.
+        _draw_heatmap(fig, axes[row, -1], *shares[policy], -100.0, 100.0, "RdBu_r",
+                      f"{policy_label(policy)}\n(e) share of achievable improvement,\ntotal injury risk (%)")
     if mode == "improvement":
         fig.suptitle(
             f"Percentage-point improvement over {policy_label(baseline).lower()} "
@@ -647,6 +755,67 @@ def other_outcomes_markdown(rows: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+def achievable_share_markdown(rows: Sequence[dict], baseline: str = "braking") -> str:
+    """Table IV (ours): total severe-injury risk of braking and of the privileged planner per TTC × speed cell, and
+    each policy's share of the improvement the planner shows is physically achievable. Empty without the planner."""
+    shares = achievable_share_grids(rows, baseline)
+    if not shares:
+        return ""
+    grid = grid_of(rows)
+    ttcs, speeds = grid["ttcs"], grid["speeds"]
+    lines = ["### Table IV. Share of the achievable improvement (%), total severe-injury risk", ""]
+    header = ["Policy type", "whole bank"]
+    for t in ttcs:
+        header += [f"TTC {_fmt_ttc(t)} s"] + [""] * (len(speeds) - 1)
+    lines.append(_md_row(header))
+    lines.append(_md_row(["---"] + ["---:"] * (1 + len(ttcs) * len(speeds))))
+    lines.append(_md_row(["*speed (m/s)*", ""] + [_fmt_speed(s) for _ in ttcs for s in speeds]))
+    for policy in (baseline, CEILING):
+        prow = [r for r in rows if r["policy"] == policy]
+        arr = 100.0 * _metric_grid(prow, "total_injury", "all", ttcs, speeds)
+        lines.append(_md_row([f"{policy_label(policy)}: total injury risk (%)", _fmt(100.0 * _mean(prow, "total_injury"), 2)]
+                             + [_fmt(v, 2) for v in arr.ravel()]))
+    for policy, (_, _, arr) in shares.items():
+        if policy == CEILING:
+            continue
+        lines.append(_md_row([f"{policy_label(policy)}: share (%)", _fmt(overall_achievable_share(rows, policy, baseline), 0)]
+                             + [_fmt(v, 0) for v in arr.ravel()]))
+    lines += ["", "_Share = 100 × (braking − policy) / (braking − planner) of the mean total severe-injury risk "
+              "(pedestrians + car occupants, the quantity R2 penalises) over all scenarios of a cell: 100 = as good as "
+              "the privileged planner, 0 = no better than braking, negative = worse than braking; "
+              f"{MISSING} = the planner cannot improve on braking there. The planner reads the true state and "
+              "re-simulates brake/steer manoeuvres with the real dynamics (envs/planner.py)._"]
+    return "\n".join(lines)
+
+
+def seed_spread_markdown(rows: Sequence[dict], baseline: str = "braking") -> str:
+    """Mean ± standard deviation (min–max) over training seeds, for policies evaluated with two or more seeds."""
+    spreads = {p: seed_spread(rows, p, baseline) for p in policy_order(rows)}
+    spreads = {p: s for p, s in spreads.items() if s is not None}
+    if not spreads:
+        return ""
+    names = {"pedestrian_collision_rate": "pedestrian coll. %", "static_collision_rate": "static coll. %",
+             "pedestrian_severe_injury": "pedestrian injury %", "occupant_severe_injury": "occupant injury %",
+             "total_severe_injury": "total injury %", "achievable_share": "share of achievable %"}
+    lines = ["### Spread over training seeds", ""]
+    lines.append(_md_row(["Policy", "seeds"] + list(names.values())))
+    lines.append(_md_row(["---", "---"] + ["---:"] * len(names)))
+    for policy, sp in spreads.items():
+        cells = []
+        for metric in names:
+            st = sp["spread"][metric]
+            k = 1.0 if metric == "achievable_share" else 100.0
+            if st["mean"] is None:
+                cells.append(MISSING)
+            else:
+                sd = "" if st["std"] is None else f" ± {k * st['std']:.1f}"
+                cells.append(f"{k * st['mean']:.1f}{sd} ({k * st['min']:.1f}–{k * st['max']:.1f})")
+        lines.append(_md_row([policy_label(policy), ", ".join(map(str, sp["seeds"]))] + cells))
+    lines += ["", "_Mean ± standard deviation (min–max) over the seeds' whole-bank values. Every other table pools "
+              "all seeds' rows, which equals the mean over seeds since each seed runs the same scenarios._"]
+    return "\n".join(lines)
+
+
 def tables_markdown(rows: Sequence[dict]) -> str:
     """Tables I, II and III laid out as in the paper, plus a table of secondary outcomes, as Markdown."""
     rows = list(rows)
@@ -659,8 +828,9 @@ def tables_markdown(rows: Sequence[dict]) -> str:
         f"speeds {', '.join(_fmt_speed(s) for s in grid['speeds'])} m/s; "
         f"policies {', '.join(policy_label(p) for p in policy_order(rows))}."
     )
-    parts = [intro, table_i_markdown(rows), table_ii_markdown(rows), table_iii_markdown(rows), other_outcomes_markdown(rows)]
-    return "\n\n".join(parts) + "\n"
+    parts = [intro, table_i_markdown(rows), table_ii_markdown(rows), table_iii_markdown(rows),
+             achievable_share_markdown(rows), other_outcomes_markdown(rows), seed_spread_markdown(rows)]
+    return "\n\n".join(p for p in parts if p) + "\n"
 
 
 # ----------------------------------------------------------------------------- everything at once
