@@ -22,9 +22,9 @@ REPO = Path(__file__).resolve().parent.parent
 SEEDS = (0, 1)
 
 
-def sweep(tmp_path: Path, *overrides: str, env: dict | None = None) -> subprocess.CompletedProcess:
+def sweep(tmp_path: Path, *overrides: str, env: dict | None = None, workers: int = 1) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "worldmodel.collect", "-m", *overrides, "experiment=sweep",
-           "paths.data=${paths.data_root}/sweep_s${seed}", "seed=0,1", "scale=smoke", "collect.num_workers=1",
+           "paths.data=${paths.data_root}/sweep_s${seed}", "seed=0,1", "scale=smoke", f"collect.num_workers={workers}",
            f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
     return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
@@ -65,7 +65,8 @@ def job_records(sweep_dir: Path) -> dict[int, dict]:
 
 
 def test_submitit_local_sweep_runs_each_seed_as_a_submitit_job(tmp_path):
-    result = sweep(tmp_path, "hydra/launcher=submitit_local")
+    # two collection workers inside each job: the stage's process pool must work under a launcher too
+    result = sweep(tmp_path, "hydra/launcher=submitit_local", workers=2)
     assert result.returncode == 0, result.stderr[-3000:]
     check_datasets(tmp_path)
 

@@ -50,6 +50,14 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
     import hydra
 
     def decorate(run: Callable):
+        if run.__module__ == "__main__" and getattr(sys.modules["__main__"], "__spec__", None) is not None:
+            # Under `python -m worldmodel.X` the stage's functions live in __main__, which a launcher's job process
+            # (joblib, submitit) cannot import by name, so process pools inside the stage fail to pickle them.
+            # Running the copy from the real module keeps every function importable.
+            import importlib
+
+            run = getattr(importlib.import_module(sys.modules["__main__"].__spec__.name), run.__name__)
+
         @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
         def main(cfg):
             try:
