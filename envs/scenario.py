@@ -162,3 +162,7 @@ def test_bank(ttcs=BANK_TTCS, speeds=BANK_SPEEDS, hazards=BANK_HAZARDS, per_cell
                     )
                     entries.append(BankEntry(len(entries), hazard, float(ttc), float(speed), i, spec))
     return entries
+
+
+# The name starts with "test_"; without this, pytest collects every import of it as a test that cannot fail.
+test_bank.__test__ = False
