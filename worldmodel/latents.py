@@ -43,28 +43,62 @@ def is_current(path: Path, vae_sha: str) -> bool:
 @torch.inference_mode()
 def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_size: int = 256,
                    progress: bool = True) -> None:
-    """Encode every episode of ``store`` with ``vae`` into ``out`` (atomically)."""
+    """Encode every episode of ``store`` with ``vae`` into ``out`` (atomically).
+
+    Frames stream through the encoder in batches of exactly ``batch_size`` across episode boundaries (the last
+    batch is padded). oneDNN caches primitives per input shape, ~9 MB each: encoding episode by episode, with
+    a different tail shape for nearly every episode length, grew the stage past 5 GB at paper scale.
+    """
     from tqdm import tqdm
 
     vae.eval()
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    frames = None   # the fixed-size input batch, allocated once the frame size is known
+    fill = 0
+    encoded_mu, encoded_logvar = [], []   # encoded frames not yet written, in episode order
+    waiting: list[int] = []               # episodes whose frames are queued or encoded but not written
+
+    def encode_batch(valid: int) -> None:
+        mu, logvar = vae.encode(torch.from_numpy(frames))
+        encoded_mu.append(mu[:valid].numpy().astype(np.float32))
+        encoded_logvar.append(logvar[:valid].numpy().astype(np.float32))
+
+    def write_finished(f) -> None:
+        mu, logvar = np.concatenate(encoded_mu), np.concatenate(encoded_logvar)
+        used = 0
+        while waiting and used + store.lengths[waiting[0]] <= len(mu):
+            i = waiting.pop(0)
+            n = store.lengths[i]
+            g = f.create_group(episode_key(i))
+            g.create_dataset("mu", data=mu[used: used + n])
+            g.create_dataset("logvar", data=logvar[used: used + n])
+            g.create_dataset("action", data=store.read(i, "action").astype(np.float32))
+            used += n
+        encoded_mu[:], encoded_logvar[:] = [mu[used:]], [logvar[used:]]
+
     try:
         with h5py.File(tmp, "w") as f:
             f.attrs["vae_checkpoint"] = str(vae_path)
             f.attrs["vae_sha256"] = file_sha256(vae_path)
             f.attrs["latent_dim"] = vae.latent_dim
-            episodes = sorted(store.location)
-            for i in tqdm(episodes, desc="encode", unit="episode", disable=not progress):
+            for i in tqdm(sorted(store.location), desc="encode", unit="episode", disable=not progress):
                 seg = store.read(i, "seg")
-                mus, logvars = [], []
-                for s in range(0, len(seg), batch_size):
-                    mu, logvar = vae.encode(torch.from_numpy(seg[s: s + batch_size]))
-                    mus.append(mu.numpy())
-                    logvars.append(logvar.numpy())
-                g = f.create_group(episode_key(i))
-                g.create_dataset("mu", data=np.concatenate(mus).astype(np.float32))
-                g.create_dataset("logvar", data=np.concatenate(logvars).astype(np.float32))
-                g.create_dataset("action", data=store.read(i, "action").astype(np.float32))
+                if frames is None:
+                    frames = np.zeros((batch_size, *seg.shape[1:]), seg.dtype)
+                waiting.append(i)
+                pos = 0
+                while pos < len(seg):
+                    take = min(batch_size - fill, len(seg) - pos)
+                    frames[fill: fill + take] = seg[pos: pos + take]
+                    fill, pos = fill + take, pos + take
+                    if fill == batch_size:
+                        encode_batch(batch_size)
+                        fill = 0
+                        write_finished(f)
+            if fill:
+                encode_batch(fill)   # the stale tail of the buffer is encoded and dropped
+            if waiting:
+                write_finished(f)
         os.replace(tmp, out)
     finally:
         if tmp.exists():

@@ -140,7 +140,7 @@ def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frame
         zhat = rnn.predict(out)[0]
         target = torch.from_numpy(store.read(i, "seg")[1:])
         for name, latent in (("model", zhat), ("persistence", z[0, :-1]), ("reconstruction", z[0, 1:])):
-            conf[name] += confusion(vae.decode(latent).argmax(1), target, 13)
+            conf[name] += confusion(_decode_classes(vae, latent), target, 13)
         sq_err["model"] += float(((zhat - z[0, 1:]) ** 2).sum())
         sq_err["persistence"] += float(((z[0, :-1] - z[0, 1:]) ** 2).sum())
         n += len(target)
@@ -154,6 +154,15 @@ def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frame
     for name, e in sq_err.items():
         result[name]["latent_mse"] = e / max(n, 1) / lat.f.attrs["latent_dim"]
     return result
+
+
+def _decode_classes(vae, z: torch.Tensor, chunk: int = 64) -> torch.Tensor:
+    """Class maps of ``z`` decoded in zero-padded chunks of one size: oneDNN keeps ~9 MB of primitives per input
+    shape, and decoding each episode whole (one shape per episode length) grew this stage by gigabytes."""
+    n = len(z)
+    padded = torch.zeros((-(-n // chunk) * chunk, z.shape[1]), dtype=z.dtype)
+    padded[:n] = z
+    return torch.cat([vae.decode(part).argmax(1) for part in padded.split(chunk)])[:n]
 
 
 def _num(x) -> float | None:
