@@ -2,7 +2,8 @@
 clean stop on SIGINT/SIGTERM.
 
 A checkpoint holds model, optimiser, epoch, position within the epoch, global step, RNG states and the
-stage's own extras. ``last.pt`` is rewritten atomically at every save; ``best.pt`` when validation improves.
+stage's own extras. ``last.pt`` is rewritten atomically at every save; ``best.pt`` when validation improves,
+and before ``last.pt``, so a kill between the two never leaves ``best.pt`` behind what ``last.pt`` records.
 Resuming restores all of it, and TensorBoard keeps counting from the saved step (ctallec/world-models
 restored its scheduler from the wrong state dict; resume is tested here).
 """
@@ -53,9 +54,11 @@ class Checkpoints:
 
     def save(self, state: dict, best: bool = False) -> None:
         state = {**state, "rng": rng_state()}
-        atomic_torch_save(state, self.last)
+        # best.pt first: a process killed between the two writes then resumes from the previous last.pt and
+        # redoes the improvement. The other order would leave last.pt recording a best that best.pt lacks.
         if best:
             atomic_torch_save(state, self.best)
+        atomic_torch_save(state, self.last)
 
     def resume_state(self, resume: bool) -> dict | None:
         """The state to continue from, or None for a fresh start; refuses to overwrite without resume."""
