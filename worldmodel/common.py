@@ -60,6 +60,7 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
 
         @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
         def main(cfg):
+            return_freed_memory()
             try:
                 return run(cfg)
             except StageError as err:
@@ -166,6 +167,23 @@ def set_rng_state(state: dict) -> None:
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     torch.set_rng_state(state["torch"])
+
+
+def return_freed_memory(threshold: int = 1 << 20) -> bool:
+    """Serve allocations above ``threshold`` bytes with their own mmap, returned to the OS when freed.
+
+    glibc raises this threshold each time a large block is freed, after which torch's tens-of-MB temporaries
+    (a one-hot batch is 54 MB) come from the heap and fragment it: encoding the paper-scale dataset grew the
+    process by ~1 MB per episode (278 MB over 300 episodes, 20 MB with this). No-op off glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        M_MMAP_THRESHOLD = -3
+        return bool(libc.mallopt(M_MMAP_THRESHOLD, int(threshold)))
+    except (OSError, AttributeError):
+        return False
 
 
 def set_threads(n: int) -> None:
