@@ -354,3 +354,17 @@ def test_death_between_best_and_last_never_leaves_best_behind(tmp_path, monkeypa
     last, best = load(ckpts.last), load(ckpts.best)
     # Either both hold the new best, or best.pt is ahead of the resume point (which then redoes step 2).
     assert last["best_val"] == best["best_val"] or best["step"] > last["step"], (last, best)
+
+
+def test_leftover_temporary_checkpoint_is_removed_on_start(tmp_path):
+    """A kill inside a save leaves `.last.pt.XXXX.tmp`; the next start of that run deletes it, and only it."""
+    from worldmodel.common import atomic_torch_save
+
+    ckpts = training.Checkpoints(tmp_path, "train_vae", compose("train_vae"))
+    atomic_torch_save({"step": 3, "rng": training.rng_state()}, ckpts.last)
+    stale = tmp_path / ".last.pt.k1ll3d.tmp"
+    stale.write_bytes(b"half a checkpoint")
+    keep = tmp_path / "notes.tmp"
+    keep.write_text("not ours")
+    assert ckpts.resume_state(resume=True)["step"] == 3
+    assert not stale.exists() and keep.exists() and ckpts.last.exists()

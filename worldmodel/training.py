@@ -62,6 +62,10 @@ class Checkpoints:
 
     def resume_state(self, resume: bool) -> dict | None:
         """The state to continue from, or None for a fresh start; refuses to overwrite without resume."""
+        # A process killed inside a save leaves its temporary file (possibly hundreds of MB with a replay buffer);
+        # only this run writes here, so whatever is left over belongs to a dead writer.
+        for stale in self.dir.glob(".*.pt.*.tmp"):
+            stale.unlink(missing_ok=True)
         if not self.last.exists():
             return None
         if not resume:
