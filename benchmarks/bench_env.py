@@ -1,10 +1,45 @@
 """Simulator speed, reset cost, memory over many resets, and hazard visibility at onset.
 
-    python -m benchmarks.bench_env [--resets 10000] [--per-cell 20]
+    python -m benchmarks.bench_env [--resets 10000] [--per-cell 20] [--profile-only]
+
+Steps/s are wall-clock (the DESIGN.md section 7 target) and also per CPU-second of this process
+(``*_cpu``), which other people's jobs on a shared machine disturb much less; ``load_average`` records how busy
+the machine was. ``profile_camera_on`` splits a camera-on step into its parts (CPU ms per step).
+
+Profile of the camera (issue 6; 2-core AMD EPYC, shared; wall time, and valgrind instruction counts where other
+people's jobs made timings unreliable). Before: 274 steps/s camera on, ~3.2 ms of a ~3.7 ms step inside
+``getCameraImage``; actor placement 0.07 ms; dynamics, collisions and the rest ~0.4 ms.
+
+* TinyRenderer draws every body, rasterising each triangle's whole screen bounding box: an empty 64x64 frame
+  costs ~0.1 ms (clearing and copying buffers, 1.3 M instructions); each body ~4 us of vertex work even when
+  parked far away, behind the camera or below ground; then ~120 instructions per pixel of each triangle's
+  bounding box and ~490 per fragment shaded. Posts were already boxes (12 triangles), not cylinders.
+* Options do not help: shadows are off by default (shadow=1: +49 %); lightDirection and the light
+  coefficients change nothing; ER_NO_SEGMENTATION_MASK saves 1.4 % (and we need the mask); near/far 1/40 m
+  instead of 0.1/70 m: -0.3 %. pybullet's numpy output is already on.
+* The flat ground (road, two 40 m sidewalks, edge lines, 64 dashes, the side street) was 1.7 ms of a 2.7 ms
+  frame: huge, thin triangles whose bounding boxes cover most of the screen. Without it: 1.0 ms.
+* A body with alpha 0 is skipped entirely (a parked one is not): hiding the unused pool bodies and the ~85 %
+  of the street outside the view frustum took the remaining 1.0 ms to 0.7 ms (~32 bodies drawn per frame).
+* Of those 0.7 ms, the ~9 visible buildings were 0.53: their boxes were 24 m tall, buried up to 18 m to vary
+  the height, and the buried part was still rasterised. Boxes of 9..24 m buried < 3 m: -12 % of the render's
+  instructions.
+* Merging scenery does not help: one multibody of 100 box links costs what 100 bodies cost (3.59 M
+  instructions per frame either way: TinyRenderer works per visual shape), sub-shapes cannot be moved per
+  episode, and createVisualShapeArray with colours segfaults in pybullet 3.2.7.
+* ``resetBasePositionAndOrientation`` ~0.7 us and ``changeVisualShape`` ~1.3 us per call; only active actors
+  move now, and only bodies whose visibility changes are touched.
+
+After (``envs/camera.py``: the flat ground drawn per pixel from the depth buffer, culling, shorter building
+boxes): 813 steps/s wall (819 per CPU-second) with another benchmark running on the second core, ~1,000
+steps/s when the machine was quieter. CPU ms per step: getCameraImage 0.66, flat ground 0.14, culling 0.04,
+actor placement 0.045, layout placement 0.02, the rest (dynamics, collisions, glue) 0.25.
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import time
 
 import numpy as np
@@ -15,19 +50,62 @@ from envs.scenario import sample_scenario
 from .common import rss_mb, write
 
 
-def steps_per_second(camera: bool, steps: int) -> float:
+def steps_per_second(camera: bool, steps: int) -> tuple[float, float]:
+    """(wall-clock, CPU-time) steps per second, resets included."""
     env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None)
     rng = np.random.default_rng(0)
     env.reset(options={"scenario": sample_scenario(rng)})
     actions = rng.uniform(-0.3, 0.3, size=(steps, 2)).astype(np.float32)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     for a in actions:
         _, _, term, trunc, _ = env.step(a)
         if term or trunc:
             env.reset(options={"scenario": sample_scenario(rng)})
-    rate = steps / (time.perf_counter() - t0)
+    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
     env.close()
-    return rate
+    return steps / wall, steps / cpu
+
+
+def profile(steps: int) -> dict:
+    """CPU ms per camera-on step by part (each part timed around its call, resets included)."""
+    env = UrbanCollisionEnv(camera=True, horizon_after_ttc_s=None)
+    cam, pool = env._camera, env._pool
+    spent: dict[str, float] = {}
+
+    def timed(obj, name: str, key: str) -> None:
+        inner = getattr(obj, name)
+
+        def wrapper(*args, **kwargs):
+            t = time.thread_time()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                spent[key] = spent.get(key, 0.0) + time.thread_time() - t
+        setattr(obj, name, wrapper)
+
+    timed(cam, "_image", "getCameraImage")
+    timed(cam, "_composite_ground", "flat ground (per pixel)")
+    timed(cam, "_visible", "culling test")
+    timed(pool, "show", "changeVisualShape (show/hide)")
+    timed(pool, "place_actors", "actor placement")
+    timed(pool, "apply_layout", "layout placement (resets)")
+    rng = np.random.default_rng(0)
+    env.reset(options={"scenario": sample_scenario(rng)})
+    spent.clear()
+    actions = rng.uniform(-0.3, 0.3, size=(steps, 2)).astype(np.float32)
+    c0 = time.thread_time()
+    episodes = 0
+    for a in actions:
+        _, _, term, trunc, _ = env.step(a)
+        if term or trunc:
+            env.reset(options={"scenario": sample_scenario(rng)})
+            episodes += 1
+    total = time.thread_time() - c0
+    env.close()
+    out = {k: 1e3 * v / steps for k, v in spent.items()}
+    out["rest (dynamics, collisions, env, numpy glue)"] = 1e3 * total / steps - sum(out.values())
+    return {"steps": steps, "resets": episodes, "cpu_ms_per_step": 1e3 * total / steps,
+            "parts_cpu_ms_per_step": {k: round(v, 4) for k, v in out.items()}}
 
 
 def reset_cost(camera: bool, resets: int) -> dict:
@@ -67,10 +145,22 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--resets", type=int, default=10000)
     ap.add_argument("--per-cell", type=int, default=20)
+    ap.add_argument("--profile-only", action="store_true", help="print the per-part profile; write nothing")
     args = ap.parse_args(argv)
+    if args.profile_only:
+        result = profile(args.steps)
+        print(json.dumps(result, indent=2))
+        return result
+    load_before = os.getloadavg()
+    on_wall, on_cpu = steps_per_second(True, args.steps)
+    off_wall, off_cpu = steps_per_second(False, args.steps * 5)
     result = {
-        "steps_per_s_camera_on": steps_per_second(True, args.steps),
-        "steps_per_s_camera_off": steps_per_second(False, args.steps * 5),
+        "steps_per_s_camera_on": on_wall,
+        "steps_per_s_camera_off": off_wall,
+        "steps_per_s_camera_on_cpu": on_cpu,
+        "steps_per_s_camera_off_cpu": off_cpu,
+        "load_average": {"before": list(load_before), "after_steps": list(os.getloadavg())},
+        "profile_camera_on": profile(args.steps),
         "reset_camera_on": reset_cost(True, args.resets),
         "reset_camera_off": reset_cost(False, min(args.resets, 2000)),
         "hazard_visible_at_onset": visibility(args.per_cell),

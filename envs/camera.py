@@ -6,6 +6,27 @@ body), and the ego itself has no body in the forward view.
 
 The field of view (90 degrees by default) was chosen from a measurement: ``benchmarks/bench_env.py``
 reports the share of test-bank scenarios whose hazard is visible at onset per TTC x speed cell.
+
+Speed (``python -m benchmarks.bench_env --profile-only`` times each part; that module's docstring has the
+profile). TinyRenderer draws every body in the world with a bounding-box rasteriser, so its cost is the number
+of bodies (about 4 us each, even out of view) plus the screen area of every triangle's bounding box. Four
+things keep a frame cheap (from ~3.2 ms to ~0.8 ms) while drawing the same scene:
+
+* **The flat ground is drawn here, per pixel.** Road, sidewalks, kerbs, road lines and the side street are
+  huge, thin triangles whose bounding boxes cover most of the screen (about 60 % of the original render
+  time). The camera's height and pitch never change, so where each pixel's ray meets the two ground levels is
+  fixed in the ego's frame and precomputed; per frame the hits are rotated to the ego's pose, classified by
+  ``scene.FlatGround`` and composited with TinyRenderer's depth buffer: the ground wins a pixel where it is
+  nearer than what TinyRenderer drew there (the depth test TinyRenderer itself would have made). The ground's
+  bodies stay in the world, hidden, as the reference (``analytic_ground=False`` draws them instead; a test
+  compares the two: > 99.8 % of pixels agree, and the dashes, which pybullet drew z-fighting with the road,
+  are now whole) and for the bird's-eye view.
+* **Culling**: bodies not in use, and bodies provably outside the view frustum (a conservative test of each
+  body's bounding cylinder against the near, far and side planes), are hidden with alpha 0, which pybullet
+  skips entirely. Culling only removes bodies with no point in the frustum, so the frame is unchanged
+  (``cull=False`` draws every body in use; a test compares the two).
+* **Short building boxes** (``scene.BUILDING_HEIGHTS``): a building is buried < 3 m instead of up to 18 m.
+* Only active actors are moved, and only bodies whose visibility changes are touched.
 """
 from __future__ import annotations
 
@@ -13,7 +34,7 @@ import math
 
 import numpy as np
 
-from .scene import PALETTE
+from .scene import PALETTE, FlatGround
 
 EYE_FORWARD = 0.5
 EYE_HEIGHT = 1.6
@@ -22,15 +43,24 @@ NEAR, FAR = 0.1, 70.0
 
 
 class SegmentationCamera:
-    def __init__(self, client: int, lut: np.ndarray, size: int = 64, fov_deg: float = 90.0):
+    def __init__(self, client: int, pool, size: int = 64, fov_deg: float = 90.0):
         import pybullet as p
 
         self._p = p
         self.client = client
-        self.lut = lut
+        self.pool = pool
+        self.lut = pool.lut
         self.size = size
         self.projection = p.computeProjectionMatrixFOV(fov_deg, 1.0, NEAR, FAR, physicsClientId=client)
+        proj = np.array(self.projection, dtype=np.float64).reshape(4, 4).T   # pybullet: column-major
+        self._px, self._py = proj[0, 0], proj[1, 1]
+        # TinyRenderer's own reading of the clip planes from the matrix.
+        self.near = proj[2, 3] / (proj[2, 2] - 1.0)
+        self.far = proj[2, 3] / (proj[2, 2] + 1.0)
+        self.cull = True
+        self.analytic_ground = True
         self.last_uids = np.full((size, size), -1, dtype=np.int32)
+        self._prepare_ground_rays()
 
     def _view(self, x: float, y: float, heading: float) -> list:
         c, s = math.cos(heading), math.sin(heading)
@@ -39,20 +69,103 @@ class SegmentationCamera:
         target = (eye[0] + 10.0 * c, eye[1] + 10.0 * s, EYE_HEIGHT - drop)
         return self._p.computeViewMatrix(eye, target, (0.0, 0.0, 1.0), physicsClientId=self.client)
 
-    def _render_uids(self, view, size: int, projection) -> np.ndarray:
-        _, _, _, _, seg = self._p.getCameraImage(
+    # ------------------------------------------------------------------ the flat ground, per pixel
+    def _prepare_ground_rays(self) -> None:
+        """Where each pixel's ray meets the ground levels, in the ego's frame (eye at the origin, heading 0)."""
+        n = self.size
+        view = np.array(self._view(-EYE_FORWARD, 0.0, 0.0), dtype=np.float64).reshape(4, 4).T
+        rot = view[:3, :3]                                   # world -> eye
+        # TinyRenderer samples pixel (col, row) at screen point (col, n - 1 - row) (it flips rows afterwards),
+        # i.e. at NDC (2 col / n - 1, 2 (n - 1 - row) / n - 1).
+        ndc = 2.0 * np.arange(n) / n - 1.0
+        eye_dir = np.empty((n, n, 3))
+        eye_dir[..., 0] = ndc[None, :] / self._px
+        eye_dir[..., 1] = ndc[::-1][:, None] / self._py
+        eye_dir[..., 2] = -1.0                               # so the ray parameter is the eye depth
+        world = eye_dir @ rot                                # rows: rot.T @ d
+        dz = world[..., 2].reshape(-1)
+        with np.errstate(divide="ignore"):
+            t_up = np.where(dz < 0.0, (FlatGround.UPPER_Z - EYE_HEIGHT) / dz, np.inf)
+            t_low = np.where(dz < 0.0, (FlatGround.LOWER_Z - EYE_HEIGHT) / dz, np.inf)
+        idx = np.flatnonzero(t_up <= self.far)
+        flat = world.reshape(-1, 3)[idx, :2] * t_up[idx, None]   # (forward, left) from the eye at UPPER_Z
+        self._g_idx = idx
+        self._g_t_up = t_up[idx]
+        self._g_rays = np.ascontiguousarray(flat.T)              # (2, n): forward, left
+        self._g_depth_up = self._depth_value(t_up[idx])
+        self._g_depth_low = self._depth_value(t_low[idx])
+        self._g_ratio = (FlatGround.LOWER_Z - EYE_HEIGHT) / (FlatGround.UPPER_Z - EYE_HEIGHT)
+        self._g_reach = self._g_ratio * float(np.hypot(flat[:, 0], flat[:, 1]).max(initial=0.0))
+
+    def _depth_value(self, d: np.ndarray) -> np.ndarray:
+        """Eye depth -> the value in pybullet's depth buffer (float32; 1 at the far plane, > 1 beyond)."""
+        n, f = self.near, self.far
+        return (f * (d - n) / ((f - n) * d)).astype(np.float32)
+
+    def _composite_ground(self, uids: np.ndarray, depth: np.ndarray, x: float, y: float, heading: float) -> None:
+        """Write the ground's uid into ``uids`` wherever the ground is nearer than what TinyRenderer drew."""
+        d_obj = depth.reshape(-1).take(self._g_idx)
+        cand = (d_obj > self._g_depth_up).nonzero()[0]      # the ground can only win where the object is further
+        if cand.size == 0:
+            return
+        c, s = math.cos(heading), math.sin(heading)
+        cls, upper, kerb, at = self.pool.ground.classify(
+            self._g_rays.take(cand, axis=1), x + EYE_FORWARD * c, y + EYE_FORWARD * s, c, s,
+            self._g_ratio, self._g_reach)
+        # Hits at the upper level are nearer than the object by the choice of ``cand``; the others are tested.
+        d_obj = d_obj.take(cand)
+        d_low = self._g_depth_low.take(cand)
+        if kerb.size:
+            d_low[kerb] = self._depth_value(self._g_t_up.take(cand.take(kerb)) * at)
+        win = d_low < d_obj
+        win |= upper
+        win &= cls > 0
+        win = win.nonzero()[0]
+        uids.reshape(-1)[self._g_idx.take(cand.take(win))] = self.pool.ground_uid.take(cls.take(win))
+
+    # ------------------------------------------------------------------ culling
+    def _visible(self, x: float, y: float, heading: float) -> np.ndarray:
+        """Bodies in use that may have a point in the view frustum (conservative: bounding cylinders)."""
+        pool = self.pool
+        want = pool.cullable_in_use()
+        if not self.cull:
+            return want
+        c, s = math.cos(heading), math.sin(heading)
+        dx = pool.centre[:, 0] - (x + EYE_FORWARD * c)
+        dy = pool.centre[:, 1] - (y + EYE_FORWARD * s)
+        fwd = dx * c + dy * s
+        lat = np.abs(dy * c - dx * s) - pool.radius
+        cp, sp = math.cos(math.radians(PITCH_DEG)), math.sin(math.radians(PITCH_DEG))
+        # Eye depth of a point (forward f, height h above the eye): f cos(pitch) - h sin(pitch).
+        d_max = (fwd + pool.radius) * cp - (pool.z[:, 0] - EYE_HEIGHT) * sp
+        d_min = (fwd - pool.radius) * cp - (pool.z[:, 1] - EYE_HEIGHT) * sp
+        return want & (d_max >= self.near) & (d_min <= self.far) & (lat <= d_max / self._px)
+
+    # ------------------------------------------------------------------ frames
+    def _image(self, view, size: int, projection) -> tuple[np.ndarray, np.ndarray]:
+        _, _, _, depth, seg = self._p.getCameraImage(
             size, size, view, projection, renderer=self._p.ER_TINY_RENDERER, physicsClientId=self.client)
-        seg = np.asarray(seg, dtype=np.int64).reshape(size, size)
-        # Low 24 bits carry the body uid; background is -1.
-        return np.where(seg < 0, -1, seg & 0xFFFFFF).astype(np.int32)
+        # pybullet already keeps only the low 24 bits (the body uid) of object pixels; background is -1.
+        return np.asarray(seg, dtype=np.int32).reshape(size, size), np.asarray(depth).reshape(size, size)
+
+    def render_uids(self, x: float, y: float, heading: float) -> np.ndarray:
+        """Body-uid frame (size, size) int32 seen from the ego pose; -1 is background."""
+        want = self._visible(x, y, heading)
+        if not self.analytic_ground:
+            want[self.pool.ground_uids] = True
+        self.pool.show(want)
+        uids, depth = self._image(self._view(x, y, heading), self.size, self.projection)
+        if self.analytic_ground:
+            self._composite_ground(uids, depth, x, y, heading)
+        return uids
 
     def render(self, x: float, y: float, heading: float) -> np.ndarray:
         """Class-id frame (size, size) uint8 seen from the ego pose."""
-        self.last_uids = self._render_uids(self._view(x, y, heading), self.size, self.projection)
+        self.last_uids = self.render_uids(x, y, heading)
         return self.lut[self.last_uids + 1]
 
     def birds_eye(self, x: float, y: float, heading: float, size: int = 128, span: float = 60.0) -> np.ndarray:
-        """Top-down class map centred ahead of the ego, forward pointing up the image."""
+        """Top-down uid map centred ahead of the ego, forward pointing up the image (for people, not speed)."""
         p = self._p
         c, s = math.cos(heading), math.sin(heading)
         centre = (x + 0.3 * span * c, y + 0.3 * span * s, 0.0)
@@ -60,7 +173,8 @@ class SegmentationCamera:
         fov = math.degrees(2.0 * math.atan(0.5 * span / height))
         view = p.computeViewMatrix((centre[0], centre[1], height), centre, (c, s, 0.0), physicsClientId=self.client)
         proj = p.computeProjectionMatrixFOV(fov, 1.0, 1.0, 400.0, physicsClientId=self.client)
-        return self._render_uids(view, size, proj)
+        self.pool.show_everything(ground=True)
+        return self._image(view, size, proj)[0]
 
 
 def colorize(classes: np.ndarray) -> np.ndarray:

@@ -105,7 +105,7 @@ class UrbanCollisionEnv(gym.Env):
         self._client = p.connect(p.DIRECT)
         vehicle_size = (self.params.length, self.params.width, self.params.height)
         self._pool = BodyPool(self._client, CAR_POOL, PEDESTRIAN_POOL, vehicle_size, PEDESTRIAN_HALF_SIZE)
-        self._camera = SegmentationCamera(self._client, self._pool.lut, self.image_size, self.fov_deg)
+        self._camera = SegmentationCamera(self._client, self._pool, self.image_size, self.fov_deg)
 
     def close(self) -> None:
         if getattr(self, "_client", None) is not None:
