@@ -3,15 +3,22 @@
     python -m benchmarks.bench_decision [--decisions 2000] [--warmup 200] [--tiny]
 
 Times exactly what the evaluation loop calls per frame, ``LearnedPolicy.act(obs, info)`` from
-``worldmodel.agent_obs``, wrapping untrained models of the real sizes: ``SegVAE`` (latent 128), ``WorldRNN``
-(LSTM 512, MDN head with 5 Gaussians) and the DDPG ``Actor`` (400-300) on the 256-d input [z_t, zhat_{t+1}].
-Weights do not change the cost of a dense forward pass, so untrained models time the same as trained ones.
+``worldmodel.agent_obs`` (its ``FastDecision`` + ``FastActor`` path), wrapping untrained models of the real sizes:
+``SegVAE`` (latent 128), ``WorldRNN`` (LSTM 512, MDN head with 5 Gaussians) and the DDPG ``Actor`` (400-300) on
+the 256-d input [z_t, zhat_{t+1}]. Weights do not change the cost of a dense forward pass, so untrained models
+time the same as trained ones.
 
 The inputs are real frames rendered by the simulator (``UrbanCollisionEnv(camera=True)``, scenarios from
 ``sample_scenario(default_rng(k))``, action [0, 0]); they are rendered before timing and fed in order, with the
-recurrent state reset at each new scenario (outside the timed call). Also reported: each part alone (p50),
-and the top 15 operators by self CPU time from ``torch.profiler`` and the top 15 Python functions by own time
-from ``cProfile``, so a reader can see what bounds the latency.
+recurrent state reset at each new scenario (outside the timed call). Also reported:
+
+* ``parts``: each stage of the same decision loop, timed inline (so each runs with the caches the previous
+  stages left, as inside ``act``; isolated micro-benchmarks of one stage in a tight loop look faster);
+* ``reference``: the modules' own path (``SegVAE.encode`` -> ``WorldRNN.step`` -> ``predict`` -> ``Actor``),
+  which is what ``act`` ran before the fast path, with oneDNN off and on, measured in the same run and so under
+  the same machine load;
+* the top 15 operators by self CPU time from ``torch.profiler`` and the top 15 Python functions by own time from
+  ``cProfile``, so a reader can see what bounds the latency.
 """
 from __future__ import annotations
 
@@ -73,8 +80,19 @@ def build_policy(latent: int = 128, hidden: int = 512, gaussians: int = 5, actor
     sizes = {"latent_dim": latent, "lstm_hidden": hidden, "mdn_gaussians": gaussians,
              "actor_hidden": list(actor_hidden), "obs_dim": encoder.dim,
              "parameters": {"vae_encoder": _params(vae, ("enc", "fc_mu", "fc_logvar")), "rnn": _params(rnn),
-                            "actor": _params(actor)}}
+                            "actor": _params(actor)},
+             "weights_read_per_decision_mb": round(_weight_bytes(policy) / 2**20, 2)}
     return policy, sizes
+
+
+def _weight_bytes(policy) -> int:
+    """Bytes of weights one decision streams through (what bounds it once the arithmetic is cheap)."""
+    f = policy.encoder.fast
+    tensors = [f.enc1_table, f.fc_mu_wt, f.fc_mu_b, f.lstm_wt, f.lstm_b, f.head_wt, f.head_b]
+    tensors += [t for layer in policy.fast_actor.layers for t in layer[:2]]
+    # oneDNN's packed copies are opaque tensors; they hold the same numbers as the convolutions' parameters
+    tensors += [t for conv in (f.vae.enc2, f.vae.enc3, f.vae.enc4) for t in (conv.weight, conv.bias)]
+    return sum(t.numel() * t.element_size() for t in tensors)
 
 
 def _params(module, prefixes=None) -> int:
@@ -114,49 +132,91 @@ def time_decisions(policy, episodes, n: int, warmup: int) -> np.ndarray:
 
 
 def time_parts(policy, episodes, n: int, warmup: int) -> dict:
-    """Each stage of a decision alone, on the same inputs and states it sees inside ``act``."""
+    """Each stage of ``policy.act``, timed inline in the same order on the same frames and states.
+
+    Mirrors ``FastDecision.encode`` + ``FastActor`` stage by stage; the result is checked against ``act``.
+    """
+    import torch
+
+    fast, actor = policy.encoder.fast, policy.fast_actor
+    clock = time.perf_counter_ns
+    keys = ("input_check", "vae_encode", "lstm_step", "mdn_predict", "actor", "decision_total")
+    out = {k: np.empty(n, np.int64) for k in keys}
+    feed = _feed(episodes)
+    with torch.inference_mode():
+        for i in range(-warmup, n):
+            new, obs, _ = next(feed)
+            if new:
+                fast.reset()
+            t0 = clock()
+            fast._load(obs["seg"], None)
+            t1 = clock()
+            fast._encode_mu()
+            t2 = clock()
+            fast._lstm_step()
+            t3 = clock()
+            fast._predict()
+            t4 = clock()
+            action = actor(fast.out)[0].numpy().astype(np.float32)
+            t5 = clock()
+            fast.note_action(action)
+            if i >= 0:
+                for k, dt in zip(keys, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t5 - t0)):
+                    out[k][i] = dt
+    _check_parts_match_act(policy, episodes)
+    return {k: _stats_ms(v) for k, v in out.items()}
+
+
+def _check_parts_match_act(policy, episodes) -> None:
+    """The staged loop above must compute what ``act`` computes (guards against the mirror drifting)."""
+    fast = policy.encoder.fast
+    frames = episodes[0][:5]
+    policy.reset()
+    want = [policy.act(obs, None) for obs, _ in frames]
+    fast.reset()
+    for (obs, _), w in zip(frames, want):
+        fast._load(obs["seg"], None)
+        fast._encode_mu()
+        fast._lstm_step()
+        fast._predict()
+        got = policy.fast_actor(fast.out)[0].numpy().copy()
+        fast.note_action(got)
+        if not np.array_equal(got, w):
+            raise AssertionError("bench_decision's staged loop no longer matches LearnedPolicy.act")
+
+
+def time_reference(policy, episodes, n: int, warmup: int) -> dict:
+    """The modules' own batch-1 path (the pre-``FastDecision`` ``act``), with oneDNN off and on."""
     import torch
 
     enc = policy.encoder
     vae, rnn, actor = enc.vae, enc.rnn, policy.actor
-    segs = [torch.from_numpy(np.ascontiguousarray(obs["seg"])).unsqueeze(0)
-            for frames in episodes for obs, _ in frames]
     clock = time.perf_counter_ns
-    out: dict[str, list[int]] = {"vae_encode": [], "lstm_step": [], "mdn_predict": [], "actor": [],
-                                 "encoder_total": []}
-    with torch.inference_mode():
-        state = rnn.initial_state(1)
-        a = torch.zeros(1, 2)
-        for i in range(-warmup, n):
-            seg = segs[i % len(segs)]
-            t0 = clock()
-            z, _ = vae.encode(seg)
-            t1 = clock()
-            o, state = rnn.step(z, a, state)
-            t2 = clock()
-            zhat = rnn.predict(o)
-            t3 = clock()
-            x = torch.cat([z, zhat], dim=1)
-            t4 = clock()
-            a = actor(x)
-            t5 = clock()
-            if i >= 0:
-                out["vae_encode"].append(t1 - t0)
-                out["lstm_step"].append(t2 - t1)
-                out["mdn_predict"].append(t3 - t2)
-                out["actor"].append(t5 - t4)
-        # WorldModelEncoder.encode: numpy -> VAE -> LSTM -> prediction -> numpy, as act() calls it
+    keys = ("vae_encode", "lstm_step", "mdn_predict", "actor", "decision_total")
+    result = {}
+    for onednn in (False, True):
+        out = {k: np.empty(n, np.int64) for k in keys}
         feed = _feed(episodes)
-        enc.reset()
-        for i in range(-warmup, n):
-            new, obs, _ = next(feed)
-            if new:
-                enc.reset()
-            t0 = clock()
-            enc.encode(obs)
-            if i >= 0:
-                out["encoder_total"].append(clock() - t0)
-    return {k: _stats_ms(np.asarray(v)) for k, v in out.items()}
+        with torch.inference_mode(), torch.backends.mkldnn.flags(enabled=onednn):
+            for i in range(-warmup, n):
+                new, obs, _ = next(feed)
+                if new:
+                    state, a = rnn.initial_state(1), torch.zeros(1, 2)
+                t0 = clock()
+                z, _ = vae.encode(torch.from_numpy(np.ascontiguousarray(obs["seg"])).unsqueeze(0))
+                t1 = clock()
+                o, state = rnn.step(z, a, state)
+                t2 = clock()
+                zhat = rnn.predict(o)
+                t3 = clock()
+                a = actor(torch.cat([z, zhat], dim=1))
+                a[0].numpy().astype(np.float32)  # act() returns a numpy copy
+                t4 = clock()
+                if i >= 0:
+                    for k, dt in zip(keys, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
+                        out[k][i] = dt
+        result["onednn_on" if onednn else "onednn_off"] = {k: _stats_ms(v) for k, v in out.items()}
+    return result
 
 
 def torch_profile(policy, episodes, n: int, rows: int = 15) -> str:
@@ -201,8 +261,12 @@ def main(argv=None) -> dict:
     if args.tiny:
         args.decisions, args.warmup, args.scenarios, args.steps, args.profile_decisions = 50, 10, 2, 10, 20
 
+    import warnings
+
     import torch
 
+    # time_reference toggles oneDNN, which makes torch mention Intel-GPU TF32 support (irrelevant on CPU)
+    warnings.filterwarnings("ignore", message="TF32 acceleration on top of oneDNN")
     torch.set_num_threads(1)
     try:
         torch.set_num_interop_threads(1)
@@ -218,11 +282,15 @@ def main(argv=None) -> dict:
 
     total = _stats_ms(time_decisions(policy, episodes, args.decisions, args.warmup))
     parts = time_parts(policy, episodes, args.decisions, args.warmup)
+    reference = time_reference(policy, episodes, args.decisions, args.warmup)
+    load_end = os.getloadavg()
     prof_torch = torch_profile(policy, episodes, args.profile_decisions)
     prof_py = python_profile(policy, episodes, args.profile_decisions)
     print(f"[decision] p50 {total['p50_ms']:.3f} ms, p95 {total['p95_ms']:.3f} ms, mean {total['mean_ms']:.3f} ms "
           f"(target p50 <= {TARGET_P50_MS} ms); parts p50: "
           + ", ".join(f"{k} {v['p50_ms']:.3f}" for k, v in parts.items()))
+    print("[decision] module path (before FastDecision) p50: "
+          + ", ".join(f"{name} {r['decision_total']['p50_ms']:.3f} ms" for name, r in reference.items()))
 
     result = {
         "tiny": bool(args.tiny),
@@ -231,12 +299,14 @@ def main(argv=None) -> dict:
                    "profile_decisions": args.profile_decisions, "batch": 1},
         "command": " ".join(["python -m benchmarks.bench_decision", *(argv if argv is not None else sys.argv[1:])]),
         "loadavg_at_start": [round(x, 2) for x in load],
+        "loadavg_at_end": [round(x, 2) for x in load_end],
         "torch_threads": torch.get_num_threads(),
         "torch_interop_threads": torch.get_num_interop_threads(),
         "models": sizes,
         "target_p50_ms": TARGET_P50_MS,
         "decision": total,
         "parts": parts,
+        "reference": reference,
         "profile_torch_self_cpu_top15": prof_torch,
         "profile_python_tottime_top15": prof_py,
     }
