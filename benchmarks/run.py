@@ -292,13 +292,21 @@ def section_decision(d: dict, summary: list) -> str:
                              f"≤ {fmt(TARGET_DECISION_P50_MS)} ms", at_most(p50, TARGET_DECISION_P50_MS, " ms")])
     parts = d.get("parts", {})
     if parts:
-        labels = {"vae_encode": "VAE encode (one-hot + 4 convs + μ head)", "lstm_step": "LSTM step",
-                  "mdn_predict": "MDN point prediction ẑ", "actor": "actor 400-300",
+        labels = {"input_check": "input check (class ids in range)",
+                  "vae_encode": "VAE encode μ (first conv as a table lookup + 3 im2col matmuls + μ head)",
+                  "lstm_step": "LSTM step (fused gates)", "mdn_predict": "MDN point prediction ẑ",
+                  "actor": "actor 400-300", "decision_total": "sum of the parts, same loop",
                   "encoder_total": "WorldModelEncoder.encode (all but the actor, with numpy conversions)"}
+        ref = d.get("reference", {})
+        cols = ["part", "p50", "p95", "share of decision p50"] + [f"module path, oneDNN {k.split('_')[1]}, p50"
+                                                                   for k in ref]
         rows = [[labels.get(k, k), f"{fmt(v.get('p50_ms'), 3)} ms", f"{fmt(v.get('p95_ms'), 3)} ms",
-                 f"{100 * v.get('p50_ms', 0) / p50:.0f}%" if p50 else "–"] for k, v in parts.items()]
-        out += ["Each part alone (same inputs, timed separately):", "",
-                table(["part", "p50", "p95", "share of decision p50"], rows), ""]
+                 f"{100 * v.get('p50_ms', 0) / p50:.0f}%" if p50 else "–"]
+                + [f"{fmt(r[k]['p50_ms'], 3)} ms" if k in r else "–" for r in ref.values()]
+                for k, v in parts.items()]
+        out += ["Each part timed inside the same decision loop (the fast batch-1 path `FastDecision`, "
+                "`worldmodel/agent_obs.py`), beside the same parts through the training modules in the same run:", "",
+                table(cols, rows), ""]
     for key, title in (("profile_torch_self_cpu_top15", "torch.profiler: top 15 operators by self CPU time"),
                        ("profile_python_tottime_top15", "cProfile: top 15 functions by own time")):
         if d.get(key):
