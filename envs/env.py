@@ -39,6 +39,12 @@ DT = 1.0 / 15.0
 MAX_SPEED_OBS = 40.0
 
 
+def _copy_actors(a: Actors) -> Actors:
+    """A copy whose arrays are independent of ``a``'s (actors move and get hit in place)."""
+    return dataclasses.replace(a, **{f.name: getattr(a, f.name).copy() for f in dataclasses.fields(a)
+                                     if isinstance(getattr(a, f.name), np.ndarray)})
+
+
 class UrbanCollisionEnv(gym.Env):
     """See the module docstring. Keyword arguments are the env config (``conf/env/urban.yaml``).
 
@@ -251,13 +257,11 @@ class UrbanCollisionEnv(gym.Env):
         ``planning_twin`` continues bit-identically. For privileged planners, which re-simulate from the present."""
         if self.scenario is None:
             raise RuntimeError("call reset() before snapshot()")
-        a = self.actors
         return {"scenario": self.scenario, "layout": self.layout, "horizon_steps": self.horizon_steps,
                 "ego": self.ego.copy(), "t_step": self.t_step, "collisions": list(self.collisions),
                 "returns": dict(self.returns), "ever_departed": self.ever_departed, "min_speed": self.min_speed,
                 "last_end": self._last_end,
-                "actors": dataclasses.replace(a, **{f.name: getattr(a, f.name).copy() for f in dataclasses.fields(a)
-                                                    if isinstance(getattr(a, f.name), np.ndarray)})}
+                "actors": _copy_actors(self.actors)}
 
     def restore(self, snap: dict) -> None:
         new_layout = getattr(self, "layout", None) is not snap["layout"]
@@ -266,9 +270,7 @@ class UrbanCollisionEnv(gym.Env):
             self._prepare_static()
             if self._pool is not None:
                 self._pool.apply_layout(self.layout)
-        a = snap["actors"]
-        self.actors = dataclasses.replace(a, **{f.name: getattr(a, f.name).copy() for f in dataclasses.fields(a)
-                                                if isinstance(getattr(a, f.name), np.ndarray)})
+        self.actors = _copy_actors(snap["actors"])
         self.ego = snap["ego"].copy()
         self.t_step, self.collisions, self.returns = snap["t_step"], list(snap["collisions"]), dict(snap["returns"])
         self.ever_departed, self.min_speed, self._last_end = snap["ever_departed"], snap["min_speed"], snap["last_end"]
