@@ -10,6 +10,7 @@ to an uninterrupted run.
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing as mp
 import time
 from pathlib import Path
@@ -17,14 +18,14 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from .common import StageError, atomic_write_text, data_dir, hydra_main, positive
-from .data import SCHEMA_VERSION, clean_temporaries, shard_name, write_shard
+from . import artifacts
+from .common import StageError, atomic_write_text, clean_temporaries, hydra_main
+from .config import validate
+from .data import SCHEMA_VERSION, shard_name, write_shard
 
-STAGE = "collect"
-
-
-def rollout_dir(cfg) -> Path:
-    return data_dir(cfg) / "rollouts"
+log = logging.getLogger(__name__)
+# The env settings that shape the recorded frames; the rest of the env section (horizons, camera) is set here.
+ENV_KEYS = {"image_size": int, "fov_deg": float, "mu": float, "occupants_per_car": int}
 
 
 def episode_spec(seed: int, index: int):
@@ -39,8 +40,7 @@ def _collection_settings(cfg) -> dict:
         "schema_version": SCHEMA_VERSION, "seed": int(cfg.seed), "episodes": int(c.episodes),
         "episodes_per_shard": int(c.episodes_per_shard), "max_episode_s": float(c.max_episode_s),
         "autopilot": OmegaConf.to_container(c.autopilot, resolve=True),
-        "env": {"image_size": int(cfg.env.image_size), "fov_deg": float(cfg.env.fov_deg), "mu": float(cfg.env.mu),
-                "occupants_per_car": int(cfg.env.occupants_per_car)},
+        "env": {key: cast(cfg.env[key]) for key, cast in ENV_KEYS.items()},
     }
 
 
@@ -53,44 +53,44 @@ def _worker_env(settings: dict):
     if _ENV is None:
         from envs import UrbanCollisionEnv
 
-        e = settings["env"]
-        _ENV = UrbanCollisionEnv(camera=True, image_size=e["image_size"], fov_deg=e["fov_deg"], mu=e["mu"],
-                                 occupants_per_car=e["occupants_per_car"], horizon_after_ttc_s=None,
-                                 max_episode_s=settings["max_episode_s"])
+        _ENV = UrbanCollisionEnv(camera=True, horizon_after_ttc_s=None, max_episode_s=settings["max_episode_s"],
+                                 **settings["env"])
     return _ENV
 
 
 def record_episode(env, settings: dict, index: int) -> dict:
     from envs import NoisyAutopilot
+    from envs.rollout import rollout
 
     spec = episode_spec(settings["seed"], index)
     ap = settings["autopilot"]
     pilot = NoisyAutopilot(**{**ap, "excursion_s": tuple(ap["excursion_s"])})
-    pilot.reset(spec.seed)
-    obs, info = env.reset(options={"scenario": spec})
-    seg, speed, action, r1, r2 = [obs["seg"]], [obs["speed"][0]], [], [], []
-    while True:
-        a = pilot.act(obs, info)
-        obs, _, terminated, truncated, info = env.step(a)
+    seg, speed, action, r1, r2 = [], [], [], [], []
+
+    def first(obs, info):
+        seg.append(obs["seg"])
+        speed.append(obs["speed"][0])
+
+    def record(obs, a, reward, info):
         action.append(a)
         r1.append(info["reward_r1"])
         r2.append(info["reward_r2"])
         seg.append(obs["seg"])
         speed.append(obs["speed"][0])
-        if terminated or truncated:
-            break
+
+    episode = rollout(env, pilot, spec, on_step=record, on_reset=first)
     n = len(seg)
     done = np.zeros(n, np.uint8)
     done[-2:] = 1
     pad = np.zeros((1, 2), np.float32)
     return {
-        "index": index, "seed": spec.seed, "n_steps": n - 1, "terminated": bool(terminated),
-        "scenario": spec.to_json(), "outcome": json.dumps(info["outcome"], sort_keys=True),
+        "index": index, "seed": spec.seed, "n_steps": n - 1, "terminated": episode.terminated,
+        "scenario": spec.to_json(), "outcome": json.dumps(episode.outcome, sort_keys=True),
         "seg": np.stack(seg).astype(np.uint8), "speed": np.asarray(speed, np.float32),
         "action": np.concatenate([np.asarray(action, np.float32), pad]),
         "reward_r1": np.asarray(r1 + [0.0], np.float32), "reward_r2": np.asarray(r2 + [0.0], np.float32),
         "done": done,
-        "_outcome": info["outcome"], "_hazard": spec.hazard,
+        "_outcome": episode.outcome, "_hazard": spec.hazard,
     }
 
 
@@ -117,17 +117,11 @@ def _split(seed: int, episodes: int, fraction: float) -> dict:
     return {"train": sorted(int(i) for i in order[n_val:]), "validation": sorted(int(i) for i in order[:n_val])}
 
 
-def validate_config(cfg) -> None:
-    positive(cfg.collect, "episodes", "num_workers", "episodes_per_shard", "max_episode_s", where="collect")
-    if not 0.0 <= cfg.collect.validation_fraction < 1.0:
-        raise StageError(f"config collect.validation_fraction={cfg.collect.validation_fraction} must be in [0, 1)")
-
-
 def run(cfg) -> dict:
-    validate_config(cfg)
-    root = rollout_dir(cfg)
+    validate(cfg)
+    root = artifacts.rollouts_dir(cfg)
     settings = _collection_settings(cfg)
-    manifest_path = root / "manifest.json"
+    manifest_path = artifacts.manifest_path(cfg)
     config_path = root / "collect_config.json"
 
     if config_path.exists():
@@ -136,7 +130,7 @@ def run(cfg) -> dict:
             raise StageError(f"{root} was collected with different settings ({config_path}). Use another "
                              f"experiment=NAME, or delete {root} to start again.")
         if manifest_path.exists():
-            print(f"[collect] {root} is already complete; nothing to do.")
+            log.info("[collect] %s is already complete; nothing to do.", root)
             return json.loads(manifest_path.read_text())["summary"]
         if not cfg.resume:
             raise StageError(f"{root} holds a partial collection. Pass resume=true to finish it, or delete it.")
@@ -215,12 +209,12 @@ def _summarise(stats: list[dict], wall: float, new_frames: int) -> dict:
 
 
 def _print_summary(root: Path, s: dict) -> None:
-    print(f"[collect] {root}: {s['episodes']} episodes, {s['frames']} frames; hazards {s['hazards']}; "
-          f"collisions {s['collisions']}; ended by {s['ended_by']}; {s['wall_s']} s wall, "
-          f"{s['frames_per_s_this_run']} frames/s")
+    log.info("[collect] %s: %d episodes, %d frames; hazards %s; collisions %s; ended by %s; %s s wall, %s frames/s",
+             root, s["episodes"], s["frames"], s["hazards"], s["collisions"], s["ended_by"], s["wall_s"],
+             s["frames_per_s_this_run"])
 
 
-main = hydra_main(STAGE)(run)
+main = hydra_main("collect")(run)
 
 if __name__ == "__main__":
     main()

@@ -5,14 +5,15 @@ Every stage of ``experiment=NAME`` reads and writes under two fixed roots:
 """
 from __future__ import annotations
 
+import contextlib
 import functools
+import logging
 import math
 import os
 import random
 import sys
-import tempfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -37,6 +38,8 @@ def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
+    from . import config  # noqa: F401  registers the schema that conf/base.yaml starts from
+
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return hydra_compose(config_name=stage, overrides=list(overrides))
 
@@ -44,10 +47,12 @@ def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
 def hydra_main(stage: str) -> Callable[[Callable], Callable]:
     """Wrap a stage's ``run(cfg)`` as its command-line entry point.
 
-    ``StageError`` is printed as one readable line and exits with status 2, so a missing input reads as an
+    ``StageError`` is logged as one readable line and exits with status 2, so a missing input reads as an
     instruction rather than a traceback.
     """
     import hydra
+
+    from . import config  # noqa: F401  registers the schema that conf/base.yaml starts from
 
     def decorate(run: Callable):
         if run.__module__ == "__main__" and getattr(sys.modules["__main__"], "__spec__", None) is not None:
@@ -64,7 +69,8 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
             try:
                 return run(cfg)
             except StageError as err:
-                print(f"\n[{stage}] error: {err}", file=sys.stderr)
+                # through logging, so the job's .log file (and a SLURM job's log) says why it stopped
+                logging.getLogger(f"worldmodel.{stage}").error("error: %s", err)
                 sys.exit(2)
 
         return main
@@ -72,12 +78,12 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
     return decorate
 
 
-def data_dir(cfg) -> Path:
-    return Path(cfg.paths.data)
+def make_env(cfg, **overrides):
+    """The simulator the ``env`` config section describes (``config.EnvConfig``), with the experiment's reward;
+    ``overrides`` replace any keyword (``camera=False``, ``horizon_after_ttc_s=None``, ...)."""
+    from hydra.utils import instantiate
 
-
-def runs_dir(cfg, stage: str) -> Path:
-    return Path(cfg.paths.runs) / stage
+    return instantiate(cfg.env, **{"reward": str(cfg.reward.name), **overrides})
 
 
 def stage_command(stage: str, cfg) -> str:
@@ -93,29 +99,73 @@ def require(path: Path, what: str, stage: str, cfg) -> Path:
     return path
 
 
-def positive(cfg_section, *keys: str, where: str) -> None:
-    """Reject impossible sizes before any work starts, naming the key."""
+class ConfigValueError(ValueError):
+    """An impossible value of one config key (named relative to its section); ``config.validate`` turns it into
+    a StageError with the full key."""
+
+    def __init__(self, key: str, value: Any, requirement: str):
+        super().__init__(f"{key}={value!r} is impossible: {requirement}")
+        self.key, self.value, self.requirement = key, value, requirement
+
+
+def positive_fields(obj, *keys: str) -> Iterator[ConfigValueError]:
     for key in keys:
-        value = cfg_section[key]
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
-            raise StageError(f"config {where}.{key}={value!r} is impossible: it must be a positive number.")
+        value = getattr(obj, key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            yield ConfigValueError(key, value, "it must be a positive number")
+
+
+class Checked:
+    """A config dataclass whose ``problems()`` run when it is built (``OmegaConf.to_object`` or directly);
+    the first problem is raised."""
+
+    def problems(self) -> Iterator[ConfigValueError]:
+        return iter(())
+
+    def __post_init__(self) -> None:
+        for problem in self.problems():
+            raise problem
 
 
 # ----------------------------------------------------------------------------- files
-def atomic_write_bytes(path: Path, data: bytes) -> None:
+TEMPORARY = ".{name}.tmp-{pid}"   # the one temporary-file scheme: hidden, next to its target, named by writer
+
+
+@contextlib.contextmanager
+def atomic_output(path: Path) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; when the block succeeds it is fsynced and renamed onto ``path``.
+
+    Readers therefore see the old file or the whole new one, never a part. A failed block removes the
+    temporary file; a killed process leaves it behind for ``clean_temporaries``.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = path.with_name(TEMPORARY.format(name=path.name, pid=os.getpid()))
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
+        yield tmp
+        with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def clean_temporaries(directory: Path, name: str = "*") -> int:
+    """Remove what writers killed inside ``atomic_output`` left in ``directory`` (for target files ``name``).
+
+    Call it only where this process is the directory's one writer: a live writer's temporary file matches too.
+    """
+    removed = 0
+    for tmp in Path(directory).glob(TEMPORARY.format(name=name, pid="*")):
+        tmp.unlink(missing_ok=True)
+        removed += 1
+    return removed
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -32,6 +32,8 @@ from typing import Iterator
 import h5py
 import numpy as np
 
+from .common import atomic_output
+
 SCHEMA_VERSION = 1
 EPISODE_KEYS = ("seg", "speed", "action", "reward_r1", "reward_r2", "done")
 SHARD_GLOB = "shard_*.h5"
@@ -51,42 +53,23 @@ def episode_key(i: int) -> str:
 
 # ----------------------------------------------------------------------------- writing
 def write_shard(path: Path, episodes: list[dict], meta: dict) -> None:
-    """Write a whole shard to a temporary name, then rename: readers never see a partial file."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w", track_order=True) as f:
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["episodes"] = np.array([e["index"] for e in episodes], dtype=np.int64)
-            for key, value in meta.items():
-                f.attrs[key] = value
-            for ep in episodes:
-                g = f.create_group(episode_key(ep["index"]))
-                n = len(ep["seg"])
-                g.create_dataset("seg", data=ep["seg"], chunks=(min(n, 32), *ep["seg"].shape[1:]),
-                                 compression="gzip", compression_opts=4, shuffle=True, track_times=False)
-                for key in EPISODE_KEYS[1:]:
-                    g.create_dataset(key, data=ep[key], track_times=False)
-                for key in ("index", "seed", "n_steps", "terminated"):
-                    g.attrs[key] = ep[key]
-                g.attrs["scenario"] = ep["scenario"]
-                g.attrs["outcome"] = ep["outcome"]
-            f.flush()
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def clean_temporaries(root: Path) -> int:
-    """Remove the leftovers of writers that were killed mid-shard."""
-    removed = 0
-    for tmp in Path(root).glob(".shard_*.tmp-*"):
-        tmp.unlink()
-        removed += 1
-    return removed
+    """Write a whole shard under a temporary name, then rename: readers never see a partial file."""
+    with atomic_output(path) as tmp, h5py.File(tmp, "w", track_order=True) as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f.attrs["episodes"] = np.array([e["index"] for e in episodes], dtype=np.int64)
+        for key, value in meta.items():
+            f.attrs[key] = value
+        for ep in episodes:
+            g = f.create_group(episode_key(ep["index"]))
+            n = len(ep["seg"])
+            g.create_dataset("seg", data=ep["seg"], chunks=(min(n, 32), *ep["seg"].shape[1:]),
+                             compression="gzip", compression_opts=4, shuffle=True, track_times=False)
+            for key in EPISODE_KEYS[1:]:
+                g.create_dataset(key, data=ep[key], track_times=False)
+            for key in ("index", "seed", "n_steps", "terminated"):
+                g.attrs[key] = ep[key]
+            g.attrs["scenario"] = ep["scenario"]
+            g.attrs["outcome"] = ep["outcome"]
 
 
 # ----------------------------------------------------------------------------- reading / validation

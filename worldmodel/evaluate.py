@@ -17,18 +17,20 @@ deterministic, so the rows are identical to a single-process run (tested).
 """
 from __future__ import annotations
 
+import logging
 import time
-from pathlib import Path
 
-from .common import StageError, hydra_main, positive, runs_dir, set_threads
-from .train_agent import trained_agents
+from . import artifacts
+from .artifacts import AgentId
+from .common import hydra_main, make_env, set_threads
+from .config import SCRIPTED_POLICIES, validate
 
+log = logging.getLogger(__name__)
 ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")
-SCRIPTED = ("braking", "oracle")
-
-
-def eval_dir(cfg) -> Path:
-    return runs_dir(cfg, "eval")
+OUTCOME_COLUMNS = ("pedestrian_collision", "vehicle_collision", "static_collision", "lane_departure",
+                   "n_pedestrians_hit", "pedestrian_injury", "occupant_injury", "ego_occupant_injury",
+                   "speed_at_collision", "steps", "return_r1", "return_r2")
+NO_MODELS = {"vae_sha": "", "rnn_sha": "", "actor_sha": ""}
 
 
 def bank(cfg):
@@ -39,32 +41,21 @@ def bank(cfg):
                      seed=int(e.bank_seed))
 
 
-def run_policy(env, policy, entries, desc: str | None = None, policy_seed: int = 0) -> list[dict]:
-    """Roll ``policy`` through every bank entry; one row per scenario with the paper's section IV-C metrics.
-    A policy with ``bind(env)`` (the privileged planner) is handed the env after each reset."""
+def run_policy(env, policy, entries, desc: str | bool | None = None, policy_seed: int = 0,
+               models: dict | None = None) -> list[dict]:
+    """Roll ``policy`` through every bank entry; one row per scenario with the paper's section IV-C metrics and
+    the short hashes of the models behind the policy (empty for scripted ones)."""
     from tqdm import tqdm
+
+    from envs.rollout import rollout
 
     rows = []
     for entry in tqdm(entries, desc=desc or policy.name, unit="scenario", disable=desc is False):
-        obs, info = env.reset(options={"scenario": entry.spec})
-        policy.reset(entry.spec.seed)
-        if hasattr(policy, "bind"):
-            policy.bind(env)
-        while True:
-            obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-            if terminated or truncated:
-                break
-        o = info["outcome"]
-        rows.append({"policy": policy.name, "policy_seed": policy_seed, "scenario_id": entry.scenario_id, "hazard": entry.hazard,
-                     "ttc": entry.ttc, "speed": entry.speed, "seed": entry.spec.seed,
-                     **{k: o[k] for k in ("pedestrian_collision", "vehicle_collision", "static_collision",
-                                          "lane_departure", "n_pedestrians_hit", "pedestrian_injury",
-                                          "occupant_injury", "ego_occupant_injury", "speed_at_collision", "steps",
-                                          "return_r1", "return_r2")}})
+        o = rollout(env, policy, entry.spec).outcome
+        rows.append({"policy": policy.name, "policy_seed": policy_seed, "scenario_id": entry.scenario_id,
+                     "hazard": entry.hazard, "ttc": entry.ttc, "speed": entry.speed, "seed": entry.spec.seed,
+                     **{k: o[k] for k in OUTCOME_COLUMNS}, **(models or NO_MODELS)})
     return rows
-
-
-_WORKER: dict = {}
 
 
 def make_oracle(cfg):
@@ -77,28 +68,22 @@ def make_oracle(cfg):
 
 
 def _policy_for(cfg, name: str):
+    """(policy, training seed, model hashes) for a scripted policy's name or an agent's key."""
     from envs import StraightLineBraking
 
     from .agent_obs import LearnedPolicy
-    from .train_agent import load_actor, load_world_model
 
     if name == "braking":
-        return StraightLineBraking()
+        return StraightLineBraking(), 0, NO_MODELS
     if name == "oracle":
-        return make_oracle(cfg)
-    reward, seed = parse_agent(name)
-    actor, _ = load_actor(cfg, reward, seed=seed)
-    return LearnedPolicy(f"agent_{reward}", load_world_model(cfg), actor)
+        return make_oracle(cfg), 0, NO_MODELS
+    agent = AgentId.parse(name)
+    actor, _ = artifacts.load_actor(cfg, agent)
+    policy = LearnedPolicy(agent.policy, artifacts.load_world_model(cfg), actor)
+    return policy, agent.seed, artifacts.models_of(cfg, agent)
 
 
-def agent_key(reward: str, seed: int) -> str:
-    """How evaluation names one trained agent: ``agent_r1/seed0``."""
-    return f"agent_{reward}/seed{seed}"
-
-
-def parse_agent(key: str) -> tuple[str, int]:
-    name, seed = key.split("/seed")
-    return name.removeprefix("agent_"), int(seed)
+_WORKER: dict = {}
 
 
 def _run_chunk(task) -> list[dict]:
@@ -106,16 +91,13 @@ def _run_chunk(task) -> list[dict]:
     import torch
     from omegaconf import OmegaConf
 
-    from .train_agent import make_env
-
     cfg_dict, name, entries = task
     torch.set_num_threads(1)
-    key = name
-    if key not in _WORKER:
+    if name not in _WORKER:
         cfg = OmegaConf.create(cfg_dict)
-        _WORKER[key] = (make_env(cfg, camera=name not in SCRIPTED), _policy_for(cfg, name))
-    env, policy = _WORKER[key]
-    return run_policy(env, policy, entries, desc=False, policy_seed=0 if name in SCRIPTED else parse_agent(name)[1])
+        _WORKER[name] = (make_env(cfg, camera=name not in SCRIPTED_POLICIES), *_policy_for(cfg, name))
+    env, policy, seed, models = _WORKER[name]
+    return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
 
 
 def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
@@ -142,54 +124,37 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
     return rows
 
 
-def validate_config(cfg) -> None:
-    positive(cfg.evaluate, "per_cell", "num_workers", where="evaluate")
-    if not cfg.evaluate.ttcs or not cfg.evaluate.speeds or not cfg.evaluate.hazards:
-        raise StageError("config evaluate.ttcs, evaluate.speeds and evaluate.hazards must not be empty")
-    for key in ("ttcs", "speeds"):
-        if any(v <= 0 for v in cfg.evaluate[key]):
-            raise StageError(f"config evaluate.{key}={list(cfg.evaluate[key])} must all be positive")
-    policies = list(cfg.evaluate.policies)
-    if "braking" not in policies or any(p not in SCRIPTED for p in policies):
-        raise StageError(f"config evaluate.policies={policies} must include 'braking' (the baseline) and may add "
-                         f"'oracle'; trained agents are found by themselves")
-    if "oracle" in policies:
-        if float(cfg.evaluate.oracle.replan_every_s) <= 0:
-            raise StageError(f"config evaluate.oracle.replan_every_s={cfg.evaluate.oracle.replan_every_s} must be > 0")
-        try:
-            make_oracle(cfg)
-        except ValueError as err:
-            raise StageError(f"config evaluate.oracle: {err}") from None
-
-
 def run(cfg) -> dict:
     from .report import write_report, write_results_csv
     from .training import tensorboard
 
-    validate_config(cfg)
+    validate(cfg)
     set_threads(1)   # one decision at a time: a single thread is fastest for batch-1 inference
     entries = bank(cfg)
-    out = eval_dir(cfg)
+    out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()
 
     workers = int(cfg.evaluate.num_workers)
-    agents = [agent_key(r, s) for r, s in trained_agents(cfg)]
-    for key in agents:   # fail fast on a broken checkpoint, before any scenario runs
+    agents = [a.key for a in artifacts.trained_agents(cfg)]
+    record = artifacts.provenance(cfg, "eval")
+    for key in agents:   # fail fast on a broken or stale checkpoint, before any scenario runs
         _policy_for(cfg, key)
     rows = []
-    for key in [p for p in SCRIPTED if p in cfg.evaluate.policies] + agents:
+    for key in [p for p in SCRIPTED_POLICIES if p in cfg.evaluate.policies] + agents:
         rows += evaluate_policy(cfg, key, entries, workers)
     if not agents:
-        print(f"[eval] no trained agents under {Path(cfg.paths.runs)}; evaluating braking only. "
-              "Train one with `python -m worldmodel.train_agent experiment=... reward=r1`.")
+        log.info("[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
+                 "`python -m worldmodel.train_agent experiment=%s reward=r1`.", artifacts.runs_root(cfg),
+                 cfg.experiment)
 
     write_results_csv(rows, out / "results.csv")
     writer = tensorboard(out)
-    summary = write_report(rows, out, tb_writer=writer)
+    artifacts.write_provenance(out, record)
+    summary = write_report(rows, out, tb_writer=writer)   # summary.json last: it marks the evaluation complete
     writer.close()
     n_policies = len(agents) + len(list(cfg.evaluate.policies))
-    print(f"[eval] {len(entries)} scenarios x {n_policies} policies in {time.perf_counter() - t0:.0f} s. "
-          f"Tables: {out / 'tables.md'}  Heatmaps: {out / 'heatmaps.png'}")
+    log.info("[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s", len(entries), n_policies,
+             time.perf_counter() - t0, out / "tables.md", out / "heatmaps.png")
     return summary
 
 

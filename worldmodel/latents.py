@@ -3,31 +3,20 @@
 ``data/NAME/latents.h5`` holds one group per episode (``mu``, ``logvar`` ``(T, latent) float32``, ``action``
 ``(T, 2)``) and the file attributes ``vae_checkpoint`` and ``vae_sha256``: the checkpoint that produced it. When
 the VAE checkpoint changes (a retrain, a resume with more epochs), the hash no longer matches and the dataset is
-re-encoded automatically; otherwise it is reused as is. Written to a temporary name and renamed when complete.
+re-encoded automatically; otherwise it is reused as is. Written to a temporary name and renamed when complete
+(``common.atomic_output``); a temporary file left by a killed encoder is removed before the next encoding.
 """
 from __future__ import annotations
 
-import hashlib
-import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 import torch
 
+from .artifacts import file_sha256
+from .common import atomic_output, clean_temporaries
 from .data import RolloutStore, episode_key
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def latents_path(data_root: Path) -> Path:
-    return Path(data_root) / "latents.h5"
 
 
 def is_current(path: Path, vae_sha: str) -> bool:
@@ -52,7 +41,6 @@ def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_si
     from tqdm import tqdm
 
     vae.eval()
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     frames = None   # the fixed-size input batch, allocated once the frame size is known
     fill = 0
     encoded_mu, encoded_logvar = [], []   # encoded frames not yet written, in episode order
@@ -76,7 +64,8 @@ def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_si
             used += n
         encoded_mu[:], encoded_logvar[:] = [mu[used:]], [logvar[used:]]
 
-    try:
+    clean_temporaries(out.parent, out.name)   # a killed encoder's leftover (this stage is the file's one writer)
+    with atomic_output(out) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["vae_checkpoint"] = str(vae_path)
             f.attrs["vae_sha256"] = file_sha256(vae_path)
@@ -99,10 +88,6 @@ def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_si
                 encode_batch(fill)   # the stale tail of the buffer is encoded and dropped
             if waiting:
                 write_finished(f)
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 class Latents:

@@ -1,21 +1,38 @@
-"""The whole pipeline in order: collect, VAE, LSTM, agents R1 and R2, evaluation.
+"""The whole pipeline in order: collect, VAE, LSTM, agents R1 and R2, evaluation; make-like.
 
     python -m worldmodel.pipeline experiment=NAME scale=smoke|quick|paper
 
-Stages whose outputs are complete are skipped; the others run with ``resume=true``, so an interrupted pipeline
-continues where it stopped. Each stage's wall time and peak memory (this process and its workers, sampled
-every 0.2 s) are written to ``runs/NAME/pipeline.json``.
+Before each stage the pipeline compares what the stage's outputs were built from (the identities of their
+inputs and the hash of their config keys, recorded in ``provenance.json``; docs/design.md §9) with what they would
+be built from now:
+
+* up to date and finished: skipped;
+* up to date but unfinished (interrupted): continued with ``resume=true``;
+* stale (an input or the config changed since): the old outputs are moved to ``runs/NAME/stale/`` and the stage
+  runs afresh, and so, through their changed inputs, does every stage downstream of it.
+
+Agents are the pipeline's two (reward R1 and R2 at ``seed``) plus any other trained seed found on disk, so a seed
+sweep is rebuilt too when the world model changes. The collection is the root: its own settings check stops a
+run whose collection settings differ. Each stage's wall time and peak memory (this process and its workers,
+sampled every 0.2 s) are written to ``runs/NAME/pipeline.json``.
 """
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
-from pathlib import Path
+from dataclasses import dataclass, field
+from typing import Callable
 
 from omegaconf import OmegaConf
 
-from .common import atomic_write_text, data_dir, hydra_main, runs_dir
+from . import artifacts
+from .artifacts import AgentId
+from .common import atomic_write_text, hydra_main
+from .config import validate
+
+log = logging.getLogger(__name__)
 
 
 class PeakMemory:
@@ -53,43 +70,78 @@ class PeakMemory:
         return False
 
 
-def stages(cfg) -> list[tuple[str, Path, callable, dict]]:
-    """(name, completion marker, run function, config changes) in pipeline order."""
+@dataclass
+class Step:
+    """One stage run of the pipeline: its name in logs and timings, its kind (``artifacts.provenance``), the
+    stage's ``run`` and the config changes it runs with."""
+
+    name: str
+    kind: str
+    run: Callable[[object], dict]
+    changes: dict = field(default_factory=dict)
+    agent: AgentId | None = None
+
+
+def steps(cfg) -> list[Step]:
+    """The stages in order: every later stage only reads what the earlier ones wrote."""
     from . import collect, evaluate, train_agent, train_rnn, train_vae
 
-    return [
-        ("collect", data_dir(cfg) / "rollouts" / "manifest.json", collect.run, {}),
-        ("vae", runs_dir(cfg, "vae") / "metrics.json", train_vae.run, {}),
-        ("rnn", runs_dir(cfg, "rnn") / "metrics.json", train_rnn.run, {}),
-        ("agent_r1", train_agent.agent_dir(cfg, "r1") / "metrics.json", train_agent.run, {"reward": {"name": "r1"}}),
-        ("agent_r2", train_agent.agent_dir(cfg, "r2") / "metrics.json", train_agent.run, {"reward": {"name": "r2"}}),
-        ("eval", runs_dir(cfg, "eval") / "summary.json", evaluate.run, {}),
-    ]
+    agents = {AgentId(reward, int(cfg.seed)) for reward in artifacts.AGENT_REWARDS}
+    agents |= set(artifacts.trained_agents(cfg))
+    agent_steps = [Step(a.key if a.seed != int(cfg.seed) else a.policy, "agent", train_agent.run,
+                        {"reward": {"name": a.reward}, "seed": a.seed}, a) for a in sorted(agents)]
+    return [Step("collect", "collect", collect.run), Step("vae", "vae", train_vae.run),
+            Step("rnn", "rnn", train_rnn.run), *agent_steps, Step("eval", "eval", evaluate.run)]
+
+
+def status(cfg, step: Step) -> tuple[str, list[str]]:
+    """``(state, reasons)``: state is ``complete``, ``resume`` (unfinished, inputs unchanged), ``fresh`` (nothing
+    there) or ``stale`` (reasons say what changed). The collection checks its own settings when it runs."""
+    done = artifacts.marker(cfg, step.kind, step.agent).exists()
+    if step.kind == "collect":
+        return ("complete" if done else "resume"), []
+    directory = artifacts.output_dir(cfg, step.kind, step.agent)
+    if not directory.exists():
+        return "fresh", []
+    recorded = artifacts.read_provenance(directory)
+    if recorded is None and not done and step.kind != "eval" and not (directory / "last.pt").exists():
+        return "fresh", []   # a directory a run created but never wrote to
+    reasons = artifacts.differences(recorded, artifacts.provenance(cfg, step.kind, step.agent))
+    if reasons:
+        return "stale", reasons
+    return ("complete" if done else "resume"), []
 
 
 def run(cfg) -> dict:
-    timing_path = Path(cfg.paths.runs) / "pipeline.json"
+    validate(cfg)
+    timing_path = artifacts.runs_root(cfg) / "pipeline.json"
     timings = json.loads(timing_path.read_text()) if timing_path.exists() else {}
     t_all = time.perf_counter()
-    for name, marker, stage_run, changes in stages(cfg):
-        if marker.exists():
-            print(f"[pipeline] {name}: complete ({marker}), skipped")
+    for step in steps(cfg):
+        stage_cfg = OmegaConf.merge(cfg, {"resume": True}, step.changes)
+        state, reasons = status(stage_cfg, step)
+        if state == "complete":
+            log.info("[pipeline] %s: complete (%s), skipped", step.name,
+                     artifacts.marker(stage_cfg, step.kind, step.agent))
             continue
-        print(f"[pipeline] {name}: running")
-        stage_cfg = OmegaConf.merge(cfg, {"resume": True}, changes)
+        if state == "stale":
+            moved = artifacts.retire(stage_cfg, artifacts.output_dir(stage_cfg, step.kind, step.agent))
+            log.info("[pipeline] %s: stale (%s); set aside in %s, rebuilding", step.name, "; ".join(reasons), moved)
+        else:
+            log.info("[pipeline] %s: running", step.name)
         t0 = time.perf_counter()
         with PeakMemory() as mem:
-            result = stage_run(stage_cfg)
+            result = step.run(stage_cfg)
         if isinstance(result, dict) and result.get("stopped"):
-            print(f"[pipeline] {name} was interrupted; rerun the pipeline to continue.")
+            log.info("[pipeline] %s was interrupted; rerun the pipeline to continue.", step.name)
             return timings
-        timings[name] = {"wall_s": round(time.perf_counter() - t0, 1), "peak_rss_mb": round(mem.peak_mb, 1),
-                         "scale": OmegaConf.select(cfg, "scale_name", default=None)}
+        timings[step.name] = {"wall_s": round(time.perf_counter() - t0, 1), "peak_rss_mb": round(mem.peak_mb, 1),
+                              "scale": OmegaConf.select(cfg, "scale_name", default=None)}
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
-    ev = runs_dir(cfg, "eval")
-    print(f"[pipeline] done in {time.perf_counter() - t_all:.0f} s (this run). Stage times: {timing_path}\n"
-          f"  tables:   {ev / 'tables.md'}\n  heatmaps: {ev / 'heatmaps.png'}\n  summary:  {ev / 'summary.json'}\n"
-          f"  TensorBoard: .venv/bin/tensorboard --logdir {cfg.paths.runs}")
+    ev = artifacts.eval_dir(cfg)
+    log.info("[pipeline] done in %.0f s (this run). Stage times: %s\n  tables:   %s\n  heatmaps: %s\n  summary:  %s\n"
+             "  TensorBoard: .venv/bin/tensorboard --logdir %s", time.perf_counter() - t_all, timing_path,
+             ev / "tables.md", ev / "heatmaps.png", ev / "summary.json", cfg.paths.runs)
     return timings
 
 

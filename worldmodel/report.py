@@ -59,7 +59,9 @@ FLOAT_COLUMNS = (
     "return_r1",
     "return_r2",
 )
-STR_COLUMNS = ("policy", "hazard")
+# Short SHA-256 of the VAE, LSTM and actor checkpoints that produced an agent's row (empty for scripted policies).
+MODEL_COLUMNS = ("vae_sha", "rnn_sha", "actor_sha")
+STR_COLUMNS = ("policy", "hazard", *MODEL_COLUMNS)
 COLUMNS = (
     "policy",
     "policy_seed",
@@ -80,6 +82,7 @@ COLUMNS = (
     "steps",
     "return_r1",
     "return_r2",
+    *MODEL_COLUMNS,
 )
 
 POLICY_ORDER = ("braking", "agent_r1", "agent_r2", "oracle")

@@ -14,69 +14,32 @@ prediction for Vehicles and Pedestrians, beside the persistence baseline (z_{t+1
 """
 from __future__ import annotations
 
-import json
+import logging
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .common import (StageError, atomic_write_text, check_finite, data_dir, hydra_main, positive, runs_dir,
-                     seed_everything, set_threads)
-from .latents import Latents, encode_dataset, file_sha256, is_current, latents_path
-from .training import Checkpoints, GracefulStop, tensorboard
+from envs import CLASS_NAMES, NUM_CLASSES
 
-STAGE = "rnn"
+from . import artifacts
+from .common import StageError, check_finite, hydra_main, seed_everything, set_threads
+from .config import validate
+from .latents import Latents, encode_dataset, is_current
+from .training import TrainingRun
+
+log = logging.getLogger(__name__)
 LOG_EVERY = 10
-VEHICLES, PEDESTRIANS = 10, 4
-
-
-def rnn_dir(cfg) -> Path:
-    return runs_dir(cfg, STAGE)
-
-
-def validate_config(cfg) -> None:
-    positive(cfg.rnn, "hidden", "batch_size", "epochs", "lr", "seq_len", "gaussians", where="rnn")
-    if cfg.rnn.head not in ("mdn", "gaussian", "mse"):
-        raise StageError(f"config rnn.head={cfg.rnn.head!r} must be one of mdn, gaussian, mse")
-
-
-def build_model(cfg):
-    from .models.rnn import WorldRNN
-
-    return WorldRNN(latent_dim=int(cfg.vae.latent_dim), action_dim=2, hidden=int(cfg.rnn.hidden),
-                    head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians), residual=bool(cfg.rnn.residual))
-
-
-def check_architecture(state: dict, cfg, path: Path) -> None:
-    """Refuse a checkpoint whose shape settings differ from the config, naming the key."""
-    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head),
-                      ("residual", cfg.rnn.residual)):
-        have = state.get(key)
-        if have != want:
-            raise StageError(f"{path} has {key}={have!r} but the config says {want!r}. "
-                             "Use the checkpoint's value, or delete the LSTM run and retrain it.")
-
-
-def load_rnn(cfg, which: str = "best"):
-    """The trained LSTM of this experiment (eval mode); a clear error if missing or of the wrong size."""
-    from .common import load_checkpoint
-
-    path = rnn_dir(cfg) / f"{which}.pt"
-    state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
-    check_architecture(state, cfg, path)
-    model = build_model(cfg)
-    model.load_state_dict(state["model"])
-    model.eval()
-    return model, path
+VEHICLES, PEDESTRIANS = CLASS_NAMES.index("Vehicles"), CLASS_NAMES.index("Pedestrians")
 
 
 def ensure_latents(cfg, store, vae, vae_path: Path) -> tuple[Path, bool]:
     """Encode the dataset unless an encoding by this exact VAE checkpoint exists. Returns (path, re-encoded)."""
-    path = latents_path(data_dir(cfg))
-    if is_current(path, file_sha256(vae_path)):
+    path = artifacts.latents_path(cfg)
+    if is_current(path, artifacts.file_sha256(vae_path)):
         return path, False
-    print(f"[rnn] encoding the dataset with {vae_path} -> {path}")
+    log.info("[rnn] encoding the dataset with %s -> %s", vae_path, path)
     encode_dataset(store, vae, vae_path, path)
     return path, True
 
@@ -91,7 +54,7 @@ def windows(lengths: dict[int, int], episodes: list[int], seq_len: int) -> list[
     return out
 
 
-def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Generator, sample_inputs: bool = True):
+def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Generator, *, sample_inputs: bool):
     """Inputs z, a (B, L, .), targets z_next and a mask, with z resampled from the stored mu, sigma.
 
     Targets are always samples. Inputs are samples too when ``sample_inputs`` (World Models), or the means,
@@ -127,7 +90,7 @@ def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frame
     """
     from .models.vae import confusion, iou_from_confusion
 
-    conf = {k: np.zeros((13, 13), np.int64) for k in ("model", "persistence", "reconstruction")}
+    conf = {k: np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64) for k in ("model", "persistence", "reconstruction")}
     sq_err = {"model": 0.0, "persistence": 0.0}
     n = 0
     for i in episodes:
@@ -140,7 +103,7 @@ def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frame
         zhat = rnn.predict(out)[0]
         target = torch.from_numpy(store.read(i, "seg")[1:])
         for name, latent in (("model", zhat), ("persistence", z[0, :-1]), ("reconstruction", z[0, 1:])):
-            conf[name] += confusion(_decode_classes(vae, latent), target, 13)
+            conf[name] += confusion(_decode_classes(vae, latent), target, NUM_CLASSES)
         sq_err["model"] += float(((zhat - z[0, 1:]) ** 2).sum())
         sq_err["persistence"] += float(((z[0, :-1] - z[0, 1:]) ** 2).sum())
         n += len(target)
@@ -193,54 +156,49 @@ def fig2_strip(rnn, vae, store, lat: Latents, episode: int, times=(4, 8, 12)) ->
 
 
 def run(cfg) -> dict:
-    from .train_vae import load_vae, open_rollouts
-
-    validate_config(cfg)
+    validate(cfg)
     set_threads(cfg.threads)
-    vae, vae_path = load_vae(cfg, "best")
-    store = open_rollouts(cfg)
+    vae, vae_path = artifacts.load_vae(cfg, "best")
+    store = artifacts.open_rollouts(cfg)
     lat_path, reencoded = ensure_latents(cfg, store, vae, vae_path)
     lat = Latents(lat_path)
     if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
         raise StageError(f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
                          f"{cfg.vae.latent_dim}; delete it to re-encode")
 
-    out_dir = rnn_dir(cfg)
-    ckpts = Checkpoints(out_dir, "train_rnn", cfg)
-    if (out_dir / "metrics.json").exists() and not cfg.resume:
-        raise StageError(f"{out_dir} holds a finished LSTM. Pass resume=true to keep it, or delete {out_dir}.")
     seed_everything(int(cfg.seed))
-    model = build_model(cfg)
+    model = artifacts.build_rnn(cfg)
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.rnn.lr))
-    epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
-    state = ckpts.resume_state(bool(cfg.resume))
-    if state is not None:
-        check_architecture(state, cfg, ckpts.last)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], state["best_val"]
-        print(f"[rnn] resuming from {ckpts.last}: epoch {epoch}, step {step}")
-
     L, D, B = int(cfg.rnn.seq_len), int(cfg.vae.latent_dim), int(cfg.rnn.batch_size)
+    sample_inputs = bool(cfg.rnn.sample_inputs)
     train_eps = store.episodes("train")
     val_eps = store.episodes("validation") or train_eps
     train_units = windows(store.lengths, train_eps, L)
     val_units = windows(store.lengths, val_eps, L)
     epochs = int(cfg.rnn.epochs)
 
-    def snapshot(best=False):
-        ckpts.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                    "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
-                    "latent_dim": int(cfg.vae.latent_dim), "hidden": int(cfg.rnn.hidden), "head": str(cfg.rnn.head),
-                    "residual": bool(cfg.rnn.residual), "vae_sha256": lat.f.attrs["vae_sha256"]}, best=best)
+    with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
+        epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
+        if run_.state is not None:
+            state = run_.state
+            artifacts.check_rnn_architecture(state, cfg, run_.last)
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], \
+                state["best_val"]
+            run_.resumed(f"epoch {epoch}, step {step}")
 
-    from tqdm import tqdm
+        def snapshot(best=False):
+            run_.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                       "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
+                       "latent_dim": int(cfg.vae.latent_dim), "hidden": int(cfg.rnn.hidden),
+                       "head": str(cfg.rnn.head), "residual": bool(cfg.rnn.residual)}, best=best)
 
-    writer = tensorboard(out_dir, purge_step=step + 1 if state is not None else None)
-    t0 = time.perf_counter()
-    stopped = False
-    with GracefulStop() as stop:
-        while epoch < epochs and not stopped:
+        from tqdm import tqdm
+
+        writer = run_.writer
+        t0 = time.perf_counter()
+        while epoch < epochs:
             rng = np.random.default_rng([int(cfg.seed), epoch])
             gen = torch.Generator().manual_seed(int(cfg.seed) * 1000 + epoch)
             order = rng.permutation(len(train_units))
@@ -249,12 +207,12 @@ def run(cfg) -> dict:
             for b in range(n_batches):
                 units = [train_units[u] for u in order[b * B: (b + 1) * B]]
                 # drawn even when skipped, so a resumed epoch sees the same noise
-                z, a, z_next, mask = make_batch(lat, units, L, D, gen, bool(cfg.rnn.sample_inputs))
+                z, a, z_next, mask = make_batch(lat, units, L, D, gen, sample_inputs=sample_inputs)
                 if b < batch_in_epoch:
                     continue
                 out, _ = model(z, a)
                 loss = masked_loss(model, out, z_next, mask)
-                check_finite(loss.item(), "LSTM loss", step, ckpts.last)
+                check_finite(loss.item(), "LSTM loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -265,15 +223,14 @@ def run(cfg) -> dict:
                 if step % LOG_EVERY == 0:
                     writer.add_scalar("loss/train", loss.item(), step)
                     writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
-                if stop.requested:
-                    stopped = True
+                if run_.stop.requested:
                     break
             bar.close()
-            if stopped:
+            if run_.stop.requested:
                 snapshot()
-                print(f"[rnn] stopped at step {step}; resume with resume=true")
-                break
-            val_loss = _validation_loss(model, lat, val_units, L, D, B, int(cfg.seed))
+                lat.close()
+                return run_.stopped(step)
+            val_loss = validation_loss(model, lat, val_units, L, D, B, int(cfg.seed), sample_inputs=sample_inputs)
             writer.add_scalar("loss/validation", val_loss, step)
             model.eval()
             writer.add_image("fig2: z_{t-1} | z_t | predicted z_{t+1} | real t+1",
@@ -284,36 +241,33 @@ def run(cfg) -> dict:
             improved = val_loss < best_val
             best_val = min(best_val, val_loss)
             snapshot(best=improved)
-            print(f"[rnn] epoch {epoch}: validation loss {val_loss:.4f}")
-    writer.close()
-    lat.close()
-    if stopped:
-        return {"stopped": True, "step": step}
+            log.info("[rnn] epoch %d: validation loss %.4f", epoch, val_loss)
 
-    model, best_path = load_rnn(cfg, "best")
-    lat = Latents(lat_path)
-    scores = prediction_iou(model, vae, store, lat, val_eps)
-    lat.close()
-    metrics = {"checkpoint": str(best_path), "epochs": epochs, "steps": step, "head": str(cfg.rnn.head),
-               "validation_loss": best_val, "reencoded_latents": reencoded, **scores,
-               "wall_s": round(time.perf_counter() - t0, 1)}
-    m, p = scores["model"], scores["persistence"]
-    for cls in ("vehicles_iou", "pedestrians_iou"):
-        if m[cls] is not None and p[cls] is not None:
-            metrics[f"{cls}_gain_over_persistence"] = m[cls] - p[cls]
-    atomic_write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2))
-    print(f"[rnn] next-frame IoU vehicles {m['vehicles_iou']} (persistence {p['vehicles_iou']}), pedestrians "
-          f"{m['pedestrians_iou']} (persistence {p['pedestrians_iou']}); wrote {out_dir / 'metrics.json'}")
-    return metrics
+        model, best_path = artifacts.load_rnn(cfg, "best")
+        scores = prediction_iou(model, vae, store, lat, val_eps)
+        lat.close()
+        metrics = {"checkpoint": str(best_path), "epochs": epochs, "steps": step, "head": str(cfg.rnn.head),
+                   "validation_loss": best_val, "reencoded_latents": reencoded, **scores,
+                   "wall_s": round(time.perf_counter() - t0, 1)}
+        m, p = scores["model"], scores["persistence"]
+        for cls in ("vehicles_iou", "pedestrians_iou"):
+            if m[cls] is not None and p[cls] is not None:
+                metrics[f"{cls}_gain_over_persistence"] = m[cls] - p[cls]
+        log.info("[rnn] next-frame IoU vehicles %s (persistence %s), pedestrians %s (persistence %s); wrote %s",
+                 m["vehicles_iou"], p["vehicles_iou"], m["pedestrians_iou"], p["pedestrians_iou"],
+                 run_.marker)
+        return run_.finish(metrics)
 
 
 @torch.inference_mode()
-def _validation_loss(model, lat, units, L, D, B, seed) -> float:
+def validation_loss(model, lat, units, L, D, B, seed, *, sample_inputs: bool) -> float:
+    """Mean per-step loss over the held-out windows, with the inputs drawn as in training (``rnn.sample_inputs``),
+    so ``best.pt`` is chosen on the distribution it was trained on."""
     model.eval()
     gen = torch.Generator().manual_seed(seed + 99)
     total, count = 0.0, 0
     for b in range(0, len(units), B):
-        z, a, z_next, mask = make_batch(lat, units[b: b + B], L, D, gen)
+        z, a, z_next, mask = make_batch(lat, units[b: b + B], L, D, gen, sample_inputs=sample_inputs)
         out, _ = model(z, a)
         total += masked_loss(model, out, z_next, mask).item() * int(mask.sum())
         count += int(mask.sum())

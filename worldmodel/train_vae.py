@@ -8,65 +8,23 @@ grid per epoch) and ``metrics.json`` (held-out pixel accuracy and per-class IoU 
 """
 from __future__ import annotations
 
-import json
+import logging
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .common import (StageError, atomic_write_text, check_finite, data_dir, hydra_main, positive, runs_dir,
-                     seed_everything, set_threads, stage_command)
-from .data import CorruptDataError, RolloutStore, iter_frame_batches
-from .training import Checkpoints, GracefulStop, tensorboard
+from envs import CLASS_NAMES, NUM_CLASSES
 
-STAGE = "vae"
+from . import artifacts
+from .common import check_finite, hydra_main, seed_everything, set_threads
+from .config import validate
+from .data import RolloutStore, iter_frame_batches
+from .training import TrainingRun
+
+log = logging.getLogger(__name__)
 LOG_EVERY = 10
-
-
-def vae_dir(cfg) -> Path:
-    return runs_dir(cfg, STAGE)
-
-
-def open_rollouts(cfg) -> RolloutStore:
-    root = data_dir(cfg) / "rollouts"
-    if not (root / "manifest.json").exists():
-        raise StageError(f"no complete rollout dataset at {root}. Run `{stage_command('collect', cfg)}` first.")
-    try:
-        return RolloutStore(root)
-    except CorruptDataError as err:
-        raise StageError(str(err)) from err
-
-
-def validate_config(cfg) -> None:
-    positive(cfg.vae, "latent_dim", "batch_size", "epochs", "lr", where="vae")
-    if cfg.vae.num_classes != 13:
-        raise StageError(f"config vae.num_classes={cfg.vae.num_classes}: the simulator renders 13 classes")
-    if not 0.0 <= cfg.vae.class_balance <= 1.0:
-        raise StageError(f"config vae.class_balance={cfg.vae.class_balance} must be in [0, 1]")
-    if cfg.vae.free_bits < 0:
-        raise StageError(f"config vae.free_bits={cfg.vae.free_bits} must be >= 0")
-
-
-def build_model(cfg):
-    from .models.vae import SegVAE
-
-    return SegVAE(num_classes=int(cfg.vae.num_classes), latent_dim=int(cfg.vae.latent_dim))
-
-
-def load_vae(cfg, which: str = "best"):
-    """The trained VAE of this experiment (eval mode); a clear error if it is missing or does not fit."""
-    from .common import load_checkpoint
-
-    path = vae_dir(cfg) / f"{which}.pt"
-    state = load_checkpoint(path, "VAE checkpoint", "train_vae", cfg)
-    if state["latent_dim"] != cfg.vae.latent_dim:
-        raise StageError(f"{path} has latent size {state['latent_dim']} but config vae.latent_dim="
-                         f"{cfg.vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE.")
-    model = build_model(cfg)
-    model.load_state_dict(state["model"])
-    model.eval()
-    return model, path
 
 
 def class_weights(store: RolloutStore, episodes: list[int], exponent: float, frames: int = 4000) -> torch.Tensor | None:
@@ -77,10 +35,10 @@ def class_weights(store: RolloutStore, episodes: list[int], exponent: float, fra
     """
     if exponent == 0:
         return None
-    counts = np.zeros(13)
+    counts = np.zeros(NUM_CLASSES)
     seen = 0
     for batch in iter_frame_batches(store, episodes, 256, np.random.default_rng(12345)):
-        counts += np.bincount(batch.ravel(), minlength=13)
+        counts += np.bincount(batch.ravel(), minlength=NUM_CLASSES)
         seen += len(batch)
         if seen >= frames:
             break
@@ -104,7 +62,7 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
     from .models.vae import confusion, iou_from_confusion, vae_loss
 
     model.eval()
-    conf = np.zeros((13, 13), dtype=np.int64)
+    conf = np.zeros((NUM_CLASSES, NUM_CLASSES), dtype=np.int64)
     recon_sum = kl_sum = 0.0
     n = 0
     for batch in iter_frame_batches(store, episodes, batch_size, np.random.default_rng(0)):
@@ -113,7 +71,7 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
         _, recon, kl = vae_loss(logits, x, mu, logvar)
         recon_sum += float(recon) * len(x)
         kl_sum += float(kl) * len(x)
-        conf += confusion(logits.argmax(1), x, 13)
+        conf += confusion(logits.argmax(1), x, NUM_CLASSES)
         n += len(x)
         if max_frames and n >= max_frames:
             break
@@ -124,63 +82,54 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
 
 
 def run(cfg) -> dict:
-    from envs import CLASS_NAMES
-
     from .models.vae import vae_loss
 
-    validate_config(cfg)
+    validate(cfg)
     set_threads(cfg.threads)
-    store = open_rollouts(cfg)
-    out = vae_dir(cfg)
-    ckpts = Checkpoints(out, "train_vae", cfg)
-    if (out / "metrics.json").exists() and not cfg.resume:
-        raise StageError(f"{out} holds a finished VAE. Pass resume=true to keep it, or delete {out} to retrain.")
-
+    store = artifacts.open_rollouts(cfg)
+    out = artifacts.vae_dir(cfg)
     seed_everything(int(cfg.seed))
-    model = build_model(cfg)
+    model = artifacts.build_vae(cfg)
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.vae.lr))
-    epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
-    weights = class_weights(store, store.episodes("train"), float(cfg.vae.class_balance))
-    state = ckpts.resume_state(bool(cfg.resume))
-    if state is not None:
-        if state["latent_dim"] != cfg.vae.latent_dim:
-            raise StageError(f"{ckpts.last} has latent size {state['latent_dim']}, config says "
-                             f"vae.latent_dim={cfg.vae.latent_dim}. Use the same size or delete {out}.")
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], state["best_val"]
-        weights = state.get("class_weights")
-        print(f"[vae] resuming from {ckpts.last}: epoch {epoch}, step {step}")
-
-    epochs = int(cfg.vae.epochs)
+    epochs, batch_size = int(cfg.vae.epochs), int(cfg.vae.batch_size)
     train_eps, val_eps = store.episodes("train"), store.episodes("validation") or store.episodes("train")
-    batch_size = int(cfg.vae.batch_size)
     per_epoch = sum(-(-store.lengths[i] // batch_size) for i in train_eps)  # upper bound for the bar
 
-    def snapshot(best: bool = False):
-        ckpts.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                    "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
-                    "latent_dim": int(cfg.vae.latent_dim), "num_classes": int(cfg.vae.num_classes),
-                    "class_weights": weights}, best=best)
+    with TrainingRun(cfg, "train_vae", out, artifacts.provenance(cfg, "vae")) as run_:
+        epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
+        if run_.state is None:
+            weights = class_weights(store, train_eps, float(cfg.vae.class_balance))
+        else:
+            state = run_.state
+            artifacts.check_vae_architecture(state, cfg, run_.last)
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], \
+                state["best_val"]
+            weights = state.get("class_weights")
+            run_.resumed(f"epoch {epoch}, step {step}")
 
-    from tqdm import tqdm
+        def snapshot(best: bool = False):
+            run_.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+                       "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
+                       "latent_dim": int(cfg.vae.latent_dim), "num_classes": int(cfg.vae.num_classes),
+                       "class_weights": weights}, best=best)
 
-    writer = tensorboard(out, purge_step=step + 1 if state is not None else None)
-    t0, frames_seen = time.perf_counter(), 0
-    stopped = False
-    with GracefulStop() as stop:
-        while epoch < epochs and not stopped:
+        from tqdm import tqdm
+
+        writer = run_.writer
+        t0, frames_seen = time.perf_counter(), 0
+        while epoch < epochs:
             rng = np.random.default_rng([int(cfg.seed), epoch])
-            batches = iter_frame_batches(store, train_eps, batch_size, rng)
             bar = tqdm(total=per_epoch, initial=batch_in_epoch, desc=f"vae epoch {epoch + 1}/{epochs}", unit="batch")
-            for b, batch in enumerate(batches):
+            for b, batch in enumerate(iter_frame_batches(store, train_eps, batch_size, rng)):
                 if b < batch_in_epoch:          # resuming mid-epoch: skip what was already trained on
                     continue
                 x = torch.from_numpy(batch)
                 logits, mu, logvar = model(x)
                 loss, recon, kl = vae_loss(logits, x, mu, logvar, float(cfg.vae.kl_weight), float(cfg.vae.free_bits),
                                            class_weights=weights)
-                check_finite(loss.item(), "VAE loss", step, ckpts.last)
+                check_finite(loss.item(), "VAE loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -189,55 +138,54 @@ def run(cfg) -> dict:
                 frames_seen += len(x)
                 bar.update(1)
                 if step % LOG_EVERY == 0:
-                    writer.add_scalar("loss/total", loss.item(), step)
-                    writer.add_scalar("loss/recon", recon.item(), step)
-                    writer.add_scalar("loss/kl", kl.item(), step)
+                    for name, value in (("loss/total", loss), ("loss/recon", recon), ("loss/kl", kl)):
+                        writer.add_scalar(name, value.item(), step)
                     writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
                     writer.add_scalar("speed/frames_per_s", frames_seen / (time.perf_counter() - t0), step)
-                if stop.requested:
-                    stopped = True
+                if run_.stop.requested:
                     break
             bar.total = bar.n   # the batch count was an upper bound; end the bar at 100 %
             bar.close()
-            if stopped:
+            if run_.stop.requested:
                 snapshot()
-                print(f"[vae] stopped at step {step}; resume with resume=true")
-                break
+                return run_.stopped(step)
             val = evaluate(model, store, val_eps, 64)
-            writer.add_scalar("val/recon", val["recon"], step)
-            writer.add_scalar("val/kl", val["kl"], step)
-            writer.add_scalar("val/pixel_accuracy", val["pixel_accuracy"], step)
-            sample = np.stack([store.read(val_eps[0], "seg", slice(k, k + 1))[0]
-                               for k in range(0, min(store.lengths[val_eps[0]], 64), 8)])
-            with torch.inference_mode():
-                recon_frames = model.eval().reconstruct(torch.from_numpy(sample)).numpy()
-            model.train()
-            writer.add_image("reconstruction (top: input, bottom: VAE)", palette_grid(sample, recon_frames), step,
-                             dataformats="HWC")
+            log_validation(writer, model, store, val_eps[0], val, step)
             epoch += 1
             batch_in_epoch = 0
             improved = val["recon"] + val["kl"] < best_val
             best_val = min(best_val, val["recon"] + val["kl"])
             snapshot(best=improved)
-            print(f"[vae] epoch {epoch}: val recon {val['recon']:.1f} kl {val['kl']:.1f} "
-                  f"pixel acc {val['pixel_accuracy']:.4f}")
-    writer.close()
-    if stopped:
-        return {"stopped": True, "step": step}
+            log.info("[vae] epoch %d: val recon %.1f kl %.1f pixel acc %.4f", epoch, val["recon"], val["kl"],
+                     val["pixel_accuracy"])
 
-    model, best_path = load_vae(cfg, "best")
-    final = evaluate(model, store, val_eps, 64)
-    wall = time.perf_counter() - t0
-    metrics = {
-        "checkpoint": str(best_path), "epochs": epochs, "steps": step, "heldout_frames": final["frames"],
-        "pixel_accuracy": final["pixel_accuracy"], "recon_nll": final["recon"], "kl": final["kl"],
-        "iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(CLASS_NAMES, final["iou"])},
-        "train_frames_per_s": round(frames_seen / wall, 1) if frames_seen else None,
-    }
-    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2))
-    print(f"[vae] held-out pixel accuracy {metrics['pixel_accuracy']:.4f}; IoU Vehicles "
-          f"{metrics['iou']['Vehicles']}, Pedestrians {metrics['iou']['Pedestrians']}; wrote {out / 'metrics.json'}")
-    return metrics
+        model, best_path = artifacts.load_vae(cfg, "best")
+        final = evaluate(model, store, val_eps, 64)
+        wall = time.perf_counter() - t0
+        metrics = {
+            "checkpoint": str(best_path), "epochs": epochs, "steps": step, "heldout_frames": final["frames"],
+            "pixel_accuracy": final["pixel_accuracy"], "recon_nll": final["recon"], "kl": final["kl"],
+            "iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(CLASS_NAMES, final["iou"])},
+            "train_frames_per_s": round(frames_seen / wall, 1) if frames_seen else None,
+        }
+        log.info("[vae] held-out pixel accuracy %.4f; IoU Vehicles %s, Pedestrians %s; wrote %s",
+                 metrics["pixel_accuracy"], metrics["iou"]["Vehicles"], metrics["iou"]["Pedestrians"],
+                 out / "metrics.json")
+        return run_.finish(metrics)
+
+
+def log_validation(writer, model, store: RolloutStore, episode: int, val: dict, step: int) -> None:
+    """Validation scalars and an input-vs-reconstruction grid of one held-out episode."""
+    writer.add_scalar("val/recon", val["recon"], step)
+    writer.add_scalar("val/kl", val["kl"], step)
+    writer.add_scalar("val/pixel_accuracy", val["pixel_accuracy"], step)
+    sample = np.stack([store.read(episode, "seg", slice(k, k + 1))[0]
+                       for k in range(0, min(store.lengths[episode], 64), 8)])
+    with torch.inference_mode():
+        recon_frames = model.eval().reconstruct(torch.from_numpy(sample)).numpy()
+    model.train()
+    writer.add_image("reconstruction (top: input, bottom: VAE)", palette_grid(sample, recon_frames), step,
+                     dataformats="HWC")
 
 
 main = hydra_main("train_vae")(run)

@@ -1,18 +1,24 @@
-"""What every training stage shares: checkpoints with everything needed to resume, TensorBoard, and a
-clean stop on SIGINT/SIGTERM.
+"""What every training stage shares: one run directory through its life (refuse or resume, record its inputs,
+checkpoint, log to TensorBoard, stop cleanly on SIGINT/SIGTERM, mark it finished).
 
-A checkpoint holds model, optimiser, epoch, position within the epoch, global step, RNG states and the
-stage's own extras. ``last.pt`` is rewritten atomically at every save; ``best.pt`` when validation improves,
-and before ``last.pt``, so a kill between the two never leaves ``best.pt`` behind what ``last.pt`` records.
-Resuming restores all of it, and TensorBoard keeps counting from the saved step (ctallec/world-models
-restored its scheduler from the wrong state dict; resume is tested here).
+A checkpoint holds model, optimiser, epoch, position within the epoch, global step, RNG states, the run's
+provenance (artifacts.py) and the stage's own extras. ``last.pt`` is rewritten atomically at every save;
+``best.pt`` when validation improves, and before ``last.pt``, so a kill between the two never leaves
+``best.pt`` behind what ``last.pt`` records. Resuming restores all of it, and TensorBoard keeps counting from
+the saved step (ctallec/world-models restored its scheduler from the wrong state dict; resume is tested here).
 """
 from __future__ import annotations
 
+import json
+import logging
 import signal
 from pathlib import Path
 
-from .common import StageError, atomic_torch_save, load_checkpoint, rng_state, set_rng_state
+from . import artifacts
+from .common import StageError, atomic_torch_save, atomic_write_text, clean_temporaries, load_checkpoint, rng_state, \
+    set_rng_state, stage_command
+
+log = logging.getLogger(__name__)
 
 
 class GracefulStop:
@@ -26,7 +32,7 @@ class GracefulStop:
         if self.requested:  # a second Ctrl-C means "now"
             raise KeyboardInterrupt
         self.requested = True
-        print(f"\n[stop] {signal.Signals(signum).name} received: saving a checkpoint, then exiting.")
+        log.warning("%s received: saving a checkpoint, then exiting.", signal.Signals(signum).name)
 
     def __enter__(self):
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -42,42 +48,104 @@ class GracefulStop:
         return False
 
 
-class Checkpoints:
-    """``runs/NAME/<stage>/{last,best}.pt`` for one stage."""
+def tensorboard(directory: Path, purge_step: int | None = None):
+    from torch.utils.tensorboard import SummaryWriter
 
-    def __init__(self, directory: Path, stage_cmd: str, cfg):
-        self.dir = Path(directory)
-        self.last = self.dir / "last.pt"
-        self.best = self.dir / "best.pt"
-        self._stage_cmd = stage_cmd
-        self._cfg = cfg
+    # purge_step drops events logged after the checkpoint we resume from, so curves do not zig-zag.
+    return SummaryWriter(log_dir=str(directory), purge_step=purge_step)
 
+
+class TrainingRun:
+    """The skeleton of a training stage around its own loop::
+
+        with TrainingRun(cfg, "train_vae", out, artifacts.provenance(cfg, "vae")) as run:
+            if run.state is not None: ...restore model, optimiser and counters from run.state...
+            while ...:
+                ...train; run.writer.add_scalar(...)...
+                if run.stop.requested:
+                    run.save(state)
+                    return run.stopped(step)
+                run.save(state, best=improved)
+            return run.finish(metrics)
+
+    On entry it refuses to overwrite a finished run without ``resume=true``, refuses to resume a run whose
+    recorded inputs (dataset, VAE, LSTM) differ from the current ones (unless ``allow_stale=true``), removes the
+    temporary file of a save that a kill interrupted, loads ``last.pt`` when resuming, records the run's inputs
+    in ``provenance.json`` and opens TensorBoard and the signal handler.
+    """
+
+    MARKER = "metrics.json"
+
+    def __init__(self, cfg, command: str, directory: Path, record: dict, name: str | None = None):
+        self.cfg, self.command, self.dir, self.record = cfg, command, Path(directory), record
+        self.name = name or command.removeprefix("train_")
+        self.last, self.best = self.dir / "last.pt", self.dir / "best.pt"
+        self.marker = self.dir / self.MARKER
+        self.state: dict | None = None
+        self.stop = GracefulStop()
+        self.writer = None
+
+    # ------------------------------------------------------------------ life cycle
+    def __enter__(self) -> "TrainingRun":
+        resume = bool(self.cfg.resume)
+        if self.marker.exists() and not resume:
+            raise StageError(f"{self.dir} holds a finished run. Pass resume=true to keep it, or delete {self.dir} "
+                             "to retrain.")
+        # Only this run writes here, so a temporary file belongs to a writer that was killed inside a save
+        # (possibly hundreds of MB with a replay buffer).
+        if self.dir.exists():
+            clean_temporaries(self.dir)
+        if self.last.exists():
+            if not resume:
+                raise StageError(f"{self.last} exists. Pass resume=true to continue that run, or delete {self.dir} "
+                                 "to start over.")
+            self._check_resumed_inputs()
+            self.state = load_checkpoint(self.last, "checkpoint", self.command, self.cfg)
+            set_rng_state(self.state["rng"])
+        self.dir.mkdir(parents=True, exist_ok=True)
+        artifacts.write_provenance(self.dir, self.record)
+        self.writer = tensorboard(self.dir, purge_step=self.state["step"] + 1 if self.state else None)
+        self.stop.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.__exit__(*exc)
+        if self.writer is not None:
+            self.writer.close()
+        return False
+
+    def _check_resumed_inputs(self) -> None:
+        recorded = artifacts.read_provenance(self.dir)
+        if recorded is None:
+            return
+        changed = [r for r in artifacts.differences(recorded, self.record) if r != "its config changed"]
+        if not changed:
+            return
+        message = (f"{self.dir} was started on other inputs ({'; '.join(changed)}), so resuming it would mix "
+                   f"them. Delete {self.dir} and rerun `{stage_command(self.command, self.cfg)}`, or run the "
+                   "pipeline, which sets stale runs aside and rebuilds them; allow_stale=true resumes anyway.")
+        if bool(self.cfg.get("allow_stale", False)):
+            log.warning("allow_stale=true: %s", message)
+            return
+        raise StageError(message)
+
+    # ------------------------------------------------------------------ during training
     def save(self, state: dict, best: bool = False) -> None:
-        state = {**state, "rng": rng_state()}
+        state = {**state, "provenance": self.record, "rng": rng_state()}
         # best.pt first: a process killed between the two writes then resumes from the previous last.pt and
         # redoes the improvement. The other order would leave last.pt recording a best that best.pt lacks.
         if best:
             atomic_torch_save(state, self.best)
         atomic_torch_save(state, self.last)
 
-    def resume_state(self, resume: bool) -> dict | None:
-        """The state to continue from, or None for a fresh start; refuses to overwrite without resume."""
-        # A process killed inside a save leaves its temporary file (possibly hundreds of MB with a replay buffer);
-        # only this run writes here, so whatever is left over belongs to a dead writer.
-        for stale in self.dir.glob(".*.pt.*.tmp"):
-            stale.unlink(missing_ok=True)
-        if not self.last.exists():
-            return None
-        if not resume:
-            raise StageError(
-                f"{self.last} exists. Pass resume=true to continue that run, or delete {self.dir} to start over.")
-        state = load_checkpoint(self.last, "checkpoint", self._stage_cmd, self._cfg)
-        set_rng_state(state["rng"])
-        return state
+    def resumed(self, where: str) -> None:
+        log.info("[%s] resuming from %s: %s", self.name, self.last, where)
 
+    def stopped(self, step: int) -> dict:
+        log.info("[%s] stopped at step %d; resume with resume=true", self.name, step)
+        return {"stopped": True, "step": step}
 
-def tensorboard(directory: Path, purge_step: int | None = None):
-    from torch.utils.tensorboard import SummaryWriter
-
-    # purge_step drops events logged after the checkpoint we resume from, so curves do not zig-zag.
-    return SummaryWriter(log_dir=str(directory), purge_step=purge_step)
+    def finish(self, metrics: dict) -> dict:
+        """Write the completion marker: the run is done."""
+        atomic_write_text(self.marker, json.dumps(metrics, indent=2))
+        return metrics

@@ -9,7 +9,7 @@ and the actor ascends Q(s, mu(s)). Written in the spirit of CleanRL's ``ddpg_con
 an importable module: the training loop (environment, warm-up, logging, checkpoint files) lives in the stage
 that uses it. A typical loop::
 
-    agent = DDPG(obs_dim, act_dim, DDPGConfig.from_mapping(cfg.agent), seed=cfg.seed)
+    agent = DDPG(obs_dim, act_dim, DDPGConfig(), seed=0)   # the project passes its typed `agent` config section
     buffer = ReplayBuffer(agent.cfg.buffer_size, obs_dim, act_dim)
     for step in range(total_steps):
         action = agent.random_action() if step < agent.cfg.warmup_steps else agent.act(obs, explore=True)
@@ -24,20 +24,25 @@ resumed run continues exactly where it stopped.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..common import Checked, ConfigValueError, positive_fields
+
 
 @dataclass
-class DDPGConfig:
-    actor_hidden: tuple[int, ...] = (400, 300)
+class DDPGConfig(Checked):
+    """DDPG's hyperparameters, and the schema of the ``agent`` config section (``worldmodel.config.AgentConfig``
+    adds the training loop's keys). Defaults are Lillicrap's where the paper is silent."""
+
+    actor_hidden: list[int] = field(default_factory=lambda: [400, 300])
     """widths of the actor's hidden layers (Lillicrap: 400, 300)"""
-    critic_hidden: tuple[int, ...] = (400, 300)
+    critic_hidden: list[int] = field(default_factory=lambda: [400, 300])
     """widths of the critic's hidden layers (Lillicrap: 400, 300)"""
     actor_lr: float = 1e-4
     """Adam learning rate of the actor (Lillicrap: 1e-4)"""
@@ -60,23 +65,17 @@ class DDPGConfig:
     """environment steps with uniform random actions before the first update, so early minibatches are not
     all drawn from the same few transitions"""
 
-    @classmethod
-    def from_mapping(cls, m: Mapping[str, Any]) -> "DDPGConfig":
-        """Build from a dict-like (e.g. the OmegaConf ``agent`` section); keys that are not fields are ignored,
-        since that section also holds settings of the training loop (total_steps, checkpoint_every, ...)."""
-        kwargs = {}
-        for f in fields(cls):
-            if f.name not in m:
-                continue
-            value = m[f.name]
-            default = f.default
-            # OmegaConf hands lists over as ListConfig and YAML may write 1000 as 1.0e3: cast to the field's type.
-            if isinstance(default, tuple):
-                value = tuple(int(v) for v in value)
-            else:
-                value = type(default)(value)
-            kwargs[f.name] = value
-        return cls(**kwargs)
+    def problems(self):
+        yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr")
+        for key in ("gamma", "tau"):
+            if not 0 < getattr(self, key) <= 1:
+                yield ConfigValueError(key, getattr(self, key), "it must be in (0, 1]")
+        for key in ("warmup_steps", "exploration_noise"):
+            if getattr(self, key) < 0:
+                yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
+        for key in ("actor_hidden", "critic_hidden"):
+            if not all(isinstance(w, int) and w > 0 for w in getattr(self, key)):
+                yield ConfigValueError(key, list(getattr(self, key)), "layer widths must be positive integers")
 
 
 def mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:

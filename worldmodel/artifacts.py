@@ -1,0 +1,384 @@
+"""The experiment's artifacts: where each one lives, how it is loaded, what it was built from, and when it is done.
+
+Stages are peers: each reads its inputs and writes its outputs through this module and never imports another
+stage (``tests/test_layout.py``). The layout of ``experiment=NAME`` (docs/design.md §9)::
+
+    data/NAME/rollouts/          collect      (complete when manifest.json exists)
+    data/NAME/latents.h5         train_rnn    (the dataset encoded by one VAE checkpoint; rebuilt when it changes)
+    runs/NAME/vae/               train_vae    best.pt, last.pt, metrics.json (complete), provenance.json
+    runs/NAME/rnn/               train_rnn    same files
+    runs/NAME/agent_r1/seed0/    train_agent  same files (last.pt is the actor that is evaluated)
+    runs/NAME/eval/              evaluate     results.csv, tables.md, heatmaps.png, summary.json (complete)
+    runs/NAME/stale/             outputs the pipeline set aside because their inputs changed
+
+**Provenance.** An artifact's identity is the SHA-256 of its defining file (the rollouts' ``manifest.json``, a
+model's ``best.pt``, an agent's ``last.pt``). Each training stage records the identities of its inputs and a hash
+of the config keys that shape it, in ``provenance.json`` (written when the run starts) and in every checkpoint.
+Loading a model compares the recorded inputs with the current ones: a mismatch stops with a ``StageError``
+naming both files and the command that rebuilds the stale one, unless ``allow_stale=true`` (then a warning).
+The pipeline compares the same records to decide which stages to rerun.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .common import StageError, atomic_write_text, load_checkpoint, stage_command
+
+log = logging.getLogger(__name__)
+
+PROVENANCE = "provenance.json"
+AGENT_REWARDS = ("r1", "r2")
+
+
+# ----------------------------------------------------------------------------- paths
+def data_dir(cfg) -> Path:
+    return Path(cfg.paths.data)
+
+
+def runs_root(cfg) -> Path:
+    return Path(cfg.paths.runs)
+
+
+def rollouts_dir(cfg) -> Path:
+    return data_dir(cfg) / "rollouts"
+
+
+def manifest_path(cfg) -> Path:
+    return rollouts_dir(cfg) / "manifest.json"
+
+
+def latents_path(cfg) -> Path:
+    return data_dir(cfg) / "latents.h5"
+
+
+def vae_dir(cfg) -> Path:
+    return runs_root(cfg) / "vae"
+
+
+def rnn_dir(cfg) -> Path:
+    return runs_root(cfg) / "rnn"
+
+
+def eval_dir(cfg) -> Path:
+    return runs_root(cfg) / "eval"
+
+
+def stale_dir(cfg) -> Path:
+    return runs_root(cfg) / "stale"
+
+
+# ----------------------------------------------------------------------------- agent naming
+@dataclass(frozen=True, order=True)
+class AgentId:
+    """One trained agent: its reward and training seed. ``key`` (``agent_r1/seed0``) names it in evaluation rows,
+    on disk under ``runs/NAME/`` and in the pipeline; ``policy`` (``agent_r1``) pools its seeds in the reports."""
+
+    reward: str
+    seed: int
+
+    @property
+    def policy(self) -> str:
+        return f"agent_{self.reward}"
+
+    @property
+    def key(self) -> str:
+        return f"{self.policy}/seed{self.seed}"
+
+    def dir(self, cfg) -> Path:
+        return runs_root(cfg) / self.key
+
+    @classmethod
+    def parse(cls, key: str) -> "AgentId":
+        policy, _, seed = key.partition("/seed")
+        reward = policy.removeprefix("agent_")
+        if not policy.startswith("agent_") or reward not in AGENT_REWARDS or not seed.isdigit():
+            raise ValueError(f"{key!r} does not name an agent (expected e.g. 'agent_r1/seed0')")
+        return cls(reward, int(seed))
+
+    @classmethod
+    def of(cls, cfg) -> "AgentId":
+        """The agent that ``train_agent`` with this config trains."""
+        return cls(str(cfg.reward.name), int(cfg.seed))
+
+
+def agent_dir(cfg) -> Path:
+    return AgentId.of(cfg).dir(cfg)
+
+
+def trained_agents(cfg) -> list[AgentId]:
+    """Every agent of the experiment that has a checkpoint, sorted (reward, then seed)."""
+    found = []
+    for path in runs_root(cfg).glob("agent_*/seed*/last.pt"):
+        try:
+            found.append(AgentId.parse(f"{path.parent.parent.name}/{path.parent.name}"))
+        except ValueError:
+            continue
+    return sorted(found)
+
+
+# ----------------------------------------------------------------------------- identity
+@functools.lru_cache(maxsize=64)
+def _sha256(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes (cached per path, size and modification time: checkpoints are hashed often)."""
+    st = os.stat(path)
+    return _sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+
+
+def short(sha: str | None) -> str:
+    return (sha or "")[:12]
+
+
+def config_sha256(settings: Any) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _identity(path: Path) -> str | None:
+    return file_sha256(path) if path.exists() else None
+
+
+def rollouts_id(cfg) -> str | None:
+    return _identity(manifest_path(cfg))
+
+
+def vae_id(cfg) -> str | None:
+    return _identity(vae_dir(cfg) / "best.pt")
+
+
+def rnn_id(cfg) -> str | None:
+    return _identity(rnn_dir(cfg) / "best.pt")
+
+
+def actor_id(cfg, agent: AgentId) -> str | None:
+    return _identity(agent.dir(cfg) / "last.pt")
+
+
+# ----------------------------------------------------------------------------- what each stage is built from
+def _section(cfg, key: str):
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True) if OmegaConf.is_config(
+        OmegaConf.select(cfg, key)) else OmegaConf.select(cfg, key)
+
+
+def _config(cfg, *keys: str) -> dict:
+    return {key: _section(cfg, key) for key in keys}
+
+
+def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
+    """The current inputs of ``stage`` (``vae``, ``rnn``, ``agent``, ``eval``) and the hash of its config keys."""
+    if stage == "vae":
+        inputs, settings = {"rollouts": rollouts_id(cfg)}, _config(cfg, "seed", "vae")
+    elif stage == "rnn":
+        inputs, settings = {"rollouts": rollouts_id(cfg), "vae": vae_id(cfg)}, _config(cfg, "seed", "rnn")
+    elif stage == "agent":
+        agent = agent or AgentId.of(cfg)
+        inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)}
+        settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
+    elif stage == "eval":
+        inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg)}
+        settings = _config(cfg, "evaluate", "env")
+    else:
+        raise ValueError(f"no provenance for stage {stage!r}")
+    return {"inputs": inputs, "config": config_sha256(settings)}
+
+
+def read_provenance(directory: Path) -> dict | None:
+    path = Path(directory) / PROVENANCE
+    try:
+        return json.loads(path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def write_provenance(directory: Path, record: dict) -> None:
+    atomic_write_text(Path(directory) / PROVENANCE, json.dumps(record, indent=2, sort_keys=True))
+
+
+def differences(recorded: dict | None, current: dict) -> list[str]:
+    """Human-readable reasons why ``recorded`` no longer matches ``current`` (empty: up to date)."""
+    if recorded is None:
+        return ["no record of its inputs"]
+    out = []
+    for name, now in current["inputs"].items():
+        then = recorded.get("inputs", {}).get(name)
+        if then != now:
+            out.append(f"{name} {short(then) or 'absent'} -> {short(now) or 'absent'}")
+    for name in set(recorded.get("inputs", {})) - set(current["inputs"]):
+        out.append(f"{name} {short(recorded['inputs'][name])} -> absent")
+    if recorded.get("config") != current["config"]:
+        out.append("its config changed")
+    return out
+
+
+def retire(cfg, directory: Path) -> Path | None:
+    """Move a stale stage directory under ``runs/NAME/stale/`` (nothing is deleted); returns where it went."""
+    directory = Path(directory)
+    if not directory.exists():
+        return None
+    rel = directory.relative_to(runs_root(cfg))
+    target = stale_dir(cfg) / f"{str(rel).replace('/', '-')}-{time.strftime('%Y%m%d-%H%M%S')}"
+    n = 1
+    while target.exists():
+        target = target.with_name(f"{target.name}.{n}")
+        n += 1
+    target.parent.mkdir(parents=True, exist_ok=True)
+    shutil.move(str(directory), str(target))
+    return target
+
+
+# ----------------------------------------------------------------------------- checked loading
+STAGE_COMMANDS = {"collect": "collect", "vae": "train_vae", "rnn": "train_rnn", "agent": "train_agent",
+                  "eval": "evaluate"}
+
+
+def check_inputs(cfg, what: str, path: Path, recorded: dict | None, current: dict[str, str | None],
+                 rebuild: str, files: dict[str, Path]) -> None:
+    """Compare the input identities ``recorded`` in an artifact with the ``current`` ones.
+
+    Inputs whose current file is absent are not compared (data may be deleted after training). A mismatch is a
+    StageError naming both files and how to rebuild, or a warning under ``allow_stale=true``.
+    """
+    recorded = recorded or {}
+    stale = [name for name, now in current.items() if now is not None and recorded.get(name) != now]
+    if not stale:
+        return
+    details = "; ".join(f"it was built on {name} {short(recorded.get(name)) or '(unrecorded)'}, but {files[name]} "
+                        f"is now {short(current[name])}" for name in stale)
+    message = (f"{what} {path} is stale: {details}. Rebuild it with `{rebuild}` (or run "
+               f"`python -m worldmodel.pipeline experiment={cfg.experiment}`, which rebuilds every stale stage), "
+               "or pass allow_stale=true to load it anyway.")
+    if bool(cfg.get("allow_stale", False)):
+        log.warning("allow_stale=true: %s", message)
+        return
+    raise StageError(message)
+
+
+def open_rollouts(cfg):
+    from .data import CorruptDataError, RolloutStore
+
+    root = rollouts_dir(cfg)
+    if not manifest_path(cfg).exists():
+        raise StageError(f"no complete rollout dataset at {root}. Run `{stage_command('collect', cfg)}` first.")
+    try:
+        return RolloutStore(root)
+    except CorruptDataError as err:
+        raise StageError(str(err)) from err
+
+
+def build_vae(cfg):
+    from .models.vae import SegVAE
+
+    return SegVAE(num_classes=int(cfg.vae.num_classes), latent_dim=int(cfg.vae.latent_dim))
+
+
+def build_rnn(cfg):
+    from .models.rnn import WorldRNN
+
+    return WorldRNN(latent_dim=int(cfg.vae.latent_dim), action_dim=2, hidden=int(cfg.rnn.hidden),
+                    head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians), residual=bool(cfg.rnn.residual))
+
+
+def check_vae_architecture(state: dict, cfg, path: Path) -> None:
+    if state["latent_dim"] != cfg.vae.latent_dim:
+        raise StageError(f"{path} has latent size {state['latent_dim']} but config vae.latent_dim="
+                         f"{cfg.vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE.")
+
+
+def check_rnn_architecture(state: dict, cfg, path: Path) -> None:
+    """Refuse an LSTM checkpoint whose shape settings differ from the config, naming the key."""
+    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head),
+                      ("residual", cfg.rnn.residual)):
+        have = state.get(key)
+        if have != want:
+            raise StageError(f"{path} has {key}={have!r} but the config says {want!r}. "
+                             "Use the checkpoint's value, or delete the LSTM run and retrain it.")
+
+
+def _recorded_inputs(state: dict) -> dict:
+    return (state.get("provenance") or {}).get("inputs", {})
+
+
+def load_vae(cfg, which: str = "best"):
+    """The trained VAE (eval mode) and its path; a clear error if missing, of the wrong size, or stale."""
+    path = vae_dir(cfg) / f"{which}.pt"
+    state = load_checkpoint(path, "VAE checkpoint", "train_vae", cfg)
+    check_vae_architecture(state, cfg, path)
+    check_inputs(cfg, "The VAE", path, _recorded_inputs(state), {"rollouts": rollouts_id(cfg)},
+                 stage_command("train_vae", cfg), {"rollouts": manifest_path(cfg)})
+    model = build_vae(cfg)
+    model.load_state_dict(state["model"])
+    return model.eval(), path
+
+
+def load_rnn(cfg, which: str = "best"):
+    """The trained LSTM (eval mode) and its path; a clear error if missing, of the wrong size, or trained on
+    another VAE than the current one."""
+    path = rnn_dir(cfg) / f"{which}.pt"
+    state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
+    check_rnn_architecture(state, cfg, path)
+    check_inputs(cfg, "The LSTM", path, _recorded_inputs(state), {"vae": vae_id(cfg)},
+                 stage_command("train_rnn", cfg), {"vae": vae_dir(cfg) / "best.pt"})
+    model = build_rnn(cfg)
+    model.load_state_dict(state["model"])
+    return model.eval(), path
+
+
+def load_world_model(cfg):
+    """VAE + LSTM behind the agent's observation encoder."""
+    from .agent_obs import WorldModelEncoder
+
+    vae, _ = load_vae(cfg, "best")
+    rnn, _ = load_rnn(cfg, "best")
+    return WorldModelEncoder(vae, rnn, use_speed=bool(cfg.agent.use_speed))
+
+
+def load_actor(cfg, agent: AgentId, which: str = "last"):
+    """A trained actor (eval mode) and its checkpoint; refuses one built on another VAE or LSTM."""
+    from .models.ddpg import Actor
+
+    path = agent.dir(cfg) / f"{which}.pt"
+    state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
+    rebuild = (f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} "
+               f"seed={agent.seed}")
+    check_inputs(cfg, f"The agent {agent.key}", path, _recorded_inputs(state),
+                 {"vae": vae_id(cfg), "rnn": rnn_id(cfg)}, rebuild,
+                 {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"})
+    actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
+    actor.load_state_dict(state["agent"]["actor"])
+    return actor.eval(), state
+
+
+def models_of(cfg, agent: AgentId) -> dict[str, str]:
+    """Short hashes of the VAE, LSTM and actor behind an agent's decisions (for evaluation rows)."""
+    return {"vae_sha": short(vae_id(cfg)), "rnn_sha": short(rnn_id(cfg)), "actor_sha": short(actor_id(cfg, agent))}
+
+
+# ----------------------------------------------------------------------------- completion
+def marker(cfg, stage: str, agent: AgentId | None = None) -> Path:
+    """The file whose existence means ``stage`` finished."""
+    return {"collect": lambda: manifest_path(cfg), "vae": lambda: vae_dir(cfg) / "metrics.json",
+            "rnn": lambda: rnn_dir(cfg) / "metrics.json",
+            "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg) / "metrics.json",
+            "eval": lambda: eval_dir(cfg) / "summary.json"}[stage]()
+
+
+def output_dir(cfg, stage: str, agent: AgentId | None = None) -> Path:
+    return {"collect": lambda: rollouts_dir(cfg), "vae": lambda: vae_dir(cfg), "rnn": lambda: rnn_dir(cfg),
+            "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg), "eval": lambda: eval_dir(cfg)}[stage]()
