@@ -4,21 +4,25 @@ VENV := .venv
 PY := $(VENV)/bin/python
 EXPERIMENT ?= quick
 
-.PHONY: setup run test bench preview clean-venv
+.PHONY: setup run test lint bench preview clean-venv
 
 setup: $(VENV)/.installed
 
-$(VENV)/.installed: requirements.lock pyproject.toml
+$(VENV)/.installed: requirements.lock requirements-dev.lock pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q -r requirements.lock
+	$(PY) -m pip install -q -r requirements-dev.lock
 	$(PY) -m pip install -q --no-deps -e .
 	touch $@
 
 run: setup
 	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick
 
-test: setup
+test: setup lint
 	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 
 bench: setup
 	$(PY) -m benchmarks.run

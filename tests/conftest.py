@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 
 import pytest
 
@@ -19,5 +20,41 @@ def stage_cfg(tmp_path):
         root = root or tmp_path
         return compose(stage, [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t",
                                "scale=smoke", "threads=1", *overrides])
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def smoke_builds(tmp_path_factory):
+    """smoke_builds("rollouts" | "vae" | "rnn") -> a root holding a smoke-scale experiment ``t`` built by the real
+    stages up to that stage, once per test session. Read-only: tests that change it take ``experiment_copy``."""
+    from worldmodel import collect, train_rnn, train_vae
+
+    order = {"rollouts": collect.run, "vae": train_vae.run, "rnn": train_rnn.run}
+    stage_of = {"rollouts": "collect", "vae": "train_vae", "rnn": "train_rnn"}
+    built: dict = {}
+
+    def build(level: str):
+        if level not in built:
+            root = tmp_path_factory.mktemp(f"built-{level}")
+            names = list(order)
+            previous = names[names.index(level) - 1] if names.index(level) else None
+            if previous:
+                shutil.copytree(build(previous), root, dirs_exist_ok=True)
+            order[level](compose(stage_of[level], [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs",
+                                                   "experiment=t", "scale=smoke", "threads=1"]))
+            built[level] = root
+        return built[level]
+
+    return build
+
+
+@pytest.fixture
+def experiment_copy(smoke_builds, tmp_path):
+    """experiment_copy("vae") -> tmp_path holding a private copy of the session's smoke build up to that stage."""
+
+    def make(level: str):
+        shutil.copytree(smoke_builds(level), tmp_path, dirs_exist_ok=True)
+        return tmp_path
 
     return make

@@ -13,9 +13,9 @@ import h5py
 import numpy as np
 import pytest
 
-from worldmodel import collect
+from worldmodel import artifacts, collect
 from worldmodel.common import StageError
-from worldmodel.data import EPISODE_KEYS, CorruptDataError, RolloutStore, episode_key, validate
+from worldmodel.data import EPISODE_KEYS, CorruptDataError, RolloutStore, validate
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -34,7 +34,7 @@ def dataset_content(root: Path) -> dict:
 def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
     cfg = stage_cfg("collect")
     summary = collect.run(cfg)
-    root = collect.rollout_dir(cfg)
+    root = artifacts.rollouts_dir(cfg)
     assert summary["episodes"] == cfg.collect.episodes == 4
     store = RolloutStore(root)
     assert sorted(store.location) == [0, 1, 2, 3]
@@ -56,11 +56,11 @@ def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
 
     again = stage_cfg("collect", root=tmp_path / "second")
     collect.run(again)
-    assert dataset_content(root) == dataset_content(collect.rollout_dir(again))
+    assert dataset_content(root) == dataset_content(artifacts.rollouts_dir(again))
     # Worker count does not change the data.
     single = stage_cfg("collect", "collect.num_workers=1", root=tmp_path / "third")
     collect.run(single)
-    assert dataset_content(root) == dataset_content(collect.rollout_dir(single))
+    assert dataset_content(root) == dataset_content(artifacts.rollouts_dir(single))
 
 
 def test_sigkill_then_resume_gives_exactly_the_uninterrupted_data(tmp_path, stage_cfg):
@@ -86,14 +86,14 @@ def test_sigkill_then_resume_gives_exactly_the_uninterrupted_data(tmp_path, stag
     assert not list(rollouts.glob(".shard_*"))
     reference = stage_cfg("collect", *overrides, root=tmp_path / "clean")
     collect.run(reference)
-    assert dataset_content(rollouts) == dataset_content(collect.rollout_dir(reference))
+    assert dataset_content(rollouts) == dataset_content(artifacts.rollouts_dir(reference))
     assert sorted(RolloutStore(rollouts).location) == list(range(6))
 
 
 def test_truncated_shard_is_named_in_the_error(stage_cfg):
     cfg = stage_cfg("collect")
     collect.run(cfg)
-    root = collect.rollout_dir(cfg)
+    root = artifacts.rollouts_dir(cfg)
     bad = root / "shard_00001.h5"
     size = bad.stat().st_size
     with open(bad, "r+b") as fh:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import io
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -307,15 +306,22 @@ def test_agent_state_dict_round_trip_resumes_exactly():
 
 
 # ----------------------------------------------------------------------------- config
-def test_config_from_mapping_ignores_unknown_keys_and_reads_project_config():
-    cfg = DDPGConfig.from_mapping({"actor_lr": 3e-4, "critic_hidden": [64, 32], "total_steps": 5, "use_speed": True})
-    assert cfg.actor_lr == 3e-4 and cfg.critic_hidden == (64, 32) and cfg.actor_hidden == (400, 300)
-    assert cfg == DDPGConfig(actor_lr=3e-4, critic_hidden=(64, 32))
+def test_agent_config_section_is_the_ddpg_schema():
+    """The `agent` section is built from DDPGConfig itself (no second copy of the defaults to drift), typed."""
+    from omegaconf import OmegaConf
 
-    omegaconf = pytest.importorskip("omegaconf")
-    section = omegaconf.OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "agent" / "ddpg.yaml")
-    from_yaml = DDPGConfig.from_mapping(section)
-    assert isinstance(from_yaml.actor_hidden, tuple) and all(type(w) is int for w in from_yaml.actor_hidden)
-    assert type(from_yaml.buffer_size) is int and type(from_yaml.actor_lr) is float
-    # The project's YAML states the same defaults as the dataclass; a drift between them would be silent.
-    assert from_yaml == DDPGConfig()
+    from worldmodel.common import StageError, compose
+    from worldmodel.config import AgentConfig, validate
+
+    section = OmegaConf.to_object(compose("train_agent").agent)
+    assert isinstance(section, AgentConfig) and isinstance(section, DDPGConfig)
+    assert DDPGConfig(**{f: getattr(section, f) for f in DDPGConfig.__dataclass_fields__}) == DDPGConfig()
+    assert all(type(w) is int for w in section.actor_hidden) and type(section.actor_lr) is float
+    paper = OmegaConf.to_object(compose("train_agent", ["scale=paper"]).agent)
+    assert paper.total_steps == 40000 and paper.warmup_steps == 2000 and paper.tau == DDPGConfig().tau
+    for override, key in (("agent.tau=0", "agent.tau"), ("agent.actor_hidden=[0,3]", "agent.actor_hidden"),
+                          ("agent.total_steps=-5", "agent.total_steps")):
+        with pytest.raises(StageError, match=key):
+            validate(compose("train_agent", [override]))
+    with pytest.raises(ValueError, match="gamma"):
+        DDPGConfig(gamma=1.5)

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import collect, training, train_agent, train_rnn, train_vae
+from worldmodel import artifacts, collect, train_agent, train_rnn, train_vae, training
 from worldmodel.common import compose
 
 REPO = Path(__file__).resolve().parent.parent
@@ -222,7 +222,7 @@ def check_agent_checkpoint(state: dict, step: int) -> None:
 
 def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model, tmp_path):
     runs = agent_runs(world_model, tmp_path)
-    out = train_agent.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1"))
+    out = artifacts.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1"))
     # No periodic checkpoint within the run: every last.pt below was written by the stop itself.
     args = ("reward=r1", "agent.checkpoint_every=100000")
     with Stage("train_agent", rollouts, runs, *args) as run:
@@ -260,7 +260,7 @@ def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model
 
 def test_agent_sigkill_resumes_from_the_last_periodic_checkpoint(rollouts, world_model, tmp_path):
     runs = agent_runs(world_model, tmp_path)
-    out = train_agent.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1"))
+    out = artifacts.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1"))
     every = 50
     args = ("reward=r1", f"agent.checkpoint_every={every}")
     with Stage("train_agent", rollouts, runs, *args) as run:
@@ -334,7 +334,7 @@ def test_sigkill_while_saving_leaves_readable_checkpoints(tmp_path):
 def test_death_between_best_and_last_never_leaves_best_behind(tmp_path, monkeypatch):
     """An improving checkpoint writes two files. If the process dies after the first, last.pt (where resume
     starts) must not claim a best that best.pt does not hold: otherwise the improvement is never written."""
-    ckpts = training.Checkpoints(tmp_path, "train_vae", None)
+    ckpts = training.TrainingRun(compose("train_vae"), "train_vae", tmp_path, record={})
     ckpts.save({"step": 1, "best_val": 5.0}, best=True)
 
     class Killed(BaseException):
@@ -357,14 +357,15 @@ def test_death_between_best_and_last_never_leaves_best_behind(tmp_path, monkeypa
 
 
 def test_leftover_temporary_checkpoint_is_removed_on_start(tmp_path):
-    """A kill inside a save leaves `.last.pt.XXXX.tmp`; the next start of that run deletes it, and only it."""
-    from worldmodel.common import atomic_torch_save
+    """A kill inside a save leaves `.last.pt.tmp-PID`; the next start of that run deletes it, and only it."""
+    from worldmodel.common import atomic_torch_save, rng_state
 
-    ckpts = training.Checkpoints(tmp_path, "train_vae", compose("train_vae"))
-    atomic_torch_save({"step": 3, "rng": training.rng_state()}, ckpts.last)
-    stale = tmp_path / ".last.pt.k1ll3d.tmp"
+    cfg = compose("train_vae", ["resume=true"])
+    atomic_torch_save({"step": 3, "rng": rng_state()}, tmp_path / "last.pt")
+    stale = tmp_path / ".last.pt.tmp-4242"
     stale.write_bytes(b"half a checkpoint")
     keep = tmp_path / "notes.tmp"
     keep.write_text("not ours")
-    assert ckpts.resume_state(resume=True)["step"] == 3
-    assert not stale.exists() and keep.exists() and ckpts.last.exists()
+    with training.TrainingRun(cfg, "train_vae", tmp_path, record={"inputs": {}, "config": "c"}) as run:
+        assert run.state["step"] == 3
+    assert not stale.exists() and keep.exists() and (tmp_path / "last.pt").exists()

@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import os
 from pathlib import Path
 
 import pytest
 
-from worldmodel.common import PROJECT_ROOT, compose
+from worldmodel.common import PROJECT_ROOT
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
@@ -39,20 +38,10 @@ def test_committed_notebook_has_no_outputs():
 
 
 @pytest.fixture(scope="module")
-def smoke_artifacts(tmp_path_factory):
-    """A real smoke-scale experiment ``t``: rollouts, VAE, latents and LSTM, built by the stages themselves."""
-    from worldmodel import collect, train_rnn, train_vae
-
-    root = tmp_path_factory.mktemp("notebook")
-
-    def cfg(stage: str, *overrides: str):
-        return compose(stage, [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t",
-                               "scale=smoke", "threads=1", *overrides])
-
-    collect.run(cfg("collect", "collect.num_workers=1"))   # identical data to 2 workers; spares the shared CPUs
-    train_vae.run(cfg("train_vae", "vae.batch_size=8"))
-    train_rnn.run(cfg("train_rnn"))
-    return root
+def smoke_artifacts(smoke_builds):
+    """A real smoke-scale experiment ``t``: rollouts, VAE, latents and LSTM, built by the stages themselves
+    (shared with the other test modules; the notebook only reads it)."""
+    return smoke_builds("rnn")
 
 
 @pytest.fixture(scope="module")

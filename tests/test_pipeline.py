@@ -2,16 +2,19 @@
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 
 import numpy as np
 import pytest
 import torch
 
-from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv
-from worldmodel import evaluate, pipeline, train_agent
-from worldmodel.common import StageError, compose
+from envs import StraightLineBraking
+from worldmodel import artifacts, evaluate, pipeline, train_agent, train_vae
+from worldmodel.common import StageError, compose, make_env
 from worldmodel.report import read_results_csv
+
+pytestmark = pytest.mark.slow   # every stage at scale=smoke, end to end
 
 OUTPUTS = [
     "data/t/rollouts/manifest.json", "data/t/latents.h5",
@@ -53,11 +56,11 @@ def test_pipeline_produces_every_output(experiment):
     assert "Brake&Steer, reward 1" in tables and "Table III" in tables and "Table IV" in tables
 
 
-def test_second_run_skips_finished_stages(experiment, capsys):
+def test_second_run_skips_finished_stages(experiment, caplog):
     stamps = {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
-    pipeline.run(smoke_cfg(experiment))
-    out = capsys.readouterr().out
-    assert out.count("skipped") == 6
+    with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
+        pipeline.run(smoke_cfg(experiment))
+    assert caplog.text.count("skipped") == 6 and "running" not in caplog.text
     assert stamps == {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
 
 
@@ -88,12 +91,12 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
     entries = evaluate.bank(cfg)
     runs = []
     for _ in range(2):
-        env = train_agent.make_env(cfg, camera=False)
+        env = make_env(cfg, camera=False)
         runs.append(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False))
         env.close()
     assert repr(runs[0]) == repr(runs[1])
     # ...and the camera does not change any outcome.
-    env = train_agent.make_env(cfg, camera=True)
+    env = make_env(cfg, camera=True)
     assert repr(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False)) == repr(runs[0])
 
 
@@ -104,3 +107,69 @@ def test_parallel_evaluation_equals_one_process(experiment):
         one = evaluate.evaluate_policy(cfg, name, entries, workers=1)
         two = evaluate.evaluate_policy(cfg, name, entries, workers=2)
         assert repr(one) == repr(two)
+
+
+def test_evaluation_rows_name_the_models_that_produced_them(experiment):
+    cfg = smoke_cfg(experiment, "evaluate")
+    rows = read_results_csv(experiment / "runs/t/eval/results.csv")
+    vae, rnn = artifacts.short(artifacts.vae_id(cfg)), artifacts.short(artifacts.rnn_id(cfg))
+    for row in rows:
+        if row["policy"].startswith("agent_"):
+            agent = artifacts.AgentId(row["policy"].removeprefix("agent_"), row["policy_seed"])
+            assert (row["vae_sha"], row["rnn_sha"]) == (vae, rnn) and len(vae) == 12
+            assert row["actor_sha"] == artifacts.short(artifacts.actor_id(cfg, agent))
+        else:
+            assert row["vae_sha"] == row["rnn_sha"] == row["actor_sha"] == ""
+    assert len({r["actor_sha"] for r in rows if r["policy"].startswith("agent_")}) == 2
+
+
+@pytest.fixture(scope="module")
+def new_vae(experiment, tmp_path_factory):
+    """A copy of the experiment whose VAE was retrained (another KL weight) by its stage command."""
+    root = tmp_path_factory.mktemp("new_vae")
+    shutil.copytree(experiment, root, dirs_exist_ok=True)
+    shutil.rmtree(root / "runs/t/vae")
+    train_vae.run(smoke_cfg(root, "train_vae", "vae.kl_weight=0.5"))
+    return root
+
+
+def test_agent_built_on_another_vae_refuses_to_load(new_vae):
+    cfg = smoke_cfg(new_vae, "evaluate", "vae.kl_weight=0.5")
+    agent = artifacts.AgentId("r1", 0)
+    with pytest.raises(StageError, match=r"agent_r1/seed0/last.pt is stale: it was built on vae") as err:
+        artifacts.load_actor(cfg, agent)
+    assert str(new_vae / "runs/t/vae/best.pt") in str(err.value)
+    assert "python -m worldmodel.train_agent experiment=t reward=r1 seed=0" in str(err.value)
+    actor, _ = artifacts.load_actor(smoke_cfg(new_vae, "evaluate", "vae.kl_weight=0.5", "allow_stale=true"), agent)
+    with pytest.raises(StageError, match="stale"):   # evaluation stops before any scenario runs
+        evaluate.run(cfg)
+
+
+def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
+    cfg = smoke_cfg(new_vae, "pipeline", "vae.kl_weight=0.5")
+    kept = {rel: (new_vae / rel).stat().st_mtime_ns for rel in ("data/t/rollouts/manifest.json", "runs/t/vae/best.pt")}
+    with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
+        pipeline.run(cfg)
+    log = caplog.text
+    assert "collect: complete" in log and "vae: complete" in log
+    for name in ("rnn", "agent_r1", "agent_r2", "eval"):
+        assert f"{name}: stale" in log, log
+    assert kept == {rel: (new_vae / rel).stat().st_mtime_ns for rel in kept}
+    vae = artifacts.vae_id(cfg)
+    from worldmodel.latents import Latents
+
+    lat = Latents(new_vae / "data/t/latents.h5")
+    assert lat.f.attrs["vae_sha256"] == vae
+    lat.close()
+    assert artifacts.read_provenance(new_vae / "runs/t/rnn")["inputs"]["vae"] == vae
+    for reward in ("r1", "r2"):
+        assert artifacts.read_provenance(new_vae / f"runs/t/agent_{reward}/seed0")["inputs"]["vae"] == vae
+    rows = read_results_csv(new_vae / "runs/t/eval/results.csv")
+    assert {r["vae_sha"] for r in rows if r["policy"].startswith("agent_")} == {artifacts.short(vae)}
+    stale = sorted(p.name.rsplit("-", 2)[0] for p in (new_vae / "runs/t/stale").iterdir())
+    assert stale == ["agent_r1-seed0", "agent_r2-seed0", "eval", "rnn"]
+    # Now everything is up to date again: a rerun does nothing.
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
+        pipeline.run(cfg)
+    assert caplog.text.count("skipped") == 6

@@ -6,7 +6,7 @@ import json
 import pytest
 import torch
 
-from worldmodel import collect, train_vae
+from worldmodel import artifacts, collect, train_vae
 from worldmodel.common import StageError
 
 
@@ -19,9 +19,8 @@ def scalar_steps(logdir, tag):
 
 
 @pytest.fixture
-def rollouts(stage_cfg, tmp_path):
-    collect.run(stage_cfg("collect"))
-    return tmp_path
+def rollouts(experiment_copy):
+    return experiment_copy("rollouts")
 
 
 def test_missing_dataset_names_the_collect_command(stage_cfg):
@@ -66,7 +65,7 @@ def test_latent_size_mismatch_with_checkpoint_is_named(stage_cfg, rollouts):
     with pytest.raises(StageError, match="latent"):
         train_vae.run(stage_cfg("train_vae", "vae.batch_size=8", "vae.latent_dim=64", "resume=true"))
     with pytest.raises(StageError, match="vae.latent_dim"):
-        train_vae.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
+        artifacts.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
 
 
 @pytest.mark.parametrize("override,key", [("vae.batch_size=0", "vae.batch_size"), ("vae.lr=-1", "vae.lr"),

@@ -97,7 +97,7 @@ class AgentId:
         return runs_root(cfg) / self.key
 
     @classmethod
-    def parse(cls, key: str) -> "AgentId":
+    def parse(cls, key: str) -> AgentId:
         policy, _, seed = key.partition("/seed")
         reward = policy.removeprefix("agent_")
         if not policy.startswith("agent_") or reward not in AGENT_REWARDS or not seed.isdigit():
@@ -105,7 +105,7 @@ class AgentId:
         return cls(reward, int(seed))
 
     @classmethod
-    def of(cls, cfg) -> "AgentId":
+    def of(cls, cfg) -> AgentId:
         """The agent that ``train_agent`` with this config trains."""
         return cls(str(cfg.reward.name), int(cfg.seed))
 

@@ -10,7 +10,6 @@ a ``StageError`` naming the key, before any work is done.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, is_dataclass
-from typing import Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
@@ -80,7 +79,7 @@ class EnvConfig(Checked):
     camera: bool = True
     image_size: int = 64
     fov_deg: float = 90.0
-    horizon_after_ttc_s: Optional[float] = 3.0   # agent episodes: truncated this long after the sampled TTC
+    horizon_after_ttc_s: float | None = 3.0   # agent episodes: truncated this long after the sampled TTC
     mu: float = 1.0                              # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
 
@@ -236,7 +235,7 @@ class ExperimentConfig(Checked):
     threads: int = 2                     # torch intra-op threads
     # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
     allow_stale: bool = False
-    scale_name: Optional[str] = None     # set by conf/scale/*.yaml
+    scale_name: str | None = None     # set by conf/scale/*.yaml
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)

@@ -160,12 +160,6 @@ def run(cfg) -> dict:
     set_threads(cfg.threads)
     vae, vae_path = artifacts.load_vae(cfg, "best")
     store = artifacts.open_rollouts(cfg)
-    lat_path, reencoded = ensure_latents(cfg, store, vae, vae_path)
-    lat = Latents(lat_path)
-    if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
-        raise StageError(f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
-                         f"{cfg.vae.latent_dim}; delete it to re-encode")
-
     seed_everything(int(cfg.seed))
     model = artifacts.build_rnn(cfg)
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.rnn.lr))
@@ -178,6 +172,12 @@ def run(cfg) -> dict:
     epochs = int(cfg.rnn.epochs)
 
     with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
+        # after the run's checks: a refused resume must not cost an encoding
+        lat_path, reencoded = ensure_latents(cfg, store, vae, vae_path)
+        lat = Latents(lat_path)
+        if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
+            raise StageError(f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
+                             f"{cfg.vae.latent_dim}; delete it to re-encode")
         epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
         if run_.state is not None:
             state = run_.state

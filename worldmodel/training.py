@@ -15,8 +15,16 @@ import signal
 from pathlib import Path
 
 from . import artifacts
-from .common import StageError, atomic_torch_save, atomic_write_text, clean_temporaries, load_checkpoint, rng_state, \
-    set_rng_state, stage_command
+from .common import (
+    StageError,
+    atomic_torch_save,
+    atomic_write_text,
+    clean_temporaries,
+    load_checkpoint,
+    rng_state,
+    set_rng_state,
+    stage_command,
+)
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +94,7 @@ class TrainingRun:
         self.writer = None
 
     # ------------------------------------------------------------------ life cycle
-    def __enter__(self) -> "TrainingRun":
+    def __enter__(self) -> TrainingRun:
         resume = bool(self.cfg.resume)
         if self.marker.exists() and not resume:
             raise StageError(f"{self.dir} holds a finished run. Pass resume=true to keep it, or delete {self.dir} "

@@ -1,0 +1,59 @@
+"""The layout tells the truth: stages are peers that never import one another, and the simulator never imports torch.
+
+Imports are read from the source (every ``import`` statement, including ones inside functions), so a lazy import
+of another stage cannot hide from the check.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+STAGES = ("collect", "train_vae", "train_rnn", "train_agent", "evaluate")
+
+
+def imported_modules(path: Path, package: str) -> set[str]:
+    """Absolute names of every module ``path`` imports (relative imports resolved against ``package``)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*parent, base] if base else parent)
+            found.add(base)
+            found |= {f"{base}.{alias.name}" for alias in node.names}   # `from . import train_vae`
+    return found
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_a_stage_never_imports_another_stage(stage):
+    imports = imported_modules(ROOT / "worldmodel" / f"{stage}.py", "worldmodel")
+    others = {f"worldmodel.{s}" for s in STAGES if s != stage} | {"worldmodel.pipeline"}
+    assert not imports & others, f"worldmodel/{stage}.py imports {sorted(imports & others)}: go through artifacts"
+
+
+def test_the_check_sees_lazy_and_relative_imports(tmp_path):
+    """The check itself can fail: a stage-to-stage import inside a function, in either spelling, is found."""
+    src = tmp_path / "fake_stage.py"
+    src.write_text("def run(cfg):\n    from .train_vae import load_vae\n    from . import evaluate\n")
+    imports = imported_modules(src, "worldmodel")
+    assert {"worldmodel.train_vae", "worldmodel.evaluate"} <= imports
+
+
+def test_only_the_pipeline_knows_every_stage():
+    helpers = [p for p in (ROOT / "worldmodel").glob("*.py") if p.stem not in (*STAGES, "pipeline")]
+    for path in helpers:
+        imports = imported_modules(path, "worldmodel")
+        stages = sorted(imports & {f"worldmodel.{s}" for s in STAGES})
+        assert not stages, f"{path.name} imports the stage modules {stages}; shared code belongs in artifacts/common"
+
+
+def test_the_simulator_never_imports_torch():
+    for path in (ROOT / "envs").glob("*.py"):
+        imports = imported_modules(path, "envs")
+        assert not {m for m in imports if m == "torch" or m.startswith("torch.")}, path
