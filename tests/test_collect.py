@@ -90,9 +90,9 @@ def test_sigkill_then_resume_gives_exactly_the_uninterrupted_data(tmp_path, stag
     assert sorted(RolloutStore(rollouts).location) == list(range(6))
 
 
-def test_truncated_shard_is_named_in_the_error(stage_cfg):
+def test_truncated_shard_is_named_in_the_error(stage_cfg, experiment_copy):
+    experiment_copy("rollouts")
     cfg = stage_cfg("collect")
-    collect.run(cfg)
     root = artifacts.rollouts_dir(cfg)
     bad = root / "shard_00001.h5"
     size = bad.stat().st_size
@@ -107,8 +107,8 @@ def test_truncated_shard_is_named_in_the_error(stage_cfg):
     assert result.returncode == 1 and "shard_00001.h5" in result.stderr
 
 
-def test_changed_settings_refuse_to_mix_with_existing_data(stage_cfg):
-    collect.run(stage_cfg("collect"))
+def test_changed_settings_refuse_to_mix_with_existing_data(stage_cfg, experiment_copy):
+    experiment_copy("rollouts")
     with pytest.raises(StageError, match="different settings"):
         collect.run(stage_cfg("collect", "collect.episodes=5", "resume=true"))
 

@@ -293,8 +293,9 @@ KEEP_SAVING = """
 import sys, time
 from pathlib import Path
 import torch
-from worldmodel.training import Checkpoints
-ckpts = Checkpoints(Path(sys.argv[1]), "train_vae", None)
+from worldmodel.common import compose
+from worldmodel.training import TrainingRun
+ckpts = TrainingRun(compose("train_vae"), "train_vae", Path(sys.argv[1]), record={})
 i = 0
 while True:
     i += 1

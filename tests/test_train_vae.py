@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -28,7 +29,7 @@ def test_missing_dataset_names_the_collect_command(stage_cfg):
         train_vae.run(stage_cfg("train_vae"))
 
 
-def test_train_one_epoch_then_resume_one_more_equals_two_epochs(stage_cfg, rollouts, tmp_path):
+def test_train_one_epoch_then_resume_one_more_equals_two_epochs(stage_cfg, rollouts, tmp_path, smoke_builds):
     overrides = ("vae.batch_size=8",)
     train_vae.run(stage_cfg("train_vae", *overrides, "vae.epochs=1"))
     out = tmp_path / "runs" / "t" / "vae"
@@ -48,7 +49,7 @@ def test_train_one_epoch_then_resume_one_more_equals_two_epochs(stage_cfg, rollo
 
     # The same two epochs without the interruption give the same weights.
     straight = tmp_path / "straight"
-    collect.run(stage_cfg("collect", root=straight))
+    shutil.copytree(smoke_builds("rollouts"), straight)
     train_vae.run(stage_cfg("train_vae", *overrides, "vae.epochs=2", root=straight))
     ref = torch.load(straight / "runs" / "t" / "vae" / "last.pt", weights_only=False)
     for k, v in ref["model"].items():

@@ -178,15 +178,9 @@ def run(cfg) -> dict:
         if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
             raise StageError(f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
                              f"{cfg.vae.latent_dim}; delete it to re-encode")
-        epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
         if run_.state is not None:
-            state = run_.state
-            artifacts.check_rnn_architecture(state, cfg, run_.last)
-            model.load_state_dict(state["model"])
-            opt.load_state_dict(state["optimizer"])
-            epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], \
-                state["best_val"]
-            run_.resumed(f"epoch {epoch}, step {step}")
+            artifacts.check_rnn_architecture(run_.state, cfg, run_.last)
+        epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         def snapshot(best=False):
             run_.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,

@@ -95,18 +95,12 @@ def run(cfg) -> dict:
     per_epoch = sum(-(-store.lengths[i] // batch_size) for i in train_eps)  # upper bound for the bar
 
     with TrainingRun(cfg, "train_vae", out, artifacts.provenance(cfg, "vae")) as run_:
-        epoch, batch_in_epoch, step, best_val = 0, 0, 0, float("inf")
         if run_.state is None:
             weights = class_weights(store, train_eps, float(cfg.vae.class_balance))
         else:
-            state = run_.state
-            artifacts.check_vae_architecture(state, cfg, run_.last)
-            model.load_state_dict(state["model"])
-            opt.load_state_dict(state["optimizer"])
-            epoch, batch_in_epoch, step, best_val = state["epoch"], state["batch_in_epoch"], state["step"], \
-                state["best_val"]
-            weights = state.get("class_weights")
-            run_.resumed(f"epoch {epoch}, step {step}")
+            artifacts.check_vae_architecture(run_.state, cfg, run_.last)
+            weights = run_.state.get("class_weights")
+        epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         def snapshot(best: bool = False):
             run_.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,

@@ -146,6 +146,17 @@ class TrainingRun:
             atomic_torch_save(state, self.best)
         atomic_torch_save(state, self.last)
 
+    def restore(self, model, optimizer) -> tuple[int, int, int, float]:
+        """For the epoch-based stages: load model and optimiser from the checkpoint being resumed and return
+        ``(epoch, batch_in_epoch, step, best_val)``; a fresh run starts from ``(0, 0, 0, inf)``."""
+        if self.state is None:
+            return 0, 0, 0, float("inf")
+        s = self.state
+        model.load_state_dict(s["model"])
+        optimizer.load_state_dict(s["optimizer"])
+        self.resumed(f"epoch {s['epoch']}, step {s['step']}")
+        return s["epoch"], s["batch_in_epoch"], s["step"], s["best_val"]
+
     def resumed(self, where: str) -> None:
         log.info("[%s] resuming from %s: %s", self.name, self.last, where)
 

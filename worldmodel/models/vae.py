@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from envs.scene import NUM_CLASSES
 from torch import nn
 
 __all__ = [
@@ -46,7 +48,7 @@ class SegVAE(nn.Module):
     from these parameters): there, with no backward and no batch to amortise the one-hot, it pays off.
     """
 
-    def __init__(self, num_classes: int = 13, latent_dim: int = 128):
+    def __init__(self, num_classes: int = NUM_CLASSES, latent_dim: int = 128):
         super().__init__()
         if num_classes < 2:
             raise ValueError(f"num_classes must be >= 2, got {num_classes}")
