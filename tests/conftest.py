@@ -6,7 +6,7 @@ import shutil
 
 import pytest
 
-from worldmodel.common import compose
+from worldmodel.config import compose
 
 # Tests share 2 cores with nothing else; one torch thread keeps them predictable.
 os.environ.setdefault("OMP_NUM_THREADS", "1")

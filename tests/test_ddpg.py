@@ -235,7 +235,7 @@ def test_replay_buffer_wraps_around_and_samples_filled_part():
     torch.testing.assert_close(batch["rewards"], batch["obs"][:, 0])
     # Sampled tensors are copies: later adds must not change a batch already handed out.
     before = batch["obs"].clone()
-    for i in range(5):
+    for _ in range(5):
         buf.add([-9, -9], [0.0], 0.0, [0, 0], False)
     assert torch.equal(batch["obs"], before)
 
@@ -310,8 +310,8 @@ def test_agent_config_section_is_the_ddpg_schema():
     """The `agent` section is built from DDPGConfig itself (no second copy of the defaults to drift), typed."""
     from omegaconf import OmegaConf
 
-    from worldmodel.common import StageError, compose
-    from worldmodel.config import AgentConfig, validate
+    from worldmodel.common import StageError
+    from worldmodel.config import AgentConfig, compose, validate
 
     section = OmegaConf.to_object(compose("train_agent").agent)
     assert isinstance(section, AgentConfig) and isinstance(section, DDPGConfig)

@@ -27,7 +27,7 @@ import pytest
 import torch
 
 from worldmodel import artifacts, collect, train_agent, train_rnn, train_vae, training
-from worldmodel.common import compose
+from worldmodel.config import compose
 
 REPO = Path(__file__).resolve().parent.parent
 VAE_BAR = re.compile(r"vae epoch (\d+)/\d+:\s*\d+%\|[^|]*\|\s*(\d+)/")     # -> epoch (1-based), batches done
@@ -293,7 +293,7 @@ KEEP_SAVING = """
 import sys, time
 from pathlib import Path
 import torch
-from worldmodel.common import compose
+from worldmodel.config import compose
 from worldmodel.training import TrainingRun
 ckpts = TrainingRun(compose("train_vae"), "train_vae", Path(sys.argv[1]), record={})
 i = 0

@@ -11,7 +11,8 @@ import torch
 
 from envs import StraightLineBraking
 from worldmodel import artifacts, evaluate, pipeline, train_agent, train_vae
-from worldmodel.common import StageError, compose, make_env
+from worldmodel.common import StageError, make_env
+from worldmodel.config import compose
 from worldmodel.report import read_results_csv
 
 pytestmark = pytest.mark.slow   # every stage at scale=smoke, end to end

@@ -19,8 +19,8 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from . import artifacts
-from .common import StageError, atomic_write_text, clean_temporaries, hydra_main
-from .config import validate
+from .common import StageError, atomic_write_text, clean_temporaries
+from .config import hydra_main, validate
 from .data import SCHEMA_VERSION, shard_name, write_shard
 
 log = logging.getLogger(__name__)

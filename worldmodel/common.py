@@ -7,12 +7,10 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import logging
 import math
 import os
 import random
-import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -31,52 +29,6 @@ class StageError(RuntimeError):
 
 class NonFiniteLossError(StageError):
     pass
-
-
-# ----------------------------------------------------------------------------- config
-def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
-    """Compose the real Hydra config of ``stage`` (for tests and notebooks)."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-
-    from . import config  # noqa: F401  registers the schema that conf/base.yaml starts from
-
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return hydra_compose(config_name=stage, overrides=list(overrides))
-
-
-def hydra_main(stage: str) -> Callable[[Callable], Callable]:
-    """Wrap a stage's ``run(cfg)`` as its command-line entry point.
-
-    ``StageError`` is logged as one readable line and exits with status 2, so a missing input reads as an
-    instruction rather than a traceback.
-    """
-    import hydra
-
-    from . import config  # noqa: F401  registers the schema that conf/base.yaml starts from
-
-    def decorate(run: Callable):
-        if run.__module__ == "__main__" and getattr(sys.modules["__main__"], "__spec__", None) is not None:
-            # Under `python -m worldmodel.X` the stage's functions live in __main__, which a launcher's job process
-            # (joblib, submitit) cannot import by name, so process pools inside the stage fail to pickle them.
-            # Running the copy from the real module keeps every function importable.
-            import importlib
-
-            run = getattr(importlib.import_module(sys.modules["__main__"].__spec__.name), run.__name__)
-
-        @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
-        def main(cfg):
-            return_freed_memory()
-            try:
-                return run(cfg)
-            except StageError as err:
-                # through logging, so the job's .log file (and a SLURM job's log) says why it stopped
-                logging.getLogger(f"worldmodel.{stage}").error("error: %s", err)
-                sys.exit(2)
-
-        return main
-
-    return decorate
 
 
 def make_env(cfg, **overrides):

@@ -1,4 +1,5 @@
-"""The configuration schema: one dataclass per config section, registered in Hydra's ConfigStore.
+"""The configuration: its schema (one dataclass per config section, registered in Hydra's ConfigStore), its
+validation, and the two ways in (``compose`` for tests and notebooks, ``hydra_main`` for the stage commands).
 
 The dataclasses are the single source of truth for every key, its type and its default (docs/design.md §9).
 ``conf/*.yaml`` only choose groups and override values (the ``scale`` presets, the ``reward`` choice), so a
@@ -9,6 +10,9 @@ a ``StageError`` naming the key, before any work is done.
 """
 from __future__ import annotations
 
+import logging
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, is_dataclass
 
 from hydra.core.config_store import ConfigStore
@@ -16,7 +20,7 @@ from omegaconf import OmegaConf
 
 from envs.scene import NUM_CLASSES
 
-from .common import Checked, ConfigValueError
+from .common import CONF_DIR, Checked, ConfigValueError, StageError, return_freed_memory
 from .common import positive_fields as _positive
 from .models.ddpg import DDPGConfig
 
@@ -262,7 +266,6 @@ register()
 def validate(cfg) -> ExperimentConfig:
     """The config as typed dataclasses, after every range check; the first impossible value is a StageError
     naming its key (``agent.tau``, ``evaluate.oracle.replan_every_s``)."""
-    from .common import StageError
 
     for f in fields(ExperimentConfig):
         node = OmegaConf.select(cfg, f.name, throw_on_missing=False)
@@ -281,3 +284,45 @@ def validate(cfg) -> ExperimentConfig:
 def section(cfg, name: str) -> dict:
     """A config section as a plain dict (resolved), e.g. for recording what an artifact was built with."""
     return OmegaConf.to_container(cfg[name], resolve=True)
+
+
+# ----------------------------------------------------------------------------- composition and entry points
+def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
+    """Compose the real Hydra config of ``stage`` (for tests and notebooks)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return hydra_compose(config_name=stage, overrides=list(overrides))
+
+
+def hydra_main(stage: str) -> Callable[[Callable], Callable]:
+    """Wrap a stage's ``run(cfg)`` as its command-line entry point.
+
+    ``StageError`` is logged as one readable line and exits with status 2, so a missing input reads as an
+    instruction rather than a traceback.
+    """
+    import hydra
+
+    def decorate(run: Callable):
+        if run.__module__ == "__main__" and getattr(sys.modules["__main__"], "__spec__", None) is not None:
+            # Under `python -m worldmodel.X` the stage's functions live in __main__, which a launcher's job process
+            # (joblib, submitit) cannot import by name, so process pools inside the stage fail to pickle them.
+            # Running the copy from the real module keeps every function importable.
+            import importlib
+
+            run = getattr(importlib.import_module(sys.modules["__main__"].__spec__.name), run.__name__)
+
+        @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
+        def main(cfg):
+            return_freed_memory()
+            try:
+                return run(cfg)
+            except StageError as err:
+                # through logging, so the job's .log file (and a SLURM job's log) says why it stopped
+                logging.getLogger(f"worldmodel.{stage}").error("error: %s", err)
+                sys.exit(2)
+
+        return main
+
+    return decorate

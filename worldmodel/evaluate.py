@@ -22,8 +22,8 @@ import time
 
 from . import artifacts
 from .artifacts import AgentId
-from .common import hydra_main, make_env, set_threads
-from .config import SCRIPTED_POLICIES, validate
+from .common import make_env, set_threads
+from .config import SCRIPTED_POLICIES, hydra_main, validate
 
 log = logging.getLogger(__name__)
 ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")

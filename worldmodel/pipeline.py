@@ -29,8 +29,8 @@ from omegaconf import OmegaConf
 
 from . import artifacts
 from .artifacts import AgentId
-from .common import atomic_write_text, hydra_main
-from .config import validate
+from .common import atomic_write_text
+from .config import hydra_main, validate
 
 log = logging.getLogger(__name__)
 

@@ -23,8 +23,8 @@ from collections import deque
 import numpy as np
 
 from . import artifacts
-from .common import StageError, check_finite, hydra_main, make_env, seed_everything, set_threads
-from .config import validate
+from .common import StageError, check_finite, make_env, seed_everything, set_threads
+from .config import hydra_main, validate
 from .training import TrainingRun
 
 log = logging.getLogger(__name__)

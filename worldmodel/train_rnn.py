@@ -24,8 +24,8 @@ import torch
 from envs import CLASS_NAMES, NUM_CLASSES
 
 from . import artifacts
-from .common import StageError, check_finite, hydra_main, seed_everything, set_threads
-from .config import validate
+from .common import StageError, check_finite, seed_everything, set_threads
+from .config import hydra_main, validate
 from .latents import Latents, encode_dataset, is_current
 from .training import TrainingRun
 

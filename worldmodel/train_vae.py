@@ -17,8 +17,8 @@ import torch
 from envs import CLASS_NAMES, NUM_CLASSES
 
 from . import artifacts
-from .common import check_finite, hydra_main, seed_everything, set_threads
-from .config import validate
+from .common import check_finite, seed_everything, set_threads
+from .config import hydra_main, validate
 from .data import RolloutStore, iter_frame_batches
 from .training import TrainingRun
 

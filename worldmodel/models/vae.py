@@ -14,9 +14,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from envs.scene import NUM_CLASSES
-from torch import nn
 
 __all__ = [
     "SegVAE",
