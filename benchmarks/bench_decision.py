@@ -3,7 +3,7 @@
     python -m benchmarks.bench_decision [--decisions 2000] [--warmup 200] [--tiny]
 
 Times exactly what the evaluation loop calls per frame, ``LearnedPolicy.act(obs, info)`` from
-``worldmodel.agent_obs`` (its ``FastDecision`` + ``FastActor`` path), wrapping untrained models of the real sizes:
+``worldmodel.agent_obs`` (the ``FastDecision`` + ``FastActor`` path of ``worldmodel.models.fast_decision``), wrapping untrained models of the real sizes:
 ``SegVAE`` (latent 128), ``WorldRNN`` (LSTM 512, MDN head with 5 Gaussians) and the DDPG ``Actor`` (400-300) on
 the 256-d input [z_t, zhat_{t+1}]. Weights do not change the cost of a dense forward pass, so untrained models
 time the same as trained ones.
@@ -39,21 +39,33 @@ TARGET_P50_MS = 1.0
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
 
+class _Hold:
+    """Keeps speed and lane: frames of the scenario as it unfolds, without any manoeuvre."""
+
+    name = "hold"
+
+    def reset(self, seed=None) -> None:
+        pass
+
+    def act(self, obs, info) -> np.ndarray:
+        return np.zeros(2, np.float32)
+
+
 def render_frames(scenarios: int, steps: int) -> list[list[tuple[dict, dict]]]:
     """Per scenario, the (obs, info) pairs an agent would see: the reset frame, then frames under [0, 0]."""
     from envs import UrbanCollisionEnv, sample_scenario
+    from envs.rollout import rollout
 
     env = UrbanCollisionEnv(camera=True)
     episodes = []
-    zero = np.zeros(2, np.float32)
     for k in range(scenarios):
-        obs, info = env.reset(options={"scenario": sample_scenario(np.random.default_rng(k))})
-        frames = [({"seg": obs["seg"].copy(), "speed": obs["speed"].copy()}, info)]
-        for _ in range(steps - 1):
-            obs, _, terminated, truncated, info = env.step(zero)
+        frames = []
+
+        def keep(obs, info, frames=frames):
             frames.append(({"seg": obs["seg"].copy(), "speed": obs["speed"].copy()}, info))
-            if terminated or truncated:
-                break
+
+        rollout(env, _Hold(), sample_scenario(np.random.default_rng(k)), on_reset=keep,
+                on_step=lambda obs, action, reward, info, keep=keep: keep(obs, info), max_steps=steps - 1)
         episodes.append(frames)
     env.close()
     return episodes
@@ -77,7 +89,10 @@ def build_policy(latent: int = 128, hidden: int = 512, gaussians: int = 5, actor
     encoder = WorldModelEncoder(vae, rnn, use_speed=False)
     actor = Actor(obs_dim=encoder.dim, act_dim=2, hidden=tuple(actor_hidden))
     policy = LearnedPolicy("bench", encoder, actor)
-    sizes = {"latent_dim": latent, "lstm_hidden": hidden, "mdn_gaussians": gaussians,
+    if encoder.path != "fast":
+        raise SystemExit("the fast decision path failed its self-test on this torch build (see the warning above); "
+                         "this benchmark measures that path")
+    sizes = {"decision_path": encoder.path, "latent_dim": latent, "lstm_hidden": hidden, "mdn_gaussians": gaussians,
              "actor_hidden": list(actor_hidden), "obs_dim": encoder.dim,
              "parameters": {"vae_encoder": _params(vae, ("enc", "fc_mu", "fc_logvar")), "rnn": _params(rnn),
                             "actor": _params(actor)},
@@ -87,9 +102,9 @@ def build_policy(latent: int = 128, hidden: int = 512, gaussians: int = 5, actor
 
 def _weight_bytes(policy) -> int:
     """Bytes of weights one decision streams through (what bounds it once the arithmetic is cheap)."""
-    f = policy.encoder.fast
+    f = policy.encoder.decision
     tensors = [f.enc1_table, f.fc_mu_wt, f.fc_mu_b, f.lstm_wt, f.lstm_b, f.head_wt, f.head_b]
-    tensors += [t for layer in policy.fast_actor.layers for t in layer[:2]]
+    tensors += [t for layer in policy.decide.layers for t in layer[:2]]
     # oneDNN's packed copies are opaque tensors; they hold the same numbers as the convolutions' parameters
     tensors += [t for conv in (f.vae.enc2, f.vae.enc3, f.vae.enc4) for t in (conv.weight, conv.bias)]
     return sum(t.numel() * t.element_size() for t in tensors)
@@ -138,7 +153,7 @@ def time_parts(policy, episodes, n: int, warmup: int) -> dict:
     """
     import torch
 
-    fast, actor = policy.encoder.fast, policy.fast_actor
+    fast, actor = policy.encoder.decision, policy.decide
     clock = time.perf_counter_ns
     keys = ("input_check", "vae_encode", "lstm_step", "mdn_predict", "actor", "decision_total")
     out = {k: np.empty(n, np.int64) for k in keys}
@@ -169,7 +184,7 @@ def time_parts(policy, episodes, n: int, warmup: int) -> dict:
 
 def _check_parts_match_act(policy, episodes) -> None:
     """The staged loop above must compute what ``act`` computes (guards against the mirror drifting)."""
-    fast = policy.encoder.fast
+    fast = policy.encoder.decision
     frames = episodes[0][:5]
     policy.reset()
     want = [policy.act(obs, None) for obs, _ in frames]
@@ -179,7 +194,7 @@ def _check_parts_match_act(policy, episodes) -> None:
         fast._encode_mu()
         fast._lstm_step()
         fast._predict()
-        got = policy.fast_actor(fast.out)[0].numpy().copy()
+        got = policy.decide(fast.out)[0].numpy().copy()
         fast.note_action(got)
         if not np.array_equal(got, w):
             raise AssertionError("bench_decision's staged loop no longer matches LearnedPolicy.act")

@@ -1,4 +1,4 @@
-"""The batch-1 decision path (``worldmodel.agent_obs.FastDecision`` / ``FastActor``) against the modules.
+"""The batch-1 decision paths (``worldmodel.models.fast_decision``: fast and module) against the modules.
 
 Every check runs the reference computation the agent's input is defined by, ``SegVAE.encode`` (mu),
 ``WorldRNN.step`` + ``WorldRNN.predict`` on (z_t, a_{t-1}) and ``torch.tanh(actor.net(x))``, beside the fast path
@@ -12,8 +12,9 @@ import pytest
 import torch
 
 from envs import UrbanCollisionEnv, sample_scenario
-from worldmodel.agent_obs import FastDecision, LearnedPolicy, WorldModelEncoder, WorldModelView
+from worldmodel.agent_obs import LearnedPolicy, WorldModelEncoder, WorldModelView
 from worldmodel.models.ddpg import Actor
+from worldmodel.models.fast_decision import FastDecision, ModuleDecision, decision_path
 from worldmodel.models.rnn import HEADS, WorldRNN
 from worldmodel.models.vae import SegVAE
 
@@ -94,7 +95,7 @@ def assert_policy_matches(policy: LearnedPolicy, ref: Reference, episodes) -> No
         for t, obs in enumerate(frames):
             action = policy.act(obs, {})
             want_x, want_a = ref.act(obs)
-            got_x = policy.encoder.fast.out  # the input the action was computed from
+            got_x = policy.encoder.decision.out  # the input the action was computed from
             D = ref.vae.latent_dim
             torch.testing.assert_close(got_x[:, :D], want_x[:, :D], **TOL, msg=lambda m: f"z at step {t}: {m}")
             torch.testing.assert_close(got_x[:, D:], want_x[:, D:], **TOL, msg=lambda m: f"zhat at step {t}: {m}")
@@ -118,11 +119,53 @@ def test_real_frames_match_modules_over_episodes(real_episodes):
 @pytest.mark.parametrize("head", HEADS)
 @pytest.mark.parametrize("residual", [True, False])
 @pytest.mark.parametrize("use_speed", [False, True])
-def test_random_maps_match_modules_for_every_head(head, residual, use_speed):
+@pytest.mark.parametrize("path", ["fast", "module"])
+def test_random_maps_match_modules_for_every_head(head, residual, use_speed, path):
     vae, rnn, actor = make_models(1, head, residual, use_speed)
     ref = Reference(vae, rnn, actor, use_speed)
-    policy = LearnedPolicy("fast", WorldModelEncoder(vae, rnn, use_speed=use_speed), actor)
+    policy = LearnedPolicy(path, WorldModelEncoder(vae, rnn, use_speed=use_speed, path=path), actor, path=path)
+    assert policy.encoder.path == path
     assert_policy_matches(policy, ref, [random_maps(12, 0), random_maps(5, 1)])
+
+
+def test_auto_takes_the_fast_path_when_it_passes_its_self_test(real_episodes):
+    vae, rnn, actor = make_models(12)
+    encoder = WorldModelEncoder(vae, rnn)
+    assert encoder.path == "fast" and isinstance(encoder.decision, FastDecision)
+    fast, module = LearnedPolicy("a", encoder, actor), LearnedPolicy("b", WorldModelEncoder(vae, rnn, path="module"),
+                                                                      actor, path="module")
+    for obs in real_episodes[0]:
+        np.testing.assert_allclose(fast.act(obs, {}), module.act(obs, {}), **TOL)
+
+
+def test_auto_falls_back_to_the_module_path_where_the_fast_one_cannot_run(caplog):
+    """The fast path packs two class ids into a byte, so a 17-class VAE is beyond it: a real failure of its
+    build, which ``auto`` answers with the module path (same numbers) and a warning, and ``fast`` refuses."""
+    torch.manual_seed(13)
+    vae = SegVAE(num_classes=17, latent_dim=16)
+    rnn = WorldRNN(latent_dim=16, action_dim=2, hidden=32, head="mdn", gaussians=3, residual=True)
+    actor = Actor(32, 2)
+    with caplog.at_level("WARNING"):
+        encoder = WorldModelEncoder(vae, rnn)
+    assert encoder.path == "module" and isinstance(encoder.decision, ModuleDecision)
+    assert "fast decision path is unavailable" in caplog.text and "16 classes" in caplog.text
+    with pytest.raises(ValueError, match="16 classes"):
+        decision_path(vae, rnn, path="fast")
+    rng = np.random.default_rng(4)
+    maps = [{"seg": rng.integers(0, 17, (64, 64), dtype=np.uint8), "speed": np.ones(1, np.float32)}
+            for _ in range(5)]
+    assert_policy_matches(LearnedPolicy("m", encoder, actor), Reference(vae, rnn, actor), [maps])
+    with pytest.raises(ValueError, match="decision path"):
+        decision_path(vae, rnn, path="quick")
+
+
+def test_missing_private_onednn_ops_keep_the_fast_path_on_mkl(real_episodes):
+    vae, rnn, actor = make_models(14)
+    decision = decision_path(vae, rnn, onednn_ops=("_no_such_op_in_any_torch",))
+    assert isinstance(decision, FastDecision) and not decision.onednn
+    encoder = WorldModelEncoder(vae, rnn)
+    encoder.decision = decision
+    assert_policy_matches(LearnedPolicy("mkl", encoder, actor), Reference(vae, rnn, actor), real_episodes[:1])
 
 
 @pytest.mark.parametrize("onednn", [False, True])
@@ -132,7 +175,7 @@ def test_both_matrix_backends_match_modules(real_episodes, onednn):
         pytest.skip("this torch build has no oneDNN linear")
     vae, rnn, actor = make_models(9)
     encoder = WorldModelEncoder(vae, rnn)
-    encoder.fast = FastDecision(vae, rnn, onednn=onednn)
+    encoder.decision = FastDecision(vae, rnn, onednn=onednn)
     assert_policy_matches(LearnedPolicy("fast", encoder, actor), Reference(vae, rnn, actor), real_episodes[:2])
 
 
@@ -158,17 +201,16 @@ def test_wrapper_path_with_env_actions_matches_modules(real_episodes):
 
 
 def test_same_results_after_loading_checkpoints_the_way_the_agent_does(stage_cfg, real_episodes):
+    from worldmodel import artifacts
     from worldmodel.common import atomic_torch_save
-    from worldmodel.train_agent import load_world_model
-    from worldmodel.train_rnn import rnn_dir
-    from worldmodel.train_vae import vae_dir
 
     cfg = stage_cfg("train_agent")
     vae, rnn, actor = make_models(3, str(cfg.rnn.head), bool(cfg.rnn.residual))
-    atomic_torch_save({"model": vae.state_dict(), "latent_dim": vae.latent_dim}, vae_dir(cfg) / "best.pt")
+    atomic_torch_save({"model": vae.state_dict(), "latent_dim": vae.latent_dim}, artifacts.vae_dir(cfg) / "best.pt")
     atomic_torch_save({"model": rnn.state_dict(), "latent_dim": rnn.latent_dim, "hidden": rnn.hidden,
-                       "head": rnn.head, "residual": rnn.residual}, rnn_dir(cfg) / "best.pt")
-    encoder = load_world_model(cfg)
+                       "head": rnn.head, "residual": rnn.residual,
+                       "provenance": {"inputs": {"vae": artifacts.vae_id(cfg)}}}, artifacts.rnn_dir(cfg) / "best.pt")
+    encoder = artifacts.load_world_model(cfg)
     assert encoder.vae is not vae  # freshly built modules, weights only from the files
     policy = LearnedPolicy("fast", encoder, actor)
     assert_policy_matches(policy, Reference(vae, rnn, actor), real_episodes[:2])
@@ -206,11 +248,11 @@ def test_grad_modes_of_the_caller_do_not_matter():
         assert_policy_matches(policy, Reference(vae, rnn, actor), maps)
     with torch.enable_grad():
         policy.act(maps[0][0], {})
-        assert not policy.encoder.fast.out.requires_grad
+        assert not policy.encoder.decision.out.requires_grad
     # a rebuild triggered inside inference_mode (act) must leave buffers usable outside it (encode_tensor)
     for onednn in (False, True):
         encoder = WorldModelEncoder(vae, rnn)
-        encoder.fast = FastDecision(vae, rnn, onednn=onednn and FastDecision(vae, rnn).onednn)
+        encoder.decision = FastDecision(vae, rnn, onednn=onednn and FastDecision(vae, rnn).onednn)
         policy = LearnedPolicy("fast", encoder, actor)
         with torch.no_grad():
             vae.enc3.weight.mul_(0.9)
