@@ -10,6 +10,7 @@ from gymnasium.envs.registration import register, registry
 from .env import DT, UrbanCollisionEnv
 from .injury import occupant_injury, pedestrian_injury
 from .policies import NoisyAutopilot, StraightLineBraking
+from .rollout import Episode, rollout
 from .scenario import BankEntry, ScenarioSpec, sample_scenario, test_bank
 from .scene import CLASS_NAMES, NUM_CLASSES, PALETTE
 
@@ -18,7 +19,7 @@ if ENV_ID not in registry:
     register(id=ENV_ID, entry_point="envs.env:UrbanCollisionEnv")
 
 __all__ = [
-    "CLASS_NAMES", "DT", "ENV_ID", "NUM_CLASSES", "PALETTE", "BankEntry", "NoisyAutopilot", "ScenarioSpec",
-    "StraightLineBraking", "UrbanCollisionEnv", "occupant_injury", "pedestrian_injury", "sample_scenario",
-    "test_bank",
+    "CLASS_NAMES", "DT", "ENV_ID", "NUM_CLASSES", "PALETTE", "BankEntry", "Episode", "NoisyAutopilot",
+    "ScenarioSpec", "StraightLineBraking", "UrbanCollisionEnv", "occupant_injury", "pedestrian_injury", "rollout",
+    "sample_scenario", "test_bank",
 ]

@@ -16,7 +16,7 @@ things keep a frame cheap (from ~3.2 ms to ~0.8 ms) while drawing the same scene
   huge, thin triangles whose bounding boxes cover most of the screen (about 60 % of the original render
   time). The camera's height and pitch never change, so where each pixel's ray meets the two ground levels is
   fixed in the ego's frame and precomputed; per frame the hits are rotated to the ego's pose, classified by
-  ``scene.FlatGround`` and composited with TinyRenderer's depth buffer: the ground wins a pixel where it is
+  ``FlatGround`` and composited with TinyRenderer's depth buffer: the ground wins a pixel where it is
   nearer than what TinyRenderer drew there (the depth test TinyRenderer itself would have made). The ground's
   bodies stay in the world, hidden, as the reference (``analytic_ground=False`` draws them instead; a test
   compares the two: > 99.8 % of pixels agree, and the dashes, which pybullet drew z-fighting with the road,
@@ -34,12 +34,123 @@ import math
 
 import numpy as np
 
-from .scene import PALETTE, FlatGround
+from .scene import (
+    EDGE_LINE_Y,
+    GROUND_X,
+    LINE_HALF_WIDTH,
+    NONE,
+    NUM_CLASSES,
+    PALETTE,
+    ROAD_HALF_WIDTH,
+    ROAD_TOP_Z,
+    ROADLINES,
+    ROADS,
+    SCENE_X,
+    SIDEWALK_TOP_Z,
+    SIDEWALK_WIDTH,
+    SIDEWALKS,
+    TEMPLATES,
+    StaticLayout,
+)
 
 EYE_FORWARD = 0.5
 EYE_HEIGHT = 1.6
 PITCH_DEG = 8.0
 NEAR, FAR = 0.1, 70.0
+
+
+class FlatGround:
+    """The flat ground of one layout (road, sidewalks with their kerb, edge lines, centre-line dashes, the side
+    street) as plain geometry, so the camera can draw it per pixel instead of rasterising its huge triangles.
+
+    The pooled ground bodies still exist (hidden) and are the reference this reproduces: ``classify`` answers,
+    for downward rays, what those boxes show. A ray meets the sidewalk level (``UPPER_Z``, where sidewalk tops
+    and the side street are) first, then the road level (``LOWER_Z``). A ray that passes the sidewalk level over
+    the road but is over a sidewalk at the road level has hit the kerb's face: Sidewalks, at the depth where it
+    crosses the kerb line. The side street's top (2 cm above the sidewalk's) and the edge lines' (2 mm above the
+    road's) are folded into these two levels; the difference is far below a pixel. Dashes lie flush with the
+    road and win over it (pybullet drew them z-fighting with the road, so parts of them showed as road).
+
+    Across the street the ground is a function of y alone, read from 1 cm lookup tables; the junction, the
+    dashes and the street's ends are then settled on the pixels they concern.
+    """
+
+    UPPER_Z = SIDEWALK_TOP_Z
+    LOWER_Z = ROAD_TOP_Z
+    CENTRE = NUM_CLASSES           # lookup codes settled afterwards: on the centre line (a dash or road by x),
+    KERB = NUM_CLASSES + 1         # and a kerb's face (Sidewalks)
+    _RES = 0.01
+    _Y_MIN = -200.0
+    _LUT_UP = _LUT_LOW = None
+
+    def __init__(self, junction_x: float, dash_x) -> None:
+        self.junction_x = float(junction_x)
+        self.dash_x = np.sort(np.asarray(dash_x, dtype=np.float64).reshape(-1))
+        self._dash_half = TEMPLATES["dash"].size[0]
+        self._side_half = TEMPLATES["side_street"].size[0]
+        if FlatGround._LUT_UP is None:
+            FlatGround._LUT_UP, FlatGround._LUT_LOW = self._tables()
+
+    @classmethod
+    def _tables(cls) -> tuple[np.ndarray, np.ndarray]:
+        ay = np.abs(cls._Y_MIN + cls._RES * (np.arange(int(round(-2 * cls._Y_MIN / cls._RES)) + 1) + 0.5))
+        land = (ay >= ROAD_HALF_WIDTH) & (ay <= ROAD_HALF_WIDTH + SIDEWALK_WIDTH)
+        up = np.where(land, SIDEWALKS, NONE).astype(np.uint8)
+        low = np.where(land, cls.KERB, NONE).astype(np.uint8)
+        low[ay < ROAD_HALF_WIDTH] = ROADS
+        low[np.abs(ay - EDGE_LINE_Y) <= LINE_HALF_WIDTH] = ROADLINES
+        low[ay <= LINE_HALF_WIDTH] = cls.CENTRE
+        return up, low
+
+    def classify(self, rays: np.ndarray, ex: float, ey: float, c: float, s: float, ratio: float,
+                 reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Classes hit by downward rays from the eye (ex, ey), heading (cos, sin) = (c, s), that cross
+        ``UPPER_Z`` at ``rays`` = (forward, left) (shape (2, n)) from the eye in the heading's frame, and
+        ``LOWER_Z`` at ``ratio`` times that. ``reach`` bounds the rays' horizontal distance from the eye.
+        Returns the class per ray (0, None: no ground), whether it was hit at ``UPPER_Z``, and the rays that
+        hit a kerb's face with where (as a multiple of the distance to ``UPPER_Z``, between 1 and ``ratio``)."""
+        inv = 1.0 / self._RES
+        origin = (ey - self._Y_MIN) * inv
+        lateral = np.dot((s * inv, c * inv), rays)          # y - ey at UPPER_Z, in table cells
+        cell = lateral + origin
+        up = self._LUT_UP.take(cell.astype(np.intp), mode="clip")
+        cell = lateral * ratio
+        cell += origin
+        cls = self._LUT_LOW.take(cell.astype(np.intp), mode="clip")
+        upper = up > 0
+        np.copyto(cls, up, where=upper)
+
+        x0, x1 = GROUND_X
+        ends = ex - reach < x0 or ex + reach > x1            # near the ends of the street only
+        junction = abs(self.junction_x - ex) <= reach + self._side_half
+        if junction or ends:
+            along = np.dot((c, -s), rays)                   # x - ex at UPPER_Z
+            if junction:
+                near = np.abs(along - (self.junction_x - ex)) <= self._side_half
+                near &= upper
+                cls[near] = ROADS
+            if ends:
+                x = ex + np.where(upper, along, ratio * along)
+                cls[(x < x0) | (x > x1)] = NONE
+        centre = (cls == self.CENTRE).nonzero()[0]
+        if centre.size:
+            x = ex + ratio * np.dot((c, -s), rays.take(centre, axis=1))
+            n = self.dash_x.size
+            if n:
+                k = np.searchsorted(self.dash_x, x)
+                gap = np.minimum(np.abs(x - self.dash_x[np.maximum(k - 1, 0)]),
+                                 np.abs(x - self.dash_x[np.minimum(k, n - 1)]))
+                cls[centre] = np.where(gap <= self._dash_half, ROADLINES, ROADS)
+            else:
+                cls[centre] = ROADS
+        kerb = (cls == self.KERB).nonzero()[0]
+        at = np.empty(0)
+        if kerb.size:
+            cls[kerb] = SIDEWALKS
+            lat = lateral.take(kerb) * self._RES            # never 0: the ray crosses the kerb line
+            side = np.where(ey + ratio * lat >= 0.0, ROAD_HALF_WIDTH, -ROAD_HALF_WIDTH)
+            at = np.minimum(np.maximum((side - ey) / lat, 1.0), ratio)
+        return cls, upper, kerb, at
 
 
 class SegmentationCamera:
@@ -60,7 +171,12 @@ class SegmentationCamera:
         self.cull = True
         self.analytic_ground = True
         self.last_uids = np.full((size, size), -1, dtype=np.int32)
+        self.ground = FlatGround(0.5 * (SCENE_X[0] + SCENE_X[1]), [])
         self._prepare_ground_rays()
+
+    def set_layout(self, layout: StaticLayout) -> None:
+        """The flat ground of this episode's layout (its junction and centre-line dashes)."""
+        self.ground = FlatGround(layout.junction_x, [s[0] for s in layout.placements.get("dash", [])])
 
     def _view(self, x: float, y: float, heading: float) -> list:
         c, s = math.cos(heading), math.sin(heading)
@@ -109,7 +225,7 @@ class SegmentationCamera:
         if cand.size == 0:
             return
         c, s = math.cos(heading), math.sin(heading)
-        cls, upper, kerb, at = self.pool.ground.classify(
+        cls, upper, kerb, at = self.ground.classify(
             self._g_rays.take(cand, axis=1), x + EYE_FORWARD * c, y + EYE_FORWARD * s, c, s,
             self._g_ratio, self._g_reach)
         # Hits at the upper level are nearer than the object by the choice of ``cand``; the others are tested.

@@ -105,13 +105,17 @@ class UrbanCollisionEnv(gym.Env):
         import pybullet as p
 
         from .actors import CAR_POOL, PEDESTRIAN_POOL
+        from .bodies import BodyPool
         from .camera import SegmentationCamera
-        from .scene import BodyPool
 
         self._client = p.connect(p.DIRECT)
         vehicle_size = (self.params.length, self.params.width, self.params.height)
         self._pool = BodyPool(self._client, CAR_POOL, PEDESTRIAN_POOL, vehicle_size, PEDESTRIAN_HALF_SIZE)
         self._camera = SegmentationCamera(self._client, self._pool, self.image_size, self.fov_deg)
+
+    def _apply_layout(self) -> None:
+        self._pool.apply_layout(self.layout)
+        self._camera.set_layout(self.layout)
 
     def close(self) -> None:
         if getattr(self, "_client", None) is not None:
@@ -158,7 +162,7 @@ class UrbanCollisionEnv(gym.Env):
         self._last_end = None
 
         if self._pool is not None:
-            self._pool.apply_layout(self.layout)
+            self._apply_layout()
         return self._observe(), self._info([], 0.0, 0.0)
 
     def _prepare_static(self) -> None:
@@ -269,13 +273,13 @@ class UrbanCollisionEnv(gym.Env):
         if new_layout:
             self._prepare_static()
             if self._pool is not None:
-                self._pool.apply_layout(self.layout)
+                self._apply_layout()
         self.actors = _copy_actors(snap["actors"])
         self.ego = snap["ego"].copy()
         self.t_step, self.collisions, self.returns = snap["t_step"], list(snap["collisions"]), dict(snap["returns"])
         self.ever_departed, self.min_speed, self._last_end = snap["ever_departed"], snap["min_speed"], snap["last_end"]
 
-    def planning_twin(self) -> "UrbanCollisionEnv":
+    def planning_twin(self) -> UrbanCollisionEnv:
         """A camera-less env with the same physics, rewards and horizon, to ``restore`` snapshots into."""
         return UrbanCollisionEnv(camera=False, image_size=self.image_size, fov_deg=self.fov_deg,
                                  reward=self.reward_name, horizon_after_ttc_s=self.horizon_after_ttc_s,

@@ -19,8 +19,8 @@ the best so far, or the search stops once some candidate costs nothing, which ke
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

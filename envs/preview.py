@@ -11,6 +11,7 @@ import numpy as np
 
 from .env import UrbanCollisionEnv
 from .policies import NoisyAutopilot, StraightLineBraking
+from .rollout import rollout
 from .scenario import ScenarioSpec
 
 
@@ -29,17 +30,11 @@ POLICIES = {"braking": StraightLineBraking, "autopilot": NoisyAutopilot, "hold":
 
 def record(spec: ScenarioSpec, policy_name: str = "braking", max_steps: int | None = None) -> tuple[list, dict]:
     env = UrbanCollisionEnv(camera=True, render_mode="rgb_array")
-    policy = POLICIES[policy_name]()
-    policy.reset(spec.seed)
-    obs, info = env.reset(options={"scenario": spec})
-    frames = [env.render()]
-    while True:
-        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-        frames.append(env.render())
-        if terminated or truncated or (max_steps and len(frames) > max_steps):
-            break
+    frames = []
+    episode = rollout(env, POLICIES[policy_name](), spec, on_reset=lambda obs, info: frames.append(env.render()),
+                      on_step=lambda obs, action, reward, info: frames.append(env.render()), max_steps=max_steps)
     env.close()
-    return frames, info.get("outcome", {})
+    return frames, episode.info.get("outcome", {})
 
 
 def save(frames: list, out: Path, fps: int = 15) -> None:

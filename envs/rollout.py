@@ -8,8 +8,9 @@ privileged planner) is handed the env after every reset, because it reads the tr
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 

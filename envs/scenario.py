@@ -92,7 +92,7 @@ class ScenarioSpec:
         return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ScenarioSpec":
+    def from_dict(cls, d: dict) -> ScenarioSpec:
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names
         if unknown:

@@ -54,7 +54,7 @@ class VehicleState:
     delta: float = 0.0
     r: float = 0.0
 
-    def copy(self) -> "VehicleState":
+    def copy(self) -> VehicleState:
         return VehicleState(self.x, self.y, self.psi, self.v, self.delta, self.r)
 
 

@@ -10,19 +10,44 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import envs
-from envs import DT, ScenarioSpec, UrbanCollisionEnv, occupant_injury, pedestrian_injury, sample_scenario, test_bank
+from envs import (
+    DT,
+    ScenarioSpec,
+    StraightLineBraking,
+    UrbanCollisionEnv,
+    occupant_injury,
+    pedestrian_injury,
+    rollout,
+    sample_scenario,
+    test_bank,
+)
 from envs.scene import PEDESTRIANS, VEHICLES
 
 
+class Hold:
+    """A constant action."""
+
+    name = "hold"
+
+    def __init__(self, action=(0.0, 0.0)):
+        self.action = np.array(action, dtype=np.float32)
+
+    def reset(self, seed=None):
+        pass
+
+    def act(self, obs, info):
+        return self.action
+
+
 def run_episode(env, spec, action=(0.0, 0.0)):
-    obs, info = env.reset(options={"scenario": spec})
-    frames, infos = [obs], [info]
-    while True:
-        obs, reward, terminated, truncated, info = env.step(np.array(action, dtype=np.float32))
+    frames, infos = [], []
+
+    def keep(obs, info):
         frames.append(obs)
         infos.append(info)
-        if terminated or truncated:
-            return frames, infos
+
+    rollout(env, Hold(action), spec, on_reset=keep, on_step=lambda obs, a, r, info: keep(obs, info))
+    return frames, infos
 
 
 def test_registered_and_check_env_passes():
@@ -228,15 +253,10 @@ def test_test_bank_is_seeded_and_subsets_agree():
 def test_noisy_autopilot_keeps_lane_without_excursions():
     env = UrbanCollisionEnv(camera=False, horizon_after_ttc_s=None, max_episode_s=8.0)
     pilot = envs.NoisyAutopilot(steer_noise=0.05, throttle_noise=0.05, excursion_rate=0.0, onset_excursion_prob=0.0)
-    pilot.reset(1)
-    obs, info = env.reset(options={"scenario": ScenarioSpec(seed=1, ttc=1.5, ego_speed=15.0, n_cars=0)})
-    worst = 0.0
-    while True:
-        obs, r, term, trunc, info = env.step(pilot.act(obs, info))
-        worst = max(worst, abs(info["lane_offset"]))
-        if term or trunc:
-            break
-    assert worst < 0.5
+    offsets = []
+    info = rollout(env, pilot, ScenarioSpec(seed=1, ttc=1.5, ego_speed=15.0, n_cars=0),
+                   on_step=lambda obs, a, r, info: offsets.append(abs(info["lane_offset"]))).info
+    assert max(offsets) < 0.5
     assert abs(info["speed"] - 15.0) < 1.5
 
 
@@ -245,14 +265,8 @@ def test_autopilot_excursions_cover_brake_and_steer_and_are_seeded():
     actions = []
     for seed in range(12):
         pilot = envs.NoisyAutopilot(excursion_rate=0.05, onset_excursion_prob=1.0)
-        pilot.reset(seed)
-        obs, info = env.reset(options={"scenario": ScenarioSpec(seed=seed, ttc=1.5, ego_speed=12.0)})
-        while True:
-            a = pilot.act(obs, info)
-            actions.append(a)
-            obs, r, term, trunc, info = env.step(a)
-            if term or trunc:
-                break
+        rollout(env, pilot, ScenarioSpec(seed=seed, ttc=1.5, ego_speed=12.0),
+                on_step=lambda obs, a, r, info: actions.append(a))
     actions = np.array(actions)
     assert (actions[:, 1] < -0.5).mean() > 0.05       # sustained braking appears
     assert (np.abs(actions[:, 0]) > 0.3).mean() > 0.05  # and real steering, not just noise
@@ -337,3 +351,36 @@ def test_pooled_buildings_keep_the_layouts_heights():
             assert {round(pool.z[u, 1], 6) for u in used} == top
             assert all(-3.0 < pool.z[u, 0] <= 0.0 for u in used)
     env.close()
+
+
+# ----------------------------------------------------------------------------- rollout
+class Binding(StraightLineBraking):
+    """Braking that records the env it is bound to, as the privileged planner is."""
+
+    def bind(self, env):
+        self.bound = env
+
+
+def test_rollout_is_the_hand_written_episode_loop():
+    env = UrbanCollisionEnv(camera=False)
+    spec = ScenarioSpec(seed=4, ttc=0.9, ego_speed=20.0, p_pedestrian=1.0)
+    policy = StraightLineBraking()
+    obs, info = env.reset(options={"scenario": spec})
+    policy.reset(spec.seed)
+    steps = 0
+    while True:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+        steps += 1
+        if terminated or truncated:
+            break
+    seen = []
+    episode = rollout(env, StraightLineBraking(), spec, on_step=lambda obs, a, r, info: seen.append(a.copy()))
+    assert repr(episode.outcome) == repr(info["outcome"]) and episode.steps == steps == len(seen)
+    assert episode.terminated == terminated and all(a[1] == -1.0 for a in seen)
+
+    binding = Binding()
+    rollout(env, binding, spec)
+    assert binding.bound is env
+
+    short = rollout(env, StraightLineBraking(), spec, max_steps=3)
+    assert short.steps == 3 and not short.terminated

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv
+from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv, rollout
 from envs import test_bank as make_bank
 from envs.planner import Manoeuvre, PrivilegedPlanner, candidate_manoeuvres
-from worldmodel import evaluate
-from worldmodel.common import StageError, compose
+from worldmodel.common import StageError
+from worldmodel.config import compose, validate
 
 
 def total_injury(outcome: dict) -> float:
@@ -16,14 +16,7 @@ def total_injury(outcome: dict) -> float:
 
 
 def play(env, policy, spec) -> dict:
-    obs, info = env.reset(options={"scenario": spec})
-    policy.reset(spec.seed)
-    if hasattr(policy, "bind"):
-        policy.bind(env)
-    while True:
-        obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
-        if terminated or truncated:
-            return info["outcome"]
+    return rollout(env, policy, spec).outcome
 
 
 def test_restore_continues_bit_identically():
@@ -84,9 +77,9 @@ def test_evaluation_config_for_the_planner_is_validated(tmp_path):
                                     *overrides])
 
     with pytest.raises(StageError, match="evaluate.policies"):
-        evaluate.validate_config(cfg("evaluate.policies=[oracle]"))
+        validate(cfg("evaluate.policies=[oracle]"))
     with pytest.raises(StageError, match="evaluate.oracle.*-1.0"):
-        evaluate.validate_config(cfg("evaluate.oracle.pedals=[0.0]"))
+        validate(cfg("evaluate.oracle.pedals=[0.0]"))
     with pytest.raises(StageError, match="evaluate.oracle.replan_every_s"):
-        evaluate.validate_config(cfg("evaluate.oracle.replan_every_s=0"))
-    evaluate.validate_config(cfg())
+        validate(cfg("evaluate.oracle.replan_every_s=0"))
+    validate(cfg())
