@@ -2,7 +2,7 @@
 
     python -m benchmarks.bench_env [--resets 10000] [--per-cell 20] [--profile-only]
 
-Steps/s are wall-clock (the DESIGN.md section 7 target) and also per CPU-second of this process
+Steps/s are wall-clock (the docs/design.md §7 target) and also per CPU-second of this process
 (``*_cpu``), which other people's jobs on a shared machine disturb much less; ``load_average`` records how busy
 the machine was. ``profile_camera_on`` splits a camera-on step into its parts (CPU ms per step).
 

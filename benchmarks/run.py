@@ -6,7 +6,7 @@
     python -m benchmarks.run --report-only        # no measuring: regenerate RESULTS.md from the JSONs
 
 ``--tiny`` passes seconds-long sizes, to check that the scripts work; its numbers are not measurements and
-RESULTS.md says so. Targets are DESIGN.md section 7.
+RESULTS.md says so. Targets are docs/design.md §7.
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ PRESETS = {
              "decision": ["--tiny"]},
 }
 
-# DESIGN.md section 7.
+# docs/design.md §7.
 TARGET_STEPS_CAMERA_ON = 500.0
 TARGET_STEPS_CAMERA_OFF = 5000.0
 TARGET_RESET_MS = 10.0
@@ -195,7 +195,7 @@ def visibility_tables(vis: dict) -> str:
            f"Share of test-bank scenarios whose hazard covers at least one pixel of the first (onset) frame, "
            f"field of view {fmt(vis.get('fov_deg'), 0)}°, {vis.get('per_cell', '?')} scenario(s) per cell; "
            f"overall **{100 * vis.get('overall', float('nan')):.0f}%**. Rows: TTC (s); columns: ego speed (m/s). "
-           "No target in DESIGN.md; a hazard the camera cannot see at onset cannot be avoided by a vision policy.",
+           "No target in docs/design.md; a hazard the camera cannot see at onset cannot be avoided by a vision policy.",
            ""]
     for hazard, grid in kinds.items():
         ttcs = sorted({t for t, _ in grid})
@@ -345,7 +345,7 @@ def write_report(command: str) -> Path:
 
     head = ["# Benchmark results", "",
             f"Generated {time.strftime('%Y-%m-%d %H:%M %Z')} by `{command}` from the JSON files in "
-            "`benchmarks/results/`. Targets: DESIGN.md section 7 (2-core CPU, no GPU).", ""]
+            "`benchmarks/results/`. Targets: docs/design.md §7 (2-core CPU, no GPU).", ""]
     if not names:
         head += ["No results yet: run `python -m benchmarks.run`.", ""]
     elif len(machines) == 1:

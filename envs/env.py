@@ -1,6 +1,6 @@
 """``UrbanCollision-v0``: the imminent-collision gymnasium environment.
 
-Spaces and timing (DESIGN.md section 3):
+Spaces and timing (docs/design.md §3):
 
 * step 1/15 s (the paper's 15 FPS), dynamics and collisions sub-stepped ``substeps`` times per step;
 * action ``Box(-1, 1, (2,))`` = [steer, throttle/brake]: steer -1..1 is maximum left..maximum right;

@@ -133,7 +133,7 @@ class BankEntry:
 
 def test_bank(ttcs=BANK_TTCS, speeds=BANK_SPEEDS, hazards=BANK_HAZARDS, per_cell: int = 20,
               seed: int = 2018) -> list[BankEntry]:
-    """The seeded evaluation bank (DESIGN.md section 6).
+    """The seeded evaluation bank (docs/design.md §6).
 
     A scenario's free parameters depend only on (seed, hazard, TTC, speed, index), not on which other cells
     are requested, so a smaller bank is a subset of a larger one and every policy sees the same scenarios.

@@ -2,7 +2,7 @@
 
     python -m worldmodel.evaluate experiment=NAME scale=...
 
-The bank (DESIGN.md section 6; ``envs.test_bank``) sweeps hazard kind x TTC x speed with ``evaluate.per_cell``
+The bank (docs/design.md §6; ``envs.test_bank``) sweeps hazard kind x TTC x speed with ``evaluate.per_cell``
 seeded scenarios per cell; every policy sees exactly the same scenarios. Writes ``runs/NAME/eval/``:
 ``results.csv`` (one row per scenario and policy), ``summary.json``, ``tables.md`` (paper Tables I-III),
 ``heatmaps.png`` (Fig. 5 layout) and the same figures in TensorBoard.

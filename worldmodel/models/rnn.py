@@ -16,7 +16,7 @@ Training uses :meth:`WorldRNN.forward` over whole sequences (cuDNN/oneDNN-fused 
 uses :meth:`WorldRNN.step` one frame at a time. ``step`` computes the LSTM cell directly from the
 ``nn.LSTM``'s own parameter tensors, so there is exactly one copy of the weights and the two paths cannot
 drift apart after training or ``load_state_dict``. The agent's per-frame decision runs the same step through
-``worldmodel.agent_obs.FastDecision`` (both weight matrices side by side in one product, rebuilt whenever these
+``worldmodel.models.fast_decision.FastDecision`` (both weight matrices side by side in one product, rebuilt whenever these
 parameters change), which tests/test_fast_inference.py holds equal to ``step`` + ``predict``.
 """
 from __future__ import annotations

@@ -44,7 +44,7 @@ class SegVAE(nn.Module):
     The one-hot input is built explicitly with ``F.one_hot``. A fused first layer (an embedding-bag lookup
     of conv weights, numerically identical) was measured and dropped: it halves the cost of ``enc1`` alone
     but gave no measurable end-to-end gain on CPU, and its sort-based backward made training slower.
-    The agent's batch-1 decision path does use such a lookup (``worldmodel.agent_obs.FastDecision``, built
+    The agent's batch-1 decision path does use such a lookup (``worldmodel.models.fast_decision.FastDecision``, built
     from these parameters): there, with no backward and no batch to amortise the one-hot, it pays off.
     """
 
