@@ -3,7 +3,8 @@
     python -m benchmarks.bench_decision [--decisions 2000] [--warmup 200] [--tiny]
 
 Times exactly what the evaluation loop calls per frame, ``LearnedPolicy.act(obs, info)`` from
-``worldmodel.agent_obs`` (the ``FastDecision`` + ``FastActor`` path of ``worldmodel.models.fast_decision``), wrapping untrained models of the real sizes:
+``worldmodel.agent_obs`` (the ``FastDecision`` + ``FastActor`` path of ``worldmodel.models.fast_decision``),
+wrapping untrained models of the real sizes:
 ``SegVAE`` (latent 128), ``WorldRNN`` (LSTM 512, MDN head with 5 Gaussians) and the DDPG ``Actor`` (400-300) on
 the 256-d input [z_t, zhat_{t+1}]. Weights do not change the cost of a dense forward pass, so untrained models
 time the same as trained ones.
@@ -20,6 +21,7 @@ recurrent state reset at each new scenario (outside the timed call). Also report
 * the top 15 operators by self CPU time from ``torch.profiler`` and the top 15 Python functions by own time from
   ``cProfile``, so a reader can see what bounds the latency.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,8 +66,14 @@ def render_frames(scenarios: int, steps: int) -> list[list[tuple[dict, dict]]]:
         def keep(obs, info, frames=frames):
             frames.append(({"seg": obs["seg"].copy(), "speed": obs["speed"].copy()}, info))
 
-        rollout(env, _Hold(), sample_scenario(np.random.default_rng(k)), on_reset=keep,
-                on_step=lambda obs, action, reward, info, keep=keep: keep(obs, info), max_steps=steps - 1)
+        rollout(
+            env,
+            _Hold(),
+            sample_scenario(np.random.default_rng(k)),
+            on_reset=keep,
+            on_step=lambda obs, action, reward, info, keep=keep: keep(obs, info),
+            max_steps=steps - 1,
+        )
         episodes.append(frames)
     env.close()
     return episodes
@@ -81,7 +89,9 @@ def build_policy(latent: int = 128, hidden: int = 512, gaussians: int = 5, actor
     try:
         from worldmodel.models.rnn import WorldRNN
     except ImportError as err:
-        raise SystemExit(f"bench_decision needs worldmodel.models.rnn.WorldRNN, which is not importable: {err}")
+        raise SystemExit(
+            f"bench_decision needs worldmodel.models.rnn.WorldRNN, which is not importable: {err}"
+        ) from err
 
     torch.manual_seed(0)
     vae = SegVAE(num_classes=13, latent_dim=latent)
@@ -90,13 +100,24 @@ def build_policy(latent: int = 128, hidden: int = 512, gaussians: int = 5, actor
     actor = Actor(obs_dim=encoder.dim, act_dim=2, hidden=tuple(actor_hidden))
     policy = LearnedPolicy("bench", encoder, actor)
     if encoder.path != "fast":
-        raise SystemExit("the fast decision path failed its self-test on this torch build (see the warning above); "
-                         "this benchmark measures that path")
-    sizes = {"decision_path": encoder.path, "latent_dim": latent, "lstm_hidden": hidden, "mdn_gaussians": gaussians,
-             "actor_hidden": list(actor_hidden), "obs_dim": encoder.dim,
-             "parameters": {"vae_encoder": _params(vae, ("enc", "fc_mu", "fc_logvar")), "rnn": _params(rnn),
-                            "actor": _params(actor)},
-             "weights_read_per_decision_mb": round(_weight_bytes(policy) / 2**20, 2)}
+        raise SystemExit(
+            "the fast decision path failed its self-test on this torch build (see the warning above); "
+            "this benchmark measures that path"
+        )
+    sizes = {
+        "decision_path": encoder.path,
+        "latent_dim": latent,
+        "lstm_hidden": hidden,
+        "mdn_gaussians": gaussians,
+        "actor_hidden": list(actor_hidden),
+        "obs_dim": encoder.dim,
+        "parameters": {
+            "vae_encoder": _params(vae, ("enc", "fc_mu", "fc_logvar")),
+            "rnn": _params(rnn),
+            "actor": _params(actor),
+        },
+        "weights_read_per_decision_mb": round(_weight_bytes(policy) / 2**20, 2),
+    }
     return policy, sizes
 
 
@@ -111,15 +132,22 @@ def _weight_bytes(policy) -> int:
 
 
 def _params(module, prefixes=None) -> int:
-    return int(sum(p.numel() for n, p in module.named_parameters()
-                   if prefixes is None or n.startswith(tuple(prefixes))))
+    return int(
+        sum(p.numel() for n, p in module.named_parameters() if prefixes is None or n.startswith(tuple(prefixes)))
+    )
 
 
 def _stats_ms(ns: np.ndarray) -> dict:
     ms = ns / 1e6
-    return {"n": int(ms.size), "p50_ms": float(np.median(ms)), "p95_ms": float(np.percentile(ms, 95)),
-            "p99_ms": float(np.percentile(ms, 99)), "mean_ms": float(ms.mean()), "min_ms": float(ms.min()),
-            "max_ms": float(ms.max())}
+    return {
+        "n": int(ms.size),
+        "p50_ms": float(np.median(ms)),
+        "p95_ms": float(np.percentile(ms, 95)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "mean_ms": float(ms.mean()),
+        "min_ms": float(ms.min()),
+        "max_ms": float(ms.max()),
+    }
 
 
 def _feed(episodes):
@@ -270,8 +298,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--scenarios", type=int, default=10, help="scenarios rendered for input frames")
     ap.add_argument("--steps", type=int, default=40, help="frames rendered per scenario (at most)")
     ap.add_argument("--profile-decisions", type=int, default=300)
-    ap.add_argument("--tiny", action="store_true", help="seconds-long check that the benchmark works (not a "
-                    "measurement)")
+    ap.add_argument(
+        "--tiny", action="store_true", help="seconds-long check that the benchmark works (not a measurement)"
+    )
     args = ap.parse_args(argv)
     if args.tiny:
         args.decisions, args.warmup, args.scenarios, args.steps, args.profile_decisions = 50, 10, 2, 10, 20
@@ -292,8 +321,10 @@ def main(argv=None) -> dict:
     episodes = render_frames(args.scenarios, args.steps)
     policy, sizes = build_policy()
     frames = sum(len(f) for f in episodes)
-    print(f"[decision] {frames} rendered frames from {len(episodes)} scenarios; timing {args.decisions} decisions "
-          f"after {args.warmup} warm-up, torch threads = {torch.get_num_threads()}")
+    print(
+        f"[decision] {frames} rendered frames from {len(episodes)} scenarios; timing {args.decisions} decisions "
+        f"after {args.warmup} warm-up, torch threads = {torch.get_num_threads()}"
+    )
 
     total = _stats_ms(time_decisions(policy, episodes, args.decisions, args.warmup))
     parts = time_parts(policy, episodes, args.decisions, args.warmup)
@@ -301,17 +332,27 @@ def main(argv=None) -> dict:
     load_end = os.getloadavg()
     prof_torch = torch_profile(policy, episodes, args.profile_decisions)
     prof_py = python_profile(policy, episodes, args.profile_decisions)
-    print(f"[decision] p50 {total['p50_ms']:.3f} ms, p95 {total['p95_ms']:.3f} ms, mean {total['mean_ms']:.3f} ms "
-          f"(target p50 <= {TARGET_P50_MS} ms); parts p50: "
-          + ", ".join(f"{k} {v['p50_ms']:.3f}" for k, v in parts.items()))
-    print("[decision] module path (before FastDecision) p50: "
-          + ", ".join(f"{name} {r['decision_total']['p50_ms']:.3f} ms" for name, r in reference.items()))
+    print(
+        f"[decision] p50 {total['p50_ms']:.3f} ms, p95 {total['p95_ms']:.3f} ms, mean {total['mean_ms']:.3f} ms "
+        f"(target p50 <= {TARGET_P50_MS} ms); parts p50: "
+        + ", ".join(f"{k} {v['p50_ms']:.3f}" for k, v in parts.items())
+    )
+    print(
+        "[decision] module path (before FastDecision) p50: "
+        + ", ".join(f"{name} {r['decision_total']['p50_ms']:.3f} ms" for name, r in reference.items())
+    )
 
     result = {
         "tiny": bool(args.tiny),
-        "params": {"decisions": args.decisions, "warmup": args.warmup, "scenarios": args.scenarios,
-                   "steps_per_scenario": args.steps, "distinct_frames": frames,
-                   "profile_decisions": args.profile_decisions, "batch": 1},
+        "params": {
+            "decisions": args.decisions,
+            "warmup": args.warmup,
+            "scenarios": args.scenarios,
+            "steps_per_scenario": args.steps,
+            "distinct_frames": frames,
+            "profile_decisions": args.profile_decisions,
+            "batch": 1,
+        },
         "command": " ".join(["python -m benchmarks.bench_decision", *(argv if argv is not None else sys.argv[1:])]),
         "loadavg_at_start": [round(x, 2) for x in load],
         "loadavg_at_end": [round(x, 2) for x in load_end],

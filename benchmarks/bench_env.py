@@ -35,6 +35,7 @@ boxes): 813 steps/s wall (819 per CPU-second) with another benchmark running on 
 steps/s when the machine was quieter. CPU ms per step: getCameraImage 0.66, flat ground 0.14, culling 0.04,
 actor placement 0.045, layout placement 0.02, the rest (dynamics, collisions, glue) 0.25.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,7 +45,7 @@ import time
 
 import numpy as np
 
-from envs import ScenarioSpec, UrbanCollisionEnv, test_bank
+from envs import UrbanCollisionEnv, test_bank
 from envs.scenario import sample_scenario
 
 from .common import rss_mb, write
@@ -81,6 +82,7 @@ def profile(steps: int) -> dict:
                 return inner(*args, **kwargs)
             finally:
                 spent[key] = spent.get(key, 0.0) + time.thread_time() - t
+
         setattr(obj, name, wrapper)
 
     timed(cam, "_image", "getCameraImage")
@@ -104,8 +106,12 @@ def profile(steps: int) -> dict:
     env.close()
     out = {k: 1e3 * v / steps for k, v in spent.items()}
     out["rest (dynamics, collisions, env, numpy glue)"] = 1e3 * total / steps - sum(out.values())
-    return {"steps": steps, "resets": episodes, "cpu_ms_per_step": 1e3 * total / steps,
-            "parts_cpu_ms_per_step": {k: round(v, 4) for k, v in out.items()}}
+    return {
+        "steps": steps,
+        "resets": episodes,
+        "cpu_ms_per_step": 1e3 * total / steps,
+        "parts_cpu_ms_per_step": {k: round(v, 4) for k, v in out.items()},
+    }
 
 
 def reset_cost(camera: bool, resets: int) -> dict:
@@ -121,9 +127,15 @@ def reset_cost(camera: bool, resets: int) -> dict:
         times.append(time.perf_counter() - t0)
     after = rss_mb()
     env.close()
-    return {"camera": camera, "resets": resets, "reset_ms_p50": 1e3 * float(np.median(times)),
-            "reset_ms_p95": 1e3 * float(np.percentile(times, 95)), "rss_before_mb": before, "rss_after_mb": after,
-            "rss_growth_mb": after - before}
+    return {
+        "camera": camera,
+        "resets": resets,
+        "reset_ms_p50": 1e3 * float(np.median(times)),
+        "reset_ms_p95": 1e3 * float(np.percentile(times, 95)),
+        "rss_before_mb": before,
+        "rss_after_mb": after,
+        "rss_growth_mb": after - before,
+    }
 
 
 def visibility(per_cell: int) -> dict:

@@ -17,6 +17,7 @@ the wait4 so the figure is not inflated by this benchmark's own size); ``tree_pe
 of RSS over the stage and all its descendants, sampled with psutil every 0.1 s (it can miss a spike shorter
 than that, and counts shared pages once per process).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,7 +29,6 @@ import subprocess
 import sys
 import tempfile
 import threading
-import time
 from pathlib import Path
 
 from .common import write
@@ -100,8 +100,14 @@ def run_stage(module: str, overrides: list[str], log_path: Path, tmp: Path) -> d
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     with open(log_path, "wb") as log:
         # Own process group, so an interrupted benchmark can stop the stage together with its pool workers.
-        proc = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(usage_path), *cmd], cwd=PROJECT_ROOT,
-                                stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", LAUNCHER, str(usage_path), *cmd],
+            cwd=PROJECT_ROOT,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
         sampler = TreeSampler(proc.pid)  # the stage and its workers, without the launcher
         sampler.start()
         try:
@@ -132,27 +138,40 @@ def run_stage(module: str, overrides: list[str], log_path: Path, tmp: Path) -> d
 
 
 def common_overrides(tmp: Path, tag: str) -> list[str]:
-    return ["experiment=bench", f"paths.data_root={tmp / tag / 'data'}", f"paths.runs_root={tmp / tag / 'runs'}",
-            "scale=smoke"]
+    return [
+        "experiment=bench",
+        f"paths.data_root={tmp / tag / 'data'}",
+        f"paths.runs_root={tmp / tag / 'runs'}",
+        "scale=smoke",
+    ]
 
 
 def collect_run(tmp: Path, workers: int, episodes: int, max_episode_s: float) -> tuple[dict, Path]:
     tag = f"collect_w{workers}"
     overrides = common_overrides(tmp, tag) + [
-        f"collect.episodes={episodes}", "collect.episodes_per_shard=2", f"collect.max_episode_s={max_episode_s}",
-        f"collect.num_workers={workers}"]
+        f"collect.episodes={episodes}",
+        "collect.episodes_per_shard=2",
+        f"collect.max_episode_s={max_episode_s}",
+        f"collect.num_workers={workers}",
+    ]
     res = run_stage("worldmodel.collect", overrides, tmp / f"{tag}.log", tmp)
     rollouts = tmp / tag / "data" / "bench" / "rollouts"
     summary = json.loads((rollouts / "manifest.json").read_text())["summary"]
-    res.update({
-        "num_workers": workers, "episodes": summary["episodes"], "frames": summary["frames"],
-        "frames_per_s": round(summary["frames"] / res["wall_s"], 1),
-        "frames_per_s_in_stage": summary.get("frames_per_s_this_run"),
-        "stage_wall_s": summary.get("wall_s"),
-    })
-    print(f"[stages] collect workers={workers}: {res['frames']} frames in {res['wall_s']:.1f} s -> "
-          f"{res['frames_per_s']:.0f} frames/s (in-stage {res['frames_per_s_in_stage']}), "
-          f"tree peak {res['tree_peak_rss_mb']:.0f} MB")
+    res.update(
+        {
+            "num_workers": workers,
+            "episodes": summary["episodes"],
+            "frames": summary["frames"],
+            "frames_per_s": round(summary["frames"] / res["wall_s"], 1),
+            "frames_per_s_in_stage": summary.get("frames_per_s_this_run"),
+            "stage_wall_s": summary.get("wall_s"),
+        }
+    )
+    print(
+        f"[stages] collect workers={workers}: {res['frames']} frames in {res['wall_s']:.1f} s -> "
+        f"{res['frames_per_s']:.0f} frames/s (in-stage {res['frames_per_s_in_stage']}), "
+        f"tree peak {res['tree_peak_rss_mb']:.0f} MB"
+    )
     return res, tmp / tag / "data"
 
 
@@ -164,19 +183,33 @@ def train_frames(rollouts: Path) -> int:
 
 def vae_run(tmp: Path, data_root: Path, threads: int, epochs: int, batch_size: int) -> dict:
     tag = f"vae_t{threads}"
-    overrides = ["experiment=bench", f"paths.data_root={data_root}", f"paths.runs_root={tmp / tag / 'runs'}",
-                 "scale=smoke", f"vae.epochs={epochs}", f"vae.batch_size={batch_size}", f"threads={threads}"]
+    overrides = [
+        "experiment=bench",
+        f"paths.data_root={data_root}",
+        f"paths.runs_root={tmp / tag / 'runs'}",
+        "scale=smoke",
+        f"vae.epochs={epochs}",
+        f"vae.batch_size={batch_size}",
+        f"threads={threads}",
+    ]
     res = run_stage("worldmodel.train_vae", overrides, tmp / f"{tag}.log", tmp)
     frames = epochs * train_frames(data_root / "bench" / "rollouts")
     metrics = json.loads((tmp / tag / "runs" / "bench" / "vae" / "metrics.json").read_text())
-    res.update({
-        "threads": threads, "epochs": epochs, "batch_size": batch_size, "train_frames": frames,
-        "frames_per_s": round(frames / res["wall_s"], 1),
-        "frames_per_s_in_stage": metrics.get("train_frames_per_s"),
-    })
-    print(f"[stages] vae threads={threads}: {frames} train frames in {res['wall_s']:.1f} s -> "
-          f"{res['frames_per_s']:.0f} frames/s (in-stage {res['frames_per_s_in_stage']}), "
-          f"tree peak {res['tree_peak_rss_mb']:.0f} MB")
+    res.update(
+        {
+            "threads": threads,
+            "epochs": epochs,
+            "batch_size": batch_size,
+            "train_frames": frames,
+            "frames_per_s": round(frames / res["wall_s"], 1),
+            "frames_per_s_in_stage": metrics.get("train_frames_per_s"),
+        }
+    )
+    print(
+        f"[stages] vae threads={threads}: {frames} train frames in {res['wall_s']:.1f} s -> "
+        f"{res['frames_per_s']:.0f} frames/s (in-stage {res['frames_per_s_in_stage']}), "
+        f"tree peak {res['tree_peak_rss_mb']:.0f} MB"
+    )
     return res
 
 
@@ -186,8 +219,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-episode-s", type=float, default=8.0, help="episode length cap, seconds (15 FPS)")
     ap.add_argument("--vae-epochs", type=int, default=1)
     ap.add_argument("--vae-batch-size", type=int, default=32)
-    ap.add_argument("--tiny", action="store_true", help="seconds-long check that the benchmark works (not a "
-                    "measurement): 4 episodes of 1 s")
+    ap.add_argument(
+        "--tiny",
+        action="store_true",
+        help="seconds-long check that the benchmark works (not a measurement): 4 episodes of 1 s",
+    )
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory (logs, data) and print it")
     args = ap.parse_args(argv)
     if args.tiny:
@@ -214,12 +250,20 @@ def main(argv=None) -> dict:
         else:
             shutil.rmtree(tmp, ignore_errors=True)
 
-    peak = {"collect": max(c1["tree_peak_rss_mb"], c2["tree_peak_rss_mb"]),
-            "vae": max(vae["threads_1"]["tree_peak_rss_mb"], vae["threads_2"]["tree_peak_rss_mb"])}
+    peak = {
+        "collect": max(c1["tree_peak_rss_mb"], c2["tree_peak_rss_mb"]),
+        "vae": max(vae["threads_1"]["tree_peak_rss_mb"], vae["threads_2"]["tree_peak_rss_mb"]),
+    }
     result = {
         "tiny": bool(args.tiny),
-        "params": {"episodes": args.episodes, "max_episode_s": args.max_episode_s, "vae_epochs": args.vae_epochs,
-                   "vae_batch_size": args.vae_batch_size, "scale": "smoke", "episodes_per_shard": 2},
+        "params": {
+            "episodes": args.episodes,
+            "max_episode_s": args.max_episode_s,
+            "vae_epochs": args.vae_epochs,
+            "vae_batch_size": args.vae_batch_size,
+            "scale": "smoke",
+            "episodes_per_shard": 2,
+        },
         "command": " ".join(["python -m benchmarks.bench_stages", *(argv if argv is not None else sys.argv[1:])]),
         "loadavg_at_start": [round(x, 2) for x in load],
         "collect": collect,

@@ -1,4 +1,5 @@
 """Shared helpers: machine description, JSON output, peak memory."""
+
 from __future__ import annotations
 
 import json
@@ -14,8 +15,13 @@ RESULTS_DIR = Path(__file__).resolve().parent / "results"
 def machine() -> dict:
     import numpy
 
-    info = {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count(),
-            "numpy": numpy.__version__, "date": time.strftime("%Y-%m-%d")}
+    info = {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "numpy": numpy.__version__,
+        "date": time.strftime("%Y-%m-%d"),
+    }
     try:
         with open("/proc/cpuinfo") as fh:
             info["cpu"] = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))

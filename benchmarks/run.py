@@ -8,6 +8,7 @@
 ``--tiny`` passes seconds-long sizes, to check that the scripts work; its numbers are not measurements and
 RESULTS.md says so. Targets are docs/design.md §7.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,12 +26,16 @@ ORDER = ("env", "stages", "decision")
 # Sizes passed to each benchmark's main(argv) per preset ("full" = the benchmark's own defaults).
 PRESETS = {
     "full": {"env": [], "stages": [], "decision": []},
-    "quick": {"env": ["--steps", "1000", "--resets", "2000", "--per-cell", "5"],
-              "stages": ["--episodes", "8", "--max-episode-s", "5"],
-              "decision": ["--decisions", "1000", "--warmup", "100"]},
-    "tiny": {"env": ["--steps", "200", "--resets", "100", "--per-cell", "1"],
-             "stages": ["--tiny"],
-             "decision": ["--tiny"]},
+    "quick": {
+        "env": ["--steps", "1000", "--resets", "2000", "--per-cell", "5"],
+        "stages": ["--episodes", "8", "--max-episode-s", "5"],
+        "decision": ["--decisions", "1000", "--warmup", "100"],
+    },
+    "tiny": {
+        "env": ["--steps", "200", "--resets", "100", "--per-cell", "1"],
+        "stages": ["--tiny"],
+        "decision": ["--tiny"],
+    },
 }
 
 # docs/design.md §7.
@@ -38,12 +43,12 @@ TARGET_STEPS_CAMERA_ON = 500.0
 TARGET_STEPS_CAMERA_OFF = 5000.0
 TARGET_RESET_MS = 10.0
 TARGET_RESETS = 10_000
-FLAT_MB = 2.0                 # our reading of "memory flat": RSS growth over the resets below this
+FLAT_MB = 2.0  # our reading of "memory flat": RSS growth over the resets below this
 TARGET_DECISION_P50_MS = 1.0
 TARGET_PEAK_MB = 4096.0
-PAPER_FRAMES = 200_000        # paper-scale pipeline: 200k frames, VAE 2 epochs, the whole pipeline <= 2 h
+PAPER_FRAMES = 200_000  # paper-scale pipeline: 200k frames, VAE 2 epochs, the whole pipeline <= 2 h
 PAPER_VAE_EPOCHS = 2
-PAPER_TRAIN_SHARE = 0.9       # conf/base.yaml collect.validation_fraction = 0.1
+PAPER_TRAIN_SHARE = 0.9  # conf/base.yaml collect.validation_fraction = 0.1
 PIPELINE_BUDGET_S = 2 * 3600.0
 
 
@@ -106,23 +111,35 @@ def table(header: list[str], rows: list[list]) -> str:
 def machine_line(m: dict) -> str:
     if not m:
         return "unknown machine"
-    parts = [f"{m.get('cpu', '?')}, {m.get('cpus', '?')} logical CPUs", m.get("platform", "?"),
-             f"Python {m.get('python', '?')}", f"numpy {m.get('numpy', '?')}"]
+    parts = [
+        f"{m.get('cpu', '?')}, {m.get('cpus', '?')} logical CPUs",
+        m.get("platform", "?"),
+        f"Python {m.get('python', '?')}",
+        f"numpy {m.get('numpy', '?')}",
+    ]
     if "torch" in m:
         parts.append(f"torch {m['torch']}")
     return "; ".join(parts)
 
 
 def provenance(data: dict) -> list[str]:
-    lines = [f"Measured {data.get('machine', {}).get('date', '?')} with `{data.get('command', 'command not recorded')}`"
-             + (f" (preset `{data['preset']}`)" if data.get("preset") else "")
-             + (f", {data['bench_wall_s']} s" if data.get("bench_wall_s") else "") + "."]
+    lines = [
+        f"Measured {data.get('machine', {}).get('date', '?')} with `{data.get('command', 'command not recorded')}`"
+        + (f" (preset `{data['preset']}`)" if data.get("preset") else "")
+        + (f", {data['bench_wall_s']} s" if data.get("bench_wall_s") else "")
+        + "."
+    ]
     if data.get("loadavg_at_start"):
-        lines.append(f"Load average at start: {', '.join(str(x) for x in data['loadavg_at_start'])} "
-                     f"(on a shared machine, other work slows every number down).")
+        lines.append(
+            f"Load average at start: {', '.join(str(x) for x in data['loadavg_at_start'])} "
+            f"(on a shared machine, other work slows every number down)."
+        )
     if is_tiny(data):
-        lines[:0] = ["> **Tiny run: a check that the benchmark works, NOT a measurement.** Sizes are seconds-long; "
-                     "rerun with `python -m benchmarks.run` for real numbers.", ""]
+        lines[:0] = [
+            "> **Tiny run: a check that the benchmark works, NOT a measurement.** Sizes are seconds-long; "
+            "rerun with `python -m benchmarks.run` for real numbers.",
+            "",
+        ]
     return lines
 
 
@@ -141,17 +158,30 @@ def add_summary(summary: list, data: dict, row: list) -> None:
 def section_env(d: dict, summary: list) -> str:
     out = ["## Simulator (`env.json`)", "", *provenance(d)]
     if "command" not in d:
-        sizes = [f"{d[k]['resets']:,} resets with camera {k.rsplit('_', 1)[1]}"
-                 for k in ("reset_camera_on", "reset_camera_off") if k in d]
+        sizes = [
+            f"{d[k]['resets']:,} resets with camera {k.rsplit('_', 1)[1]}"
+            for k in ("reset_camera_on", "reset_camera_off")
+            if k in d
+        ]
         if "hazard_visible_at_onset" in d:
             sizes.append(f"{d['hazard_visible_at_onset'].get('per_cell', '?')} scenario(s) per visibility cell")
         out.append(f"Sizes (read from the file; step counts not recorded): {', '.join(sizes)}.")
     out.append("")
     on, off = d.get("steps_per_s_camera_on"), d.get("steps_per_s_camera_off")
-    rows = [["env steps/s, camera on, one process", fmt(on), f"≥ {fmt(TARGET_STEPS_CAMERA_ON)}",
-             at_least(on, TARGET_STEPS_CAMERA_ON)],
-            ["env steps/s, camera off", fmt(off), f"≥ {fmt(TARGET_STEPS_CAMERA_OFF)}",
-             at_least(off, TARGET_STEPS_CAMERA_OFF)]]
+    rows = [
+        [
+            "env steps/s, camera on, one process",
+            fmt(on),
+            f"≥ {fmt(TARGET_STEPS_CAMERA_ON)}",
+            at_least(on, TARGET_STEPS_CAMERA_ON),
+        ],
+        [
+            "env steps/s, camera off",
+            fmt(off),
+            f"≥ {fmt(TARGET_STEPS_CAMERA_OFF)}",
+            at_least(off, TARGET_STEPS_CAMERA_OFF),
+        ],
+    ]
     for row in rows:
         add_summary(summary, d, row)
     for key, label in (("reset_camera_on", "camera on"), ("reset_camera_off", "camera off")):
@@ -159,10 +189,24 @@ def section_env(d: dict, summary: list) -> str:
         if not r:
             continue
         p50 = r.get("reset_ms_p50")
-        rows.append([f"reset cost, {label}, p50 (p95)", f"{fmt(p50, 2)} ms ({fmt(r.get('reset_ms_p95'), 2)} ms)",
-                     f"≤ {fmt(TARGET_RESET_MS)} ms", at_most(p50, TARGET_RESET_MS, " ms")])
-        add_summary(summary, d, [f"reset cost p50, {label}", f"{fmt(p50, 2)} ms", f"≤ {fmt(TARGET_RESET_MS)} ms",
-                                 at_most(p50, TARGET_RESET_MS, " ms")])
+        rows.append(
+            [
+                f"reset cost, {label}, p50 (p95)",
+                f"{fmt(p50, 2)} ms ({fmt(r.get('reset_ms_p95'), 2)} ms)",
+                f"≤ {fmt(TARGET_RESET_MS)} ms",
+                at_most(p50, TARGET_RESET_MS, " ms"),
+            ]
+        )
+        add_summary(
+            summary,
+            d,
+            [
+                f"reset cost p50, {label}",
+                f"{fmt(p50, 2)} ms",
+                f"≤ {fmt(TARGET_RESET_MS)} ms",
+                at_most(p50, TARGET_RESET_MS, " ms"),
+            ],
+        )
         n, growth = r.get("resets", 0), r.get("rss_growth_mb")
         if growth is None:
             status = "not measured"
@@ -172,12 +216,22 @@ def section_env(d: dict, summary: list) -> str:
             status = "**met**"
         else:
             status = f"flat so far, **inconclusive**: {n:,} of {TARGET_RESETS:,} resets"
-        measured = (f"{fmt(growth, 2)} MB over {n:,} resets "
-                    f"({fmt(r.get('rss_before_mb'))} → {fmt(r.get('rss_after_mb'))} MB)")
-        rows.append([f"RSS growth over resets, {label}", measured, f"flat (< {FLAT_MB:g} MB) over {TARGET_RESETS:,}",
-                     status])
-        add_summary(summary, d, [f"memory flat over resets, {label}", f"{fmt(growth, 2)} MB / {n:,} resets",
-                                 f"flat over {TARGET_RESETS:,}", status])
+        measured = (
+            f"{fmt(growth, 2)} MB over {n:,} resets ({fmt(r.get('rss_before_mb'))} → {fmt(r.get('rss_after_mb'))} MB)"
+        )
+        rows.append(
+            [f"RSS growth over resets, {label}", measured, f"flat (< {FLAT_MB:g} MB) over {TARGET_RESETS:,}", status]
+        )
+        add_summary(
+            summary,
+            d,
+            [
+                f"memory flat over resets, {label}",
+                f"{fmt(growth, 2)} MB / {n:,} resets",
+                f"flat over {TARGET_RESETS:,}",
+                status,
+            ],
+        )
     out += [table(["what", "measured", "target", "status"], rows), ""]
     vis = d.get("hazard_visible_at_onset")
     if vis:
@@ -191,32 +245,45 @@ def visibility_tables(vis: dict) -> str:
     for key, frac in cells.items():
         hazard, ttc, speed = key.split("|")
         kinds.setdefault(hazard, {})[(float(ttc), float(speed))] = frac
-    out = ["### Hazard visible at onset", "",
-           f"Share of test-bank scenarios whose hazard covers at least one pixel of the first (onset) frame, "
-           f"field of view {fmt(vis.get('fov_deg'), 0)}°, {vis.get('per_cell', '?')} scenario(s) per cell; "
-           f"overall **{100 * vis.get('overall', float('nan')):.0f}%**. Rows: TTC (s); columns: ego speed (m/s). "
-           "No target in docs/design.md; a hazard the camera cannot see at onset cannot be avoided by a vision policy.",
-           ""]
+    out = [
+        "### Hazard visible at onset",
+        "",
+        f"Share of test-bank scenarios whose hazard covers at least one pixel of the first (onset) frame, "
+        f"field of view {fmt(vis.get('fov_deg'), 0)}°, {vis.get('per_cell', '?')} scenario(s) per cell; "
+        f"overall **{100 * vis.get('overall', float('nan')):.0f}%**. Rows: TTC (s); columns: ego speed (m/s). "
+        "No target in docs/design.md; a hazard the camera cannot see at onset cannot be avoided by a vision policy.",
+        "",
+    ]
     for hazard, grid in kinds.items():
         ttcs = sorted({t for t, _ in grid})
         speeds = sorted({s for _, s in grid})
         rows = [[fmt(t, 2)] + [f"{100 * grid[(t, s)]:.0f}%" if (t, s) in grid else "–" for s in speeds] for t in ttcs]
         mean = 100 * sum(grid.values()) / len(grid)
-        out += [f"**{hazard}** (mean {mean:.0f}%)", "",
-                table(["TTC \\ speed"] + [f"{s:g} m/s" for s in speeds], rows), ""]
+        out += [
+            f"**{hazard}** (mean {mean:.0f}%)",
+            "",
+            table(["TTC \\ speed"] + [f"{s:g} m/s" for s in speeds], rows),
+            "",
+        ]
     return "\n".join(out)
 
 
 def section_stages(d: dict, summary: list) -> str:
     p = d.get("params", {})
-    out = ["## Phase 0 collection and phase 1 VAE (`stages.json`)", "", *provenance(d), "",
-           f"Each run is the real stage command in a fresh subprocess at `scale=smoke` with "
-           f"{p.get('episodes', '?')} episodes of at most {p.get('max_episode_s', '?')} s, VAE "
-           f"{p.get('vae_epochs', '?')} epoch(s) at batch {p.get('vae_batch_size', '?')}. *frames/s (wall)* divides by "
-           "the whole subprocess time (interpreter, imports, Hydra, pool start-up, validation); *in-stage* is the "
-           "stage's own figure (collection: frames / collection loop; VAE: `metrics.json` `train_frames_per_s`, "
-           "which still includes validation). *max RSS* is the largest single process (`wait4` ru_maxrss); *tree peak* "
-           "is the largest sum over the process and its workers (psutil, sampled every 0.1 s).", ""]
+    out = [
+        "## Phase 0 collection and phase 1 VAE (`stages.json`)",
+        "",
+        *provenance(d),
+        "",
+        f"Each run is the real stage command in a fresh subprocess at `scale=smoke` with "
+        f"{p.get('episodes', '?')} episodes of at most {p.get('max_episode_s', '?')} s, VAE "
+        f"{p.get('vae_epochs', '?')} epoch(s) at batch {p.get('vae_batch_size', '?')}. *frames/s (wall)* divides by "
+        "the whole subprocess time (interpreter, imports, Hydra, pool start-up, validation); *in-stage* is the "
+        "stage's own figure (collection: frames / collection loop; VAE: `metrics.json` `train_frames_per_s`, "
+        "which still includes validation). *max RSS* is the largest single process (`wait4` ru_maxrss); *tree peak* "
+        "is the largest sum over the process and its workers (psutil, sampled every 0.1 s).",
+        "",
+    ]
     rows = []
     c = d.get("collect", {})
     v = d.get("vae", {})
@@ -224,29 +291,73 @@ def section_stages(d: dict, summary: list) -> str:
     runs += [(f"VAE, {r.get('threads')} thread(s)", r) for k, r in v.items() if k.startswith("threads_")]
     for label, r in runs:
         frames = r.get("frames", r.get("train_frames"))
-        rows.append([label, fmt(frames), fmt(r.get("wall_s")), fmt(r.get("frames_per_s")),
-                     fmt(r.get("frames_per_s_in_stage")), fmt(r.get("max_rss_mb"), 0),
-                     fmt(r.get("tree_peak_rss_mb"), 0),
-                     at_most(r.get("tree_peak_rss_mb"), TARGET_PEAK_MB, " MB")])
-    out += [table(["run", "frames", "wall s", "frames/s (wall)", "frames/s (in-stage)", "max RSS MB",
-                   "tree peak MB", "peak ≤ 4 GB"], rows), ""]
+        rows.append(
+            [
+                label,
+                fmt(frames),
+                fmt(r.get("wall_s")),
+                fmt(r.get("frames_per_s")),
+                fmt(r.get("frames_per_s_in_stage")),
+                fmt(r.get("max_rss_mb"), 0),
+                fmt(r.get("tree_peak_rss_mb"), 0),
+                at_most(r.get("tree_peak_rss_mb"), TARGET_PEAK_MB, " MB"),
+            ]
+        )
+    out += [
+        table(
+            [
+                "run",
+                "frames",
+                "wall s",
+                "frames/s (wall)",
+                "frames/s (in-stage)",
+                "max RSS MB",
+                "tree peak MB",
+                "peak ≤ 4 GB",
+            ],
+            rows,
+        ),
+        "",
+    ]
     if "speedup_2_vs_1" in c or "speedup_2_vs_1" in v:
-        out += [f"Speed-up of 2 over 1: collection {fmt(c.get('speedup_2_vs_1'), 2)}×, VAE "
-                f"{fmt(v.get('speedup_2_vs_1'), 2)}× (2 cores; ideal 2×).", ""]
+        out += [
+            f"Speed-up of 2 over 1: collection {fmt(c.get('speedup_2_vs_1'), 2)}×, VAE "
+            f"{fmt(v.get('speedup_2_vs_1'), 2)}× (2 cores; ideal 2×).",
+            "",
+        ]
     frames = sum(r.get("frames", 0) for k, r in c.items() if k.startswith("workers_")) // max(
-        1, len([k for k in c if k.startswith("workers_")]))
-    out += [f"Peak memory is measured at this benchmark's size ({fmt(frames)} frames per collection), not at "
-            f"paper scale ({fmt(PAPER_FRAMES)} frames): the ≤ 4 GB target holds there only as far as the stages' "
-            "memory does not grow with the dataset (collection keeps one shard of episodes per worker in memory; "
-            "the VAE streams its batches).", ""]
+        1, len([k for k in c if k.startswith("workers_")])
+    )
+    out += [
+        f"Peak memory is measured at this benchmark's size ({fmt(frames)} frames per collection), not at "
+        f"paper scale ({fmt(PAPER_FRAMES)} frames): the ≤ 4 GB target holds there only as far as the stages' "
+        "memory does not grow with the dataset (collection keeps one shard of episodes per worker in memory; "
+        "the VAE streams its batches).",
+        "",
+    ]
     for stage, peak in d.get("peak_tree_rss_mb", {}).items():
-        add_summary(summary, d, [f"peak memory, {stage} (process tree, bench size)", f"{fmt(peak, 0)} MB",
-                                 "≤ 4,096 MB", at_most(peak, TARGET_PEAK_MB, " MB")])
+        add_summary(
+            summary,
+            d,
+            [
+                f"peak memory, {stage} (process tree, bench size)",
+                f"{fmt(peak, 0)} MB",
+                "≤ 4,096 MB",
+                at_most(peak, TARGET_PEAK_MB, " MB"),
+            ],
+        )
+
     # Projection to paper scale from the best in-stage rates: at paper scale start-up is a small share, which the
     # in-stage figures leave out (the VAE's still includes its validation passes).
     def best(runs: dict, prefix: str) -> float:
-        return max((r.get("frames_per_s_in_stage") or r.get("frames_per_s") or 0
-                    for k, r in runs.items() if k.startswith(prefix)), default=0)
+        return max(
+            (
+                r.get("frames_per_s_in_stage") or r.get("frames_per_s") or 0
+                for k, r in runs.items()
+                if k.startswith(prefix)
+            ),
+            default=0,
+        )
 
     best_c, best_v = best(c, "workers_"), best(v, "threads_")
     if is_tiny(d):
@@ -255,19 +366,38 @@ def section_stages(d: dict, summary: list) -> str:
         t_c = PAPER_FRAMES / best_c
         t_v = PAPER_VAE_EPOCHS * PAPER_TRAIN_SHARE * PAPER_FRAMES / best_v
         share = 100 * (t_c + t_v) / PIPELINE_BUDGET_S
-        out += ["### Projection to paper scale", "",
-                table(["stage", "work", "best rate (frames/s, in-stage)", "projected wall"],
-                      [["collect", f"{fmt(PAPER_FRAMES)} frames", fmt(best_c), f"{t_c / 60:.0f} min"],
-                       ["VAE",
+        out += [
+            "### Projection to paper scale",
+            "",
+            table(
+                ["stage", "work", "best rate (frames/s, in-stage)", "projected wall"],
+                [
+                    ["collect", f"{fmt(PAPER_FRAMES)} frames", fmt(best_c), f"{t_c / 60:.0f} min"],
+                    [
+                        "VAE",
                         f"{PAPER_VAE_EPOCHS} epochs × {fmt(int(PAPER_TRAIN_SHARE * PAPER_FRAMES))} train frames",
-                        fmt(best_v), f"{t_v / 60:.0f} min"]]),
-                "",
-                f"Phases 0 and 1 together: **{(t_c + t_v) / 60:.0f} min, {share:.0f}% of the 2 h budget** for the "
-                "whole "
-                "paper-scale pipeline (LSTM, DDPG and evaluation still to come). A linear extrapolation from a short "
-                "run; not a measurement.", ""]
-        add_summary(summary, d, ["phases 0+1 at paper scale (projected)", f"{(t_c + t_v) / 60:.0f} min",
-                                 "whole pipeline ≤ 120 min", f"{share:.0f}% of the budget"])
+                        fmt(best_v),
+                        f"{t_v / 60:.0f} min",
+                    ],
+                ],
+            ),
+            "",
+            f"Phases 0 and 1 together: **{(t_c + t_v) / 60:.0f} min, {share:.0f}% of the 2 h budget** for the "
+            "whole "
+            "paper-scale pipeline (LSTM, DDPG and evaluation still to come). A linear extrapolation from a short "
+            "run; not a measurement.",
+            "",
+        ]
+        add_summary(
+            summary,
+            d,
+            [
+                "phases 0+1 at paper scale (projected)",
+                f"{(t_c + t_v) / 60:.0f} min",
+                "whole pipeline ≤ 120 min",
+                f"{share:.0f}% of the budget",
+            ],
+        )
     return "\n".join(out)
 
 
@@ -275,43 +405,93 @@ def section_decision(d: dict, summary: list) -> str:
     out = ["## Decision latency (`decision.json`)", "", *provenance(d), ""]
     m, p = d.get("models", {}), d.get("params", {})
     params = m.get("parameters", {})
-    out += [f"`LearnedPolicy.act(obs, info)` on real rendered frames ({p.get('distinct_frames', '?')} frames from "
-            f"{p.get('scenarios', '?')} scenarios), batch 1, {d.get('torch_threads', '?')} torch thread(s); "
-            f"{fmt(p.get('decisions'))} decisions after {fmt(p.get('warmup'))} warm-up. Untrained models of the real "
-            f"sizes: VAE encoder latent {m.get('latent_dim', '?')} ({fmt(params.get('vae_encoder'))} parameters), "
-            f"LSTM {m.get('lstm_hidden', '?')} with an MDN head of {m.get('mdn_gaussians', '?')} Gaussians "
-            f"({fmt(params.get('rnn'))}), actor {'-'.join(map(str, m.get('actor_hidden', [])))} "
-            f"({fmt(params.get('actor'))}).", ""]
+    out += [
+        f"`LearnedPolicy.act(obs, info)` on real rendered frames ({p.get('distinct_frames', '?')} frames from "
+        f"{p.get('scenarios', '?')} scenarios), batch 1, {d.get('torch_threads', '?')} torch thread(s); "
+        f"{fmt(p.get('decisions'))} decisions after {fmt(p.get('warmup'))} warm-up. Untrained models of the real "
+        f"sizes: VAE encoder latent {m.get('latent_dim', '?')} ({fmt(params.get('vae_encoder'))} parameters), "
+        f"LSTM {m.get('lstm_hidden', '?')} with an MDN head of {m.get('mdn_gaussians', '?')} Gaussians "
+        f"({fmt(params.get('rnn'))}), actor {'-'.join(map(str, m.get('actor_hidden', [])))} "
+        f"({fmt(params.get('actor'))}).",
+        "",
+    ]
     t = d.get("decision", {})
     p50 = t.get("p50_ms")
-    out += [table(["what", "p50", "p95", "p99", "mean", "target", "status"],
-                  [["class map → action", f"{fmt(p50, 3)} ms", f"{fmt(t.get('p95_ms'), 3)} ms",
-                    f"{fmt(t.get('p99_ms'), 3)} ms", f"{fmt(t.get('mean_ms'), 3)} ms",
-                    f"p50 ≤ {fmt(TARGET_DECISION_P50_MS)} ms", at_most(p50, TARGET_DECISION_P50_MS, " ms")]]), ""]
-    add_summary(summary, d, ["decision latency p50 (1 thread)", f"{fmt(p50, 3)} ms",
-                             f"≤ {fmt(TARGET_DECISION_P50_MS)} ms", at_most(p50, TARGET_DECISION_P50_MS, " ms")])
+    out += [
+        table(
+            ["what", "p50", "p95", "p99", "mean", "target", "status"],
+            [
+                [
+                    "class map → action",
+                    f"{fmt(p50, 3)} ms",
+                    f"{fmt(t.get('p95_ms'), 3)} ms",
+                    f"{fmt(t.get('p99_ms'), 3)} ms",
+                    f"{fmt(t.get('mean_ms'), 3)} ms",
+                    f"p50 ≤ {fmt(TARGET_DECISION_P50_MS)} ms",
+                    at_most(p50, TARGET_DECISION_P50_MS, " ms"),
+                ]
+            ],
+        ),
+        "",
+    ]
+    add_summary(
+        summary,
+        d,
+        [
+            "decision latency p50 (1 thread)",
+            f"{fmt(p50, 3)} ms",
+            f"≤ {fmt(TARGET_DECISION_P50_MS)} ms",
+            at_most(p50, TARGET_DECISION_P50_MS, " ms"),
+        ],
+    )
     parts = d.get("parts", {})
     if parts:
-        labels = {"input_check": "input check (class ids in range)",
-                  "vae_encode": "VAE encode μ (first conv as a table lookup + 3 im2col matmuls + μ head)",
-                  "lstm_step": "LSTM step (fused gates)", "mdn_predict": "MDN point prediction ẑ",
-                  "actor": "actor 400-300", "decision_total": "sum of the parts, same loop",
-                  "encoder_total": "WorldModelEncoder.encode (all but the actor, with numpy conversions)"}
+        labels = {
+            "input_check": "input check (class ids in range)",
+            "vae_encode": "VAE encode μ (first conv as a table lookup + 3 im2col matmuls + μ head)",
+            "lstm_step": "LSTM step (fused gates)",
+            "mdn_predict": "MDN point prediction ẑ",
+            "actor": "actor 400-300",
+            "decision_total": "sum of the parts, same loop",
+            "encoder_total": "WorldModelEncoder.encode (all but the actor, with numpy conversions)",
+        }
         ref = d.get("reference", {})
-        cols = ["part", "p50", "p95", "share of decision p50"] + [f"module path, oneDNN {k.split('_')[1]}, p50"
-                                                                   for k in ref]
-        rows = [[labels.get(k, k), f"{fmt(v.get('p50_ms'), 3)} ms", f"{fmt(v.get('p95_ms'), 3)} ms",
-                 f"{100 * v.get('p50_ms', 0) / p50:.0f}%" if p50 else "–"]
-                + [f"{fmt(r[k]['p50_ms'], 3)} ms" if k in r else "–" for r in ref.values()]
-                for k, v in parts.items()]
-        out += ["Each part timed inside the same decision loop (the fast batch-1 path `FastDecision`, "
-                "`worldmodel/agent_obs.py`), beside the same parts through the training modules in the same run:", "",
-                table(cols, rows), ""]
-    for key, title in (("profile_torch_self_cpu_top15", "torch.profiler: top 15 operators by self CPU time"),
-                       ("profile_python_tottime_top15", "cProfile: top 15 functions by own time")):
+        cols = ["part", "p50", "p95", "share of decision p50"] + [
+            f"module path, oneDNN {k.split('_')[1]}, p50" for k in ref
+        ]
+        rows = [
+            [
+                labels.get(k, k),
+                f"{fmt(v.get('p50_ms'), 3)} ms",
+                f"{fmt(v.get('p95_ms'), 3)} ms",
+                f"{100 * v.get('p50_ms', 0) / p50:.0f}%" if p50 else "–",
+            ]
+            + [f"{fmt(r[k]['p50_ms'], 3)} ms" if k in r else "–" for r in ref.values()]
+            for k, v in parts.items()
+        ]
+        out += [
+            "Each part timed inside the same decision loop (the fast batch-1 path `FastDecision`, "
+            "`worldmodel/agent_obs.py`), beside the same parts through the training modules in the same run:",
+            "",
+            table(cols, rows),
+            "",
+        ]
+    for key, title in (
+        ("profile_torch_self_cpu_top15", "torch.profiler: top 15 operators by self CPU time"),
+        ("profile_python_tottime_top15", "cProfile: top 15 functions by own time"),
+    ):
         if d.get(key):
-            out += [f"<details><summary>{title} ({fmt(p.get('profile_decisions'))} decisions; profiling adds overhead)"
-                    "</summary>", "", "```", d[key].rstrip(), "```", "", "</details>", ""]
+            out += [
+                f"<details><summary>{title} ({fmt(p.get('profile_decisions'))} decisions; profiling adds overhead)"
+                "</summary>",
+                "",
+                "```",
+                d[key].rstrip(),
+                "```",
+                "",
+                "</details>",
+                "",
+            ]
     return "\n".join(out)
 
 
@@ -343,9 +523,13 @@ def write_report(command: str) -> Path:
     summary: list[list] = []
     sections = [SECTIONS.get(n, lambda d, s, n=n: section_other(n, d))(results[n], summary) for n in names]
 
-    head = ["# Benchmark results", "",
-            f"Generated {time.strftime('%Y-%m-%d %H:%M %Z')} by `{command}` from the JSON files in "
-            "`benchmarks/results/`. Targets: docs/design.md §7 (2-core CPU, no GPU).", ""]
+    head = [
+        "# Benchmark results",
+        "",
+        f"Generated {time.strftime('%Y-%m-%d %H:%M %Z')} by `{command}` from the JSON files in "
+        "`benchmarks/results/`. Targets: docs/design.md §7 (2-core CPU, no GPU).",
+        "",
+    ]
     if not names:
         head += ["No results yet: run `python -m benchmarks.run`.", ""]
     elif len(machines) == 1:
@@ -355,11 +539,21 @@ def write_report(command: str) -> Path:
         head += [f"* {line}: {', '.join(ns)}" for line, ns in machines.items()] + [""]
     dates = {n: results[n].get("machine", {}).get("date", "?") for n in names}
     if names:
-        head += ["**Measured:** " + ", ".join(f"{n} {dt}" + (" (tiny run, not a measurement)" if is_tiny(results[n])
-                                                              else "") for n, dt in dates.items()) + ".", ""]
-        head += ["Reproduce: `python -m benchmarks.run` (all, full size; `make bench`), `--quick` for smaller sizes, "
-                 "`--only env|stages|decision` for one, `--report-only` to rewrite this file without measuring. "
-                 "On a shared or busy machine all numbers are pessimistic.", ""]
+        head += [
+            "**Measured:** "
+            + ", ".join(
+                f"{n} {dt}" + (" (tiny run, not a measurement)" if is_tiny(results[n]) else "")
+                for n, dt in dates.items()
+            )
+            + ".",
+            "",
+        ]
+        head += [
+            "Reproduce: `python -m benchmarks.run` (all, full size; `make bench`), `--quick` for smaller sizes, "
+            "`--only env|stages|decision` for one, `--report-only` to rewrite this file without measuring. "
+            "On a shared or busy machine all numbers are pessimistic.",
+            "",
+        ]
     if summary:
         head += ["## Summary against the targets", "", table(["what", "measured", "target", "status"], summary), ""]
     REPORT.write_text("\n".join(head + sections).rstrip() + "\n")
@@ -370,8 +564,9 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     size = ap.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="smaller sizes (minutes)")
-    size.add_argument("--tiny", action="store_true", help="seconds-long sizes to check the scripts work "
-                      "(not measurements)")
+    size.add_argument(
+        "--tiny", action="store_true", help="seconds-long sizes to check the scripts work (not measurements)"
+    )
     size.add_argument("--report-only", action="store_true", help="only regenerate RESULTS.md from the JSONs")
     ap.add_argument("--only", action="append", choices=ORDER, help="run only this benchmark (repeatable)")
     args = ap.parse_args(argv)

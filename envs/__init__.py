@@ -5,6 +5,7 @@
     env = gymnasium.make("UrbanCollision-v0", camera=True, reward="r2")
     obs, info = env.reset(options={"scenario": ScenarioSpec(seed=1, ttc=0.8, ego_speed=20.0, p_pedestrian=1.0)})
 """
+
 from gymnasium.envs.registration import register, registry
 
 from .env import DT, UrbanCollisionEnv
@@ -19,7 +20,20 @@ if ENV_ID not in registry:
     register(id=ENV_ID, entry_point="envs.env:UrbanCollisionEnv")
 
 __all__ = [
-    "CLASS_NAMES", "DT", "ENV_ID", "NUM_CLASSES", "PALETTE", "BankEntry", "Episode", "NoisyAutopilot",
-    "ScenarioSpec", "StraightLineBraking", "UrbanCollisionEnv", "occupant_injury", "pedestrian_injury", "rollout",
-    "sample_scenario", "test_bank",
+    "CLASS_NAMES",
+    "DT",
+    "ENV_ID",
+    "NUM_CLASSES",
+    "PALETTE",
+    "BankEntry",
+    "Episode",
+    "NoisyAutopilot",
+    "ScenarioSpec",
+    "StraightLineBraking",
+    "UrbanCollisionEnv",
+    "occupant_injury",
+    "pedestrian_injury",
+    "rollout",
+    "sample_scenario",
+    "test_bank",
 ]

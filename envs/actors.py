@@ -4,6 +4,7 @@ As in the paper, nobody reacts to the ego, and participants pass through one ano
 the ego are modelled). Because nobody reacts, traffic in the ego's own lane is placed ahead of it and
 never slower than it, so braking can never cause a rear-end crash with a follower that does not exist.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,25 +15,25 @@ import numpy as np
 from .scenario import ScenarioSpec
 from .scene import EGO_LANE_Y, ONCOMING_LANE_Y, SCENE_X, SIDEWALK_OUTER
 
-CAR_POOL = 12          # 10 others + the hazard car + one spare
+CAR_POOL = 12  # 10 others + the hazard car + one spare
 PEDESTRIAN_POOL = 12
 PEDESTRIAN_RADIUS = 0.3
-PEDESTRIAN_HALF_SIZE = (0.25, 0.3, 0.875)   # box used for rendering
-CROSSING_ANGLE_DEG = 30.0                   # hazard pedestrians cross within +-30 deg of perpendicular
+PEDESTRIAN_HALF_SIZE = (0.25, 0.3, 0.875)  # box used for rendering
+CROSSING_ANGLE_DEG = 30.0  # hazard pedestrians cross within +-30 deg of perpendicular
 
 
 @dataclass
 class Actors:
-    car_xy: np.ndarray        # (CAR_POOL, 2) centres
-    car_vel: np.ndarray       # (CAR_POOL, 2)
-    car_heading: np.ndarray   # (CAR_POOL,)
-    car_active: np.ndarray    # (CAR_POOL,) bool
-    car_hazard: np.ndarray    # (CAR_POOL,) bool
+    car_xy: np.ndarray  # (CAR_POOL, 2) centres
+    car_vel: np.ndarray  # (CAR_POOL, 2)
+    car_heading: np.ndarray  # (CAR_POOL,)
+    car_active: np.ndarray  # (CAR_POOL,) bool
+    car_hazard: np.ndarray  # (CAR_POOL,) bool
     ped_xy: np.ndarray
     ped_vel: np.ndarray
-    ped_active: np.ndarray    # False once hit or unused
+    ped_active: np.ndarray  # False once hit or unused
     ped_hazard: np.ndarray
-    ped_stop_y: np.ndarray    # a crossing pedestrian stops once it walks past this y (nan = never)
+    ped_stop_y: np.ndarray  # a crossing pedestrian stops once it walks past this y (nan = never)
     collision_point: tuple[float, float] | None  # where the ego's front bumper is at TTC
 
     def advance(self, dt: float) -> None:
@@ -45,8 +46,9 @@ class Actors:
             self.ped_stop_y[arrived] = np.nan
 
 
-def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, ego_front: float,
-                 car_length: float, car_width: float) -> tuple[Actors, float]:
+def build_actors(
+    spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, ego_front: float, car_length: float, car_width: float
+) -> tuple[Actors, float]:
     """Place hazards and traffic for ``spec``; returns the actors and the junction position."""
     car_xy = np.zeros((CAR_POOL, 2))
     car_vel = np.zeros((CAR_POOL, 2))
@@ -66,7 +68,7 @@ def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, eg
     n_car = n_ped = 0
     if spec.car_hazard:
         # Out of the side street: the car's near side reaches the ego's path when the bumper does.
-        side = 1.0 if rng.random() < 0.5 else -1.0   # +1: from the left (+y), driving towards -y
+        side = 1.0 if rng.random() < 0.5 else -1.0  # +1: from the left (+y), driving towards -y
         v = spec.hazard_car_speed
         car_xy[0] = (junction_x, EGO_LANE_Y + side * v * spec.ttc)
         car_vel[0] = (0.0, -side * v)
@@ -76,7 +78,7 @@ def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, eg
     if spec.pedestrian_hazard:
         v = spec.pedestrian_speed
         reach = v * spec.ttc
-        offset = float(rng.uniform(-0.5, 0.5))            # where across the bumper they meet
+        offset = float(rng.uniform(-0.5, 0.5))  # where across the bumper they meet
         angle = math.radians(float(rng.uniform(-CROSSING_ANGLE_DEG, CROSSING_ANGLE_DEG)))
         meet = (bumper_at_ttc + PEDESTRIAN_RADIUS, EGO_LANE_Y + offset)
         # Start on a sidewalk: from the right only if the walk fits within the near sidewalk.
@@ -85,7 +87,7 @@ def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, eg
         direction = np.array([math.sin(angle), -side * math.cos(angle)])
         ped_xy[0] = np.array(meet) - direction * reach
         ped_vel[0] = direction * v
-        ped_stop_y[0] = side * -(SIDEWALK_OUTER - 1.0)   # on the far sidewalk
+        ped_stop_y[0] = side * -(SIDEWALK_OUTER - 1.0)  # on the far sidewalk
         ped_active[0] = ped_hazard[0] = True
         n_ped = 1
 
@@ -109,11 +111,24 @@ def build_actors(spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, eg
 
     for _ in range(spec.n_pedestrians):
         side = 1.0 if rng.random() < 0.5 else -1.0
-        ped_xy[n_ped] = (float(rng.uniform(ego_x0 - 10.0, min(SCENE_X[1], ego_x0 + 150.0))),
-                         side * float(rng.uniform(4.3, 6.0)))
+        ped_xy[n_ped] = (
+            float(rng.uniform(ego_x0 - 10.0, min(SCENE_X[1], ego_x0 + 150.0))),
+            side * float(rng.uniform(4.3, 6.0)),
+        )
         ped_vel[n_ped] = ((1.0 if rng.random() < 0.5 else -1.0) * float(rng.uniform(0.8, 1.8)), 0.0)
         ped_active[n_ped] = True
         n_ped += 1
 
-    return Actors(car_xy, car_vel, car_heading, car_active, car_hazard, ped_xy, ped_vel, ped_active,
-                  ped_hazard, ped_stop_y, collision_point), junction_x
+    return Actors(
+        car_xy,
+        car_vel,
+        car_heading,
+        car_active,
+        car_hazard,
+        ped_xy,
+        ped_vel,
+        ped_active,
+        ped_hazard,
+        ped_stop_y,
+        collision_point,
+    ), junction_x

@@ -6,6 +6,7 @@ hidden (alpha 0, which TinyRenderer skips). The flat ground's bodies stay, hidde
 per-pixel ground reproduces, and for the bird's-eye view (``envs/camera.py`` explains why and what it costs).
 Only the env's camera mode builds this module's pool; the camera-off mode needs no pybullet at all.
 """
+
 from __future__ import annotations
 
 import math
@@ -53,8 +54,7 @@ class BodyPool:
             colour = list(PALETTE[cls] / 255.0) + [1.0]
             half = list(size) if shape == "box" else [size[0], size[0], size[1] / 2]
             vs = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=colour, physicsClientId=client)
-            uid = p.createMultiBody(baseMass=0, baseVisualShapeIndex=vs, basePosition=list(pos),
-                                    physicsClientId=client)
+            uid = p.createMultiBody(baseMass=0, baseVisualShapeIndex=vs, basePosition=list(pos), physicsClientId=client)
             if uid != len(rgba):
                 raise RuntimeError("BodyPool needs a fresh pybullet client (body ids 0, 1, 2, ...)")
             self.uid_class[uid] = cls
@@ -71,7 +71,8 @@ class BodyPool:
                 hx, hy, _ = tmpl.size
                 self.buildings[name] = [
                     (h, [make(tmpl.cls, "box", (hx, hy, h / 2)) for _ in range(k or tmpl.count)])
-                    for h, k in zip(BUILDING_HEIGHTS, BUILDING_HEIGHT_COUNTS)]
+                    for h, k in zip(BUILDING_HEIGHTS, BUILDING_HEIGHT_COUNTS)
+                ]
                 self.pools[name] = [u for _, uids in self.buildings[name] for u in uids]
             else:
                 self.pools[name] = [make(tmpl.cls, tmpl.shape, tmpl.size) for _ in range(tmpl.count)]
@@ -99,8 +100,8 @@ class BodyPool:
         self.radius = np.array(radius)
         self.z = np.full((n, 2), PARK_Z)
         self.in_use = np.zeros(n, dtype=bool)
-        self.shown = np.ones(n, dtype=bool)            # as created
-        for uid in fixed:                               # fixed ground: in place, and in use, for ever
+        self.shown = np.ones(n, dtype=bool)  # as created
+        for uid in fixed:  # fixed ground: in place, and in use, for ever
             _, _, centre_z = FIXED_BOXES[uid][2]
             self.centre[uid] = FIXED_BOXES[uid][2][:2]
             self.z[uid] = (centre_z - height[uid], centre_z + height[uid])
@@ -111,7 +112,7 @@ class BodyPool:
         self._cullable[self.ego] = False
         self._cars = np.array(self.cars)
         self._peds = np.array(self.pedestrians)
-        self.z[self._cars] = (0.0, 2.0 * self._car_half_height)          # where actors stand when active
+        self.z[self._cars] = (0.0, 2.0 * self._car_half_height)  # where actors stand when active
         self.z[self._peds] = (SIDEWALK_HEIGHT, SIDEWALK_HEIGHT + 2.0 * self._ped_half_height)
         self.show(np.zeros(n, dtype=bool))
 
@@ -124,7 +125,7 @@ class BodyPool:
 
     def _building_spots(self, name: str, spots: list) -> dict[int, tuple]:
         """uid -> position for the layout's buildings of one template: the lowest free box that is tall enough."""
-        top = TEMPLATES[name].size[2]               # the layout places the template's box: centre z = height - top
+        top = TEMPLATES[name].size[2]  # the layout places the template's box: centre z = height - top
         free = [list(uids) for _, uids in self.buildings[name]]
         out = {}
         for cx, cy, cz in spots:
@@ -175,8 +176,9 @@ class BodyPool:
     def place_ego(self, x: float, y: float, heading: float, visible: bool) -> None:
         h = 0.5 * heading
         pos = (x, y, self._car_half_height) if visible else (0.0, 0.0, PARK_Z)
-        self._p.resetBasePositionAndOrientation(self.ego, pos, (0.0, 0.0, math.sin(h), math.cos(h)),
-                                                physicsClientId=self.client)
+        self._p.resetBasePositionAndOrientation(
+            self.ego, pos, (0.0, 0.0, math.sin(h), math.cos(h)), physicsClientId=self.client
+        )
         self.in_use[self.ego] = visible
 
     # ------------------------------------------------------------------ what TinyRenderer draws

@@ -28,6 +28,7 @@ things keep a frame cheap (from ~3.2 ms to ~0.8 ms) while drawing the same scene
 * **Short building boxes** (``scene.BUILDING_HEIGHTS``): a building is buried < 3 m instead of up to 18 m.
 * Only active actors are moved, and only bodies whose visibility changes are touched.
 """
+
 from __future__ import annotations
 
 import math
@@ -77,8 +78,8 @@ class FlatGround:
 
     UPPER_Z = SIDEWALK_TOP_Z
     LOWER_Z = ROAD_TOP_Z
-    CENTRE = NUM_CLASSES           # lookup codes settled afterwards: on the centre line (a dash or road by x),
-    KERB = NUM_CLASSES + 1         # and a kerb's face (Sidewalks)
+    CENTRE = NUM_CLASSES  # lookup codes settled afterwards: on the centre line (a dash or road by x),
+    KERB = NUM_CLASSES + 1  # and a kerb's face (Sidewalks)
     _RES = 0.01
     _Y_MIN = -200.0
     _LUT_UP = _LUT_LOW = None
@@ -102,8 +103,9 @@ class FlatGround:
         low[ay <= LINE_HALF_WIDTH] = cls.CENTRE
         return up, low
 
-    def classify(self, rays: np.ndarray, ex: float, ey: float, c: float, s: float, ratio: float,
-                 reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def classify(
+        self, rays: np.ndarray, ex: float, ey: float, c: float, s: float, ratio: float, reach: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Classes hit by downward rays from the eye (ex, ey), heading (cos, sin) = (c, s), that cross
         ``UPPER_Z`` at ``rays`` = (forward, left) (shape (2, n)) from the eye in the heading's frame, and
         ``LOWER_Z`` at ``ratio`` times that. ``reach`` bounds the rays' horizontal distance from the eye.
@@ -111,7 +113,7 @@ class FlatGround:
         hit a kerb's face with where (as a multiple of the distance to ``UPPER_Z``, between 1 and ``ratio``)."""
         inv = 1.0 / self._RES
         origin = (ey - self._Y_MIN) * inv
-        lateral = np.dot((s * inv, c * inv), rays)          # y - ey at UPPER_Z, in table cells
+        lateral = np.dot((s * inv, c * inv), rays)  # y - ey at UPPER_Z, in table cells
         cell = lateral + origin
         up = self._LUT_UP.take(cell.astype(np.intp), mode="clip")
         cell = lateral * ratio
@@ -121,10 +123,10 @@ class FlatGround:
         np.copyto(cls, up, where=upper)
 
         x0, x1 = GROUND_X
-        ends = ex - reach < x0 or ex + reach > x1            # near the ends of the street only
+        ends = ex - reach < x0 or ex + reach > x1  # near the ends of the street only
         junction = abs(self.junction_x - ex) <= reach + self._side_half
         if junction or ends:
-            along = np.dot((c, -s), rays)                   # x - ex at UPPER_Z
+            along = np.dot((c, -s), rays)  # x - ex at UPPER_Z
             if junction:
                 near = np.abs(along - (self.junction_x - ex)) <= self._side_half
                 near &= upper
@@ -138,8 +140,9 @@ class FlatGround:
             n = self.dash_x.size
             if n:
                 k = np.searchsorted(self.dash_x, x)
-                gap = np.minimum(np.abs(x - self.dash_x[np.maximum(k - 1, 0)]),
-                                 np.abs(x - self.dash_x[np.minimum(k, n - 1)]))
+                gap = np.minimum(
+                    np.abs(x - self.dash_x[np.maximum(k - 1, 0)]), np.abs(x - self.dash_x[np.minimum(k, n - 1)])
+                )
                 cls[centre] = np.where(gap <= self._dash_half, ROADLINES, ROADS)
             else:
                 cls[centre] = ROADS
@@ -147,7 +150,7 @@ class FlatGround:
         at = np.empty(0)
         if kerb.size:
             cls[kerb] = SIDEWALKS
-            lat = lateral.take(kerb) * self._RES            # never 0: the ray crosses the kerb line
+            lat = lateral.take(kerb) * self._RES  # never 0: the ray crosses the kerb line
             side = np.where(ey + ratio * lat >= 0.0, ROAD_HALF_WIDTH, -ROAD_HALF_WIDTH)
             at = np.minimum(np.maximum((side - ey) / lat, 1.0), ratio)
         return cls, upper, kerb, at
@@ -163,7 +166,7 @@ class SegmentationCamera:
         self.lut = pool.lut
         self.size = size
         self.projection = p.computeProjectionMatrixFOV(fov_deg, 1.0, NEAR, FAR, physicsClientId=client)
-        proj = np.array(self.projection, dtype=np.float64).reshape(4, 4).T   # pybullet: column-major
+        proj = np.array(self.projection, dtype=np.float64).reshape(4, 4).T  # pybullet: column-major
         self._px, self._py = proj[0, 0], proj[1, 1]
         # TinyRenderer's own reading of the clip planes from the matrix.
         self.near = proj[2, 3] / (proj[2, 2] - 1.0)
@@ -190,24 +193,24 @@ class SegmentationCamera:
         """Where each pixel's ray meets the ground levels, in the ego's frame (eye at the origin, heading 0)."""
         n = self.size
         view = np.array(self._view(-EYE_FORWARD, 0.0, 0.0), dtype=np.float64).reshape(4, 4).T
-        rot = view[:3, :3]                                   # world -> eye
+        rot = view[:3, :3]  # world -> eye
         # TinyRenderer samples pixel (col, row) at screen point (col, n - 1 - row) (it flips rows afterwards),
         # i.e. at NDC (2 col / n - 1, 2 (n - 1 - row) / n - 1).
         ndc = 2.0 * np.arange(n) / n - 1.0
         eye_dir = np.empty((n, n, 3))
         eye_dir[..., 0] = ndc[None, :] / self._px
         eye_dir[..., 1] = ndc[::-1][:, None] / self._py
-        eye_dir[..., 2] = -1.0                               # so the ray parameter is the eye depth
-        world = eye_dir @ rot                                # rows: rot.T @ d
+        eye_dir[..., 2] = -1.0  # so the ray parameter is the eye depth
+        world = eye_dir @ rot  # rows: rot.T @ d
         dz = world[..., 2].reshape(-1)
         with np.errstate(divide="ignore"):
             t_up = np.where(dz < 0.0, (FlatGround.UPPER_Z - EYE_HEIGHT) / dz, np.inf)
             t_low = np.where(dz < 0.0, (FlatGround.LOWER_Z - EYE_HEIGHT) / dz, np.inf)
         idx = np.flatnonzero(t_up <= self.far)
-        flat = world.reshape(-1, 3)[idx, :2] * t_up[idx, None]   # (forward, left) from the eye at UPPER_Z
+        flat = world.reshape(-1, 3)[idx, :2] * t_up[idx, None]  # (forward, left) from the eye at UPPER_Z
         self._g_idx = idx
         self._g_t_up = t_up[idx]
-        self._g_rays = np.ascontiguousarray(flat.T)              # (2, n): forward, left
+        self._g_rays = np.ascontiguousarray(flat.T)  # (2, n): forward, left
         self._g_depth_up = self._depth_value(t_up[idx])
         self._g_depth_low = self._depth_value(t_low[idx])
         self._g_ratio = (FlatGround.LOWER_Z - EYE_HEIGHT) / (FlatGround.UPPER_Z - EYE_HEIGHT)
@@ -221,13 +224,19 @@ class SegmentationCamera:
     def _composite_ground(self, uids: np.ndarray, depth: np.ndarray, x: float, y: float, heading: float) -> None:
         """Write the ground's uid into ``uids`` wherever the ground is nearer than what TinyRenderer drew."""
         d_obj = depth.reshape(-1).take(self._g_idx)
-        cand = (d_obj > self._g_depth_up).nonzero()[0]      # the ground can only win where the object is further
+        cand = (d_obj > self._g_depth_up).nonzero()[0]  # the ground can only win where the object is further
         if cand.size == 0:
             return
         c, s = math.cos(heading), math.sin(heading)
         cls, upper, kerb, at = self.ground.classify(
-            self._g_rays.take(cand, axis=1), x + EYE_FORWARD * c, y + EYE_FORWARD * s, c, s,
-            self._g_ratio, self._g_reach)
+            self._g_rays.take(cand, axis=1),
+            x + EYE_FORWARD * c,
+            y + EYE_FORWARD * s,
+            c,
+            s,
+            self._g_ratio,
+            self._g_reach,
+        )
         # Hits at the upper level are nearer than the object by the choice of ``cand``; the others are tested.
         d_obj = d_obj.take(cand)
         d_low = self._g_depth_low.take(cand)
@@ -260,7 +269,8 @@ class SegmentationCamera:
     # ------------------------------------------------------------------ frames
     def _image(self, view, size: int, projection) -> tuple[np.ndarray, np.ndarray]:
         _, _, _, depth, seg = self._p.getCameraImage(
-            size, size, view, projection, renderer=self._p.ER_TINY_RENDERER, physicsClientId=self.client)
+            size, size, view, projection, renderer=self._p.ER_TINY_RENDERER, physicsClientId=self.client
+        )
         # pybullet already keeps only the low 24 bits (the body uid) of object pixels; background is -1.
         return np.asarray(seg, dtype=np.int32).reshape(size, size), np.asarray(depth).reshape(size, size)
 

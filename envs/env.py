@@ -18,6 +18,7 @@ each car, injury probability per participant, people involved), ``reward_r1``, `
 (``x``, ``y``, ``heading``, ``speed``, ``steer_angle``, ``lane_offset``) and ``lane_departure``. On the last step
 ``info["outcome"]`` holds the paper's section IV-C metrics for the episode.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,8 +42,14 @@ MAX_SPEED_OBS = 40.0
 
 def _copy_actors(a: Actors) -> Actors:
     """A copy whose arrays are independent of ``a``'s (actors move and get hit in place)."""
-    return dataclasses.replace(a, **{f.name: getattr(a, f.name).copy() for f in dataclasses.fields(a)
-                                     if isinstance(getattr(a, f.name), np.ndarray)})
+    return dataclasses.replace(
+        a,
+        **{
+            f.name: getattr(a, f.name).copy()
+            for f in dataclasses.fields(a)
+            if isinstance(getattr(a, f.name), np.ndarray)
+        },
+    )
 
 
 class UrbanCollisionEnv(gym.Env):
@@ -56,16 +63,33 @@ class UrbanCollisionEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 15}
 
-    def __init__(self, camera: bool = True, image_size: int = 64, fov_deg: float = 90.0, reward: str = "r2",
-                 horizon_after_ttc_s: float | None = 3.0, max_episode_s: float = 15.0, mu: float = 1.0,
-                 occupants_per_car: int = 1, ego_mass: float = 1500.0, car_mass: float = 1500.0,
-                 substeps: int = 8, render_mode: str | None = None):
+    def __init__(
+        self,
+        camera: bool = True,
+        image_size: int = 64,
+        fov_deg: float = 90.0,
+        reward: str = "r2",
+        horizon_after_ttc_s: float | None = 3.0,
+        max_episode_s: float = 15.0,
+        mu: float = 1.0,
+        occupants_per_car: int = 1,
+        ego_mass: float = 1500.0,
+        car_mass: float = 1500.0,
+        substeps: int = 8,
+        render_mode: str | None = None,
+    ):
         checks = {
-            "image_size": image_size >= 8, "fov_deg": 10.0 <= fov_deg <= 170.0, "mu": mu > 0.0,
-            "max_episode_s": max_episode_s > 0.0, "occupants_per_car": occupants_per_car >= 1,
-            "ego_mass": ego_mass > 0.0, "car_mass": car_mass > 0.0, "substeps": substeps >= 1,
+            "image_size": image_size >= 8,
+            "fov_deg": 10.0 <= fov_deg <= 170.0,
+            "mu": mu > 0.0,
+            "max_episode_s": max_episode_s > 0.0,
+            "occupants_per_car": occupants_per_car >= 1,
+            "ego_mass": ego_mass > 0.0,
+            "car_mass": car_mass > 0.0,
+            "substeps": substeps >= 1,
             "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
-            "reward": reward in REWARDS, "render_mode": render_mode in (None, "rgb_array"),
+            "reward": reward in REWARDS,
+            "render_mode": render_mode in (None, "rgb_array"),
         }
         for key, ok in checks.items():
             if not ok:
@@ -83,10 +107,12 @@ class UrbanCollisionEnv(gym.Env):
         self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
 
         s = self.image_size
-        self.observation_space = spaces.Dict({
-            "seg": spaces.Box(0, NUM_CLASSES - 1, (s, s), np.uint8),
-            "speed": spaces.Box(0.0, MAX_SPEED_OBS, (1,), np.float32),
-        })
+        self.observation_space = spaces.Dict(
+            {
+                "seg": spaces.Box(0, NUM_CLASSES - 1, (s, s), np.uint8),
+                "speed": spaces.Box(0.0, MAX_SPEED_OBS, (1,), np.float32),
+            }
+        )
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
 
         self._client = None
@@ -212,8 +238,9 @@ class UrbanCollisionEnv(gym.Env):
                 cx = act.car_xy[i, 0] + act.car_vel[i, 0] * tau
                 cy = act.car_xy[i, 1] + act.car_vel[i, 1] * tau
                 h = act.car_heading[i]
-                if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw,
-                                      cx, cy, math.cos(h), math.sin(h), self._hl, self._hw):
+                if geometry.rect_rect(
+                    ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, math.cos(h), math.sin(h), self._hl, self._hw
+                ):
                     hits.append(self._vehicle_crash(i, t0 + tau, c, s))
                     crashed = True
             for i in rect_idx:
@@ -261,11 +288,19 @@ class UrbanCollisionEnv(gym.Env):
         ``planning_twin`` continues bit-identically. For privileged planners, which re-simulate from the present."""
         if self.scenario is None:
             raise RuntimeError("call reset() before snapshot()")
-        return {"scenario": self.scenario, "layout": self.layout, "horizon_steps": self.horizon_steps,
-                "ego": self.ego.copy(), "t_step": self.t_step, "collisions": list(self.collisions),
-                "returns": dict(self.returns), "ever_departed": self.ever_departed, "min_speed": self.min_speed,
-                "last_end": self._last_end,
-                "actors": _copy_actors(self.actors)}
+        return {
+            "scenario": self.scenario,
+            "layout": self.layout,
+            "horizon_steps": self.horizon_steps,
+            "ego": self.ego.copy(),
+            "t_step": self.t_step,
+            "collisions": list(self.collisions),
+            "returns": dict(self.returns),
+            "ever_departed": self.ever_departed,
+            "min_speed": self.min_speed,
+            "last_end": self._last_end,
+            "actors": _copy_actors(self.actors),
+        }
 
     def restore(self, snap: dict) -> None:
         new_layout = getattr(self, "layout", None) is not snap["layout"]
@@ -281,20 +316,40 @@ class UrbanCollisionEnv(gym.Env):
 
     def planning_twin(self) -> UrbanCollisionEnv:
         """A camera-less env with the same physics, rewards and horizon, to ``restore`` snapshots into."""
-        return UrbanCollisionEnv(camera=False, image_size=self.image_size, fov_deg=self.fov_deg,
-                                 reward=self.reward_name, horizon_after_ttc_s=self.horizon_after_ttc_s,
-                                 max_episode_s=self.max_episode_s, mu=self.params.mu,
-                                 occupants_per_car=self.occupants_per_car, ego_mass=self.ego_mass,
-                                 car_mass=self.car_mass, substeps=self.substeps)
+        return UrbanCollisionEnv(
+            camera=False,
+            image_size=self.image_size,
+            fov_deg=self.fov_deg,
+            reward=self.reward_name,
+            horizon_after_ttc_s=self.horizon_after_ttc_s,
+            max_episode_s=self.max_episode_s,
+            mu=self.params.mu,
+            occupants_per_car=self.occupants_per_car,
+            ego_mass=self.ego_mass,
+            car_mass=self.car_mass,
+            substeps=self.substeps,
+        )
 
     # ------------------------------------------------------------------ collisions
     def _pedestrian_hit(self, i: int, t: float) -> dict:
         risk = pedestrian_injury(self.ego.v)
-        return {"kind": "pedestrian", "id": int(i), "class": "Pedestrians", "time": t,
-                "hazard": bool(self.actors.ped_hazard[i]), "impact_speed": self.ego.v,
-                "relative_speed": self.ego.v, "delta_v_ego": 0.0, "delta_v_other": self.ego.v,
-                "injury": [risk], "n_involved": 1, "injury_sum": risk, "pedestrian_injury": risk,
-                "occupant_injury": 0.0, "ego_occupant_injury": 0.0}
+        return {
+            "kind": "pedestrian",
+            "id": int(i),
+            "class": "Pedestrians",
+            "time": t,
+            "hazard": bool(self.actors.ped_hazard[i]),
+            "impact_speed": self.ego.v,
+            "relative_speed": self.ego.v,
+            "delta_v_ego": 0.0,
+            "delta_v_other": self.ego.v,
+            "injury": [risk],
+            "n_involved": 1,
+            "injury_sum": risk,
+            "pedestrian_injury": risk,
+            "occupant_injury": 0.0,
+            "ego_occupant_injury": 0.0,
+        }
 
     def _vehicle_crash(self, i: int, t: float, c: float, s: float) -> dict:
         ego = self.ego
@@ -304,21 +359,46 @@ class UrbanCollisionEnv(gym.Env):
         p_ego, p_other = occupant_injury(dv_ego), occupant_injury(dv_other)
         n = self.occupants_per_car
         injury = [p_ego] * n + [p_other] * n
-        return {"kind": "vehicle", "id": int(i), "class": "Vehicles", "time": t,
-                "hazard": bool(self.actors.car_hazard[i]), "impact_speed": ego.v, "relative_speed": rel,
-                "delta_v_ego": dv_ego, "delta_v_other": dv_other, "injury": injury, "n_involved": 2 * n,
-                "injury_sum": float(sum(injury)), "pedestrian_injury": 0.0,
-                "occupant_injury": float(sum(injury)), "ego_occupant_injury": n * p_ego}
+        return {
+            "kind": "vehicle",
+            "id": int(i),
+            "class": "Vehicles",
+            "time": t,
+            "hazard": bool(self.actors.car_hazard[i]),
+            "impact_speed": ego.v,
+            "relative_speed": rel,
+            "delta_v_ego": dv_ego,
+            "delta_v_other": dv_other,
+            "injury": injury,
+            "n_involved": 2 * n,
+            "injury_sum": float(sum(injury)),
+            "pedestrian_injury": 0.0,
+            "occupant_injury": float(sum(injury)),
+            "ego_occupant_injury": n * p_ego,
+        }
 
     def _static_crash(self, i: int, cls: int, t: float) -> dict:
         # A static object is rigid: the ego stops dead, so its delta-v is its whole speed.
         dv = self.ego.v
         n = self.occupants_per_car
         risk = occupant_injury(dv)
-        return {"kind": "static", "id": i, "class": CLASS_NAMES[cls], "time": t, "hazard": False,
-                "impact_speed": dv, "relative_speed": dv, "delta_v_ego": dv, "delta_v_other": 0.0,
-                "injury": [risk] * n, "n_involved": n, "injury_sum": n * risk, "pedestrian_injury": 0.0,
-                "occupant_injury": n * risk, "ego_occupant_injury": n * risk}
+        return {
+            "kind": "static",
+            "id": i,
+            "class": CLASS_NAMES[cls],
+            "time": t,
+            "hazard": False,
+            "impact_speed": dv,
+            "relative_speed": dv,
+            "delta_v_ego": dv,
+            "delta_v_other": 0.0,
+            "injury": [risk] * n,
+            "n_involved": n,
+            "injury_sum": n * risk,
+            "pedestrian_injury": 0.0,
+            "occupant_injury": n * risk,
+            "ego_occupant_injury": n * risk,
+        }
 
     # ------------------------------------------------------------------ observation / info
     def _observe(self) -> dict:
@@ -335,10 +415,22 @@ class UrbanCollisionEnv(gym.Env):
 
     def _info(self, hits: list[dict], r1: float, r2: float) -> dict:
         e = self.ego
-        return {"t": self.t_step * DT, "step": self.t_step, "collisions": hits, "reward_r1": r1, "reward_r2": r2,
-                "x": e.x, "y": e.y, "heading": e.psi, "speed": e.v, "steer_angle": e.delta,
-                "lane_offset": e.y - EGO_LANE_Y, "lane_departure": abs(e.y - EGO_LANE_Y) > LANE_WIDTH / 2,
-                "hazard": self.scenario.hazard, "ttc": self.scenario.ttc}
+        return {
+            "t": self.t_step * DT,
+            "step": self.t_step,
+            "collisions": hits,
+            "reward_r1": r1,
+            "reward_r2": r2,
+            "x": e.x,
+            "y": e.y,
+            "heading": e.psi,
+            "speed": e.v,
+            "steer_angle": e.delta,
+            "lane_offset": e.y - EGO_LANE_Y,
+            "lane_departure": abs(e.y - EGO_LANE_Y) > LANE_WIDTH / 2,
+            "hazard": self.scenario.hazard,
+            "ttc": self.scenario.ttc,
+        }
 
     def outcome(self) -> dict:
         """The paper's section IV-C metrics for the episode so far, as flat scalars."""
@@ -347,7 +439,9 @@ class UrbanCollisionEnv(gym.Env):
         first = cols[0]["impact_speed"] if cols else float("nan")
         spec = self.scenario
         return {
-            "hazard": spec.hazard, "ttc": spec.ttc, "ego_speed": spec.ego_speed,
+            "hazard": spec.hazard,
+            "ttc": spec.ttc,
+            "ego_speed": spec.ego_speed,
             "pedestrian_collision": int("pedestrian" in kinds),
             "vehicle_collision": int("vehicle" in kinds),
             "static_collision": int("static" in kinds),
@@ -358,8 +452,11 @@ class UrbanCollisionEnv(gym.Env):
             "ego_occupant_injury": float(sum(c["ego_occupant_injury"] for c in cols)),
             "speed_at_collision": float(first),
             "lane_departure": int(self.ever_departed),
-            "min_speed": float(self.min_speed), "final_speed": float(self.ego.v),
-            "steps": self.t_step, "return_r1": self.returns["r1"], "return_r2": self.returns["r2"],
+            "min_speed": float(self.min_speed),
+            "final_speed": float(self.ego.v),
+            "steps": self.t_step,
+            "return_r1": self.returns["r1"],
+            "return_r2": self.returns["r2"],
             "end": self._last_end or "running",
         }
 
@@ -392,5 +489,5 @@ class UrbanCollisionEnv(gym.Env):
         h = max(seg_img.shape[0], bev_img.shape[0])
         canvas = np.zeros((h, seg_img.shape[1] + bev_img.shape[1] + 8, 3), dtype=np.uint8)
         canvas[: seg_img.shape[0], : seg_img.shape[1]] = seg_img
-        canvas[: bev_img.shape[0], seg_img.shape[1] + 8:] = bev_img
+        canvas[: bev_img.shape[0], seg_img.shape[1] + 8 :] = bev_img
         return canvas

@@ -6,6 +6,7 @@ poles, tree trunks, sign posts). A broad phase over the whole step picks the few
 ego's swept box; the narrow phase runs per sub-step on those only. This is cheaper than pybullet's
 contact queries (~10 us each) and lets the camera-off mode skip pybullet entirely.
 """
+
 from __future__ import annotations
 
 import math
@@ -13,8 +14,7 @@ import math
 import numpy as np
 
 
-def rect_circle(ex: float, ey: float, c: float, s: float, hl: float, hw: float,
-                px: float, py: float, r: float) -> bool:
+def rect_circle(ex: float, ey: float, c: float, s: float, hl: float, hw: float, px: float, py: float, r: float) -> bool:
     """Oriented rectangle (centre, cos/sin heading, half length/width) against a circle."""
     dx, dy = px - ex, py - ey
     lx = dx * c + dy * s
@@ -24,8 +24,20 @@ def rect_circle(ex: float, ey: float, c: float, s: float, hl: float, hw: float,
     return (lx - qx) ** 2 + (ly - qy) ** 2 <= r * r
 
 
-def rect_rect(ax: float, ay: float, ac: float, as_: float, ahl: float, ahw: float,
-              bx: float, by: float, bc: float, bs: float, bhl: float, bhw: float) -> bool:
+def rect_rect(
+    ax: float,
+    ay: float,
+    ac: float,
+    as_: float,
+    ahl: float,
+    ahw: float,
+    bx: float,
+    by: float,
+    bc: float,
+    bs: float,
+    bhl: float,
+    bhw: float,
+) -> bool:
     """Separating-axis test for two oriented rectangles."""
     dx, dy = bx - ax, by - ay
     for ux, uy in ((ac, as_), (-as_, ac), (bc, bs), (-bs, bc)):
@@ -40,8 +52,12 @@ def near(centres: np.ndarray, radii: np.ndarray | float, lo: np.ndarray, hi: np.
     """Indices of footprints (bounding circles) that touch the box [lo, hi]."""
     if len(centres) == 0:
         return np.zeros(0, dtype=np.intp)
-    ok = ((centres[:, 0] + radii >= lo[0]) & (centres[:, 0] - radii <= hi[0])
-          & (centres[:, 1] + radii >= lo[1]) & (centres[:, 1] - radii <= hi[1]))
+    ok = (
+        (centres[:, 0] + radii >= lo[0])
+        & (centres[:, 0] - radii <= hi[0])
+        & (centres[:, 1] + radii >= lo[1])
+        & (centres[:, 1] - radii <= hi[1])
+    )
     return np.flatnonzero(ok)
 
 

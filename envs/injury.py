@@ -7,6 +7,7 @@ Both are the models the paper uses (Porav & Newman 2018, Eq. 2, 3 and 8):
 * car occupants: Joksch (1993), frontal-impact severe-injury risk,
   P = min(1, (dv_mph / 71) ** 4) with dv the occupant's velocity change, 0.621 mph per km/h.
 """
+
 from __future__ import annotations
 
 import math

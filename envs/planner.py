@@ -16,6 +16,7 @@ then straightens, which moves the car sideways by about a lane without leaving i
 Candidates are tried in order of gentleness (braking first) and a rollout stops as soon as its cost reaches
 the best so far, or the search stops once some candidate costs nothing, which keeps planning cheap.
 """
+
 from __future__ import annotations
 
 import math
@@ -29,11 +30,11 @@ from .env import DT, UrbanCollisionEnv
 
 @dataclass(frozen=True)
 class Manoeuvre:
-    pedal: float             # -1 full brake .. 1 full throttle, held throughout
-    steer: float = 0.0       # -1 full left .. 1 full right; 0 keeps the wheel straight
-    delay: int = 0           # steps before the steering starts
-    shape: str = "swerve"    # 'swerve' holds the steer; 'lane_change' steers, counter-steers, straightens
-    hold: int = 0            # steps of steering (and then of counter-steering) in a lane change
+    pedal: float  # -1 full brake .. 1 full throttle, held throughout
+    steer: float = 0.0  # -1 full left .. 1 full right; 0 keeps the wheel straight
+    delay: int = 0  # steps before the steering starts
+    shape: str = "swerve"  # 'swerve' holds the steer; 'lane_change' steers, counter-steers, straightens
+    hold: int = 0  # steps of steering (and then of counter-steering) in a lane change
 
     def action(self, k: int) -> np.ndarray:
         """The action ``k`` steps after the manoeuvre started."""
@@ -49,10 +50,12 @@ class Manoeuvre:
         return np.array([steer, self.pedal], dtype=np.float32)
 
 
-def candidate_manoeuvres(pedals: Sequence[float] = (-1.0, -0.5, 0.0, 1.0),
-                         steers: Sequence[float] = (0.3, 0.6, 1.0),
-                         delays_s: Sequence[float] = (0.0, 0.2, 0.4),
-                         lane_change_s: Sequence[float] = (0.3, 0.6)) -> list[Manoeuvre]:
+def candidate_manoeuvres(
+    pedals: Sequence[float] = (-1.0, -0.5, 0.0, 1.0),
+    steers: Sequence[float] = (0.3, 0.6, 1.0),
+    delays_s: Sequence[float] = (0.0, 0.2, 0.4),
+    lane_change_s: Sequence[float] = (0.3, 0.6),
+) -> list[Manoeuvre]:
     """Every combination, gentlest first: straight-line braking, the other straight pedals, then steering
     manoeuvres by increasing steer, later starts before earlier ones."""
     if not pedals or -1.0 not in [float(p) for p in pedals]:

@@ -3,6 +3,7 @@
 They read the ego state from ``info`` (x, y, heading, speed), never from the env's internals, so they run
 unchanged on a recorded or wrapped env.
 """
+
 from __future__ import annotations
 
 import math
@@ -45,9 +46,17 @@ class NoisyAutopilot:
 
     name = "autopilot"
 
-    def __init__(self, steer_noise: float = 0.15, throttle_noise: float = 0.15, excursion_rate: float = 0.04,
-                 excursion_s: tuple[float, float] = (0.4, 1.5), onset_excursion_prob: float = 0.5,
-                 hard_swerve_share: float = 0.2, dt: float = 1.0 / 15.0, params: VehicleParams = VehicleParams()):
+    def __init__(
+        self,
+        steer_noise: float = 0.15,
+        throttle_noise: float = 0.15,
+        excursion_rate: float = 0.04,
+        excursion_s: tuple[float, float] = (0.4, 1.5),
+        onset_excursion_prob: float = 0.5,
+        hard_swerve_share: float = 0.2,
+        dt: float = 1.0 / 15.0,
+        params: VehicleParams = VehicleParams(),
+    ):
         probs = (excursion_rate, onset_excursion_prob, hard_swerve_share)
         if min(steer_noise, throttle_noise) < 0 or not all(0.0 <= p <= 1.0 for p in probs):
             raise ValueError("autopilot noise levels must be >= 0 and its probabilities in [0, 1]")
@@ -93,7 +102,7 @@ class NoisyAutopilot:
         lookahead = max(6.0, (0.6 if self.kind == "lane_change" else 1.2) * v)
         alpha = math.atan2(target_y - float(info["y"]), lookahead) - float(info["heading"])
         delta = math.atan(2.0 * self.params.wheelbase * math.sin(alpha) / lookahead)
-        steer = -delta / self.params.max_steer          # positive action steers right
+        steer = -delta / self.params.max_steer  # positive action steers right
         pedal = 0.5 * (self.target_speed - v)
         # Steering noise is a share of the grip-limited wheel angle at this speed: the same action noise
         # that is a gentle wobble at 5 m/s would saturate the tyres at 30 m/s.
@@ -105,5 +114,5 @@ class NoisyAutopilot:
             if self.kind in ("brake", "swerve"):
                 action = np.where(np.isnan(self.fixed), action, self.fixed)
             if self.kind == "brake":
-                self.target_speed = min(self.target_speed, v)   # after braking, carry on at the lower speed
+                self.target_speed = min(self.target_speed, v)  # after braking, carry on at the lower speed
         return np.clip(action, -1.0, 1.0).astype(np.float32)

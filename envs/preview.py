@@ -1,7 +1,8 @@
 """Write a GIF (or a PNG strip) of one episode: segmentation view and bird's-eye view side by side.
 
-    python -m envs.preview --out preview.gif --hazard pedestrian --ttc 1.0 --speed 20 --policy braking
+python -m envs.preview --out preview.gif --hazard pedestrian --ttc 1.0 --speed 20 --policy braking
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,14 @@ POLICIES = {"braking": StraightLineBraking, "autopilot": NoisyAutopilot, "hold":
 def record(spec: ScenarioSpec, policy_name: str = "braking", max_steps: int | None = None) -> tuple[list, dict]:
     env = UrbanCollisionEnv(camera=True, render_mode="rgb_array")
     frames = []
-    episode = rollout(env, POLICIES[policy_name](), spec, on_reset=lambda obs, info: frames.append(env.render()),
-                      on_step=lambda obs, action, reward, info: frames.append(env.render()), max_steps=max_steps)
+    episode = rollout(
+        env,
+        POLICIES[policy_name](),
+        spec,
+        on_reset=lambda obs, info: frames.append(env.render()),
+        on_step=lambda obs, action, reward, info: frames.append(env.render()),
+        max_steps=max_steps,
+    )
     env.close()
     return frames, episode.info.get("outcome", {})
 
@@ -60,10 +67,15 @@ def main(argv=None) -> None:
     ap.add_argument("--pedestrians", type=int, default=6)
     ap.add_argument("--policy", choices=sorted(POLICIES), default="braking")
     args = ap.parse_args(argv)
-    spec = ScenarioSpec(seed=args.seed, ttc=args.ttc, ego_speed=args.speed, n_cars=args.cars,
-                        n_pedestrians=args.pedestrians,
-                        p_pedestrian=1.0 if args.hazard in ("pedestrian", "both") else 0.0,
-                        p_car=1.0 if args.hazard in ("car", "both") else 0.0)
+    spec = ScenarioSpec(
+        seed=args.seed,
+        ttc=args.ttc,
+        ego_speed=args.speed,
+        n_cars=args.cars,
+        n_pedestrians=args.pedestrians,
+        p_pedestrian=1.0 if args.hazard in ("pedestrian", "both") else 0.0,
+        p_car=1.0 if args.hazard in ("car", "both") else 0.0,
+    )
     frames, outcome = record(spec, args.policy)
     save(frames, args.out)
     print(f"wrote {args.out} ({len(frames)} frames); outcome: {outcome}")

@@ -3,6 +3,7 @@
 R1 = -(n_ped + n_occ) counts the people involved; R2 = -(sum P_ped + sum P_occ) weights them by the
 empirical injury risks of ``envs.injury``. Otherwise the reward is 0, exactly as in the paper.
 """
+
 from __future__ import annotations
 
 REWARDS = ("r1", "r2")

@@ -6,6 +6,7 @@ through here, so the order of reset, policy reset, the planner's ``bind`` and th
 A policy is anything with ``reset(seed)`` and ``act(obs, info) -> action``; one that also has ``bind(env)`` (the
 privileged planner) is handed the env after every reset, because it reads the true state.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -40,8 +41,14 @@ StepHook = Callable[[dict, np.ndarray, float, dict], Any]
 ResetHook = Callable[[dict, dict], Any]
 
 
-def rollout(env, policy: Policy, spec, on_step: StepHook | None = None, max_steps: int | None = None,
-            on_reset: ResetHook | None = None) -> Episode:
+def rollout(
+    env,
+    policy: Policy,
+    spec,
+    on_step: StepHook | None = None,
+    max_steps: int | None = None,
+    on_reset: ResetHook | None = None,
+) -> Episode:
     """Replay scenario ``spec`` under ``policy`` until the env ends the episode (or ``max_steps`` steps).
 
     ``on_reset(obs, info)`` sees the first observation; ``on_step(obs, action, reward, info)`` sees every

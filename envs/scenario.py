@@ -8,6 +8,7 @@ The hazard geometry is defined so that, at constant ego speed (action [0, 0]), f
 exactly t = TTC: the hazard pedestrian's centre, or the near side of the hazard car, is at the point the
 ego's front bumper reaches at TTC.
 """
+
 from __future__ import annotations
 
 import json
@@ -60,7 +61,9 @@ class ScenarioSpec:
         for name in ("n_cars", "n_pedestrians"):
             value = getattr(self, name)
             if int(value) != value or not 0 <= value <= MAX_OTHERS:
-                raise ValueError(f"scenario field {name}={value!r} is out of range: it must be an integer in 0..{MAX_OTHERS}")
+                raise ValueError(
+                    f"scenario field {name}={value!r} is out of range: it must be an integer in 0..{MAX_OTHERS}"
+                )
         for name in ("p_pedestrian", "p_car"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
@@ -127,12 +130,13 @@ class BankEntry:
     hazard: str
     ttc: float
     speed: float
-    index: int        # position within its cell
+    index: int  # position within its cell
     spec: ScenarioSpec
 
 
-def test_bank(ttcs=BANK_TTCS, speeds=BANK_SPEEDS, hazards=BANK_HAZARDS, per_cell: int = 20,
-              seed: int = 2018) -> list[BankEntry]:
+def test_bank(
+    ttcs=BANK_TTCS, speeds=BANK_SPEEDS, hazards=BANK_HAZARDS, per_cell: int = 20, seed: int = 2018
+) -> list[BankEntry]:
     """The seeded evaluation bank (docs/design.md §6).
 
     A scenario's free parameters depend only on (seed, hazard, TTC, speed, index), not on which other cells

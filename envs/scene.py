@@ -14,6 +14,7 @@ Collision footprints are kept here as plain arrays (axis-aligned rectangles and 
 the collision model (``envs.geometry``) is exact 2D geometry in numpy, so the camera-off mode needs no
 pybullet at all and camera on/off give identical outcomes.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -21,19 +22,56 @@ from dataclasses import dataclass, field
 import numpy as np
 
 CLASS_NAMES = (
-    "None", "Buildings", "Fences", "Other", "Pedestrians", "Poles", "RoadLines",
-    "Roads", "Sidewalks", "Vegetation", "Vehicles", "Walls", "TrafficSigns",
+    "None",
+    "Buildings",
+    "Fences",
+    "Other",
+    "Pedestrians",
+    "Poles",
+    "RoadLines",
+    "Roads",
+    "Sidewalks",
+    "Vegetation",
+    "Vehicles",
+    "Walls",
+    "TrafficSigns",
 )
 NUM_CLASSES = len(CLASS_NAMES)
-(NONE, BUILDINGS, FENCES, OTHER, PEDESTRIANS, POLES, ROADLINES,
- ROADS, SIDEWALKS, VEGETATION, VEHICLES, WALLS, TRAFFICSIGNS) = range(NUM_CLASSES)
+(
+    NONE,
+    BUILDINGS,
+    FENCES,
+    OTHER,
+    PEDESTRIANS,
+    POLES,
+    ROADLINES,
+    ROADS,
+    SIDEWALKS,
+    VEGETATION,
+    VEHICLES,
+    WALLS,
+    TRAFFICSIGNS,
+) = range(NUM_CLASSES)
 
 # CARLA's Cityscapes-style palette, so frames look like the paper's Fig. 4.
-PALETTE = np.array([
-    (0, 0, 0), (70, 70, 70), (190, 153, 153), (250, 170, 160), (220, 20, 60), (153, 153, 153),
-    (157, 234, 50), (128, 64, 128), (244, 35, 232), (107, 142, 35), (0, 0, 142), (102, 102, 156),
-    (220, 220, 0),
-], dtype=np.uint8)
+PALETTE = np.array(
+    [
+        (0, 0, 0),
+        (70, 70, 70),
+        (190, 153, 153),
+        (250, 170, 160),
+        (220, 20, 60),
+        (153, 153, 153),
+        (157, 234, 50),
+        (128, 64, 128),
+        (244, 35, 232),
+        (107, 142, 35),
+        (0, 0, 142),
+        (102, 102, 156),
+        (220, 220, 0),
+    ],
+    dtype=np.uint8,
+)
 
 LANE_WIDTH = 3.5
 EGO_LANE_Y = -1.75
@@ -42,8 +80,8 @@ ROAD_HALF_WIDTH = 3.5
 SIDEWALK_OUTER = 6.5
 SIDEWALK_HEIGHT = 0.15
 SCENE_X = (-40.0, 330.0)
-JUNCTION_HALF_WIDTH = 6.0   # half the side street's width; buildings keep clear of it
-PARK_Z = -60.0              # where unused pool bodies wait, far below the ground
+JUNCTION_HALF_WIDTH = 6.0  # half the side street's width; buildings keep clear of it
+PARK_Z = -60.0  # where unused pool bodies wait, far below the ground
 
 
 @dataclass(frozen=True)
@@ -53,6 +91,7 @@ class Template:
     Posts collide as circles but render as square boxes: pybullet tessellates cylinders into hundreds of
     triangles, which made TinyRenderer several times slower for no visible gain at 64x64.
     """
+
     cls: int
     shape: str
     size: tuple
@@ -80,18 +119,24 @@ TEMPLATES: dict[str, Template] = {
 # ROAD_TOP_Z + 0.002 (edge lines) and SIDEWALK_TOP_Z (sidewalks, a 0.15 m kerb above the road).
 _X_MID = 0.5 * (SCENE_X[0] + SCENE_X[1])
 _X_HALF = 0.5 * (SCENE_X[1] - SCENE_X[0]) + 40.0
-GROUND_X = (_X_MID - _X_HALF, _X_MID + _X_HALF)   # the ground's extent along the street
-SIDEWALK_WIDTH = 40.0                             # sidewalk boxes reach |y| = 3.5 + 40 (the land behind them)
+GROUND_X = (_X_MID - _X_HALF, _X_MID + _X_HALF)  # the ground's extent along the street
+SIDEWALK_WIDTH = 40.0  # sidewalk boxes reach |y| = 3.5 + 40 (the land behind them)
 ROAD_TOP_Z = 0.01
 SIDEWALK_TOP_Z = SIDEWALK_HEIGHT - 0.01
 LINE_HALF_WIDTH = 0.08
 EDGE_LINE_Y = ROAD_HALF_WIDTH - 0.2
 FIXED_BOXES = (
-    (ROADS, (_X_HALF, ROAD_HALF_WIDTH, ROAD_TOP_Z), (_X_MID, 0.0, 0.0)),              # carriageway
-    (SIDEWALKS, (_X_HALF, SIDEWALK_WIDTH / 2, SIDEWALK_HEIGHT / 2),
-     (_X_MID, ROAD_HALF_WIDTH + SIDEWALK_WIDTH / 2, SIDEWALK_TOP_Z - SIDEWALK_HEIGHT / 2)),
-    (SIDEWALKS, (_X_HALF, SIDEWALK_WIDTH / 2, SIDEWALK_HEIGHT / 2),
-     (_X_MID, -ROAD_HALF_WIDTH - SIDEWALK_WIDTH / 2, SIDEWALK_TOP_Z - SIDEWALK_HEIGHT / 2)),
+    (ROADS, (_X_HALF, ROAD_HALF_WIDTH, ROAD_TOP_Z), (_X_MID, 0.0, 0.0)),  # carriageway
+    (
+        SIDEWALKS,
+        (_X_HALF, SIDEWALK_WIDTH / 2, SIDEWALK_HEIGHT / 2),
+        (_X_MID, ROAD_HALF_WIDTH + SIDEWALK_WIDTH / 2, SIDEWALK_TOP_Z - SIDEWALK_HEIGHT / 2),
+    ),
+    (
+        SIDEWALKS,
+        (_X_HALF, SIDEWALK_WIDTH / 2, SIDEWALK_HEIGHT / 2),
+        (_X_MID, -ROAD_HALF_WIDTH - SIDEWALK_WIDTH / 2, SIDEWALK_TOP_Z - SIDEWALK_HEIGHT / 2),
+    ),
     (ROADLINES, (_X_HALF, LINE_HALF_WIDTH, 0.012), (_X_MID, EDGE_LINE_Y, 0.0)),  # solid edge lines
     (ROADLINES, (_X_HALF, LINE_HALF_WIDTH, 0.012), (_X_MID, -EDGE_LINE_Y, 0.0)),
 )
@@ -102,15 +147,16 @@ GROUND_POOLS = ("dash", "side_street")
 # these full heights (m) and uses the lowest free one that reaches the layout's height, buried by < 3 m.
 # Counts per building template; the tallest holds the template's whole count, so a layout never runs out.
 BUILDING_HEIGHTS = (9.0, 12.0, 15.0, 18.0, 21.0, 24.0)
-BUILDING_HEIGHT_COUNTS = (6, 6, 6, 6, 6, None)   # None: the template's count
+BUILDING_HEIGHT_COUNTS = (6, 6, 6, 6, 6, None)  # None: the template's count
 
 
 @dataclass
 class StaticLayout:
     """Where every pooled body goes this episode, and the obstacles the ego can crash into."""
+
     junction_x: float
     placements: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)
-    rects: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))    # cx, cy, hx, hy, class
+    rects: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # cx, cy, hx, hy, class
     circles: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # cx, cy, r, class
 
 
@@ -142,7 +188,7 @@ def sample_layout(rng: np.random.Generator, junction_x: float) -> StaticLayout:
             setback = rng.uniform(0.0, 4.0)
             height = rng.uniform(6.0, 24.0)
             cy = side * (SIDEWALK_OUTER + setback + hy)
-            placed[name].append((cx, cy, height - hz))   # sunk so that ``height`` shows above ground
+            placed[name].append((cx, cy, height - hz))  # sunk so that ``height`` shows above ground
             rects.append((cx, cy, hx, hy, BUILDINGS))
             used[name] += 1
             x = cx + hx

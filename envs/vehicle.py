@@ -21,6 +21,7 @@ Why these limits, and where their values come from:
 
 Length 4.5 m, width 1.8 m, wheelbase 2.7 m: a mid-size saloon.
 """
+
 from __future__ import annotations
 
 import math

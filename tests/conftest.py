@@ -1,4 +1,5 @@
 """Shared fixtures: real Hydra configs composed with the compose API into a temporary experiment root."""
+
 from __future__ import annotations
 
 import os
@@ -18,8 +19,17 @@ def stage_cfg(tmp_path):
 
     def make(stage: str, *overrides: str, root=None):
         root = root or tmp_path
-        return compose(stage, [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t",
-                               "scale=smoke", "threads=1", *overrides])
+        return compose(
+            stage,
+            [
+                f"paths.data_root={root}/data",
+                f"paths.runs_root={root}/runs",
+                "experiment=t",
+                "scale=smoke",
+                "threads=1",
+                *overrides,
+            ],
+        )
 
     return make
 
@@ -41,8 +51,18 @@ def smoke_builds(tmp_path_factory):
             previous = names[names.index(level) - 1] if names.index(level) else None
             if previous:
                 shutil.copytree(build(previous), root, dirs_exist_ok=True)
-            order[level](compose(stage_of[level], [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs",
-                                                   "experiment=t", "scale=smoke", "threads=1"]))
+            order[level](
+                compose(
+                    stage_of[level],
+                    [
+                        f"paths.data_root={root}/data",
+                        f"paths.runs_root={root}/runs",
+                        "experiment=t",
+                        "scale=smoke",
+                        "threads=1",
+                    ],
+                )
+            )
             built[level] = root
         return built[level]
 

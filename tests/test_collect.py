@@ -1,4 +1,5 @@
 """Phase 0 through the real pybullet scene and real HDF5 files."""
+
 from __future__ import annotations
 
 import json
@@ -26,8 +27,10 @@ def dataset_content(root: Path) -> dict:
     for path in sorted(root.glob("shard_*.h5")):
         with h5py.File(path, "r") as f:
             for key, g in f.items():
-                out[(path.name, key)] = ({k: g[k][...].tobytes() for k in EPISODE_KEYS},
-                                         {k: str(v) for k, v in g.attrs.items()})
+                out[(path.name, key)] = (
+                    {k: g[k][...].tobytes() for k in EPISODE_KEYS},
+                    {k: str(v) for k, v in g.attrs.items()},
+                )
     return out
 
 
@@ -66,10 +69,17 @@ def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
 def test_sigkill_then_resume_gives_exactly_the_uninterrupted_data(tmp_path, stage_cfg):
     overrides = ["collect.episodes=6", "collect.episodes_per_shard=1", "collect.num_workers=1"]
     root = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "worldmodel.collect", f"paths.data_root={root}/data",
-           f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke", *overrides]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "worldmodel.collect",
+        f"paths.data_root={root}/data",
+        f"paths.runs_root={root}/runs",
+        "experiment=t",
+        "scale=smoke",
+        *overrides,
+    ]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     rollouts = root / "data" / "t" / "rollouts"
     deadline = time.time() + 120
     while len(list(rollouts.glob("shard_*.h5"))) < 2 and time.time() < deadline:
@@ -102,8 +112,9 @@ def test_truncated_shard_is_named_in_the_error(stage_cfg, experiment_copy):
         validate(root)
     with pytest.raises(CorruptDataError, match="shard_00001.h5"):
         RolloutStore(root)
-    result = subprocess.run([sys.executable, "-m", "worldmodel.data", "validate", str(root)],
-                            capture_output=True, text=True, cwd=REPO)
+    result = subprocess.run(
+        [sys.executable, "-m", "worldmodel.data", "validate", str(root)], capture_output=True, text=True, cwd=REPO
+    )
     assert result.returncode == 1 and "shard_00001.h5" in result.stderr
 
 

@@ -1,5 +1,6 @@
 """DDPG: it learns tasks with known answers, its targets and soft updates follow the equations, and
 checkpoints restore it exactly. Real networks and optimisers throughout; every test runs in seconds on one thread."""
+
 from __future__ import annotations
 
 import copy
@@ -29,8 +30,13 @@ def filled_buffer(n: int, obs_dim: int, act_dim: int, seed: int = 0, capacity: i
     rng = np.random.default_rng(seed)
     buf = ReplayBuffer(capacity, obs_dim, act_dim)
     for _ in range(n):
-        buf.add(rng.normal(size=obs_dim), rng.uniform(-1, 1, act_dim), rng.normal(), rng.normal(size=obs_dim),
-                rng.random() < 0.5)
+        buf.add(
+            rng.normal(size=obs_dim),
+            rng.uniform(-1, 1, act_dim),
+            rng.normal(),
+            rng.normal(size=obs_dim),
+            rng.random() < 0.5,
+        )
     return buf
 
 
@@ -46,8 +52,17 @@ def test_learns_contextual_bandit_optimal_action():
     """One-step episodes, reward -||a - a*(s)||^2: the actor must end up at a*(s), a known function of s
     (linear where it is inside [-1, 1], saturated outside), using warm-up, exploration, replay and updates."""
     start = time.perf_counter()
-    cfg = DDPGConfig(actor_hidden=(64, 64), critic_hidden=(64, 64), actor_lr=1e-3, critic_lr=1e-3, tau=0.05,
-                     batch_size=64, buffer_size=10_000, exploration_noise=0.3, warmup_steps=500)
+    cfg = DDPGConfig(
+        actor_hidden=(64, 64),
+        critic_hidden=(64, 64),
+        actor_lr=1e-3,
+        critic_lr=1e-3,
+        tau=0.05,
+        batch_size=64,
+        buffer_size=10_000,
+        exploration_noise=0.3,
+        warmup_steps=500,
+    )
     agent = DDPG(obs_dim=3, act_dim=2, cfg=cfg, seed=0)
     buffer = ReplayBuffer(cfg.buffer_size, 3, 2)
     env_rng = np.random.default_rng(100)
@@ -80,8 +95,9 @@ def test_bootstraps_through_time_and_stops_at_termination(first_step_terminated,
     Stored correctly (s0 -> s1 not terminal, as for a time-limit truncation) the critic must learn the
     discounted values gamma^2, gamma, 1 at the optimal actions. If s0 -> s1 is flagged terminated, the value
     of s0 must drop to 0: the flag, not the data, decides whether the future is counted."""
-    cfg = DDPGConfig(actor_hidden=(32, 32), critic_hidden=(32, 32), actor_lr=1e-3, critic_lr=1e-3, gamma=0.8,
-                     tau=0.05, batch_size=64)
+    cfg = DDPGConfig(
+        actor_hidden=(32, 32), critic_hidden=(32, 32), actor_lr=1e-3, critic_lr=1e-3, gamma=0.8, tau=0.05, batch_size=64
+    )
     agent = DDPG(obs_dim=3, act_dim=1, cfg=cfg, seed=0)
     states = np.eye(3, dtype=np.float32)
     buffer = ReplayBuffer(1000, 3, 1)
@@ -152,8 +168,9 @@ def test_soft_update_moves_targets_by_tau():
     old_targets = [copy.deepcopy(agent.actor_target), copy.deepcopy(agent.critic_target)]
     agent.update(filled_buffer(64, 4, 2, seed=1).sample(16, agent.rng))
 
-    for old, new_online, new_target in zip(old_targets, (agent.actor, agent.critic),
-                                           (agent.actor_target, agent.critic_target)):
+    for old, new_online, new_target in zip(
+        old_targets, (agent.actor, agent.critic), (agent.actor_target, agent.critic_target)
+    ):
         for p_old, p_online, p_target in zip(old.parameters(), new_online.parameters(), new_target.parameters()):
             assert not torch.allclose(p_old, p_online), "targets and online networks must differ for this test"
             torch.testing.assert_close(p_target, (1 - tau) * p_old + tau * p_online)
@@ -319,8 +336,11 @@ def test_agent_config_section_is_the_ddpg_schema():
     assert all(type(w) is int for w in section.actor_hidden) and type(section.actor_lr) is float
     paper = OmegaConf.to_object(compose("train_agent", ["scale=paper"]).agent)
     assert paper.total_steps == 40000 and paper.warmup_steps == 2000 and paper.tau == DDPGConfig().tau
-    for override, key in (("agent.tau=0", "agent.tau"), ("agent.actor_hidden=[0,3]", "agent.actor_hidden"),
-                          ("agent.total_steps=-5", "agent.total_steps")):
+    for override, key in (
+        ("agent.tau=0", "agent.tau"),
+        ("agent.actor_hidden=[0,3]", "agent.actor_hidden"),
+        ("agent.total_steps=-5", "agent.total_steps"),
+    ):
         with pytest.raises(StageError, match=key):
             validate(compose("train_agent", [override]))
     with pytest.raises(ValueError, match="gamma"):

@@ -1,5 +1,6 @@
 """The simulator through the real pybullet scene: spaces, TTC placement, dynamics, collisions, injury,
 determinism and what the camera sees."""
+
 from __future__ import annotations
 
 import math
@@ -61,8 +62,17 @@ def test_registered_and_check_env_passes():
     env.close()
 
 
-@pytest.mark.parametrize("field,value", [("ttc", -0.5), ("ego_speed", 55.0), ("pedestrian_speed", 0.0),
-                                         ("n_cars", 11), ("n_pedestrians", -1), ("p_car", 1.5)])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("ttc", -0.5),
+        ("ego_speed", 55.0),
+        ("pedestrian_speed", 0.0),
+        ("n_cars", 11),
+        ("n_pedestrians", -1),
+        ("p_car", 1.5),
+    ],
+)
 def test_invalid_scenario_names_the_field(field, value):
     kwargs = dict(seed=1, ttc=1.0, ego_speed=10.0)
     kwargs[field] = value
@@ -254,8 +264,12 @@ def test_noisy_autopilot_keeps_lane_without_excursions():
     env = UrbanCollisionEnv(camera=False, horizon_after_ttc_s=None, max_episode_s=8.0)
     pilot = envs.NoisyAutopilot(steer_noise=0.05, throttle_noise=0.05, excursion_rate=0.0, onset_excursion_prob=0.0)
     offsets = []
-    info = rollout(env, pilot, ScenarioSpec(seed=1, ttc=1.5, ego_speed=15.0, n_cars=0),
-                   on_step=lambda obs, a, r, info: offsets.append(abs(info["lane_offset"]))).info
+    info = rollout(
+        env,
+        pilot,
+        ScenarioSpec(seed=1, ttc=1.5, ego_speed=15.0, n_cars=0),
+        on_step=lambda obs, a, r, info: offsets.append(abs(info["lane_offset"])),
+    ).info
     assert max(offsets) < 0.5
     assert abs(info["speed"] - 15.0) < 1.5
 
@@ -265,10 +279,14 @@ def test_autopilot_excursions_cover_brake_and_steer_and_are_seeded():
     actions = []
     for seed in range(12):
         pilot = envs.NoisyAutopilot(excursion_rate=0.05, onset_excursion_prob=1.0)
-        rollout(env, pilot, ScenarioSpec(seed=seed, ttc=1.5, ego_speed=12.0),
-                on_step=lambda obs, a, r, info: actions.append(a))
+        rollout(
+            env,
+            pilot,
+            ScenarioSpec(seed=seed, ttc=1.5, ego_speed=12.0),
+            on_step=lambda obs, a, r, info: actions.append(a),
+        )
     actions = np.array(actions)
-    assert (actions[:, 1] < -0.5).mean() > 0.05       # sustained braking appears
+    assert (actions[:, 1] < -0.5).mean() > 0.05  # sustained braking appears
     assert (np.abs(actions[:, 0]) > 0.3).mean() > 0.05  # and real steering, not just noise
     p1, p2 = envs.NoisyAutopilot(), envs.NoisyAutopilot()
     p1.reset(3), p2.reset(3)
@@ -311,7 +329,7 @@ def test_flat_ground_drawn_per_pixel_matches_pybullet_ground_bodies():
             total += fast.size - dash.sum()
             agree += ((fast == ref) & ~dash).sum()
             seen.update(np.unique(fast).tolist())
-            if i == 0:   # still in its lane: road ahead in the bottom rows' centre
+            if i == 0:  # still in its lane: road ahead in the bottom rows' centre
                 assert (fast[-4:, 28:36] == ROADS).all()
     assert agree / total > 0.998, agree / total
     assert {ROADS, SIDEWALKS, ROADLINES} <= seen
@@ -323,7 +341,7 @@ def test_culling_leaves_frames_unchanged():
     env = UrbanCollisionEnv(camera=True, horizon_after_ttc_s=None)
     cam = env._camera
     spec = ScenarioSpec(seed=9, ttc=1.0, ego_speed=12.0, n_cars=10, n_pedestrians=10, p_pedestrian=1.0, p_car=1.0)
-    actions = np.tile([[0.8, 0.2]], (45, 1))      # a hard turn sweeps the view across the scene
+    actions = np.tile([[0.8, 0.2]], (45, 1))  # a hard turn sweeps the view across the scene
     drawn = []
     for e in _camera_frames(env, spec, actions):
         culled = cam.render(e.x, e.y, e.psi)
@@ -332,7 +350,7 @@ def test_culling_leaves_frames_unchanged():
         full = cam.render(e.x, e.y, e.psi)
         cam.cull = True
         assert np.array_equal(culled, full)
-    assert len(drawn) > 20 and all(shown < in_use / 2 for shown, in_use in drawn)   # most of the scene is culled
+    assert len(drawn) > 20 and all(shown < in_use / 2 for shown, in_use in drawn)  # most of the scene is culled
     env.close()
 
 
@@ -345,7 +363,7 @@ def test_pooled_buildings_keep_the_layouts_heights():
         for name, spots in env.layout.placements.items():
             if name not in pool.buildings:
                 continue
-            top = {round(cz + 12.0, 6) for _, _, cz in spots}          # the layout's 24 m template
+            top = {round(cz + 12.0, 6) for _, _, cz in spots}  # the layout's 24 m template
             used = [u for u in pool.pools[name] if pool.in_use[u]]
             assert len(used) == len(spots)
             assert {round(pool.z[u, 1], 6) for u in used} == top

@@ -5,6 +5,7 @@ Every check runs the reference computation the agent's input is defined by, ``Se
 over whole sequences with the LSTM state carried, so a wrong tap order, gate order, flatten order, bias or
 state update shows up as a mismatch far above float rounding (~1e-7 here).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -84,8 +85,10 @@ def real_episodes():
 
 def random_maps(n: int, seed: int) -> list[dict]:
     rng = np.random.default_rng(seed)
-    return [{"seg": rng.integers(0, 13, (64, 64), dtype=np.uint8),
-             "speed": rng.uniform(0, 30, 1).astype(np.float32)} for _ in range(n)]
+    return [
+        {"seg": rng.integers(0, 13, (64, 64), dtype=np.uint8), "speed": rng.uniform(0, 30, 1).astype(np.float32)}
+        for _ in range(n)
+    ]
 
 
 def assert_policy_matches(policy: LearnedPolicy, ref: Reference, episodes) -> None:
@@ -97,12 +100,15 @@ def assert_policy_matches(policy: LearnedPolicy, ref: Reference, episodes) -> No
             want_x, want_a = ref.act(obs)
             got_x = policy.encoder.decision.out  # the input the action was computed from
             D = ref.vae.latent_dim
-            torch.testing.assert_close(got_x[:, :D], want_x[:, :D], **TOL, msg=lambda m: f"z at step {t}: {m}")
-            torch.testing.assert_close(got_x[:, D:], want_x[:, D:], **TOL, msg=lambda m: f"zhat at step {t}: {m}")
+            torch.testing.assert_close(got_x[:, :D], want_x[:, :D], **TOL, msg=lambda m, t=t: f"z at step {t}: {m}")
+            torch.testing.assert_close(got_x[:, D:], want_x[:, D:], **TOL, msg=lambda m, t=t: f"zhat at step {t}: {m}")
             for got, want, name in zip(policy.encoder.state, ref.state, ("h", "c")):
-                torch.testing.assert_close(got, want, **TOL, msg=lambda m: f"LSTM {name} at step {t}: {m}")
-            torch.testing.assert_close(torch.from_numpy(action), want_a[0], **TOL,
-                                       msg=lambda m: f"action at step {t}: {m}")
+                torch.testing.assert_close(
+                    got, want, **TOL, msg=lambda m, t=t, name=name: f"LSTM {name} at step {t}: {m}"
+                )
+            torch.testing.assert_close(
+                torch.from_numpy(action), want_a[0], **TOL, msg=lambda m, t=t: f"action at step {t}: {m}"
+            )
 
 
 def test_real_frames_match_modules_over_episodes(real_episodes):
@@ -132,8 +138,10 @@ def test_auto_takes_the_fast_path_when_it_passes_its_self_test(real_episodes):
     vae, rnn, actor = make_models(12)
     encoder = WorldModelEncoder(vae, rnn)
     assert encoder.path == "fast" and isinstance(encoder.decision, FastDecision)
-    fast, module = LearnedPolicy("a", encoder, actor), LearnedPolicy("b", WorldModelEncoder(vae, rnn, path="module"),
-                                                                      actor, path="module")
+    fast, module = (
+        LearnedPolicy("a", encoder, actor),
+        LearnedPolicy("b", WorldModelEncoder(vae, rnn, path="module"), actor, path="module"),
+    )
     for obs in real_episodes[0]:
         np.testing.assert_allclose(fast.act(obs, {}), module.act(obs, {}), **TOL)
 
@@ -152,8 +160,7 @@ def test_auto_falls_back_to_the_module_path_where_the_fast_one_cannot_run(caplog
     with pytest.raises(ValueError, match="16 classes"):
         decision_path(vae, rnn, path="fast")
     rng = np.random.default_rng(4)
-    maps = [{"seg": rng.integers(0, 17, (64, 64), dtype=np.uint8), "speed": np.ones(1, np.float32)}
-            for _ in range(5)]
+    maps = [{"seg": rng.integers(0, 17, (64, 64), dtype=np.uint8), "speed": np.ones(1, np.float32)} for _ in range(5)]
     assert_policy_matches(LearnedPolicy("m", encoder, actor), Reference(vae, rnn, actor), [maps])
     with pytest.raises(ValueError, match="decision path"):
         decision_path(vae, rnn, path="quick")
@@ -207,9 +214,17 @@ def test_same_results_after_loading_checkpoints_the_way_the_agent_does(stage_cfg
     cfg = stage_cfg("train_agent")
     vae, rnn, actor = make_models(3, str(cfg.rnn.head), bool(cfg.rnn.residual))
     atomic_torch_save({"model": vae.state_dict(), "latent_dim": vae.latent_dim}, artifacts.vae_dir(cfg) / "best.pt")
-    atomic_torch_save({"model": rnn.state_dict(), "latent_dim": rnn.latent_dim, "hidden": rnn.hidden,
-                       "head": rnn.head, "residual": rnn.residual,
-                       "provenance": {"inputs": {"vae": artifacts.vae_id(cfg)}}}, artifacts.rnn_dir(cfg) / "best.pt")
+    atomic_torch_save(
+        {
+            "model": rnn.state_dict(),
+            "latent_dim": rnn.latent_dim,
+            "hidden": rnn.hidden,
+            "head": rnn.head,
+            "residual": rnn.residual,
+            "provenance": {"inputs": {"vae": artifacts.vae_id(cfg)}},
+        },
+        artifacts.rnn_dir(cfg) / "best.pt",
+    )
     encoder = artifacts.load_world_model(cfg)
     assert encoder.vae is not vae  # freshly built modules, weights only from the files
     policy = LearnedPolicy("fast", encoder, actor)

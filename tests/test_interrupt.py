@@ -10,6 +10,7 @@ and its checkpoint files, never by sleeping a fixed time, so the tests hold on a
 test kills a process that only writes checkpoints at a random point inside a save (a non-atomic save fails it
 most of the time), and one checks the order of the two files an improving checkpoint writes.
 """
+
 from __future__ import annotations
 
 import codecs
@@ -30,15 +31,17 @@ from worldmodel import artifacts, collect, train_agent, train_rnn, train_vae, tr
 from worldmodel.config import compose
 
 REPO = Path(__file__).resolve().parent.parent
-VAE_BAR = re.compile(r"vae epoch (\d+)/\d+:\s*\d+%\|[^|]*\|\s*(\d+)/")     # -> epoch (1-based), batches done
-AGENT_BAR = re.compile(r"agent r1:\s*\d+%\|[^|]*\|\s*(\d+)/")               # -> steps done
+VAE_BAR = re.compile(r"vae epoch (\d+)/\d+:\s*\d+%\|[^|]*\|\s*(\d+)/")  # -> epoch (1-based), batches done
+AGENT_BAR = re.compile(r"agent r1:\s*\d+%\|[^|]*\|\s*(\d+)/")  # -> steps done
 VAE_ARGS = ("vae.batch_size=4",)  # ~19 batches per epoch at scale=smoke, so a signal can land inside one
 WARMUP = 100  # agent.warmup_steps at scale=smoke: the agent's optimisers step once per environment step after it
 
 
 def smoke(stage: str, data: Path, runs: Path, *overrides: str):
-    return compose(stage, [f"paths.data_root={data}", f"paths.runs_root={runs}", "experiment=t", "scale=smoke",
-                           "threads=1", *overrides])
+    return compose(
+        stage,
+        [f"paths.data_root={data}", f"paths.runs_root={runs}", "experiment=t", "scale=smoke", "threads=1", *overrides],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -77,10 +80,20 @@ class Stage:
     """A training stage in a subprocess of its own process group, with its output readable while it runs."""
 
     def __init__(self, module: str, data: Path, runs: Path, *overrides: str):
-        cmd = [sys.executable, "-m", f"worldmodel.{module}", f"paths.data_root={data}", f"paths.runs_root={runs}",
-               "experiment=t", "scale=smoke", "threads=1", *overrides]
-        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
+        cmd = [
+            sys.executable,
+            "-m",
+            f"worldmodel.{module}",
+            f"paths.data_root={data}",
+            f"paths.runs_root={runs}",
+            "experiment=t",
+            "scale=smoke",
+            "threads=1",
+            *overrides,
+        ]
+        self.proc = subprocess.Popen(
+            cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+        )
         self._fd = self.proc.stdout.fileno()
         os.set_blocking(self._fd, False)
         self._decode = codecs.getincrementaldecoder("utf-8")(errors="replace").decode
@@ -112,8 +125,9 @@ class Stage:
                 return
             if self.proc.poll() is not None:
                 self._read()
-                raise AssertionError(f"the stage ended (status {self.proc.returncode}) before {what}:\n"
-                                     f"{self.output[-3000:]}")
+                raise AssertionError(
+                    f"the stage ended (status {self.proc.returncode}) before {what}:\n{self.output[-3000:]}"
+                )
             if time.monotonic() > deadline:
                 raise AssertionError(f"no {what} within {timeout} s:\n{self.output[-3000:]}")
             time.sleep(0.02)
@@ -132,7 +146,7 @@ class Stage:
         return self
 
     def __exit__(self, *exc):
-        if self.proc.poll() is None:   # a failed assertion left it running
+        if self.proc.poll() is None:  # a failed assertion left it running
             os.killpg(self.proc.pid, signal.SIGKILL)
             self.proc.wait()
         self.proc.stdout.close()
@@ -176,16 +190,19 @@ def test_vae_sigterm_mid_epoch_then_resume_equals_uninterrupted(rollouts, uninte
         assert torch.allclose(v, resumed["model"][k], atol=1e-6), k
 
 
-def test_vae_sigkill_loses_only_the_current_epoch_and_resume_equals_uninterrupted(rollouts, uninterrupted_vae,
-                                                                                  tmp_path):
+def test_vae_sigkill_loses_only_the_current_epoch_and_resume_equals_uninterrupted(
+    rollouts, uninterrupted_vae, tmp_path
+):
     out = tmp_path / "runs/t/vae"
     with Stage("train_vae", rollouts, tmp_path / "runs", "vae.epochs=200", *VAE_ARGS) as run:
-        run.wait_until(lambda: (out / "last.pt").exists() and (p := run.progress(VAE_BAR)) is not None
-                       and p >= (2, 3), "a checkpoint and a few batches of the next epoch")
+        run.wait_until(
+            lambda: (out / "last.pt").exists() and (p := run.progress(VAE_BAR)) is not None and p >= (2, 3),
+            "a checkpoint and a few batches of the next epoch",
+        )
         shown_epoch = run.progress(VAE_BAR)[0]
         run.signal(signal.SIGKILL)
         assert run.finish() == -signal.SIGKILL
-    assert "stopped at step" not in run.output   # it had no chance to save
+    assert "stopped at step" not in run.output  # it had no chance to save
 
     # The VAE checkpoints at epoch ends: last.pt is a whole epoch, the one before the epoch that was killed.
     state = load(out / "last.pt")
@@ -226,8 +243,9 @@ def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model
     # No periodic checkpoint within the run: every last.pt below was written by the stop itself.
     args = ("reward=r1", "agent.checkpoint_every=100000")
     with Stage("train_agent", rollouts, runs, *args) as run:
-        run.wait_until(lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= WARMUP + 20,
-                       "20 steps past the warm-up")
+        run.wait_until(
+            lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= WARMUP + 20, "20 steps past the warm-up"
+        )
         run.signal(signal.SIGTERM)
         assert run.finish() == 0, run.output
     first = load(out / "last.pt")
@@ -238,8 +256,9 @@ def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model
     assert not (out / "metrics.json").exists()
 
     with Stage("train_agent", rollouts, runs, *args, "resume=true") as run:
-        run.wait_until(lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= n1 + 10,
-                       "10 steps past the resumed step")
+        run.wait_until(
+            lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= n1 + 10, "10 steps past the resumed step"
+        )
         run.signal(signal.SIGINT)  # Ctrl-C
         assert run.finish() == 0, run.output
     second = load(out / "last.pt")
@@ -265,14 +284,16 @@ def test_agent_sigkill_resumes_from_the_last_periodic_checkpoint(rollouts, world
     args = ("reward=r1", f"agent.checkpoint_every={every}")
     with Stage("train_agent", rollouts, runs, *args) as run:
         # Past the checkpoint at step 150 (after the warm-up) and on towards the next one.
-        run.wait_until(lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= 3 * every + 20,
-                       "20 steps past the third checkpoint")
+        run.wait_until(
+            lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= 3 * every + 20,
+            "20 steps past the third checkpoint",
+        )
         run.signal(signal.SIGKILL)
         assert run.finish() == -signal.SIGKILL
-        reached = run.progress(AGENT_BAR)[0]   # a lower bound: the bar redraws every 0.1 s
+        reached = run.progress(AGENT_BAR)[0]  # a lower bound: the bar redraws every 0.1 s
     assert "stopped at step" not in run.output
 
-    state = load(out / "last.pt")   # readable: the kill never leaves a half-written checkpoint
+    state = load(out / "last.pt")  # readable: the kill never leaves a half-written checkpoint
     killed_at = state["step"]
     assert killed_at % every == 0 and 3 * every <= killed_at < 300, killed_at
     assert killed_at <= reached + every
@@ -309,11 +330,17 @@ while True:
 
 def test_sigkill_while_saving_leaves_readable_checkpoints(tmp_path):
     """A process that does nothing but write checkpoints, killed at a random point inside a save."""
-    proc = subprocess.Popen([sys.executable, "-c", KEEP_SAVING, str(tmp_path)], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", KEEP_SAVING, str(tmp_path)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     durations = []
     try:
-        for line in proc.stdout:   # progress markers: each save announces itself and reports its duration
+        for line in proc.stdout:  # progress markers: each save announces itself and reports its duration
             if line.startswith("saved"):
                 durations.append(float(line.split()[-2]))
             elif line.startswith("saving") and len(durations) >= 4:

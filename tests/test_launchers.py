@@ -4,6 +4,7 @@ Each test runs the real collection stage as a command, sweeping seed=0,1 at scal
 two jobs write to different datasets through ``paths.data=${paths.data_root}/sweep_s${seed}`` (interpolated
 per job), while both share one experiment and so one sweep dir, runs/sweep/hydra/multirun/<time>/.
 """
+
 from __future__ import annotations
 
 import json
@@ -23,9 +24,20 @@ SEEDS = (0, 1)
 
 
 def sweep(tmp_path: Path, *overrides: str, env: dict | None = None, workers: int = 1) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "worldmodel.collect", "-m", *overrides, "experiment=sweep",
-           "paths.data=${paths.data_root}/sweep_s${seed}", "seed=0,1", "scale=smoke", f"collect.num_workers={workers}",
-           f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "worldmodel.collect",
+        "-m",
+        *overrides,
+        "experiment=sweep",
+        "paths.data=${paths.data_root}/sweep_s${seed}",
+        "seed=0,1",
+        "scale=smoke",
+        f"collect.num_workers={workers}",
+        f"paths.data_root={tmp_path}/data",
+        f"paths.runs_root={tmp_path}/runs",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
     return subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
 
@@ -78,7 +90,7 @@ def test_submitit_local_sweep_runs_each_seed_as_a_submitit_job(tmp_path):
         assert hydra_cfg["runtime"]["choices"]["hydra/launcher"] == "submitit_local"
         # The job id Hydra recorded is submitit's, and submitit kept that job's logs in the sweep dir.
         job_id = str(hydra_cfg["job"]["id"])
-        text = (submitit_dir / job_id / f"{job_id}_0_log.out").read_text()   # <job id>_<task rank>_log.out
+        text = (submitit_dir / job_id / f"{job_id}_0_log.out").read_text()  # <job id>_<task rank>_log.out
         assert "Job completed successfully" in text
         assert f"[collect] {tmp_path}/data/sweep_s{seed}/rollouts: 4 episodes" in text
         assert list((submitit_dir / job_id).glob("*_result.pkl"))
@@ -94,7 +106,7 @@ def test_joblib_sweep_runs_two_jobs_at_once(tmp_path):
     assert multirun["launcher"]["_target_"].endswith("JoblibLauncher") and multirun["launcher"]["n_jobs"] == 2
     for seed, hydra_cfg in job_records(sweep_dir).items():
         assert hydra_cfg["runtime"]["choices"]["hydra/launcher"] == "local"
-        assert str(hydra_cfg["job"]["id"]).endswith(f"_{seed}")   # joblib's "<job name>_<index>", set in the job
+        assert str(hydra_cfg["job"]["id"]).endswith(f"_{seed}")  # joblib's "<job name>_<index>", set in the job
     assert not (sweep_dir / ".submitit").exists()
 
 
@@ -107,17 +119,21 @@ def test_slurm_launcher_writes_the_documented_sbatch_script(tmp_path):
     (bin_dir / "srun").write_text("#!/bin/sh\nexit 1\n")
     for f in bin_dir.iterdir():
         f.chmod(0o755)
-    result = sweep(tmp_path, "hydra/launcher=slurm", "hydra.launcher.partition=testq",
-                   env={"PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"})
+    result = sweep(
+        tmp_path,
+        "hydra/launcher=slurm",
+        "hydra.launcher.partition=testq",
+        env={"PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"},
+    )
     assert result.returncode != 0 and "sbatch: fake, refused" in result.stderr, result.stderr[-3000:]
     assert not (tmp_path / "data").exists(), "a job ran without SLURM"
 
     lines = script.read_text().splitlines()
-    sbatch = dict(line[len("#SBATCH --"):].split("=", 1) for line in lines if line.startswith("#SBATCH --"))
+    sbatch = dict(line[len("#SBATCH --") :].split("=", 1) for line in lines if line.startswith("#SBATCH --"))
     assert sbatch["partition"] == "testq"
     assert sbatch["cpus-per-task"] == "2" and sbatch["mem"] == "8GB" and sbatch["time"] == "240"
     assert sbatch["nodes"] == "1" and sbatch["ntasks-per-node"] == "1"
-    assert sbatch["array"] == "0-1%2"     # one array task per seed
+    assert sbatch["array"] == "0-1%2"  # one array task per seed
     assert sbatch["job-name"] == "collect"
     assert not [k for k in sbatch if "gpu" in k or k == "gres"], "a CPU-only job must not ask for a GPU"
     assert sbatch["output"].startswith(str(the_sweep_dir(tmp_path) / ".submitit") + "/")

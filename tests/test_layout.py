@@ -3,6 +3,7 @@
 Imports are read from the source (every ``import`` statement, including ones inside functions), so a lazy import
 of another stage cannot hide from the check.
 """
+
 from __future__ import annotations
 
 import ast
@@ -26,7 +27,7 @@ def imported_modules(path: Path, package: str) -> set[str]:
                 parent = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join([*parent, base] if base else parent)
             found.add(base)
-            found |= {f"{base}.{alias.name}" for alias in node.names}   # `from . import train_vae`
+            found |= {f"{base}.{alias.name}" for alias in node.names}  # `from . import train_vae`
     return found
 
 

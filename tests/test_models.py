@@ -3,6 +3,7 @@
 Every numeric check compares against an independent computation (hand arithmetic, ``torch.distributions``
 or the equivalent torch layer), so a wrong axis, sign or normalisation fails a test.
 """
+
 from __future__ import annotations
 
 import math
@@ -374,7 +375,7 @@ def test_residual_head_starts_at_persistence_and_can_be_turned_off():
         torch.nn.init.zeros_(rnn.fc.weight)
         torch.nn.init.zeros_(rnn.fc.bias)
         out, _ = rnn(z, a)
-        assert torch.allclose(WorldRNN.predict(out), z)      # zero head output = persistence
+        assert torch.allclose(WorldRNN.predict(out), z)  # zero head output = persistence
         plain = WorldRNN(latent_dim=16, hidden=32, head=head, gaussians=3, residual=False)
         plain.load_state_dict(rnn.state_dict())
         out, _ = plain(z, a)

@@ -2,6 +2,7 @@
 
 The notebook is executed in memory (a copy) with nbclient in a real kernel; the file on disk is never written.
 """
+
 from __future__ import annotations
 
 import copy
@@ -29,10 +30,15 @@ def test_committed_notebook_has_no_outputs():
     nbformat.validate(nb)
     code = [c for c in nb.cells if c.cell_type == "code"]
     assert code, "the notebook has no code cells"
-    dirty = [i for i, c in enumerate(nb.cells)
-             if c.cell_type == "code" and (c.get("outputs") or c.get("execution_count") is not None)]
-    assert not dirty, (f"cells {dirty} of {NOTEBOOK} hold outputs or execution counts: clear them before committing "
-                       "(Jupyter: Edit > Clear Outputs of All Cells, then save)")
+    dirty = [
+        i
+        for i, c in enumerate(nb.cells)
+        if c.cell_type == "code" and (c.get("outputs") or c.get("execution_count") is not None)
+    ]
+    assert not dirty, (
+        f"cells {dirty} of {NOTEBOOK} hold outputs or execution counts: clear them before committing "
+        "(Jupyter: Edit > Clear Outputs of All Cells, then save)"
+    )
     tagged = [c for c in code if "parameters" in c.metadata.get("tags", [])]
     assert len(tagged) == 1 and "HORIZON" in tagged[0].source and "WM_EXPERIMENT" in tagged[0].source
 
@@ -49,15 +55,21 @@ def executed(smoke_artifacts):
     """The notebook run in memory from notebooks/ against the smoke experiment; returns (notebook, digest before)."""
     before = _digest(NOTEBOOK)
     nb = copy.deepcopy(nbformat.read(NOTEBOOK, as_version=4))
-    env = {"WM_EXPERIMENT": "t", "WM_DATA_ROOT": str(smoke_artifacts / "data"),
-           "WM_RUNS_ROOT": str(smoke_artifacts / "runs"), "WM_SCALE": "smoke", "OMP_NUM_THREADS": "1"}
+    env = {
+        "WM_EXPERIMENT": "t",
+        "WM_DATA_ROOT": str(smoke_artifacts / "data"),
+        "WM_RUNS_ROOT": str(smoke_artifacts / "runs"),
+        "WM_SCALE": "smoke",
+        "OMP_NUM_THREADS": "1",
+    }
     with pytest.MonkeyPatch.context() as mp:
-        for key, value in env.items():      # the kernel inherits this process's environment
+        for key, value in env.items():  # the kernel inherits this process's environment
             mp.setenv(key, value)
-        mp.delenv("MPLBACKEND", raising=False)   # an Agg backend would silently swallow the figures
-        client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
-                                         resources={"metadata": {"path": str(NOTEBOOK_DIR)}})
-        client.execute()                    # raises CellExecutionError, with the cell's traceback, on any error
+        mp.delenv("MPLBACKEND", raising=False)  # an Agg backend would silently swallow the figures
+        client = nbclient.NotebookClient(
+            nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK_DIR)}}
+        )
+        client.execute()  # raises CellExecutionError, with the cell's traceback, on any error
     return nb, before
 
 
@@ -83,5 +95,6 @@ def test_executing_leaves_the_committed_file_untouched(executed):
     assert _outputs(nb), "the in-memory copy should hold the outputs"
     assert _digest(NOTEBOOK) == before
     on_disk = nbformat.read(NOTEBOOK, as_version=4)
-    assert all(not c.get("outputs") and c.get("execution_count") is None
-               for c in on_disk.cells if c.cell_type == "code")
+    assert all(
+        not c.get("outputs") and c.get("execution_count") is None for c in on_disk.cells if c.cell_type == "code"
+    )

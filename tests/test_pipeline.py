@@ -1,4 +1,5 @@
 """End to end: every stage at scale=smoke from an empty experiment, then the checks that need trained parts."""
+
 from __future__ import annotations
 
 import json
@@ -15,22 +16,41 @@ from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv
 
-pytestmark = pytest.mark.slow   # every stage at scale=smoke, end to end
+pytestmark = pytest.mark.slow  # every stage at scale=smoke, end to end
 
 OUTPUTS = [
-    "data/t/rollouts/manifest.json", "data/t/latents.h5",
-    "runs/t/vae/best.pt", "runs/t/vae/last.pt", "runs/t/vae/metrics.json",
-    "runs/t/rnn/best.pt", "runs/t/rnn/last.pt", "runs/t/rnn/metrics.json",
-    "runs/t/agent_r1/seed0/last.pt", "runs/t/agent_r1/seed0/metrics.json",
-    "runs/t/agent_r2/seed0/last.pt", "runs/t/agent_r2/seed0/metrics.json",
-    "runs/t/eval/results.csv", "runs/t/eval/summary.json", "runs/t/eval/tables.md", "runs/t/eval/heatmaps.png",
+    "data/t/rollouts/manifest.json",
+    "data/t/latents.h5",
+    "runs/t/vae/best.pt",
+    "runs/t/vae/last.pt",
+    "runs/t/vae/metrics.json",
+    "runs/t/rnn/best.pt",
+    "runs/t/rnn/last.pt",
+    "runs/t/rnn/metrics.json",
+    "runs/t/agent_r1/seed0/last.pt",
+    "runs/t/agent_r1/seed0/metrics.json",
+    "runs/t/agent_r2/seed0/last.pt",
+    "runs/t/agent_r2/seed0/metrics.json",
+    "runs/t/eval/results.csv",
+    "runs/t/eval/summary.json",
+    "runs/t/eval/tables.md",
+    "runs/t/eval/heatmaps.png",
     "runs/t/pipeline.json",
 ]
 
 
 def smoke_cfg(root, stage="pipeline", *overrides):
-    return compose(stage, [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t",
-                           "scale=smoke", "threads=1", *overrides])
+    return compose(
+        stage,
+        [
+            f"paths.data_root={root}/data",
+            f"paths.runs_root={root}/runs",
+            "experiment=t",
+            "scale=smoke",
+            "threads=1",
+            *overrides,
+        ],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +162,7 @@ def test_agent_built_on_another_vae_refuses_to_load(new_vae):
     assert str(new_vae / "runs/t/vae/best.pt") in str(err.value)
     assert "python -m worldmodel.train_agent experiment=t reward=r1 seed=0" in str(err.value)
     actor, _ = artifacts.load_actor(smoke_cfg(new_vae, "evaluate", "vae.kl_weight=0.5", "allow_stale=true"), agent)
-    with pytest.raises(StageError, match="stale"):   # evaluation stops before any scenario runs
+    with pytest.raises(StageError, match="stale"):  # evaluation stops before any scenario runs
         evaluate.run(cfg)
 
 

@@ -1,4 +1,5 @@
 """The privileged planner: exact re-simulation, never worse than straight-line braking, clear config errors."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -42,8 +43,13 @@ def test_restore_continues_bit_identically():
 
 
 def test_planner_is_never_worse_than_braking_and_often_better():
-    bank = make_bank(ttcs=(0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5), speeds=(10.0, 20.0, 30.0),
-                     hazards=("pedestrian", "car", "both"), per_cell=1, seed=2018)
+    bank = make_bank(
+        ttcs=(0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5),
+        speeds=(10.0, 20.0, 30.0),
+        hazards=("pedestrian", "car", "both"),
+        per_cell=1,
+        seed=2018,
+    )
     sample = [bank[i] for i in np.random.default_rng(0).choice(len(bank), size=18, replace=False)]
     env = UrbanCollisionEnv(camera=False)
     planner = PrivilegedPlanner(replan_every=3)
@@ -73,8 +79,9 @@ def test_candidates_start_with_braking_and_config_is_checked():
 
 def test_evaluation_config_for_the_planner_is_validated(tmp_path):
     def cfg(*overrides):
-        return compose("evaluate", [f"paths.data_root={tmp_path}", f"paths.runs_root={tmp_path}", "scale=smoke",
-                                    *overrides])
+        return compose(
+            "evaluate", [f"paths.data_root={tmp_path}", f"paths.runs_root={tmp_path}", "scale=smoke", *overrides]
+        )
 
     with pytest.raises(StageError, match="evaluate.policies"):
         validate(cfg("evaluate.policies=[oracle]"))

@@ -8,6 +8,7 @@ The synthetic bank (hazards pedestrian/car/both × TTC {0.5, 1.5} × speed {10, 
   hits a pole (static, occupant injury 0.01) in odd-numbered car/both scenarios.
 * ``agent_r1`` behaves like braking with twice the occupant injury, so its occupant improvement is negative.
 """
+
 from __future__ import annotations
 
 import json
@@ -75,27 +76,44 @@ def bank(policies=("braking", "agent_r1", "agent_r2"), ttcs=(0.5, 1.5), speeds=(
                         out = {}
                         if policy in ("braking", "agent_r1", "oracle"):
                             if ped:
-                                out.update(pedestrian_collision=1, n_pedestrians_hit=1, pedestrian_injury=inj(ttc, speed))
+                                out.update(
+                                    pedestrian_collision=1, n_pedestrians_hit=1, pedestrian_injury=inj(ttc, speed)
+                                )
                             if car:
                                 factor = 2.0 if policy == "agent_r1" else 1.0
-                                out.update(vehicle_collision=1, occupant_injury=factor * occ(speed),
-                                           ego_occupant_injury=occ(speed) / 2)
+                                out.update(
+                                    vehicle_collision=1,
+                                    occupant_injury=factor * occ(speed),
+                                    ego_occupant_injury=occ(speed) / 2,
+                                )
                             if ped or car:
                                 out.update(speed_at_collision=speed / 2, return_r1=-1.0, return_r2=-2.0)
                         elif policy == "agent_r2":
                             if ped and ttc == 0.5 and k % 2 == 0:
-                                out.update(pedestrian_collision=1, n_pedestrians_hit=1, pedestrian_injury=inj(ttc, speed),
-                                           speed_at_collision=speed / 2)
+                                out.update(
+                                    pedestrian_collision=1,
+                                    n_pedestrians_hit=1,
+                                    pedestrian_injury=inj(ttc, speed),
+                                    speed_at_collision=speed / 2,
+                                )
                             if car and k % 2 == 1:
-                                out.update(static_collision=1, lane_departure=1, occupant_injury=0.01,
-                                           ego_occupant_injury=0.01, speed_at_collision=speed / 4)
+                                out.update(
+                                    static_collision=1,
+                                    lane_departure=1,
+                                    occupant_injury=0.01,
+                                    ego_occupant_injury=0.01,
+                                    speed_at_collision=speed / 4,
+                                )
                         rows.append(make_row(policy, sid, hazard, ttc, speed, **out))
     return rows
 
 
 def cell(summary, policy, hazard, ttc, speed):
-    hits = [c for c in summary["policies"][policy]["cells"]
-            if c["hazard"] == hazard and c["ttc"] == ttc and c["speed"] == speed]
+    hits = [
+        c
+        for c in summary["policies"][policy]["cells"]
+        if c["hazard"] == hazard and c["ttc"] == ttc and c["speed"] == speed
+    ]
     assert len(hits) == 1, hits
     return hits[0]
 
@@ -213,8 +231,11 @@ def test_tables_subset_grid_references_only_where_the_paper_has_them():
 def test_other_policies_follow_the_named_ones():
     rows = bank(policies=("oracle", "agent_r2", "braking"))
     md = report.tables_markdown(rows)
-    assert list(table_rows(md, "Table III."))[1:4] == ["Straight-line braking", "Brake&Steer, reward 2",
-                                                        "Privileged planner (oracle)"]
+    assert list(table_rows(md, "Table III."))[1:4] == [
+        "Straight-line braking",
+        "Brake&Steer, reward 2",
+        "Privileged planner (oracle)",
+    ]
     assert list(report.improvement_grids(rows)) == ["agent_r2", "oracle"]
 
 
@@ -249,7 +270,7 @@ def test_improvement_grid_nan_where_no_scenario_and_missing_baseline():
 # ----------------------------------------------------------------------------- CSV
 def test_csv_round_trip(tmp_path):
     rows = bank(policies=("braking", "agent_r2"))
-    for r in rows:   # an all-digit hash must come back as the same string, not as a number
+    for r in rows:  # an all-digit hash must come back as the same string, not as a number
         r.update({c: "" if r["policy"] == "braking" else "012345678901" for c in report.MODEL_COLUMNS})
     rows[0]["extra_note"] = "x"
     rows[1]["pedestrian_injury"] = np.float32(0.125)  # numpy scalars are written as plain numbers
@@ -264,8 +285,14 @@ def test_csv_round_trip(tmp_path):
     for a, b in zip(rows, back):
         for key in report.COLUMNS:
             va, vb = a[key], b[key]
-            assert type(vb) is {**{k: int for k in report.INT_COLUMNS}, **{k: float for k in report.FLOAT_COLUMNS},
-                                **{k: str for k in report.STR_COLUMNS}}[key], (key, vb)
+            assert (
+                type(vb)
+                is {
+                    **{k: int for k in report.INT_COLUMNS},
+                    **{k: float for k in report.FLOAT_COLUMNS},
+                    **{k: str for k in report.STR_COLUMNS},
+                }[key]
+            ), (key, vb)
             if isinstance(va, (float, np.floating)) and math.isnan(va):
                 assert math.isnan(vb), key
             else:
@@ -373,7 +400,7 @@ def test_share_of_achievable_improvement():
     ttcs, speeds, arr = shares["agent_r1"]
     assert ttcs == [0.5, 1.5] and speeds == [10.0]
     assert arr[0, 0] == pytest.approx(50.0) and np.isnan(arr[1, 0])
-    assert shares["agent_r2"][2][0, 0] == pytest.approx(-100.0)   # worse than braking: negative
+    assert shares["agent_r2"][2][0, 0] == pytest.approx(-100.0)  # worse than braking: negative
     assert shares["oracle"][2][0, 0] == pytest.approx(100.0)
     summary = report.summarize(rows)
     assert summary["achievable_share"]["policies"]["agent_r1"]["overall"] == pytest.approx(50.0)
@@ -388,10 +415,19 @@ def test_share_of_achievable_improvement():
 
 def test_seed_sweep_reports_mean_and_spread(tmp_path):
     rows = []
-    for seed, hits in ((0, 1), (1, 0), (2, 1)):   # seed 1 never hits the pedestrian
+    for seed, hits in ((0, 1), (1, 0), (2, 1)):  # seed 1 never hits the pedestrian
         for sid in range(4):
-            rows.append(make_row("agent_r1", sid, "pedestrian", 0.5, 10, policy_seed=seed,
-                                 pedestrian_collision=hits if sid < 2 else 0))
+            rows.append(
+                make_row(
+                    "agent_r1",
+                    sid,
+                    "pedestrian",
+                    0.5,
+                    10,
+                    policy_seed=seed,
+                    pedestrian_collision=hits if sid < 2 else 0,
+                )
+            )
     rows += [make_row("braking", sid, "pedestrian", 0.5, 10, pedestrian_collision=1) for sid in range(4)]
     summary = report.summarize(rows)
     entry = summary["policies"]["agent_r1"]
@@ -401,8 +437,10 @@ def test_seed_sweep_reports_mean_and_spread(tmp_path):
     assert spread["mean"] == pytest.approx(1 / 3) and spread["std"] == pytest.approx(np.std([0.5, 0, 0.5], ddof=1))
     assert (spread["min"], spread["max"]) == (0.0, 0.5)
     assert entry["seed_spread"]["by_seed"]["1"]["pedestrian_collision_rate"] == 0.0
-    assert entry["overall"]["pedestrian_collision_rate"] == pytest.approx(1 / 3)   # pooled = mean over seeds
+    assert entry["overall"]["pedestrian_collision_rate"] == pytest.approx(1 / 3)  # pooled = mean over seeds
     table = table_rows(report.tables_markdown(rows), "Spread over training seeds")
     assert table["Brake&Steer, reward 1"][:2] == ["0, 1, 2", "33.3 ± 28.9 (0.0–50.0)"]
     # the seed survives the CSV round trip
-    assert [r["policy_seed"] for r in report.read_results_csv(report.write_results_csv(rows, tmp_path / "r.csv"))][:5] == [0] * 4 + [1]
+    assert [r["policy_seed"] for r in report.read_results_csv(report.write_results_csv(rows, tmp_path / "r.csv"))][
+        :5
+    ] == [0] * 4 + [1]

@@ -1,4 +1,5 @@
 """Phase 2 on real smoke-scale data: encoding cache, provenance of the VAE, resume, validation, errors."""
+
 from __future__ import annotations
 
 import json
@@ -65,8 +66,14 @@ def test_lstm_trained_on_another_vae_refuses_to_load(stage_cfg, with_vae, caplog
     with pytest.raises(StageError) as err:
         artifacts.load_rnn(stage_cfg("train_rnn"))
     message = str(err.value)
-    for part in (str(with_vae / "runs/t/rnn/best.pt"), str(with_vae / "runs/t/vae/best.pt"), artifacts.short(old_vae),
-                 artifacts.short(new_vae), "python -m worldmodel.train_rnn experiment=t", "allow_stale=true"):
+    for part in (
+        str(with_vae / "runs/t/rnn/best.pt"),
+        str(with_vae / "runs/t/vae/best.pt"),
+        artifacts.short(old_vae),
+        artifacts.short(new_vae),
+        "python -m worldmodel.train_rnn experiment=t",
+        "allow_stale=true",
+    ):
         assert part in message, (part, message)
     with caplog.at_level(logging.WARNING):
         rnn, _ = artifacts.load_rnn(stage_cfg("train_rnn", "allow_stale=true"))
@@ -86,8 +93,9 @@ def test_validation_draws_inputs_as_training_does(stage_cfg, with_vae):
         units = train_rnn.windows(store.lengths, store.episodes("validation"), L)
         same = train_rnn.validation_loss(model, lat, units, L, D, B, int(cfg.seed), sample_inputs=sample_inputs)
         other = train_rnn.validation_loss(model, lat, units, L, D, B, int(cfg.seed), sample_inputs=not sample_inputs)
-        z, _, _, mask = train_rnn.make_batch(lat, units[:2], L, D, torch.Generator().manual_seed(0),
-                                             sample_inputs=sample_inputs)
+        z, _, _, mask = train_rnn.make_batch(
+            lat, units[:2], L, D, torch.Generator().manual_seed(0), sample_inputs=sample_inputs
+        )
         mu = np.zeros(z.shape, np.float32)
         for b, (i, s, n) in enumerate(units[:2]):
             mu[b, :n] = lat.episode(i, slice(s, s + n))[0]
@@ -123,14 +131,14 @@ def test_streamed_encoding_equals_encoding_each_episode(stage_cfg, smoke_builds,
     vae, vae_path = artifacts.load_vae(cfg, "best")
     store = artifacts.open_rollouts(cfg)
     out = tmp_path / "streamed.h5"
-    leftover = tmp_path / ".streamed.h5.tmp-4242"   # what a killed encoder leaves behind
+    leftover = tmp_path / ".streamed.h5.tmp-4242"  # what a killed encoder leaves behind
     leftover.write_bytes(b"half a file")
     encode_dataset(store, vae, vae_path, out, batch_size=7, progress=False)
     assert not leftover.exists()
     lat = Latents(out)
     episodes = sorted(store.location)
     assert sorted(int(k.split("_")[-1]) for k in lat.f.keys()) == episodes
-    assert sum(store.lengths.values()) % 7 != 0   # the last batch really is padded
+    assert sum(store.lengths.values()) % 7 != 0  # the last batch really is padded
     with torch.inference_mode():
         for i in episodes:
             mu, logvar, action = lat.episode(i)

@@ -1,4 +1,5 @@
 """Phase 1 on real smoke-scale rollouts: resume continues exactly; errors name what to do."""
+
 from __future__ import annotations
 
 import json
@@ -7,7 +8,7 @@ import shutil
 import pytest
 import torch
 
-from worldmodel import artifacts, collect, train_vae
+from worldmodel import artifacts, train_vae
 from worldmodel.common import StageError
 
 
@@ -56,8 +57,21 @@ def test_train_one_epoch_then_resume_one_more_equals_two_epochs(stage_cfg, rollo
         assert torch.allclose(v, resumed["model"][k], atol=1e-6), k
 
     saved = json.loads((out / "metrics.json").read_text())
-    assert set(saved["iou"]) == {"None", "Buildings", "Fences", "Other", "Pedestrians", "Poles", "RoadLines",
-                                 "Roads", "Sidewalks", "Vegetation", "Vehicles", "Walls", "TrafficSigns"}
+    assert set(saved["iou"]) == {
+        "None",
+        "Buildings",
+        "Fences",
+        "Other",
+        "Pedestrians",
+        "Poles",
+        "RoadLines",
+        "Roads",
+        "Sidewalks",
+        "Vegetation",
+        "Vehicles",
+        "Walls",
+        "TrafficSigns",
+    }
     assert 0.0 <= saved["pixel_accuracy"] <= 1.0 and saved == metrics
 
 
@@ -69,8 +83,10 @@ def test_latent_size_mismatch_with_checkpoint_is_named(stage_cfg, rollouts):
         artifacts.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
 
 
-@pytest.mark.parametrize("override,key", [("vae.batch_size=0", "vae.batch_size"), ("vae.lr=-1", "vae.lr"),
-                                          ("vae.free_bits=-0.5", "vae.free_bits")])
+@pytest.mark.parametrize(
+    "override,key",
+    [("vae.batch_size=0", "vae.batch_size"), ("vae.lr=-1", "vae.lr"), ("vae.free_bits=-0.5", "vae.free_bits")],
+)
 def test_impossible_config_stops_before_work(stage_cfg, override, key):
     with pytest.raises(StageError, match=key):
         train_vae.run(stage_cfg("train_vae", override))

@@ -13,6 +13,7 @@ Both run every frame through the batch-1 decision path of ``models/fast_decision
 self-test passes on this torch build, else the module path with the same numbers (``path`` forces one).
 Training keeps using the modules themselves.
 """
+
 from __future__ import annotations
 
 import gymnasium as gym

@@ -18,6 +18,7 @@ Loading a model compares the recorded inputs with the current ones: a mismatch s
 naming both files and the command that rebuilds the stale one, unless ``allow_stale=true`` (then a warning).
 The pipeline compares the same records to decide which stages to rerun.
 """
+
 from __future__ import annotations
 
 import functools
@@ -173,8 +174,11 @@ def actor_id(cfg, agent: AgentId) -> str | None:
 def _section(cfg, key: str):
     from omegaconf import OmegaConf
 
-    return OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True) if OmegaConf.is_config(
-        OmegaConf.select(cfg, key)) else OmegaConf.select(cfg, key)
+    return (
+        OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True)
+        if OmegaConf.is_config(OmegaConf.select(cfg, key))
+        else OmegaConf.select(cfg, key)
+    )
 
 
 def _config(cfg, *keys: str) -> dict:
@@ -244,12 +248,24 @@ def retire(cfg, directory: Path) -> Path | None:
 
 
 # ----------------------------------------------------------------------------- checked loading
-STAGE_COMMANDS = {"collect": "collect", "vae": "train_vae", "rnn": "train_rnn", "agent": "train_agent",
-                  "eval": "evaluate"}
+STAGE_COMMANDS = {
+    "collect": "collect",
+    "vae": "train_vae",
+    "rnn": "train_rnn",
+    "agent": "train_agent",
+    "eval": "evaluate",
+}
 
 
-def check_inputs(cfg, what: str, path: Path, recorded: dict | None, current: dict[str, str | None],
-                 rebuild: str, files: dict[str, Path]) -> None:
+def check_inputs(
+    cfg,
+    what: str,
+    path: Path,
+    recorded: dict | None,
+    current: dict[str, str | None],
+    rebuild: str,
+    files: dict[str, Path],
+) -> None:
     """Compare the input identities ``recorded`` in an artifact with the ``current`` ones.
 
     Inputs whose current file is absent are not compared (data may be deleted after training). A mismatch is a
@@ -259,11 +275,16 @@ def check_inputs(cfg, what: str, path: Path, recorded: dict | None, current: dic
     stale = [name for name, now in current.items() if now is not None and recorded.get(name) != now]
     if not stale:
         return
-    details = "; ".join(f"it was built on {name} {short(recorded.get(name)) or '(unrecorded)'}, but {files[name]} "
-                        f"is now {short(current[name])}" for name in stale)
-    message = (f"{what} {path} is stale: {details}. Rebuild it with `{rebuild}` (or run "
-               f"`python -m worldmodel.pipeline experiment={cfg.experiment}`, which rebuilds every stale stage), "
-               "or pass allow_stale=true to load it anyway.")
+    details = "; ".join(
+        f"it was built on {name} {short(recorded.get(name)) or '(unrecorded)'}, but {files[name]} "
+        f"is now {short(current[name])}"
+        for name in stale
+    )
+    message = (
+        f"{what} {path} is stale: {details}. Rebuild it with `{rebuild}` (or run "
+        f"`python -m worldmodel.pipeline experiment={cfg.experiment}`, which rebuilds every stale stage), "
+        "or pass allow_stale=true to load it anyway."
+    )
     if bool(cfg.get("allow_stale", False)):
         log.warning("allow_stale=true: %s", message)
         return
@@ -291,24 +312,38 @@ def build_vae(cfg):
 def build_rnn(cfg):
     from .models.rnn import WorldRNN
 
-    return WorldRNN(latent_dim=int(cfg.vae.latent_dim), action_dim=2, hidden=int(cfg.rnn.hidden),
-                    head=str(cfg.rnn.head), gaussians=int(cfg.rnn.gaussians), residual=bool(cfg.rnn.residual))
+    return WorldRNN(
+        latent_dim=int(cfg.vae.latent_dim),
+        action_dim=2,
+        hidden=int(cfg.rnn.hidden),
+        head=str(cfg.rnn.head),
+        gaussians=int(cfg.rnn.gaussians),
+        residual=bool(cfg.rnn.residual),
+    )
 
 
 def check_vae_architecture(state: dict, cfg, path: Path) -> None:
     if state["latent_dim"] != cfg.vae.latent_dim:
-        raise StageError(f"{path} has latent size {state['latent_dim']} but config vae.latent_dim="
-                         f"{cfg.vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE.")
+        raise StageError(
+            f"{path} has latent size {state['latent_dim']} but config vae.latent_dim="
+            f"{cfg.vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE."
+        )
 
 
 def check_rnn_architecture(state: dict, cfg, path: Path) -> None:
     """Refuse an LSTM checkpoint whose shape settings differ from the config, naming the key."""
-    for key, want in (("latent_dim", cfg.vae.latent_dim), ("hidden", cfg.rnn.hidden), ("head", cfg.rnn.head),
-                      ("residual", cfg.rnn.residual)):
+    for key, want in (
+        ("latent_dim", cfg.vae.latent_dim),
+        ("hidden", cfg.rnn.hidden),
+        ("head", cfg.rnn.head),
+        ("residual", cfg.rnn.residual),
+    ):
         have = state.get(key)
         if have != want:
-            raise StageError(f"{path} has {key}={have!r} but the config says {want!r}. "
-                             "Use the checkpoint's value, or delete the LSTM run and retrain it.")
+            raise StageError(
+                f"{path} has {key}={have!r} but the config says {want!r}. "
+                "Use the checkpoint's value, or delete the LSTM run and retrain it."
+            )
 
 
 def _recorded_inputs(state: dict) -> dict:
@@ -320,8 +355,15 @@ def load_vae(cfg, which: str = "best"):
     path = vae_dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, "VAE checkpoint", "train_vae", cfg)
     check_vae_architecture(state, cfg, path)
-    check_inputs(cfg, "The VAE", path, _recorded_inputs(state), {"rollouts": rollouts_id(cfg)},
-                 stage_command("train_vae", cfg), {"rollouts": manifest_path(cfg)})
+    check_inputs(
+        cfg,
+        "The VAE",
+        path,
+        _recorded_inputs(state),
+        {"rollouts": rollouts_id(cfg)},
+        stage_command("train_vae", cfg),
+        {"rollouts": manifest_path(cfg)},
+    )
     model = build_vae(cfg)
     model.load_state_dict(state["model"])
     return model.eval(), path
@@ -333,8 +375,15 @@ def load_rnn(cfg, which: str = "best"):
     path = rnn_dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
     check_rnn_architecture(state, cfg, path)
-    check_inputs(cfg, "The LSTM", path, _recorded_inputs(state), {"vae": vae_id(cfg)},
-                 stage_command("train_rnn", cfg), {"vae": vae_dir(cfg) / "best.pt"})
+    check_inputs(
+        cfg,
+        "The LSTM",
+        path,
+        _recorded_inputs(state),
+        {"vae": vae_id(cfg)},
+        stage_command("train_rnn", cfg),
+        {"vae": vae_dir(cfg) / "best.pt"},
+    )
     model = build_rnn(cfg)
     model.load_state_dict(state["model"])
     return model.eval(), path
@@ -355,11 +404,16 @@ def load_actor(cfg, agent: AgentId, which: str = "last"):
 
     path = agent.dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
-    rebuild = (f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} "
-               f"seed={agent.seed}")
-    check_inputs(cfg, f"The agent {agent.key}", path, _recorded_inputs(state),
-                 {"vae": vae_id(cfg), "rnn": rnn_id(cfg)}, rebuild,
-                 {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"})
+    rebuild = f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} seed={agent.seed}"
+    check_inputs(
+        cfg,
+        f"The agent {agent.key}",
+        path,
+        _recorded_inputs(state),
+        {"vae": vae_id(cfg), "rnn": rnn_id(cfg)},
+        rebuild,
+        {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"},
+    )
     actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
     actor.load_state_dict(state["agent"]["actor"])
     return actor.eval(), state
@@ -373,12 +427,20 @@ def models_of(cfg, agent: AgentId) -> dict[str, str]:
 # ----------------------------------------------------------------------------- completion
 def marker(cfg, stage: str, agent: AgentId | None = None) -> Path:
     """The file whose existence means ``stage`` finished."""
-    return {"collect": lambda: manifest_path(cfg), "vae": lambda: vae_dir(cfg) / "metrics.json",
-            "rnn": lambda: rnn_dir(cfg) / "metrics.json",
-            "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg) / "metrics.json",
-            "eval": lambda: eval_dir(cfg) / "summary.json"}[stage]()
+    return {
+        "collect": lambda: manifest_path(cfg),
+        "vae": lambda: vae_dir(cfg) / "metrics.json",
+        "rnn": lambda: rnn_dir(cfg) / "metrics.json",
+        "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg) / "metrics.json",
+        "eval": lambda: eval_dir(cfg) / "summary.json",
+    }[stage]()
 
 
 def output_dir(cfg, stage: str, agent: AgentId | None = None) -> Path:
-    return {"collect": lambda: rollouts_dir(cfg), "vae": lambda: vae_dir(cfg), "rnn": lambda: rnn_dir(cfg),
-            "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg), "eval": lambda: eval_dir(cfg)}[stage]()
+    return {
+        "collect": lambda: rollouts_dir(cfg),
+        "vae": lambda: vae_dir(cfg),
+        "rnn": lambda: rnn_dir(cfg),
+        "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg),
+        "eval": lambda: eval_dir(cfg),
+    }[stage]()

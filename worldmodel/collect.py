@@ -7,6 +7,7 @@ the worker count, so two runs with the same config write identical data. Shards 
 after a kill (even SIGKILL) ``resume=true`` writes exactly the missing shards, and the result is identical
 to an uninterrupted run.
 """
+
 from __future__ import annotations
 
 import json
@@ -37,8 +38,11 @@ def episode_spec(seed: int, index: int):
 def _collection_settings(cfg) -> dict:
     c = cfg.collect
     return {
-        "schema_version": SCHEMA_VERSION, "seed": int(cfg.seed), "episodes": int(c.episodes),
-        "episodes_per_shard": int(c.episodes_per_shard), "max_episode_s": float(c.max_episode_s),
+        "schema_version": SCHEMA_VERSION,
+        "seed": int(cfg.seed),
+        "episodes": int(c.episodes),
+        "episodes_per_shard": int(c.episodes_per_shard),
+        "max_episode_s": float(c.max_episode_s),
         "autopilot": OmegaConf.to_container(c.autopilot, resolve=True),
         "env": {key: cast(cfg.env[key]) for key, cast in ENV_KEYS.items()},
     }
@@ -53,8 +57,9 @@ def _worker_env(settings: dict):
     if _ENV is None:
         from envs import UrbanCollisionEnv
 
-        _ENV = UrbanCollisionEnv(camera=True, horizon_after_ttc_s=None, max_episode_s=settings["max_episode_s"],
-                                 **settings["env"])
+        _ENV = UrbanCollisionEnv(
+            camera=True, horizon_after_ttc_s=None, max_episode_s=settings["max_episode_s"], **settings["env"]
+        )
     return _ENV
 
 
@@ -84,13 +89,20 @@ def record_episode(env, settings: dict, index: int) -> dict:
     done[-2:] = 1
     pad = np.zeros((1, 2), np.float32)
     return {
-        "index": index, "seed": spec.seed, "n_steps": n - 1, "terminated": episode.terminated,
-        "scenario": spec.to_json(), "outcome": json.dumps(episode.outcome, sort_keys=True),
-        "seg": np.stack(seg).astype(np.uint8), "speed": np.asarray(speed, np.float32),
+        "index": index,
+        "seed": spec.seed,
+        "n_steps": n - 1,
+        "terminated": episode.terminated,
+        "scenario": spec.to_json(),
+        "outcome": json.dumps(episode.outcome, sort_keys=True),
+        "seg": np.stack(seg).astype(np.uint8),
+        "speed": np.asarray(speed, np.float32),
         "action": np.concatenate([np.asarray(action, np.float32), pad]),
-        "reward_r1": np.asarray(r1 + [0.0], np.float32), "reward_r2": np.asarray(r2 + [0.0], np.float32),
+        "reward_r1": np.asarray(r1 + [0.0], np.float32),
+        "reward_r2": np.asarray(r2 + [0.0], np.float32),
         "done": done,
-        "_outcome": episode.outcome, "_hazard": spec.hazard,
+        "_outcome": episode.outcome,
+        "_hazard": spec.hazard,
     }
 
 
@@ -99,8 +111,11 @@ def collect_shard(task: tuple[dict, str, int, list[int]]) -> dict:
     settings, root, k, indices = task
     env = _worker_env(settings)
     episodes = [record_episode(env, settings, i) for i in indices]
-    meta = {"class_names": json.dumps(__import__("envs").CLASS_NAMES), "dt": 1.0 / 15.0,
-            "settings": json.dumps(settings, sort_keys=True)}
+    meta = {
+        "class_names": json.dumps(__import__("envs").CLASS_NAMES),
+        "dt": 1.0 / 15.0,
+        "settings": json.dumps(settings, sort_keys=True),
+    }
     write_shard(Path(root) / shard_name(k), episodes, meta)
     return {
         "shard": k,
@@ -127,8 +142,10 @@ def run(cfg) -> dict:
     if config_path.exists():
         previous = json.loads(config_path.read_text())
         if previous != settings:
-            raise StageError(f"{root} was collected with different settings ({config_path}). Use another "
-                             f"experiment=NAME, or delete {root} to start again.")
+            raise StageError(
+                f"{root} was collected with different settings ({config_path}). Use another "
+                f"experiment=NAME, or delete {root} to start again."
+            )
         if manifest_path.exists():
             log.info("[collect] %s is already complete; nothing to do.", root)
             return json.loads(manifest_path.read_text())["summary"]
@@ -141,8 +158,10 @@ def run(cfg) -> dict:
     atomic_write_text(root / "split.json", json.dumps(split))
 
     per = settings["episodes_per_shard"]
-    shards = [(k, list(range(k * per, min(settings["episodes"], (k + 1) * per))))
-              for k in range((settings["episodes"] + per - 1) // per)]
+    shards = [
+        (k, list(range(k * per, min(settings["episodes"], (k + 1) * per))))
+        for k in range((settings["episodes"] + per - 1) // per)
+    ]
     todo = [(settings, str(root), k, ids) for k, ids in shards if not (root / shard_name(k)).exists()]
     done_stats = _stats_of_existing(root, [k for k, _ in shards if (root / shard_name(k)).exists()])
 
@@ -151,8 +170,9 @@ def run(cfg) -> dict:
     t0 = time.perf_counter()
     workers = min(int(cfg.collect.num_workers), max(1, len(todo)))
     new_stats = []
-    with tqdm(total=settings["episodes"], initial=sum(len(s["lengths"]) for s in done_stats),
-              unit="episode", desc="collect") as bar:
+    with tqdm(
+        total=settings["episodes"], initial=sum(len(s["lengths"]) for s in done_stats), unit="episode", desc="collect"
+    ) as bar:
         if workers == 1:
             for task in todo:
                 new_stats.append(collect_shard(task))
@@ -167,8 +187,13 @@ def run(cfg) -> dict:
     all_stats = done_stats + new_stats
     summary = _summarise(all_stats, wall, sum(sum(s["lengths"].values()) for s in new_stats))
     lengths = {str(i): n for s in all_stats for i, n in s["lengths"].items()}
-    manifest = {"schema_version": SCHEMA_VERSION, "episodes": settings["episodes"],
-                "shards": [shard_name(k) for k, _ in shards], "lengths": lengths, "summary": summary}
+    manifest = {
+        "schema_version": SCHEMA_VERSION,
+        "episodes": settings["episodes"],
+        "shards": [shard_name(k) for k, _ in shards],
+        "lengths": lengths,
+        "summary": summary,
+    }
     atomic_write_text(manifest_path, json.dumps(manifest, indent=1, sort_keys=True))
     _print_summary(root, summary)
     return summary
@@ -185,9 +210,14 @@ def _stats_of_existing(root: Path, ks: list[int]) -> list[dict]:
         ids = check_shard(path, full=False)
         with h5py.File(path, "r") as f:
             eps = [f[episode_key(i)] for i in ids]
-            stats.append({"shard": k, "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, eps)},
-                          "hazards": [json.loads(g.attrs["scenario"]) for g in eps],
-                          "outcomes": [json.loads(g.attrs["outcome"]) for g in eps]})
+            stats.append(
+                {
+                    "shard": k,
+                    "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, eps)},
+                    "hazards": [json.loads(g.attrs["scenario"]) for g in eps],
+                    "outcomes": [json.loads(g.attrs["outcome"]) for g in eps],
+                }
+            )
         # scenario JSON -> hazard name, as a fresh run reports it
         from envs import ScenarioSpec
 
@@ -200,18 +230,28 @@ def _summarise(stats: list[dict], wall: float, new_frames: int) -> dict:
     hazards = [h for s in stats for h in s["hazards"]]
     frames = sum(sum(s["lengths"].values()) for s in stats)
     return {
-        "episodes": len(outcomes), "frames": frames,
+        "episodes": len(outcomes),
+        "frames": frames,
         "hazards": {k: hazards.count(k) for k in ("pedestrian", "car", "both", "none")},
         "collisions": {k: int(sum(o[f"{k}_collision"] for o in outcomes)) for k in ("pedestrian", "vehicle", "static")},
         "ended_by": {k: sum(o["end"] == k for o in outcomes) for k in ("crash", "left_scene", "horizon")},
-        "wall_s": round(wall, 2), "frames_per_s_this_run": round(new_frames / wall, 1) if wall > 0 else None,
+        "wall_s": round(wall, 2),
+        "frames_per_s_this_run": round(new_frames / wall, 1) if wall > 0 else None,
     }
 
 
 def _print_summary(root: Path, s: dict) -> None:
-    log.info("[collect] %s: %d episodes, %d frames; hazards %s; collisions %s; ended by %s; %s s wall, %s frames/s",
-             root, s["episodes"], s["frames"], s["hazards"], s["collisions"], s["ended_by"], s["wall_s"],
-             s["frames_per_s_this_run"])
+    log.info(
+        "[collect] %s: %d episodes, %d frames; hazards %s; collisions %s; ended by %s; %s s wall, %s frames/s",
+        root,
+        s["episodes"],
+        s["frames"],
+        s["hazards"],
+        s["collisions"],
+        s["ended_by"],
+        s["wall_s"],
+        s["frames_per_s_this_run"],
+    )
 
 
 main = hydra_main("collect")(run)

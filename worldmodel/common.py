@@ -3,6 +3,7 @@
 Every stage of ``experiment=NAME`` reads and writes under two fixed roots:
 ``data/NAME/`` for datasets and ``runs/NAME/<stage>/`` for checkpoints, TensorBoard and reports.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -81,7 +82,7 @@ class Checked:
 
 
 # ----------------------------------------------------------------------------- files
-TEMPORARY = ".{name}.tmp-{pid}"   # the one temporary-file scheme: hidden, next to its target, named by writer
+TEMPORARY = ".{name}.tmp-{pid}"  # the one temporary-file scheme: hidden, next to its target, named by writer
 
 
 @contextlib.contextmanager

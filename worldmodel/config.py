@@ -8,6 +8,7 @@ misspelt key or a value of the wrong type stops Hydra at composition, naming the
 its fields; ``validate(cfg)`` runs them all when a stage starts, and an impossible value stops the stage with
 a ``StageError`` naming the key, before any work is done.
 """
+
 from __future__ import annotations
 
 import logging
@@ -38,12 +39,12 @@ class PathsConfig:
 class AutopilotConfig(Checked):
     """The noisy lane-keeping autopilot that drives the data collection (``envs.NoisyAutopilot``)."""
 
-    steer_noise: float = 0.15            # std of Gaussian noise on the steer channel
-    throttle_noise: float = 0.15         # std of Gaussian noise on the throttle/brake channel
-    excursion_rate: float = 0.03         # chance per step of starting a sustained brake, lane change or swerve
-    excursion_s: list[float] = field(default_factory=lambda: [0.4, 1.5])   # duration range of an excursion
-    onset_excursion_prob: float = 0.5    # chance of an excursion from the first step, where the hazards are
-    hard_swerve_share: float = 0.2       # share of steering excursions that are constant hard swerves
+    steer_noise: float = 0.15  # std of Gaussian noise on the steer channel
+    throttle_noise: float = 0.15  # std of Gaussian noise on the throttle/brake channel
+    excursion_rate: float = 0.03  # chance per step of starting a sustained brake, lane change or swerve
+    excursion_s: list[float] = field(default_factory=lambda: [0.4, 1.5])  # duration range of an excursion
+    onset_excursion_prob: float = 0.5  # chance of an excursion from the first step, where the hazards are
+    hard_swerve_share: float = 0.2  # share of steering excursions that are constant hard swerves
 
     def problems(self):
         for key in ("steer_noise", "throttle_noise"):
@@ -64,8 +65,8 @@ class CollectConfig(Checked):
     episodes: int = 120
     num_workers: int = 2
     episodes_per_shard: int = 16
-    max_episode_s: float = 15.0          # the paper's 15 s sequences at 15 FPS
-    validation_fraction: float = 0.1     # share of episodes held out, stored in split.json
+    max_episode_s: float = 15.0  # the paper's 15 s sequences at 15 FPS
+    validation_fraction: float = 0.1  # share of episodes held out, stored in split.json
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
 
     def problems(self):
@@ -83,8 +84,8 @@ class EnvConfig(Checked):
     camera: bool = True
     image_size: int = 64
     fov_deg: float = 90.0
-    horizon_after_ttc_s: float | None = 3.0   # agent episodes: truncated this long after the sampled TTC
-    mu: float = 1.0                              # tyre-road friction coefficient (friction circle radius mu*g)
+    horizon_after_ttc_s: float | None = 3.0  # agent episodes: truncated this long after the sampled TTC
+    mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
 
     def problems(self):
@@ -109,7 +110,7 @@ class VAEConfig(Checked):
     # loss weight per class = frequency ** -class_balance (0 = plain summed CE as in World Models; 0.5 lifted
     # held-out Vehicles IoU from 0.17 to 0.50 at quick scale, see README)
     class_balance: float = 0.5
-    free_bits: float = 0.0               # nats per latent dimension below which KL is not penalised (0 = off)
+    free_bits: float = 0.0  # nats per latent dimension below which KL is not penalised (0 = off)
     kl_weight: float = 1.0
 
     def problems(self):
@@ -131,9 +132,9 @@ class RNNConfig(Checked):
     """Phase 2: the 512-unit LSTM over [z_t, a_t] predicting z_{t+1} (World Models MDN-RNN)."""
 
     hidden: int = 512
-    head: str = "mdn"                    # mdn | gaussian | mse
+    head: str = "mdn"  # mdn | gaussian | mse
     gaussians: int = 5
-    residual: bool = True                # predict z_{t+1} - z_t: an untrained model equals persistence
+    residual: bool = True  # predict z_{t+1} - z_t: an untrained model equals persistence
     lr: float = 1e-4
     batch_size: int = 32
     epochs: int = 10
@@ -153,7 +154,7 @@ class AgentConfig(DDPGConfig):
     """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there) and the training loop's settings."""
 
     total_steps: int = 20000
-    use_speed: bool = False              # append ego speed to the agent input
+    use_speed: bool = False  # append ego speed to the agent input
     checkpoint_every: int = 2000
 
     def problems(self):
@@ -178,11 +179,11 @@ class RewardConfig(Checked):
 class OracleConfig(Checked):
     """The privileged planner (``envs/planner.py``): the ceiling the agents are judged against."""
 
-    replan_every_s: float = 0.2          # re-simulate the candidates from the true state this often
-    pedals: list[float] = field(default_factory=lambda: [-1.0, -0.5, 0.0, 1.0])   # held pedal levels; must hold -1
-    steers: list[float] = field(default_factory=lambda: [0.3, 0.6, 1.0])          # steering magnitudes, both ways
-    delays_s: list[float] = field(default_factory=lambda: [0.0, 0.2, 0.4])        # when the steering starts
-    lane_change_s: list[float] = field(default_factory=lambda: [0.3, 0.6])        # steer-then-counter-steer lengths
+    replan_every_s: float = 0.2  # re-simulate the candidates from the true state this often
+    pedals: list[float] = field(default_factory=lambda: [-1.0, -0.5, 0.0, 1.0])  # held pedal levels; must hold -1
+    steers: list[float] = field(default_factory=lambda: [0.3, 0.6, 1.0])  # steering magnitudes, both ways
+    delays_s: list[float] = field(default_factory=lambda: [0.0, 0.2, 0.4])  # when the steering starts
+    lane_change_s: list[float] = field(default_factory=lambda: [0.3, 0.6])  # steer-then-counter-steer lengths
 
     def problems(self):
         from envs.planner import candidate_manoeuvres
@@ -190,8 +191,12 @@ class OracleConfig(Checked):
         if self.replan_every_s <= 0:
             yield ConfigValueError("oracle.replan_every_s", self.replan_every_s, "it must be > 0")
         try:
-            candidate_manoeuvres(pedals=list(self.pedals), steers=list(self.steers), delays_s=list(self.delays_s),
-                                 lane_change_s=list(self.lane_change_s))
+            candidate_manoeuvres(
+                pedals=list(self.pedals),
+                steers=list(self.steers),
+                delays_s=list(self.delays_s),
+                lane_change_s=list(self.lane_change_s),
+            )
         except ValueError as err:
             yield ConfigValueError("oracle", "...", str(err))
 
@@ -208,7 +213,7 @@ class EvaluateConfig(Checked):
     speeds: list[float] = field(default_factory=lambda: [10.0, 20.0, 30.0])
     hazards: list[str] = field(default_factory=lambda: ["pedestrian", "car", "both"])
     bank_seed: int = 2018
-    num_workers: int = 2                 # processes; results are identical to 1
+    num_workers: int = 2  # processes; results are identical to 1
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
     oracle: OracleConfig = field(default_factory=OracleConfig)
@@ -225,21 +230,24 @@ class EvaluateConfig(Checked):
         if unknown:
             yield ConfigValueError("hazards", list(self.hazards), "hazards are pedestrian, car and both")
         if "braking" not in self.policies or any(p not in SCRIPTED_POLICIES for p in self.policies):
-            yield ConfigValueError("policies", list(self.policies), "it must include 'braking' (the baseline) and "
-                                   "may add 'oracle'; trained agents are found by themselves")
+            yield ConfigValueError(
+                "policies",
+                list(self.policies),
+                "it must include 'braking' (the baseline) and may add 'oracle'; trained agents are found by themselves",
+            )
 
 
 @dataclass
 class ExperimentConfig(Checked):
     """Every stage's config: shared keys, then one section per stage or component."""
 
-    experiment: str = "default"          # names data/${experiment}/ and runs/${experiment}/
+    experiment: str = "default"  # names data/${experiment}/ and runs/${experiment}/
     seed: int = 0
-    resume: bool = False                 # continue from runs/.../last.pt (and finish partial datasets)
-    threads: int = 2                     # torch intra-op threads
+    resume: bool = False  # continue from runs/.../last.pt (and finish partial datasets)
+    threads: int = 2  # torch intra-op threads
     # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
     allow_stale: bool = False
-    scale_name: str | None = None     # set by conf/scale/*.yaml
+    scale_name: str | None = None  # set by conf/scale/*.yaml
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)

@@ -20,6 +20,7 @@ Each shard holds one group per episode, ``episode_000123``, with
 and attributes ``index``, ``seed``, ``scenario`` (JSON of ``envs.ScenarioSpec``), ``outcome`` (JSON), ``n_steps``,
 ``terminated``. File attributes: ``schema_version``, ``episodes`` (ids), ``class_names``, ``dt``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -62,8 +63,15 @@ def write_shard(path: Path, episodes: list[dict], meta: dict) -> None:
         for ep in episodes:
             g = f.create_group(episode_key(ep["index"]))
             n = len(ep["seg"])
-            g.create_dataset("seg", data=ep["seg"], chunks=(min(n, 32), *ep["seg"].shape[1:]),
-                             compression="gzip", compression_opts=4, shuffle=True, track_times=False)
+            g.create_dataset(
+                "seg",
+                data=ep["seg"],
+                chunks=(min(n, 32), *ep["seg"].shape[1:]),
+                compression="gzip",
+                compression_opts=4,
+                shuffle=True,
+                track_times=False,
+            )
             for key in EPISODE_KEYS[1:]:
                 g.create_dataset(key, data=ep[key], track_times=False)
             for key in ("index", "seed", "n_steps", "terminated"):
@@ -79,7 +87,8 @@ def _open(path: Path) -> h5py.File:
     except Exception as err:
         raise CorruptDataError(
             f"{path} is not a readable HDF5 shard ({err}). It is corrupt or truncated: delete it and rerun "
-            "the collection with resume=true to rewrite it.") from err
+            "the collection with resume=true to rewrite it."
+        ) from err
 
 
 def check_shard(path: Path, full: bool = True) -> list[int]:
@@ -88,8 +97,9 @@ def check_shard(path: Path, full: bool = True) -> list[int]:
     try:
         with f:
             if f.attrs.get("schema_version") != SCHEMA_VERSION:
-                raise CorruptDataError(f"{path}: schema_version {f.attrs.get('schema_version')!r}, "
-                                       f"expected {SCHEMA_VERSION}")
+                raise CorruptDataError(
+                    f"{path}: schema_version {f.attrs.get('schema_version')!r}, expected {SCHEMA_VERSION}"
+                )
             ids = [int(i) for i in f.attrs["episodes"]]
             for i in ids:
                 g = f.get(episode_key(i))
@@ -110,7 +120,8 @@ def check_shard(path: Path, full: bool = True) -> list[int]:
     except Exception as err:
         raise CorruptDataError(
             f"{path} is corrupt or truncated ({type(err).__name__}: {err}). Delete it and rerun the "
-            "collection with resume=true to rewrite it.") from err
+            "collection with resume=true to rewrite it."
+        ) from err
 
 
 class RolloutStore:
@@ -132,8 +143,9 @@ class RolloutStore:
                 self.location[i] = path
         if set(self.location) != expected:
             lost = sorted(expected - set(self.location))[:10]
-            raise CorruptDataError(f"{self.root}: episodes {lost} are missing from the shards; "
-                                   "rerun the collection with resume=true")
+            raise CorruptDataError(
+                f"{self.root}: episodes {lost} are missing from the shards; rerun the collection with resume=true"
+            )
         self._handles: dict[Path, h5py.File] = {}
         self._pid = os.getpid()
         self.lengths = {i: self.manifest["lengths"][str(i)] for i in expected}
@@ -152,8 +164,10 @@ class RolloutStore:
         except CorruptDataError:
             raise
         except Exception as err:
-            raise CorruptDataError(f"{path}: reading episode {i}/{key} failed ({err}); the file is corrupt. "
-                                   "Delete it and rerun the collection with resume=true.") from err
+            raise CorruptDataError(
+                f"{path}: reading episode {i}/{key} failed ({err}); the file is corrupt. "
+                "Delete it and rerun the collection with resume=true."
+            ) from err
 
     def attrs(self, i: int) -> dict:
         g = self._file(self.location[i])[episode_key(i)]
@@ -171,8 +185,15 @@ class RolloutStore:
         self._handles = {}
 
 
-def iter_frame_batches(store: RolloutStore, episodes: list[int], batch_size: int, rng: np.random.Generator,
-                       block: int = 32, buffer_blocks: int = 16, drop_last: bool = False) -> Iterator[np.ndarray]:
+def iter_frame_batches(
+    store: RolloutStore,
+    episodes: list[int],
+    batch_size: int,
+    rng: np.random.Generator,
+    block: int = 32,
+    buffer_blocks: int = 16,
+    drop_last: bool = False,
+) -> Iterator[np.ndarray]:
     """Stream shuffled frame batches: random contiguous blocks pooled in a small shuffle buffer.
 
     Memory is bounded by ``buffer_blocks * block`` frames whatever the dataset size (hardmaru's loader held
@@ -191,7 +212,7 @@ def iter_frame_batches(store: RolloutStore, episodes: list[int], batch_size: int
             frames = frames[rng.permutation(len(frames))]
             pool, pooled = [], 0
             for b in range(0, len(frames), batch_size):
-                batch = frames[b: b + batch_size]
+                batch = frames[b : b + batch_size]
                 if len(batch) < batch_size and drop_last:
                     continue
                 yield batch
@@ -209,7 +230,7 @@ def validate(root: Path) -> tuple[int, int]:
         with h5py.File(path, "r") as f:
             frames += sum(f[episode_key(i)]["seg"].shape[0] for i in ids)
         episodes += len(ids)
-    store = RolloutStore(root, check=False)   # manifest and episode coverage
+    store = RolloutStore(root, check=False)  # manifest and episode coverage
     store.close()
     return episodes, frames
 

@@ -15,6 +15,7 @@ Straight-line braking and the planner run without the camera (outcomes are ident
 Scenarios are spread over ``evaluate.num_workers`` processes in fixed chunks; every scenario is independent and
 deterministic, so the rows are identical to a single-process run (tested).
 """
+
 from __future__ import annotations
 
 import logging
@@ -27,9 +28,20 @@ from .config import SCRIPTED_POLICIES, hydra_main, validate
 
 log = logging.getLogger(__name__)
 ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")
-OUTCOME_COLUMNS = ("pedestrian_collision", "vehicle_collision", "static_collision", "lane_departure",
-                   "n_pedestrians_hit", "pedestrian_injury", "occupant_injury", "ego_occupant_injury",
-                   "speed_at_collision", "steps", "return_r1", "return_r2")
+OUTCOME_COLUMNS = (
+    "pedestrian_collision",
+    "vehicle_collision",
+    "static_collision",
+    "lane_departure",
+    "n_pedestrians_hit",
+    "pedestrian_injury",
+    "occupant_injury",
+    "ego_occupant_injury",
+    "speed_at_collision",
+    "steps",
+    "return_r1",
+    "return_r2",
+)
 NO_MODELS = {"vae_sha": "", "rnn_sha": "", "actor_sha": ""}
 
 
@@ -37,12 +49,18 @@ def bank(cfg):
     from envs import test_bank
 
     e = cfg.evaluate
-    return test_bank(ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=int(e.per_cell),
-                     seed=int(e.bank_seed))
+    return test_bank(
+        ttcs=tuple(e.ttcs),
+        speeds=tuple(e.speeds),
+        hazards=tuple(e.hazards),
+        per_cell=int(e.per_cell),
+        seed=int(e.bank_seed),
+    )
 
 
-def run_policy(env, policy, entries, desc: str | bool | None = None, policy_seed: int = 0,
-               models: dict | None = None) -> list[dict]:
+def run_policy(
+    env, policy, entries, desc: str | bool | None = None, policy_seed: int = 0, models: dict | None = None
+) -> list[dict]:
     """Roll ``policy`` through every bank entry; one row per scenario with the paper's section IV-C metrics and
     the short hashes of the models behind the policy (empty for scripted ones)."""
     from tqdm import tqdm
@@ -52,9 +70,19 @@ def run_policy(env, policy, entries, desc: str | bool | None = None, policy_seed
     rows = []
     for entry in tqdm(entries, desc=desc or policy.name, unit="scenario", disable=desc is False):
         o = rollout(env, policy, entry.spec).outcome
-        rows.append({"policy": policy.name, "policy_seed": policy_seed, "scenario_id": entry.scenario_id,
-                     "hazard": entry.hazard, "ttc": entry.ttc, "speed": entry.speed, "seed": entry.spec.seed,
-                     **{k: o[k] for k in OUTCOME_COLUMNS}, **(models or NO_MODELS)})
+        rows.append(
+            {
+                "policy": policy.name,
+                "policy_seed": policy_seed,
+                "scenario_id": entry.scenario_id,
+                "hazard": entry.hazard,
+                "ttc": entry.ttc,
+                "speed": entry.speed,
+                "seed": entry.spec.seed,
+                **{k: o[k] for k in OUTCOME_COLUMNS},
+                **(models or NO_MODELS),
+            }
+        )
     return rows
 
 
@@ -63,8 +91,13 @@ def make_oracle(cfg):
     from envs.planner import PrivilegedPlanner
 
     o = cfg.evaluate.oracle
-    return PrivilegedPlanner(replan_every=max(1, round(float(o.replan_every_s) / DT)), pedals=list(o.pedals),
-                             steers=list(o.steers), delays_s=list(o.delays_s), lane_change_s=list(o.lane_change_s))
+    return PrivilegedPlanner(
+        replan_every=max(1, round(float(o.replan_every_s) / DT)),
+        pedals=list(o.pedals),
+        steers=list(o.steers),
+        delays_s=list(o.delays_s),
+        lane_change_s=list(o.lane_change_s),
+    )
 
 
 def _policy_for(cfg, name: str):
@@ -109,7 +142,7 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
 
     cfg_dict = OmegaConf.to_container(cfg, resolve=True)
     chunk = max(1, min(25, len(entries) // (4 * max(1, workers)) or 1))
-    tasks = [(cfg_dict, name, entries[i: i + chunk]) for i in range(0, len(entries), chunk)]
+    tasks = [(cfg_dict, name, entries[i : i + chunk]) for i in range(0, len(entries), chunk)]
     rows: list[dict] = []
     with tqdm(total=len(entries), desc=name, unit="scenario") as bar:
         if workers <= 1:
@@ -129,7 +162,7 @@ def run(cfg) -> dict:
     from .training import tensorboard
 
     validate(cfg)
-    set_threads(1)   # one decision at a time: a single thread is fastest for batch-1 inference
+    set_threads(1)  # one decision at a time: a single thread is fastest for batch-1 inference
     entries = bank(cfg)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()
@@ -137,24 +170,33 @@ def run(cfg) -> dict:
     workers = int(cfg.evaluate.num_workers)
     agents = [a.key for a in artifacts.trained_agents(cfg)]
     record = artifacts.provenance(cfg, "eval")
-    for key in agents:   # fail fast on a broken or stale checkpoint, before any scenario runs
+    for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs
         _policy_for(cfg, key)
     rows = []
     for key in [p for p in SCRIPTED_POLICIES if p in cfg.evaluate.policies] + agents:
         rows += evaluate_policy(cfg, key, entries, workers)
     if not agents:
-        log.info("[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
-                 "`python -m worldmodel.train_agent experiment=%s reward=r1`.", artifacts.runs_root(cfg),
-                 cfg.experiment)
+        log.info(
+            "[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
+            "`python -m worldmodel.train_agent experiment=%s reward=r1`.",
+            artifacts.runs_root(cfg),
+            cfg.experiment,
+        )
 
     write_results_csv(rows, out / "results.csv")
     writer = tensorboard(out)
     artifacts.write_provenance(out, record)
-    summary = write_report(rows, out, tb_writer=writer)   # summary.json last: it marks the evaluation complete
+    summary = write_report(rows, out, tb_writer=writer)  # summary.json last: it marks the evaluation complete
     writer.close()
     n_policies = len(agents) + len(list(cfg.evaluate.policies))
-    log.info("[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s", len(entries), n_policies,
-             time.perf_counter() - t0, out / "tables.md", out / "heatmaps.png")
+    log.info(
+        "[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s",
+        len(entries),
+        n_policies,
+        time.perf_counter() - t0,
+        out / "tables.md",
+        out / "heatmaps.png",
+    )
     return summary
 
 

@@ -6,6 +6,7 @@ the VAE checkpoint changes (a retrain, a resume with more epochs), the hash no l
 re-encoded automatically; otherwise it is reused as is. Written to a temporary name and renamed when complete
 (``common.atomic_output``); a temporary file left by a killed encoder is removed before the next encoding.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -30,8 +31,9 @@ def is_current(path: Path, vae_sha: str) -> bool:
 
 
 @torch.inference_mode()
-def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_size: int = 256,
-                   progress: bool = True) -> None:
+def encode_dataset(
+    store: RolloutStore, vae, vae_path: Path, out: Path, batch_size: int = 256, progress: bool = True
+) -> None:
     """Encode every episode of ``store`` with ``vae`` into ``out`` (atomically).
 
     Frames stream through the encoder in batches of exactly ``batch_size`` across episode boundaries (the last
@@ -41,10 +43,10 @@ def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_si
     from tqdm import tqdm
 
     vae.eval()
-    frames = None   # the fixed-size input batch, allocated once the frame size is known
+    frames = None  # the fixed-size input batch, allocated once the frame size is known
     fill = 0
-    encoded_mu, encoded_logvar = [], []   # encoded frames not yet written, in episode order
-    waiting: list[int] = []               # episodes whose frames are queued or encoded but not written
+    encoded_mu, encoded_logvar = [], []  # encoded frames not yet written, in episode order
+    waiting: list[int] = []  # episodes whose frames are queued or encoded but not written
 
     def encode_batch(valid: int) -> None:
         mu, logvar = vae.encode(torch.from_numpy(frames))
@@ -58,13 +60,13 @@ def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_si
             i = waiting.pop(0)
             n = store.lengths[i]
             g = f.create_group(episode_key(i))
-            g.create_dataset("mu", data=mu[used: used + n])
-            g.create_dataset("logvar", data=logvar[used: used + n])
+            g.create_dataset("mu", data=mu[used : used + n])
+            g.create_dataset("logvar", data=logvar[used : used + n])
             g.create_dataset("action", data=store.read(i, "action").astype(np.float32))
             used += n
         encoded_mu[:], encoded_logvar[:] = [mu[used:]], [logvar[used:]]
 
-    clean_temporaries(out.parent, out.name)   # a killed encoder's leftover (this stage is the file's one writer)
+    clean_temporaries(out.parent, out.name)  # a killed encoder's leftover (this stage is the file's one writer)
     with atomic_output(out) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["vae_checkpoint"] = str(vae_path)
@@ -78,14 +80,14 @@ def encode_dataset(store: RolloutStore, vae, vae_path: Path, out: Path, batch_si
                 pos = 0
                 while pos < len(seg):
                     take = min(batch_size - fill, len(seg) - pos)
-                    frames[fill: fill + take] = seg[pos: pos + take]
+                    frames[fill : fill + take] = seg[pos : pos + take]
                     fill, pos = fill + take, pos + take
                     if fill == batch_size:
                         encode_batch(batch_size)
                         fill = 0
                         write_finished(f)
             if fill:
-                encode_batch(fill)   # the stale tail of the buffer is encoded and dropped
+                encode_batch(fill)  # the stale tail of the buffer is encoded and dropped
             if waiting:
                 write_finished(f)
 

@@ -16,6 +16,7 @@ sweep is rebuilt too when the world model changes. The collection is the root: i
 run whose collection settings differ. Each stage's wall time and peak memory (this process and its workers,
 sampled every 0.2 s) are written to ``runs/NAME/pipeline.json``.
 """
+
 from __future__ import annotations
 
 import json
@@ -88,10 +89,23 @@ def steps(cfg) -> list[Step]:
 
     agents = {AgentId(reward, int(cfg.seed)) for reward in artifacts.AGENT_REWARDS}
     agents |= set(artifacts.trained_agents(cfg))
-    agent_steps = [Step(a.key if a.seed != int(cfg.seed) else a.policy, "agent", train_agent.run,
-                        {"reward": {"name": a.reward}, "seed": a.seed}, a) for a in sorted(agents)]
-    return [Step("collect", "collect", collect.run), Step("vae", "vae", train_vae.run),
-            Step("rnn", "rnn", train_rnn.run), *agent_steps, Step("eval", "eval", evaluate.run)]
+    agent_steps = [
+        Step(
+            a.key if a.seed != int(cfg.seed) else a.policy,
+            "agent",
+            train_agent.run,
+            {"reward": {"name": a.reward}, "seed": a.seed},
+            a,
+        )
+        for a in sorted(agents)
+    ]
+    return [
+        Step("collect", "collect", collect.run),
+        Step("vae", "vae", train_vae.run),
+        Step("rnn", "rnn", train_rnn.run),
+        *agent_steps,
+        Step("eval", "eval", evaluate.run),
+    ]
 
 
 def status(cfg, step: Step) -> tuple[str, list[str]]:
@@ -105,7 +119,7 @@ def status(cfg, step: Step) -> tuple[str, list[str]]:
         return "fresh", []
     recorded = artifacts.read_provenance(directory)
     if recorded is None and not done and step.kind != "eval" and not (directory / "last.pt").exists():
-        return "fresh", []   # a directory a run created but never wrote to
+        return "fresh", []  # a directory a run created but never wrote to
     reasons = artifacts.differences(recorded, artifacts.provenance(cfg, step.kind, step.agent))
     if reasons:
         return "stale", reasons
@@ -121,8 +135,9 @@ def run(cfg) -> dict:
         stage_cfg = OmegaConf.merge(cfg, {"resume": True}, step.changes)
         state, reasons = status(stage_cfg, step)
         if state == "complete":
-            log.info("[pipeline] %s: complete (%s), skipped", step.name,
-                     artifacts.marker(stage_cfg, step.kind, step.agent))
+            log.info(
+                "[pipeline] %s: complete (%s), skipped", step.name, artifacts.marker(stage_cfg, step.kind, step.agent)
+            )
             continue
         if state == "stale":
             moved = artifacts.retire(stage_cfg, artifacts.output_dir(stage_cfg, step.kind, step.agent))
@@ -135,13 +150,23 @@ def run(cfg) -> dict:
         if isinstance(result, dict) and result.get("stopped"):
             log.info("[pipeline] %s was interrupted; rerun the pipeline to continue.", step.name)
             return timings
-        timings[step.name] = {"wall_s": round(time.perf_counter() - t0, 1), "peak_rss_mb": round(mem.peak_mb, 1),
-                              "scale": OmegaConf.select(cfg, "scale_name", default=None)}
+        timings[step.name] = {
+            "wall_s": round(time.perf_counter() - t0, 1),
+            "peak_rss_mb": round(mem.peak_mb, 1),
+            "scale": OmegaConf.select(cfg, "scale_name", default=None),
+        }
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
     ev = artifacts.eval_dir(cfg)
-    log.info("[pipeline] done in %.0f s (this run). Stage times: %s\n  tables:   %s\n  heatmaps: %s\n  summary:  %s\n"
-             "  TensorBoard: .venv/bin/tensorboard --logdir %s", time.perf_counter() - t_all, timing_path,
-             ev / "tables.md", ev / "heatmaps.png", ev / "summary.json", cfg.paths.runs)
+    log.info(
+        "[pipeline] done in %.0f s (this run). Stage times: %s\n  tables:   %s\n  heatmaps: %s\n  summary:  %s\n"
+        "  TensorBoard: .venv/bin/tensorboard --logdir %s",
+        time.perf_counter() - t_all,
+        timing_path,
+        ev / "tables.md",
+        ev / "heatmaps.png",
+        ev / "summary.json",
+        cfg.paths.runs,
+    )
     return timings
 
 

@@ -24,14 +24,16 @@ Choices made here (the paper is silent on them):
   importing or calling this module never switches the backend of a notebook or opens a window.
 * Every file is written atomically (temporary file + ``os.replace``), so a crash never leaves half a report.
 """
+
 from __future__ import annotations
 
 import csv
 import io
 import json
 import math
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -116,8 +118,15 @@ CELL_METRICS = {
     "total_severe_injury": "total_injury",
 }
 # Metrics whose mean and spread over training seeds are reported for policies evaluated with several seeds.
-SEED_METRICS = ("pedestrian_collision_rate", "vehicle_collision_rate", "static_collision_rate", "lane_departure_rate",
-                "pedestrian_severe_injury", "occupant_severe_injury", "total_severe_injury")
+SEED_METRICS = (
+    "pedestrian_collision_rate",
+    "vehicle_collision_rate",
+    "static_collision_rate",
+    "lane_departure_rate",
+    "pedestrian_severe_injury",
+    "occupant_severe_injury",
+    "total_severe_injury",
+)
 
 # Fig. 5 columns: key -> (title, row key, which scenarios count).
 IMPROVEMENT_METRICS = {
@@ -210,7 +219,7 @@ def grid_of(rows: Sequence[dict]) -> dict[str, list]:
 def _values(rows: Sequence[dict], column: str) -> np.ndarray:
     vals = []
     for r in rows:
-        # total_injury: everyone's severe-injury probabilities summed, the quantity R2 penalises and the planner minimises
+        # total_injury: everyone's severe-injury probabilities summed, which R2 penalises and the planner minimises
         v = r["pedestrian_injury"] + r["occupant_injury"] if column == "total_injury" else r.get(column)
         vals.append(np.nan if v is None else float(v))
     return np.asarray(vals, dtype=float)
@@ -296,7 +305,9 @@ def read_results_csv(path: str | Path) -> list[dict]:
 def _metrics(rows: Sequence[dict]) -> dict[str, Any]:
     out: dict[str, Any] = {name: _json_number(_mean(rows, col)) for name, col in CELL_METRICS.items()}
     any_hit = [
-        float(bool(r.get("pedestrian_collision")) or bool(r.get("vehicle_collision")) or bool(r.get("static_collision")))
+        float(
+            bool(r.get("pedestrian_collision")) or bool(r.get("vehicle_collision")) or bool(r.get("static_collision"))
+        )
         for r in rows
     ]
     out["any_collision_rate"] = _json_number(float(np.mean(any_hit))) if any_hit else None
@@ -390,8 +401,10 @@ def summarize(rows: Sequence[dict], baseline: str = "braking") -> dict:
         out["achievable_share"] = {
             "ceiling": CEILING,
             "definition": "100 * (baseline - policy) / (baseline - ceiling) of the mean total severe-injury risk",
-            "policies": {p: {"overall": _json_number(overall_achievable_share(rows, p, baseline)),
-                             "cells": _grid_to_json(*g)} for p, g in shares.items()},
+            "policies": {
+                p: {"overall": _json_number(overall_achievable_share(rows, p, baseline)), "cells": _grid_to_json(*g)}
+                for p, g in shares.items()
+            },
         }
     for policy in policies:
         out["policies"][policy]["seeds"] = policy_seeds(rows, policy)
@@ -450,8 +463,9 @@ def _share(base: float, policy: float, ceiling: float) -> float:
     return 100.0 * (base - policy) / gain if math.isfinite(gain) and gain > MIN_ACHIEVABLE_GAIN else math.nan
 
 
-def achievable_share_grids(rows: Sequence[dict], baseline: str = "braking",
-                           ceiling: str = CEILING) -> dict[str, tuple[list, list, np.ndarray]]:
+def achievable_share_grids(
+    rows: Sequence[dict], baseline: str = "braking", ceiling: str = CEILING
+) -> dict[str, tuple[list, list, np.ndarray]]:
     """policy -> (ttcs, speeds, array) of the share of the achievable improvement in %, per TTC × speed cell:
     100 × (baseline − policy) / (baseline − ceiling) of the mean total severe-injury risk over all scenarios of
     the cell. 100 = as good as the privileged planner, 0 = no better than braking, negative = worse than braking.
@@ -477,9 +491,11 @@ def achievable_share_grids(rows: Sequence[dict], baseline: str = "braking",
     return out
 
 
-def overall_achievable_share(rows: Sequence[dict], policy: str, baseline: str = "braking",
-                             ceiling: str = CEILING) -> float:
+def overall_achievable_share(
+    rows: Sequence[dict], policy: str, baseline: str = "braking", ceiling: str = CEILING
+) -> float:
     """The share of the achievable improvement over the whole bank, in % (NaN without a ceiling or a gap)."""
+
     def total(p):
         return _mean([r for r in rows if r["policy"] == p], "total_injury")
 
@@ -513,8 +529,11 @@ def seed_spread(rows: Sequence[dict], policy: str, baseline: str = "braking") ->
             "min": _json_number(float(vals.min())) if vals.size else None,
             "max": _json_number(float(vals.max())) if vals.size else None,
         }
-    return {"seeds": seeds, "spread": spread,
-            "by_seed": {str(s): {m: _json_number(v) for m, v in per_seed[s].items()} for s in seeds}}
+    return {
+        "seeds": seeds,
+        "spread": spread,
+        "by_seed": {str(s): {m: _json_number(v) for m, v in per_seed[s].items()} for s in seeds},
+    }
 
 
 def _draw_heatmap(fig, ax, ttcs, speeds, arr, vmin, vmax, cmap, title):
@@ -600,8 +619,15 @@ def heatmaps_figure(rows: Sequence[dict], baseline: str = "braking"):
                 _draw_heatmap(fig, axes[row, col], ttcs, speeds, arr, 0.0, peak, "Reds", title + " (%)")
     for row, (policy, _) in enumerate(panel_rows if shares else []):
         # Fixed range: 100 % = as good as the planner; values past +-100 keep their number, saturate in colour.
-        _draw_heatmap(fig, axes[row, -1], *shares[policy], -100.0, 100.0, "RdBu_r",
-                      f"{policy_label(policy)}\n(e) share of achievable improvement,\ntotal injury risk (%)")
+        _draw_heatmap(
+            fig,
+            axes[row, -1],
+            *shares[policy],
+            -100.0,
+            100.0,
+            "RdBu_r",
+            f"{policy_label(policy)}\n(e) share of achievable improvement,\ntotal injury risk (%)",
+        )
     if mode == "improvement":
         fig.suptitle(
             f"Percentage-point improvement over {policy_label(baseline).lower()} "
@@ -710,9 +736,7 @@ def table_iii_markdown(rows: Sequence[dict]) -> str:
     lines.append(_md_row(["---"] + ["---:"] * len(ttcs)))
     counts = []
     for policy in policy_order(rows):
-        groups = _group(
-            [r for r in rows if r["policy"] == policy and _involves(r["hazard"], "pedestrian")], "ttc"
-        )
+        groups = _group([r for r in rows if r["policy"] == policy and _involves(r["hazard"], "pedestrian")], "ttc")
         cells = []
         for t in ttcs:
             g = groups.get((t,), [])
@@ -777,19 +801,30 @@ def achievable_share_markdown(rows: Sequence[dict], baseline: str = "braking") -
     for policy in (baseline, CEILING):
         prow = [r for r in rows if r["policy"] == policy]
         arr = 100.0 * _metric_grid(prow, "total_injury", "all", ttcs, speeds)
-        lines.append(_md_row([f"{policy_label(policy)}: total injury risk (%)", _fmt(100.0 * _mean(prow, "total_injury"), 2)]
-                             + [_fmt(v, 2) for v in arr.ravel()]))
+        lines.append(
+            _md_row(
+                [f"{policy_label(policy)}: total injury risk (%)", _fmt(100.0 * _mean(prow, "total_injury"), 2)]
+                + [_fmt(v, 2) for v in arr.ravel()]
+            )
+        )
     for policy, (_, _, arr) in shares.items():
         if policy == CEILING:
             continue
-        lines.append(_md_row([f"{policy_label(policy)}: share (%)", _fmt(overall_achievable_share(rows, policy, baseline), 0)]
-                             + [_fmt(v, 0) for v in arr.ravel()]))
-    lines += ["", "_Share = 100 × (braking − policy) / (braking − planner) of the mean total severe-injury risk "
-              "(pedestrians + car occupants, the quantity R2 penalises) over all scenarios of a cell: 100 = as good as "
-              "the privileged planner, 0 = no better than braking, negative = worse than braking; "
-              f"{MISSING} = the planner improves on braking by less than {100 * MIN_ACHIEVABLE_GAIN:g} points there. "
-              "The planner reads the true state and "
-              "re-simulates brake/steer manoeuvres with the real dynamics (envs/planner.py)._"]
+        lines.append(
+            _md_row(
+                [f"{policy_label(policy)}: share (%)", _fmt(overall_achievable_share(rows, policy, baseline), 0)]
+                + [_fmt(v, 0) for v in arr.ravel()]
+            )
+        )
+    lines += [
+        "",
+        "_Share = 100 × (braking − policy) / (braking − planner) of the mean total severe-injury risk "
+        "(pedestrians + car occupants, the quantity R2 penalises) over all scenarios of a cell: 100 = as good as "
+        "the privileged planner, 0 = no better than braking, negative = worse than braking; "
+        f"{MISSING} = the planner improves on braking by less than {100 * MIN_ACHIEVABLE_GAIN:g} points there. "
+        "The planner reads the true state and "
+        "re-simulates brake/steer manoeuvres with the real dynamics (envs/planner.py)._",
+    ]
     return "\n".join(lines)
 
 
@@ -799,9 +834,14 @@ def seed_spread_markdown(rows: Sequence[dict], baseline: str = "braking") -> str
     spreads = {p: s for p, s in spreads.items() if s is not None}
     if not spreads:
         return ""
-    names = {"pedestrian_collision_rate": "pedestrian coll. %", "static_collision_rate": "static coll. %",
-             "pedestrian_severe_injury": "pedestrian injury %", "occupant_severe_injury": "occupant injury %",
-             "total_severe_injury": "total injury %", "achievable_share": "share of achievable %"}
+    names = {
+        "pedestrian_collision_rate": "pedestrian coll. %",
+        "static_collision_rate": "static coll. %",
+        "pedestrian_severe_injury": "pedestrian injury %",
+        "occupant_severe_injury": "occupant injury %",
+        "total_severe_injury": "total injury %",
+        "achievable_share": "share of achievable %",
+    }
     lines = ["### Spread over training seeds", ""]
     lines.append(_md_row(["Policy", "seeds"] + list(names.values())))
     lines.append(_md_row(["---", "---"] + ["---:"] * len(names)))
@@ -816,8 +856,11 @@ def seed_spread_markdown(rows: Sequence[dict], baseline: str = "braking") -> str
                 sd = "" if st["std"] is None else f" ± {k * st['std']:.1f}"
                 cells.append(f"{k * st['mean']:.1f}{sd} ({k * st['min']:.1f}–{k * st['max']:.1f})")
         lines.append(_md_row([policy_label(policy), ", ".join(map(str, sp["seeds"]))] + cells))
-    lines += ["", "_Mean ± standard deviation (min–max) over the seeds' whole-bank values. Every other table pools "
-              "all seeds' rows, which equals the mean over seeds since each seed runs the same scenarios._"]
+    lines += [
+        "",
+        "_Mean ± standard deviation (min–max) over the seeds' whole-bank values. Every other table pools "
+        "all seeds' rows, which equals the mean over seeds since each seed runs the same scenarios._",
+    ]
     return "\n".join(lines)
 
 
@@ -833,8 +876,15 @@ def tables_markdown(rows: Sequence[dict]) -> str:
         f"speeds {', '.join(_fmt_speed(s) for s in grid['speeds'])} m/s; "
         f"policies {', '.join(policy_label(p) for p in policy_order(rows))}."
     )
-    parts = [intro, table_i_markdown(rows), table_ii_markdown(rows), table_iii_markdown(rows),
-             achievable_share_markdown(rows), other_outcomes_markdown(rows), seed_spread_markdown(rows)]
+    parts = [
+        intro,
+        table_i_markdown(rows),
+        table_ii_markdown(rows),
+        table_iii_markdown(rows),
+        achievable_share_markdown(rows),
+        other_outcomes_markdown(rows),
+        seed_spread_markdown(rows),
+    ]
     return "\n\n".join(p for p in parts if p) + "\n"
 
 
@@ -856,7 +906,9 @@ def _png_bytes(rgb: np.ndarray, dpi: float) -> bytes:
     return buf.getvalue()
 
 
-def write_report(rows: Sequence[dict], out_dir: str | Path, tb_writer=None, step: int = 0, baseline: str = "braking") -> dict:
+def write_report(
+    rows: Sequence[dict], out_dir: str | Path, tb_writer=None, step: int = 0, baseline: str = "braking"
+) -> dict:
     """Write ``summary.json``, ``tables.md`` and ``heatmaps.png`` into ``out_dir`` (atomically); return the summary.
 
     With a ``torch.utils.tensorboard.SummaryWriter`` it also logs the heatmap figure as an image

@@ -9,11 +9,13 @@ harm), truncated ``env.horizon_after_ttc_s`` after the TTC. The reward is 0 exce
 
     python -m worldmodel.train_agent -m experiment=NAME reward=r1,r2 seed=0,1,2   # a seed sweep
 
-Writes ``runs/NAME/agent_r1/seed0/`` (reward, then training seed): ``last.pt`` (actor, critic, targets, optimisers, replay buffer,
-step, RNG) every ``agent.checkpoint_every`` steps, ``best.pt`` (best rolling return), TensorBoard (episodic return,
-collision rate by kind, injury sums, losses, Q, steps/s) and ``metrics.json`` when finished. A resumed run starts
-a fresh episode at the saved step; the buffer and all optimiser state carry over.
+Writes ``runs/NAME/agent_r1/seed0/`` (reward, then training seed): ``last.pt`` (actor, critic, targets,
+optimisers, replay buffer, step, RNG, provenance) every ``agent.checkpoint_every`` steps, ``best.pt`` (best
+rolling return), TensorBoard (episodic return, collision rate by kind, injury sums, losses, Q, steps/s) and
+``metrics.json`` when finished. A resumed run starts a fresh episode at the saved step; the buffer and all
+optimiser state carry over.
 """
+
 from __future__ import annotations
 
 import logging
@@ -29,8 +31,14 @@ from .training import TrainingRun
 
 log = logging.getLogger(__name__)
 ROLLING = 100
-OUTCOME_KEYS = ("pedestrian_collision", "vehicle_collision", "static_collision", "pedestrian_injury",
-                "occupant_injury", "lane_departure")
+OUTCOME_KEYS = (
+    "pedestrian_collision",
+    "vehicle_collision",
+    "static_collision",
+    "pedestrian_injury",
+    "occupant_injury",
+    "lane_departure",
+)
 
 
 def episode_seed(seed: int, episode: int) -> int:
@@ -59,9 +67,11 @@ def run(cfg) -> dict:
         if run_.state is not None:
             state = run_.state
             if state["obs_dim"] != obs_dim:
-                raise StageError(f"{run_.last} expects agent inputs of size {state['obs_dim']}, the world model "
-                                 f"gives {obs_dim} (vae.latent_dim / agent.use_speed changed); delete {run_.dir} "
-                                 "to retrain")
+                raise StageError(
+                    f"{run_.last} expects agent inputs of size {state['obs_dim']}, the world model "
+                    f"gives {obs_dim} (vae.latent_dim / agent.use_speed changed); delete {run_.dir} "
+                    "to retrain"
+                )
             agent.load_state_dict(state["agent"])
             buffer.load_state_dict(state["buffer"])
             step, episode, best_return = state["step"], state["episode"], state["best_return"]
@@ -69,10 +79,20 @@ def run(cfg) -> dict:
             run_.resumed(f"step {step}, episode {episode}")
 
         def snapshot(best=False):
-            run_.save({"agent": agent.state_dict(), "buffer": buffer.state_dict(), "step": step,
-                       "episode": episode, "best_return": best_return, "history": list(history),
-                       "obs_dim": obs_dim, "actor_hidden": list(hp.actor_hidden), "reward": agent_id.reward},
-                      best=best)
+            run_.save(
+                {
+                    "agent": agent.state_dict(),
+                    "buffer": buffer.state_dict(),
+                    "step": step,
+                    "episode": episode,
+                    "best_return": best_return,
+                    "history": list(history),
+                    "obs_dim": obs_dim,
+                    "actor_hidden": list(hp.actor_hidden),
+                    "reward": agent_id.reward,
+                },
+                best=best,
+            )
 
         from tqdm import tqdm
 
@@ -124,15 +144,25 @@ def run(cfg) -> dict:
 
         recent = list(history)
         metrics = {
-            "reward": agent_id.reward, "steps": step, "episodes": episode,
+            "reward": agent_id.reward,
+            "steps": step,
+            "episodes": episode,
             "rolling_return": float(np.mean([h["return"] for h in recent])) if recent else None,
             "best_rolling_return": best_return if best_return > -float("inf") else None,
-            "recent_collision_rate": {k: float(np.mean([h[f"{k}_collision"] for h in recent])) if recent else None
-                                      for k in ("pedestrian", "vehicle", "static")},
+            "recent_collision_rate": {
+                k: float(np.mean([h[f"{k}_collision"] for h in recent])) if recent else None
+                for k in ("pedestrian", "vehicle", "static")
+            },
             "steps_per_s": round(steps_this_run / (time.perf_counter() - t0), 1),
         }
-        log.info("[%s] %d steps, %d episodes; rolling return %s; wrote %s", name, step, episode,
-                 metrics["rolling_return"], run_.dir)
+        log.info(
+            "[%s] %d steps, %d episodes; rolling return %s; wrote %s",
+            name,
+            step,
+            episode,
+            metrics["rolling_return"],
+            run_.dir,
+        )
         return run_.finish(metrics)
 
 

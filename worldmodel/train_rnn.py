@@ -12,6 +12,7 @@ Writes ``runs/NAME/rnn/``: checkpoints, TensorBoard (losses and a Fig. 2-style s
 z_t, predicted z_{t+1} and the real next frame), and ``metrics.json`` with held-out next-frame IoU of the decoded
 prediction for Vehicles and Pedestrians, beside the persistence baseline (z_{t+1} = z_t).
 """
+
 from __future__ import annotations
 
 import logging
@@ -112,8 +113,12 @@ def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frame
     result = {"frames": n}
     for name, c in conf.items():
         iou = iou_from_confusion(c)
-        result[name] = {"vehicles_iou": _num(iou[VEHICLES]), "pedestrians_iou": _num(iou[PEDESTRIANS]),
-                        "mean_iou": _num(np.nanmean(iou)), "pixel_accuracy": float(np.trace(c) / max(c.sum(), 1))}
+        result[name] = {
+            "vehicles_iou": _num(iou[VEHICLES]),
+            "pedestrians_iou": _num(iou[PEDESTRIANS]),
+            "mean_iou": _num(np.nanmean(iou)),
+            "pixel_accuracy": float(np.trace(c) / max(c.sum(), 1)),
+        }
     for name, e in sq_err.items():
         result[name]["latent_mse"] = e / max(n, 1) / lat.f.attrs["latent_dim"]
     return result
@@ -176,17 +181,30 @@ def run(cfg) -> dict:
         lat_path, reencoded = ensure_latents(cfg, store, vae, vae_path)
         lat = Latents(lat_path)
         if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
-            raise StageError(f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
-                             f"{cfg.vae.latent_dim}; delete it to re-encode")
+            raise StageError(
+                f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
+                f"{cfg.vae.latent_dim}; delete it to re-encode"
+            )
         if run_.state is not None:
             artifacts.check_rnn_architecture(run_.state, cfg, run_.last)
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         def snapshot(best=False):
-            run_.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                       "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
-                       "latent_dim": int(cfg.vae.latent_dim), "hidden": int(cfg.rnn.hidden),
-                       "head": str(cfg.rnn.head), "residual": bool(cfg.rnn.residual)}, best=best)
+            run_.save(
+                {
+                    "model": model.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "epoch": epoch,
+                    "batch_in_epoch": batch_in_epoch,
+                    "step": step,
+                    "best_val": best_val,
+                    "latent_dim": int(cfg.vae.latent_dim),
+                    "hidden": int(cfg.rnn.hidden),
+                    "head": str(cfg.rnn.head),
+                    "residual": bool(cfg.rnn.residual),
+                },
+                best=best,
+            )
 
         from tqdm import tqdm
 
@@ -199,7 +217,7 @@ def run(cfg) -> dict:
             n_batches = (len(order) + B - 1) // B
             bar = tqdm(total=n_batches, initial=batch_in_epoch, desc=f"rnn epoch {epoch + 1}/{epochs}", unit="batch")
             for b in range(n_batches):
-                units = [train_units[u] for u in order[b * B: (b + 1) * B]]
+                units = [train_units[u] for u in order[b * B : (b + 1) * B]]
                 # drawn even when skipped, so a resumed epoch sees the same noise
                 z, a, z_next, mask = make_batch(lat, units, L, D, gen, sample_inputs=sample_inputs)
                 if b < batch_in_epoch:
@@ -227,8 +245,12 @@ def run(cfg) -> dict:
             val_loss = validation_loss(model, lat, val_units, L, D, B, int(cfg.seed), sample_inputs=sample_inputs)
             writer.add_scalar("loss/validation", val_loss, step)
             model.eval()
-            writer.add_image("fig2: z_{t-1} | z_t | predicted z_{t+1} | real t+1",
-                             fig2_strip(model, vae, store, lat, val_eps[0]), step, dataformats="HWC")
+            writer.add_image(
+                "fig2: z_{t-1} | z_t | predicted z_{t+1} | real t+1",
+                fig2_strip(model, vae, store, lat, val_eps[0]),
+                step,
+                dataformats="HWC",
+            )
             model.train()
             epoch += 1
             batch_in_epoch = 0
@@ -240,16 +262,28 @@ def run(cfg) -> dict:
         model, best_path = artifacts.load_rnn(cfg, "best")
         scores = prediction_iou(model, vae, store, lat, val_eps)
         lat.close()
-        metrics = {"checkpoint": str(best_path), "epochs": epochs, "steps": step, "head": str(cfg.rnn.head),
-                   "validation_loss": best_val, "reencoded_latents": reencoded, **scores,
-                   "wall_s": round(time.perf_counter() - t0, 1)}
+        metrics = {
+            "checkpoint": str(best_path),
+            "epochs": epochs,
+            "steps": step,
+            "head": str(cfg.rnn.head),
+            "validation_loss": best_val,
+            "reencoded_latents": reencoded,
+            **scores,
+            "wall_s": round(time.perf_counter() - t0, 1),
+        }
         m, p = scores["model"], scores["persistence"]
         for cls in ("vehicles_iou", "pedestrians_iou"):
             if m[cls] is not None and p[cls] is not None:
                 metrics[f"{cls}_gain_over_persistence"] = m[cls] - p[cls]
-        log.info("[rnn] next-frame IoU vehicles %s (persistence %s), pedestrians %s (persistence %s); wrote %s",
-                 m["vehicles_iou"], p["vehicles_iou"], m["pedestrians_iou"], p["pedestrians_iou"],
-                 run_.marker)
+        log.info(
+            "[rnn] next-frame IoU vehicles %s (persistence %s), pedestrians %s (persistence %s); wrote %s",
+            m["vehicles_iou"],
+            p["vehicles_iou"],
+            m["pedestrians_iou"],
+            p["pedestrians_iou"],
+            run_.marker,
+        )
         return run_.finish(metrics)
 
 
@@ -261,7 +295,7 @@ def validation_loss(model, lat, units, L, D, B, seed, *, sample_inputs: bool) ->
     gen = torch.Generator().manual_seed(seed + 99)
     total, count = 0.0, 0
     for b in range(0, len(units), B):
-        z, a, z_next, mask = make_batch(lat, units[b: b + B], L, D, gen, sample_inputs=sample_inputs)
+        z, a, z_next, mask = make_batch(lat, units[b : b + B], L, D, gen, sample_inputs=sample_inputs)
         out, _ = model(z, a)
         total += masked_loss(model, out, z_next, mask).item() * int(mask.sum())
         count += int(mask.sum())

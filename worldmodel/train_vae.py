@@ -6,6 +6,7 @@ Reads ``data/NAME/rollouts`` (streamed, so memory stays bounded), writes ``runs/
 ``last.pt``/``best.pt`` checkpoints, TensorBoard events (losses, learning rate, an input-vs-reconstruction
 grid per epoch) and ``metrics.json`` (held-out pixel accuracy and per-class IoU for all 13 classes).
 """
+
 from __future__ import annotations
 
 import logging
@@ -76,8 +77,13 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
             break
     model.train()
     iou = iou_from_confusion(conf)
-    return {"frames": n, "recon": recon_sum / max(n, 1), "kl": kl_sum / max(n, 1),
-            "pixel_accuracy": float(np.trace(conf) / max(conf.sum(), 1)), "iou": iou}
+    return {
+        "frames": n,
+        "recon": recon_sum / max(n, 1),
+        "kl": kl_sum / max(n, 1),
+        "pixel_accuracy": float(np.trace(conf) / max(conf.sum(), 1)),
+        "iou": iou,
+    }
 
 
 def run(cfg) -> dict:
@@ -103,10 +109,20 @@ def run(cfg) -> dict:
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         def snapshot(best: bool = False):
-            run_.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                       "batch_in_epoch": batch_in_epoch, "step": step, "best_val": best_val,
-                       "latent_dim": int(cfg.vae.latent_dim), "num_classes": int(cfg.vae.num_classes),
-                       "class_weights": weights}, best=best)
+            run_.save(
+                {
+                    "model": model.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "epoch": epoch,
+                    "batch_in_epoch": batch_in_epoch,
+                    "step": step,
+                    "best_val": best_val,
+                    "latent_dim": int(cfg.vae.latent_dim),
+                    "num_classes": int(cfg.vae.num_classes),
+                    "class_weights": weights,
+                },
+                best=best,
+            )
 
         from tqdm import tqdm
 
@@ -116,12 +132,13 @@ def run(cfg) -> dict:
             rng = np.random.default_rng([int(cfg.seed), epoch])
             bar = tqdm(total=per_epoch, initial=batch_in_epoch, desc=f"vae epoch {epoch + 1}/{epochs}", unit="batch")
             for b, batch in enumerate(iter_frame_batches(store, train_eps, batch_size, rng)):
-                if b < batch_in_epoch:          # resuming mid-epoch: skip what was already trained on
+                if b < batch_in_epoch:  # resuming mid-epoch: skip what was already trained on
                     continue
                 x = torch.from_numpy(batch)
                 logits, mu, logvar = model(x)
-                loss, recon, kl = vae_loss(logits, x, mu, logvar, float(cfg.vae.kl_weight), float(cfg.vae.free_bits),
-                                           class_weights=weights)
+                loss, recon, kl = vae_loss(
+                    logits, x, mu, logvar, float(cfg.vae.kl_weight), float(cfg.vae.free_bits), class_weights=weights
+                )
                 check_finite(loss.item(), "VAE loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -137,7 +154,7 @@ def run(cfg) -> dict:
                     writer.add_scalar("speed/frames_per_s", frames_seen / (time.perf_counter() - t0), step)
                 if run_.stop.requested:
                     break
-            bar.total = bar.n   # the batch count was an upper bound; end the bar at 100 %
+            bar.total = bar.n  # the batch count was an upper bound; end the bar at 100 %
             bar.close()
             if run_.stop.requested:
                 snapshot()
@@ -149,21 +166,35 @@ def run(cfg) -> dict:
             improved = val["recon"] + val["kl"] < best_val
             best_val = min(best_val, val["recon"] + val["kl"])
             snapshot(best=improved)
-            log.info("[vae] epoch %d: val recon %.1f kl %.1f pixel acc %.4f", epoch, val["recon"], val["kl"],
-                     val["pixel_accuracy"])
+            log.info(
+                "[vae] epoch %d: val recon %.1f kl %.1f pixel acc %.4f",
+                epoch,
+                val["recon"],
+                val["kl"],
+                val["pixel_accuracy"],
+            )
 
         model, best_path = artifacts.load_vae(cfg, "best")
         final = evaluate(model, store, val_eps, 64)
         wall = time.perf_counter() - t0
         metrics = {
-            "checkpoint": str(best_path), "epochs": epochs, "steps": step, "heldout_frames": final["frames"],
-            "pixel_accuracy": final["pixel_accuracy"], "recon_nll": final["recon"], "kl": final["kl"],
+            "checkpoint": str(best_path),
+            "epochs": epochs,
+            "steps": step,
+            "heldout_frames": final["frames"],
+            "pixel_accuracy": final["pixel_accuracy"],
+            "recon_nll": final["recon"],
+            "kl": final["kl"],
             "iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(CLASS_NAMES, final["iou"])},
             "train_frames_per_s": round(frames_seen / wall, 1) if frames_seen else None,
         }
-        log.info("[vae] held-out pixel accuracy %.4f; IoU Vehicles %s, Pedestrians %s; wrote %s",
-                 metrics["pixel_accuracy"], metrics["iou"]["Vehicles"], metrics["iou"]["Pedestrians"],
-                 out / "metrics.json")
+        log.info(
+            "[vae] held-out pixel accuracy %.4f; IoU Vehicles %s, Pedestrians %s; wrote %s",
+            metrics["pixel_accuracy"],
+            metrics["iou"]["Vehicles"],
+            metrics["iou"]["Pedestrians"],
+            out / "metrics.json",
+        )
         return run_.finish(metrics)
 
 
@@ -172,13 +203,15 @@ def log_validation(writer, model, store: RolloutStore, episode: int, val: dict, 
     writer.add_scalar("val/recon", val["recon"], step)
     writer.add_scalar("val/kl", val["kl"], step)
     writer.add_scalar("val/pixel_accuracy", val["pixel_accuracy"], step)
-    sample = np.stack([store.read(episode, "seg", slice(k, k + 1))[0]
-                       for k in range(0, min(store.lengths[episode], 64), 8)])
+    sample = np.stack(
+        [store.read(episode, "seg", slice(k, k + 1))[0] for k in range(0, min(store.lengths[episode], 64), 8)]
+    )
     with torch.inference_mode():
         recon_frames = model.eval().reconstruct(torch.from_numpy(sample)).numpy()
     model.train()
-    writer.add_image("reconstruction (top: input, bottom: VAE)", palette_grid(sample, recon_frames), step,
-                     dataformats="HWC")
+    writer.add_image(
+        "reconstruction (top: input, bottom: VAE)", palette_grid(sample, recon_frames), step, dataformats="HWC"
+    )
 
 
 main = hydra_main("train_vae")(run)

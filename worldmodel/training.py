@@ -7,6 +7,7 @@ provenance (artifacts.py) and the stage's own extras. ``last.pt`` is rewritten a
 ``best.pt`` behind what ``last.pt`` records. Resuming restores all of it, and TensorBoard keeps counting from
 the saved step (ctallec/world-models restored its scheduler from the wrong state dict; resume is tested here).
 """
+
 from __future__ import annotations
 
 import json
@@ -97,16 +98,18 @@ class TrainingRun:
     def __enter__(self) -> TrainingRun:
         resume = bool(self.cfg.resume)
         if self.marker.exists() and not resume:
-            raise StageError(f"{self.dir} holds a finished run. Pass resume=true to keep it, or delete {self.dir} "
-                             "to retrain.")
+            raise StageError(
+                f"{self.dir} holds a finished run. Pass resume=true to keep it, or delete {self.dir} to retrain."
+            )
         # Only this run writes here, so a temporary file belongs to a writer that was killed inside a save
         # (possibly hundreds of MB with a replay buffer).
         if self.dir.exists():
             clean_temporaries(self.dir)
         if self.last.exists():
             if not resume:
-                raise StageError(f"{self.last} exists. Pass resume=true to continue that run, or delete {self.dir} "
-                                 "to start over.")
+                raise StageError(
+                    f"{self.last} exists. Pass resume=true to continue that run, or delete {self.dir} to start over."
+                )
             self._check_resumed_inputs()
             self.state = load_checkpoint(self.last, "checkpoint", self.command, self.cfg)
             set_rng_state(self.state["rng"])
@@ -129,9 +132,11 @@ class TrainingRun:
         changed = [r for r in artifacts.differences(recorded, self.record) if r != "its config changed"]
         if not changed:
             return
-        message = (f"{self.dir} was started on other inputs ({'; '.join(changed)}), so resuming it would mix "
-                   f"them. Delete {self.dir} and rerun `{stage_command(self.command, self.cfg)}`, or run the "
-                   "pipeline, which sets stale runs aside and rebuilds them; allow_stale=true resumes anyway.")
+        message = (
+            f"{self.dir} was started on other inputs ({'; '.join(changed)}), so resuming it would mix "
+            f"them. Delete {self.dir} and rerun `{stage_command(self.command, self.cfg)}`, or run the "
+            "pipeline, which sets stale runs aside and rebuilds them; allow_stale=true resumes anyway."
+        )
         if bool(self.cfg.get("allow_stale", False)):
             log.warning("allow_stale=true: %s", message)
             return

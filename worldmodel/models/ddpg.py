@@ -22,6 +22,7 @@ Everything random after construction (exploration noise, warm-up actions, miniba
 passes ``agent.rng``) comes from one ``np.random.Generator`` whose state is part of ``state_dict()``, so a
 resumed run continues exactly where it stopped.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence

@@ -15,6 +15,7 @@ self-test: it must build, run, and agree with the module path on a fixed sequenc
 Anything else (a missing op, an exception, a mismatch) falls back to the module path with a warning saying
 why, so a torch upgrade can slow the agent down but not break it.
 """
+
 from __future__ import annotations
 
 import logging
@@ -102,8 +103,13 @@ class FastDecision:
         if rnn.latent_dim != vae.latent_dim:
             raise ValueError(f"VAE latent size {vae.latent_dim} differs from the LSTM's {rnn.latent_dim}")
         for conv in (vae.enc1, vae.enc2, vae.enc3, vae.enc4):
-            if conv.kernel_size != (4, 4) or conv.stride != (2, 2) or conv.padding != (0, 0) \
-                    or conv.dilation != (1, 1) or conv.groups != 1:
+            if (
+                conv.kernel_size != (4, 4)
+                or conv.stride != (2, 2)
+                or conv.padding != (0, 0)
+                or conv.dilation != (1, 1)
+                or conv.groups != 1
+            ):
                 raise ValueError("FastDecision expects SegVAE's encoder (4x4 convolutions, stride 2, no padding)")
         if vae.num_classes > 16:
             raise ValueError(f"FastDecision packs two class ids into a byte: at most 16 classes, got {vae.num_classes}")
@@ -116,8 +122,14 @@ class FastDecision:
         self.dim = 2 * self.D + (1 if self.use_speed else 0)
         self.dtype = vae.enc1.weight.dtype
         self._sources = [p for m in (vae.enc1, vae.enc2, vae.enc3, vae.enc4, vae.fc_mu) for p in (m.weight, m.bias)]
-        self._sources += [rnn.lstm.weight_ih_l0, rnn.lstm.weight_hh_l0, rnn.lstm.bias_ih_l0, rnn.lstm.bias_hh_l0,
-                          rnn.fc.weight, rnn.fc.bias]
+        self._sources += [
+            rnn.lstm.weight_ih_l0,
+            rnn.lstm.weight_hh_l0,
+            rnn.lstm.bias_ih_l0,
+            rnn.lstm.bias_hh_l0,
+            rnn.fc.weight,
+            rnn.fc.bias,
+        ]
         self._versions: list[int] | None = None
         # Plain tensors even if built under inference_mode: they are updated in place on every call, and a
         # caller may run ``encode`` outside inference_mode.
@@ -171,8 +183,10 @@ class FastDecision:
         pairs = taps[:, :, 0, :, None, :] + taps[:, :, 1, None, :, :]  # (ky, pair, left class, right class, out)
         pairs[0, 0] += vae.enc1.bias
         self.enc1_table = pairs.reshape(8 * C * C, -1).contiguous()
-        self.convs = [_ReluLinear(_conv_rows(c.weight), c.bias, self.sizes[k + 2] ** 2, self.onednn)
-                      for k, c in enumerate((vae.enc2, vae.enc3, vae.enc4))]
+        self.convs = [
+            _ReluLinear(_conv_rows(c.weight), c.bias, self.sizes[k + 2] ** 2, self.onednn)
+            for k, c in enumerate((vae.enc2, vae.enc3, vae.enc4))
+        ]
         # enc4's output rows are (pixel, channel); nn.Flatten of NCHW orders fc_mu's inputs (channel, pixel).
         w = vae.fc_mu.weight.detach()
         self.fc_mu_wt = w.view(D, -1, self.sizes[4] ** 2).transpose(1, 2).reshape(D, -1).t().contiguous()
@@ -230,15 +244,22 @@ class FastDecision:
             self.seg.copy_(self._check_seg(seg))
         if self.use_speed:
             # float32 division, as torch does it on the float32 tensor in the module path
-            self.out[0, 2 * self.D] = float(np.float32(np.asarray(speed, dtype=np.float32).reshape(-1)[0])
-                                            / np.float32(30.0))
+            self.out[0, 2 * self.D] = float(
+                np.float32(np.asarray(speed, dtype=np.float32).reshape(-1)[0]) / np.float32(30.0)
+            )
 
     def _check_seg(self, seg) -> torch.Tensor:
         seg = torch.as_tensor(seg)
-        if seg.shape != (IMAGE_SIZE, IMAGE_SIZE) or seg.is_floating_point() or seg.is_complex() \
-                or seg.dtype == torch.bool:
-            raise ValueError(f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got "
-                             f"{tuple(seg.shape)} {seg.dtype}")
+        if (
+            seg.shape != (IMAGE_SIZE, IMAGE_SIZE)
+            or seg.is_floating_point()
+            or seg.is_complex()
+            or seg.dtype == torch.bool
+        ):
+            raise ValueError(
+                f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got "
+                f"{tuple(seg.shape)} {seg.dtype}"
+            )
         lo, hi = (int(v) for v in torch.aminmax(seg))
         if lo < 0 or hi >= self.C:
             self._bad_ids(lo, hi)
@@ -306,13 +327,16 @@ class FastActor:
     def __init__(self, actor: Actor):
         layers = list(actor.net)
         linears = layers[0::2]
-        if not all(isinstance(m, torch.nn.Linear) for m in linears) or \
-                not all(isinstance(m, torch.nn.ReLU) for m in layers[1::2]):
+        if not all(isinstance(m, torch.nn.Linear) for m in linears) or not all(
+            isinstance(m, torch.nn.ReLU) for m in layers[1::2]
+        ):
             raise ValueError("FastActor expects Actor's Linear-ReLU-...-Linear network")
         w = linears[0].weight
         with torch.inference_mode(False):  # buffers updated in place outside inference_mode, as in FastDecision
-            self.layers = [(m.weight.detach().t(), m.bias.detach(),
-                            torch.empty(1, m.out_features, dtype=w.dtype, device=w.device)) for m in linears]
+            self.layers = [
+                (m.weight.detach().t(), m.bias.detach(), torch.empty(1, m.out_features, dtype=w.dtype, device=w.device))
+                for m in linears
+            ]
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """``(1, obs_dim)`` -> ``(1, act_dim)``, a view into an internal buffer."""
@@ -351,10 +375,16 @@ class ModuleDecision:
     @torch.no_grad()
     def encode(self, seg, speed=None) -> torch.Tensor:
         seg = torch.as_tensor(seg)
-        if seg.shape != (IMAGE_SIZE, IMAGE_SIZE) or seg.is_floating_point() or seg.is_complex() \
-                or seg.dtype == torch.bool:
-            raise ValueError(f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got "
-                             f"{tuple(seg.shape)} {seg.dtype}")
+        if (
+            seg.shape != (IMAGE_SIZE, IMAGE_SIZE)
+            or seg.is_floating_point()
+            or seg.is_complex()
+            or seg.dtype == torch.bool
+        ):
+            raise ValueError(
+                f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got "
+                f"{tuple(seg.shape)} {seg.dtype}"
+            )
         lo, hi = (int(v) for v in torch.aminmax(seg))
         if lo < 0 or hi >= self.C:
             raise ValueError(f"class ids must lie in [0, {self.C}), got range [{lo}, {hi}]")
@@ -396,7 +426,7 @@ def _self_test(vae, rnn, use_speed: bool, onednn: bool, steps: int = 4) -> tuple
             fast.note_action(action)
             ref.note_action(action)
         fast.reset()
-    except Exception as err:   # any failure of torch internals means: use the public path
+    except Exception as err:  # any failure of torch internals means: use the public path
         return None, f"{type(err).__name__}: {err}"
     return fast, None
 
@@ -416,8 +446,12 @@ def decision_path(vae, rnn, use_speed: bool = False, path: str = "auto", onednn_
     fast, problem = _self_test(vae, rnn, use_speed, onednn)
     if fast is not None:
         return fast
-    log.warning("the fast decision path is unavailable with torch %s (%s); using the module path, which gives "
-                "the same numbers more slowly", torch.__version__, problem)
+    log.warning(
+        "the fast decision path is unavailable with torch %s (%s); using the module path, which gives "
+        "the same numbers more slowly",
+        torch.__version__,
+        problem,
+    )
     return ModuleDecision(vae, rnn, use_speed)
 
 

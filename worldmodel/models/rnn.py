@@ -16,9 +16,10 @@ Training uses :meth:`WorldRNN.forward` over whole sequences (cuDNN/oneDNN-fused 
 uses :meth:`WorldRNN.step` one frame at a time. ``step`` computes the LSTM cell directly from the
 ``nn.LSTM``'s own parameter tensors, so there is exactly one copy of the weights and the two paths cannot
 drift apart after training or ``load_state_dict``. The agent's per-frame decision runs the same step through
-``worldmodel.models.fast_decision.FastDecision`` (both weight matrices side by side in one product, rebuilt whenever these
-parameters change), which tests/test_fast_inference.py holds equal to ``step`` + ``predict``.
+``worldmodel.models.fast_decision.FastDecision`` (both weight matrices side by side in one product, rebuilt
+whenever these parameters change), which tests/test_fast_inference.py holds equal to ``step`` + ``predict``.
 """
+
 from __future__ import annotations
 
 import math
@@ -46,9 +47,7 @@ def gaussian_nll(mu: torch.Tensor, logsigma: torch.Tensor, target: torch.Tensor)
     return _HALF_LOG_2PI + logsigma + 0.5 * zscore.pow(2)
 
 
-def mdn_nll(
-    logpi: torch.Tensor, mu: torch.Tensor, logsigma: torch.Tensor, target: torch.Tensor
-) -> torch.Tensor:
+def mdn_nll(logpi: torch.Tensor, mu: torch.Tensor, logsigma: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-element negative log-likelihood under a mixture with weights shared across dimensions.
 
     Shapes: ``logpi (..., K)``, ``mu`` and ``logsigma (..., K, D)``, ``target (..., D)``; returns ``(..., D)``
@@ -115,7 +114,9 @@ class WorldRNN(nn.Module):
     def _inputs(self, z: torch.Tensor, a: torch.Tensor, ndim: int) -> torch.Tensor:
         if z.dim() != ndim or a.dim() != ndim or z.shape[:-1] != a.shape[:-1]:
             lead = "(B, T, ·)" if ndim == 3 else "(B, ·)"
-            raise ValueError(f"z and a must both be {lead} with matching leading dims; got {tuple(z.shape)}, {tuple(a.shape)}")
+            raise ValueError(
+                f"z and a must both be {lead} with matching leading dims; got {tuple(z.shape)}, {tuple(a.shape)}"
+            )
         if z.shape[-1] != self.latent_dim or a.shape[-1] != self.action_dim:
             raise ValueError(
                 f"expected latent size {self.latent_dim} and action size {self.action_dim}; "
@@ -193,7 +194,9 @@ class WorldRNN(nn.Module):
         if mask is None:
             return per.mean()
         if mask.shape != per.shape[:-1]:
-            raise ValueError(f"mask shape {tuple(mask.shape)} must equal the target's leading shape {tuple(per.shape[:-1])}")
+            raise ValueError(
+                f"mask shape {tuple(mask.shape)} must equal the target's leading shape {tuple(per.shape[:-1])}"
+            )
         weight = mask.to(per.dtype).unsqueeze(-1)
         return (per * weight).sum() / (weight.sum() * per.shape[-1]).clamp(min=1.0)
 

@@ -9,6 +9,7 @@ trained with MSE.
 Also here: the VAE loss (with optional free bits) and the segmentation metrics used to judge
 reconstructions (pixel accuracy, confusion matrix, per-class IoU).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -74,8 +75,7 @@ class SegVAE(nn.Module):
     def _check_classes(self, seg: torch.Tensor) -> torch.Tensor:
         if seg.dim() != 3 or seg.shape[-2:] != (IMAGE_SIZE, IMAGE_SIZE):
             raise ValueError(
-                f"SegVAE expects an integer class map of shape (B, {IMAGE_SIZE}, {IMAGE_SIZE}), "
-                f"got {tuple(seg.shape)}"
+                f"SegVAE expects an integer class map of shape (B, {IMAGE_SIZE}, {IMAGE_SIZE}), got {tuple(seg.shape)}"
             )
         if seg.is_floating_point() or seg.is_complex() or seg.dtype == torch.bool:
             raise ValueError(f"class map must have an integer dtype (uint8/int64), got {seg.dtype}")
@@ -83,8 +83,7 @@ class SegVAE(nn.Module):
         # An out-of-range id would otherwise surface as an opaque index error deep inside one_hot/embedding.
         if seg.numel() and (int(seg.min()) < 0 or int(seg.max()) >= self.num_classes):
             raise ValueError(
-                f"class ids must lie in [0, {self.num_classes}), got range "
-                f"[{int(seg.min())}, {int(seg.max())}]"
+                f"class ids must lie in [0, {self.num_classes}), got range [{int(seg.min())}, {int(seg.max())}]"
             )
         return seg
 
@@ -128,9 +127,7 @@ class SegVAE(nn.Module):
     def reparameterize(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
         return mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
 
-    def forward(
-        self, seg: torch.Tensor, sample: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, seg: torch.Tensor, sample: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Return ``(logits, mu, logvar)``; decodes a reparameterised sample, or ``mu`` if ``sample=False``."""
         mu, logvar = self.encode(seg)
         z = self.reparameterize(mu, logvar) if sample else mu
