@@ -174,11 +174,8 @@ def actor_id(cfg, agent: AgentId) -> str | None:
 def _section(cfg, key: str):
     from omegaconf import OmegaConf
 
-    return (
-        OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True)
-        if OmegaConf.is_config(OmegaConf.select(cfg, key))
-        else OmegaConf.select(cfg, key)
-    )
+    value = OmegaConf.select(cfg, key)
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
 def _config(cfg, *keys: str) -> dict:
@@ -248,15 +245,6 @@ def retire(cfg, directory: Path) -> Path | None:
 
 
 # ----------------------------------------------------------------------------- checked loading
-STAGE_COMMANDS = {
-    "collect": "collect",
-    "vae": "train_vae",
-    "rnn": "train_rnn",
-    "agent": "train_agent",
-    "eval": "evaluate",
-}
-
-
 def check_inputs(
     cfg,
     what: str,
@@ -425,22 +413,14 @@ def models_of(cfg, agent: AgentId) -> dict[str, str]:
 
 
 # ----------------------------------------------------------------------------- completion
+def output_dir(cfg, stage: str, agent: AgentId | None = None) -> Path:
+    """Where ``stage`` (``collect``, ``vae``, ``rnn``, ``agent``, ``eval``) writes."""
+    if stage == "agent":
+        return (agent or AgentId.of(cfg)).dir(cfg)
+    return {"collect": rollouts_dir, "vae": vae_dir, "rnn": rnn_dir, "eval": eval_dir}[stage](cfg)
+
+
 def marker(cfg, stage: str, agent: AgentId | None = None) -> Path:
     """The file whose existence means ``stage`` finished."""
-    return {
-        "collect": lambda: manifest_path(cfg),
-        "vae": lambda: vae_dir(cfg) / "metrics.json",
-        "rnn": lambda: rnn_dir(cfg) / "metrics.json",
-        "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg) / "metrics.json",
-        "eval": lambda: eval_dir(cfg) / "summary.json",
-    }[stage]()
-
-
-def output_dir(cfg, stage: str, agent: AgentId | None = None) -> Path:
-    return {
-        "collect": lambda: rollouts_dir(cfg),
-        "vae": lambda: vae_dir(cfg),
-        "rnn": lambda: rnn_dir(cfg),
-        "agent": lambda: (agent or AgentId.of(cfg)).dir(cfg),
-        "eval": lambda: eval_dir(cfg),
-    }[stage]()
+    done = {"collect": "manifest.json", "eval": "summary.json"}.get(stage, "metrics.json")
+    return output_dir(cfg, stage, agent) / done
