@@ -471,7 +471,8 @@ def section_decision(d: dict, summary: list) -> str:
         ]
         out += [
             "Each part timed inside the same decision loop (the fast batch-1 path `FastDecision`, "
-            "`worldmodel/models/fast_decision.py`), beside the same parts through the training modules in the same run:",
+            "`worldmodel/models/fast_decision.py`), beside the same parts through the training modules in the same "
+            "run:",
             "",
             table(cols, rows),
             "",

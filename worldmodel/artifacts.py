@@ -195,6 +195,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
     elif stage == "eval":
         inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg)}
         settings = _config(cfg, "evaluate", "env")
+        settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
     else:
         raise ValueError(f"no provenance for stage {stage!r}")
     return {"inputs": inputs, "config": config_sha256(settings)}
