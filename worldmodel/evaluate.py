@@ -25,24 +25,10 @@ from . import artifacts
 from .artifacts import AgentId
 from .common import make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
+from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
 
 log = logging.getLogger(__name__)
-ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")
-OUTCOME_COLUMNS = (
-    "pedestrian_collision",
-    "vehicle_collision",
-    "static_collision",
-    "lane_departure",
-    "n_pedestrians_hit",
-    "pedestrian_injury",
-    "occupant_injury",
-    "ego_occupant_injury",
-    "speed_at_collision",
-    "steps",
-    "return_r1",
-    "return_r2",
-)
-NO_MODELS = {"vae_sha": "", "rnn_sha": "", "actor_sha": ""}
+NO_MODELS = dict.fromkeys(MODEL_COLUMNS, "")
 
 
 def bank(cfg):
@@ -158,7 +144,6 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
 
 
 def run(cfg) -> dict:
-    from .report import write_report, write_results_csv
     from .training import tensorboard
 
     validate(cfg)

@@ -64,14 +64,9 @@ FLOAT_COLUMNS = (
 # Short SHA-256 of the VAE, LSTM and actor checkpoints that produced an agent's row (empty for scripted policies).
 MODEL_COLUMNS = ("vae_sha", "rnn_sha", "actor_sha")
 STR_COLUMNS = ("policy", "hazard", *MODEL_COLUMNS)
-COLUMNS = (
-    "policy",
-    "policy_seed",
-    "scenario_id",
-    "hazard",
-    "ttc",
-    "speed",
-    "seed",
+# A row: which policy and scenario, the scenario's outcome (envs' info["outcome"]), the models behind the policy.
+ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")
+OUTCOME_COLUMNS = (
     "pedestrian_collision",
     "vehicle_collision",
     "static_collision",
@@ -84,8 +79,8 @@ COLUMNS = (
     "steps",
     "return_r1",
     "return_r2",
-    *MODEL_COLUMNS,
 )
+COLUMNS = (*ROW_META, *OUTCOME_COLUMNS, *MODEL_COLUMNS)
 
 POLICY_ORDER = ("braking", "agent_r1", "agent_r2", "oracle")
 POLICY_LABELS = {

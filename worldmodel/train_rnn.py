@@ -189,22 +189,16 @@ def run(cfg) -> dict:
             artifacts.check_rnn_architecture(run_.state, cfg, run_.last)
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
-        def snapshot(best=False):
-            run_.save(
-                {
-                    "model": model.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "epoch": epoch,
-                    "batch_in_epoch": batch_in_epoch,
-                    "step": step,
-                    "best_val": best_val,
-                    "latent_dim": int(cfg.vae.latent_dim),
-                    "hidden": int(cfg.rnn.hidden),
-                    "head": str(cfg.rnn.head),
-                    "residual": bool(cfg.rnn.residual),
-                },
-                best=best,
-            )
+        # what a resume or a loader checks the architecture against
+        arch = {
+            "latent_dim": int(cfg.vae.latent_dim),
+            "hidden": int(cfg.rnn.hidden),
+            "head": str(cfg.rnn.head),
+            "residual": bool(cfg.rnn.residual),
+        }
+
+        def snapshot(best: bool = False):
+            run_.save_epochs(model, opt, (epoch, batch_in_epoch, step, best_val), best=best, **arch)
 
         from tqdm import tqdm
 

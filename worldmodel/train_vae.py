@@ -108,21 +108,15 @@ def run(cfg) -> dict:
             weights = run_.state.get("class_weights")
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
+        # what a resume or a loader checks the architecture against, and the loss weights to resume with
+        arch = {
+            "latent_dim": int(cfg.vae.latent_dim),
+            "num_classes": int(cfg.vae.num_classes),
+            "class_weights": weights,
+        }
+
         def snapshot(best: bool = False):
-            run_.save(
-                {
-                    "model": model.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "epoch": epoch,
-                    "batch_in_epoch": batch_in_epoch,
-                    "step": step,
-                    "best_val": best_val,
-                    "latent_dim": int(cfg.vae.latent_dim),
-                    "num_classes": int(cfg.vae.num_classes),
-                    "class_weights": weights,
-                },
-                best=best,
-            )
+            run_.save_epochs(model, opt, (epoch, batch_in_epoch, step, best_val), best=best, **arch)
 
         from tqdm import tqdm
 

@@ -162,6 +162,19 @@ class TrainingRun:
         self.resumed(f"epoch {s['epoch']}, step {s['step']}")
         return s["epoch"], s["batch_in_epoch"], s["step"], s["best_val"]
 
+    def save_epochs(self, model, optimizer, counters: tuple[int, int, int, float], best: bool = False, **extras):
+        """``save`` for the epoch-based stages: model, optimiser and the counters ``restore`` returns."""
+        epoch, batch_in_epoch, step, best_val = counters
+        state = {
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "epoch": epoch,
+            "batch_in_epoch": batch_in_epoch,
+            "step": step,
+            "best_val": best_val,
+        }
+        self.save({**state, **extras}, best=best)
+
     def resumed(self, where: str) -> None:
         log.info("[%s] resuming from %s: %s", self.name, self.last, where)
 

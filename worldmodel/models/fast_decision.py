@@ -33,6 +33,19 @@ ONEDNN_OPS = ("_linear_pointwise", "_reorder_linear_weight")
 SELF_TEST_TOL = {"rtol": 1e-4, "atol": 1e-4}
 
 
+def check_class_map(seg, num_classes: int) -> torch.Tensor:
+    """``seg`` as a tensor, if it is an integer ``(64, 64)`` map of ids in ``[0, num_classes)``; else ValueError."""
+    seg = torch.as_tensor(seg)
+    if seg.shape != (IMAGE_SIZE, IMAGE_SIZE) or seg.is_floating_point() or seg.is_complex() or seg.dtype == torch.bool:
+        raise ValueError(
+            f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got {tuple(seg.shape)} {seg.dtype}"
+        )
+    lo, hi = (int(v) for v in torch.aminmax(seg))
+    if lo < 0 or hi >= num_classes:
+        raise ValueError(f"class ids must lie in [0, {num_classes}), got range [{lo}, {hi}]")
+    return seg
+
+
 def _conv_rows(weight: torch.Tensor) -> torch.Tensor:
     """Conv weight ``(out, in, kh, kw)`` -> ``(out, kh * kw * in)``, matching a channels-last im2col row."""
     return weight.detach().permute(0, 2, 3, 1).reshape(weight.shape[0], -1).contiguous()
@@ -249,21 +262,7 @@ class FastDecision:
             )
 
     def _check_seg(self, seg) -> torch.Tensor:
-        seg = torch.as_tensor(seg)
-        if (
-            seg.shape != (IMAGE_SIZE, IMAGE_SIZE)
-            or seg.is_floating_point()
-            or seg.is_complex()
-            or seg.dtype == torch.bool
-        ):
-            raise ValueError(
-                f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got "
-                f"{tuple(seg.shape)} {seg.dtype}"
-            )
-        lo, hi = (int(v) for v in torch.aminmax(seg))
-        if lo < 0 or hi >= self.C:
-            self._bad_ids(lo, hi)
-        return seg
+        return check_class_map(seg, self.C)
 
     def _bad_ids(self, lo: int, hi: int):
         # An id >= C would otherwise be read as a valid entry of a neighbouring pair in the enc1 table.
@@ -374,20 +373,7 @@ class ModuleDecision:
 
     @torch.no_grad()
     def encode(self, seg, speed=None) -> torch.Tensor:
-        seg = torch.as_tensor(seg)
-        if (
-            seg.shape != (IMAGE_SIZE, IMAGE_SIZE)
-            or seg.is_floating_point()
-            or seg.is_complex()
-            or seg.dtype == torch.bool
-        ):
-            raise ValueError(
-                f"expected an integer class map of shape ({IMAGE_SIZE}, {IMAGE_SIZE}), got "
-                f"{tuple(seg.shape)} {seg.dtype}"
-            )
-        lo, hi = (int(v) for v in torch.aminmax(seg))
-        if lo < 0 or hi >= self.C:
-            raise ValueError(f"class ids must lie in [0, {self.C}), got range [{lo}, {hi}]")
+        seg = check_class_map(seg, self.C)
         z, _ = self.vae.encode(seg.unsqueeze(0))
         out, self._state = self.rnn.step(z, self._action, self._state)
         parts = [z, self.rnn.predict(out)]
