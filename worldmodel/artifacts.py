@@ -70,7 +70,8 @@ def rnn_dir(cfg) -> Path:
 
 
 def eval_dir(cfg) -> Path:
-    return runs_root(cfg) / "eval"
+    """``runs/NAME/eval`` for the test bank, ``runs/NAME/eval_validation`` for the validation bank."""
+    return runs_root(cfg) / ("eval_validation" if cfg.evaluate.bank == "validation" else "eval")
 
 
 def stale_dir(cfg) -> Path:

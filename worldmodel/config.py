@@ -202,6 +202,7 @@ class OracleConfig(Checked):
 
 
 SCRIPTED_POLICIES = ("braking", "oracle")
+BANKS = ("test", "validation")
 
 
 @dataclass
@@ -212,7 +213,11 @@ class EvaluateConfig(Checked):
     ttcs: list[float] = field(default_factory=lambda: [0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5])
     speeds: list[float] = field(default_factory=lambda: [10.0, 20.0, 30.0])
     hazards: list[str] = field(default_factory=lambda: ["pedestrian", "car", "both"])
-    bank_seed: int = 2018
+    bank_seed: int = 2018  # the test bank: touched once, for final numbers
+    # which bank to run: "test", or "validation" (same grid, scenarios drawn from validation_seed) for choosing
+    # settings and checkpoints; validation results go to runs/NAME/eval_validation/
+    bank: str = "test"
+    validation_seed: int = 4711
     num_workers: int = 2  # processes; results are identical to 1
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
@@ -226,6 +231,10 @@ class EvaluateConfig(Checked):
         for key in ("ttcs", "speeds"):
             if any(v <= 0 for v in getattr(self, key)):
                 yield ConfigValueError(key, list(getattr(self, key)), "every value must be positive")
+        if self.bank not in BANKS:
+            yield ConfigValueError("bank", self.bank, f"it must be one of {', '.join(BANKS)}")
+        if self.validation_seed == self.bank_seed:
+            yield ConfigValueError("validation_seed", self.validation_seed, "it must differ from bank_seed")
         unknown = [h for h in self.hazards if h not in ("pedestrian", "car", "both")]
         if unknown:
             yield ConfigValueError("hazards", list(self.hazards), "hazards are pedestrian, car and both")

@@ -32,15 +32,13 @@ NO_MODELS = dict.fromkeys(MODEL_COLUMNS, "")
 
 
 def bank(cfg):
+    """The scenarios of ``evaluate.bank``: the test bank, or the validation bank (same grid, another seed)."""
     from envs import test_bank
 
     e = cfg.evaluate
+    seed = e.validation_seed if e.bank == "validation" else e.bank_seed
     return test_bank(
-        ttcs=tuple(e.ttcs),
-        speeds=tuple(e.speeds),
-        hazards=tuple(e.hazards),
-        per_cell=int(e.per_cell),
-        seed=int(e.bank_seed),
+        ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=int(e.per_cell), seed=int(seed)
     )
 
 
