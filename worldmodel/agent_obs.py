@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from .action_map import ActionMap
 from .models.fast_decision import actor_path, decision_path
 
 
@@ -54,30 +55,39 @@ class WorldModelEncoder:
 
 
 class WorldModelView(gym.Wrapper):
-    """A gymnasium env whose observation is the agent input vector."""
+    """A gymnasium env whose observation is the agent input vector and whose action is the actor's output ``u``,
+    mapped to the simulator's action by ``action_map`` (``worldmodel/action_map.py``; the identity by default)."""
 
-    def __init__(self, env: gym.Env, encoder: WorldModelEncoder):
+    def __init__(self, env: gym.Env, encoder: WorldModelEncoder, action_map: ActionMap | None = None):
         super().__init__(env)
         self.encoder = encoder
+        self.action_map = action_map or ActionMap()
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (encoder.dim,), np.float32)
+        self._speed = 0.0
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self.encoder.reset()
+        self._speed = float(obs["speed"][0])
         return self.encoder.encode(obs), info
 
     def step(self, action):
+        action = self.action_map.to_env(action, self._speed)
         obs, reward, terminated, truncated, info = self.env.step(action)
-        self.encoder.note_action(action)
+        self.encoder.note_action(action)  # the LSTM was trained on the simulator's actions
+        self._speed = float(obs["speed"][0])
         return self.encoder.encode(obs), reward, terminated, truncated, info
 
 
 class LearnedPolicy:
     """A trained actor behind the scripted-policy interface: ``reset(seed)``, ``act(obs, info)``."""
 
-    def __init__(self, name: str, encoder: WorldModelEncoder, actor, path: str = "auto"):
+    def __init__(
+        self, name: str, encoder: WorldModelEncoder, actor, path: str = "auto", action_map: ActionMap | None = None
+    ):
         self.name, self.encoder, self.actor = name, encoder, actor.eval()
         self.decide = actor_path(self.actor, path)
+        self.action_map = action_map or ActionMap()
 
     def reset(self, seed=None) -> None:
         self.encoder.reset()
@@ -87,5 +97,7 @@ class LearnedPolicy:
             x = self.encoder.encode_tensor(obs)
             a = self.decide(x)
             action = a[0].numpy().astype(np.float32)  # astype copies: the buffer is reused
+        if not self.action_map.identity:
+            action = self.action_map.to_env(action, float(np.asarray(obs["speed"]).reshape(-1)[0]))
         self.encoder.note_action(action)
         return action

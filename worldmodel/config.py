@@ -156,10 +156,20 @@ class AgentConfig(DDPGConfig):
     total_steps: int = 20000
     use_speed: bool = False  # append ego speed to the agent input
     checkpoint_every: int = 2000
+    # what the actor's output means (worldmodel/action_map.py): "none" | "brake" (the pedal is a residual on full
+    # braking, so u = 0 is straight-line braking), and "wheel" | "grip" (steer as a share of mu g at this speed)
+    anchor: str = "none"
+    steer: str = "wheel"
 
     def problems(self):
+        from .action_map import ANCHORS, STEERS
+
         yield from super().problems()
         yield from _positive(self, "total_steps", "checkpoint_every")
+        if self.anchor not in ANCHORS:
+            yield ConfigValueError("anchor", self.anchor, f"it must be one of {', '.join(ANCHORS)}")
+        if self.steer not in STEERS:
+            yield ConfigValueError("steer", self.steer, f"it must be one of {', '.join(STEERS)}")
 
 
 @dataclass

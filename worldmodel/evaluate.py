@@ -22,6 +22,7 @@ import logging
 import time
 
 from . import artifacts
+from .action_map import ActionMap
 from .artifacts import AgentId
 from .common import make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
@@ -95,8 +96,9 @@ def _policy_for(cfg, name: str):
     if name == "oracle":
         return make_oracle(cfg), 0, NO_MODELS
     agent = AgentId.parse(name)
-    actor, _ = artifacts.load_actor(cfg, agent)
-    policy = LearnedPolicy(agent.policy, artifacts.load_world_model(cfg), actor)
+    actor, state = artifacts.load_actor(cfg, agent)
+    action_map = ActionMap.from_dict(state.get("action_map"))
+    policy = LearnedPolicy(agent.policy, artifacts.load_world_model(cfg), actor, action_map=action_map)
     return policy, agent.seed, artifacts.models_of(cfg, agent)
 
 

@@ -25,6 +25,7 @@ from collections import deque
 import numpy as np
 
 from . import artifacts
+from .action_map import ActionMap
 from .common import StageError, check_finite, make_env, seed_everything, set_threads
 from .config import hydra_main, validate
 from .training import TrainingRun
@@ -54,7 +55,9 @@ def run(cfg) -> dict:
     agent_id = artifacts.AgentId.of(cfg)
     name = agent_id.policy
     encoder = artifacts.load_world_model(cfg)
-    env = WorldModelView(make_env(cfg), encoder)
+    sim = make_env(cfg)
+    action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
+    env = WorldModelView(sim, encoder, action_map)
     seed_everything(int(cfg.seed))
     hp = typed.agent
     obs_dim = encoder.dim
@@ -89,6 +92,7 @@ def run(cfg) -> dict:
                     "history": list(history),
                     "obs_dim": obs_dim,
                     "actor_hidden": list(hp.actor_hidden),
+                    "action_map": action_map.to_dict(),
                     "reward": agent_id.reward,
                 },
                 best=best,

@@ -67,12 +67,16 @@ class DDPGConfig(Checked):
     """environment steps with uniform random actions before the first update, so early minibatches are not
     all drawn from the same few transitions"""
 
+    actor_final_bound: float = 3e-3
+    """the actor's last layer starts uniform in +-bound (Lillicrap: 3e-3, so first actions are near 0). 0 makes the
+    untrained actor output exactly 0: with ``agent.anchor=brake``, exactly straight-line braking"""
+
     def problems(self):
         yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr")
         for key in ("gamma", "tau"):
             if not 0 < getattr(self, key) <= 1:
                 yield ConfigValueError(key, getattr(self, key), "it must be in (0, 1]")
-        for key in ("warmup_steps", "exploration_noise"):
+        for key in ("warmup_steps", "exploration_noise", "actor_final_bound"):
             if getattr(self, key) < 0:
                 yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
         for key in ("actor_hidden", "critic_hidden"):
@@ -100,10 +104,10 @@ def init_final_layer(layer: nn.Linear, bound: float = 3e-3) -> None:
 class Actor(nn.Module):
     """Deterministic policy mu(s) with actions in [-1, 1]^act_dim."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300)):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300), final_bound: float = 3e-3):
         super().__init__()
         self.net = mlp(obs_dim, hidden, act_dim)
-        init_final_layer(self.net[-1])
+        init_final_layer(self.net[-1], final_bound)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return torch.tanh(self.net(obs))
@@ -193,9 +197,9 @@ class DDPG:
         # which the caller may be using for something else.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden)
+            self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound)
             self.critic = Critic(obs_dim, act_dim, cfg.critic_hidden)
-            self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden)
+            self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound)
             self.critic_target = Critic(obs_dim, act_dim, cfg.critic_hidden)
         self.actor_target.load_state_dict(self.actor.state_dict())
         self.critic_target.load_state_dict(self.critic.state_dict())
