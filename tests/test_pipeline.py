@@ -194,3 +194,19 @@ def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(cfg)
     assert caplog.text.count("skipped") == 6
+
+
+def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, tmp_path):
+    """An agent trained with speed in its input and the braking anchor is evaluated that way, whatever the
+    evaluation's own agent.* settings say."""
+    root = tmp_path / "copy"
+    shutil.copytree(experiment, root)
+    shutil.rmtree(root / "runs/t/agent_r1")
+    options = ("agent.use_speed=true", "agent.anchor=brake", "agent.steer=grip")
+    train_agent.run(smoke_cfg(root, "train_agent", "reward=r1", "agent.total_steps=150", *options))
+    cfg = smoke_cfg(root, "evaluate")  # agent.use_speed=false, anchor=none: the defaults
+    policy, seed, models = evaluate._policy_for(cfg, "agent_r1/seed0")
+    assert policy.encoder.use_speed and policy.encoder.dim == 2 * cfg.vae.latent_dim + 1
+    assert (policy.action_map.anchor, policy.action_map.steer) == ("brake", "grip") and seed == 0
+    rows = evaluate.evaluate_policy(cfg, "agent_r1/seed0", evaluate.bank(cfg)[:3], workers=1)
+    assert len(rows) == 3 and all(r["actor_sha"] == models["actor_sha"] for r in rows)

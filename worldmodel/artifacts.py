@@ -379,13 +379,18 @@ def load_rnn(cfg, which: str = "best"):
     return model.eval(), path
 
 
-def load_world_model(cfg):
-    """VAE + LSTM behind the agent's observation encoder."""
+def load_world_model(cfg, use_speed: bool | None = None):
+    """VAE + LSTM behind the agent's observation encoder (with speed as ``use_speed``, default ``agent.use_speed``)."""
     from .agent_obs import WorldModelEncoder
 
     vae, _ = load_vae(cfg, "best")
     rnn, _ = load_rnn(cfg, "best")
-    return WorldModelEncoder(vae, rnn, use_speed=bool(cfg.agent.use_speed))
+    return WorldModelEncoder(vae, rnn, use_speed=bool(cfg.agent.use_speed if use_speed is None else use_speed))
+
+
+def agent_uses_speed(state: dict, latent_dim: int) -> bool:
+    """Whether an agent's checkpoint was trained with speed in its input (older ones tell by their input size)."""
+    return bool(state.get("use_speed", state["obs_dim"] == 2 * int(latent_dim) + 1))
 
 
 def load_actor(cfg, agent: AgentId, which: str = "last"):

@@ -97,8 +97,9 @@ def _policy_for(cfg, name: str):
         return make_oracle(cfg), 0, NO_MODELS
     agent = AgentId.parse(name)
     actor, state = artifacts.load_actor(cfg, agent)
-    action_map = ActionMap.from_dict(state.get("action_map"))
-    policy = LearnedPolicy(agent.policy, artifacts.load_world_model(cfg), actor, action_map=action_map)
+    # each agent acts as it was trained: its own input (speed or not) and its own action map
+    encoder = artifacts.load_world_model(cfg, use_speed=artifacts.agent_uses_speed(state, cfg.vae.latent_dim))
+    policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
     return policy, agent.seed, artifacts.models_of(cfg, agent)
 
 

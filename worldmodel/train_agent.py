@@ -93,6 +93,7 @@ def run(cfg) -> dict:
                     "obs_dim": obs_dim,
                     "actor_hidden": list(hp.actor_hidden),
                     "action_map": action_map.to_dict(),
+                    "use_speed": bool(cfg.agent.use_speed),
                     "reward": agent_id.reward,
                 },
                 best=best,
