@@ -247,26 +247,19 @@ def retire(cfg, directory: Path) -> Path | None:
 
 
 # ----------------------------------------------------------------------------- checked loading
-def check_inputs(
-    cfg,
-    what: str,
-    path: Path,
-    recorded: dict | None,
-    current: dict[str, str | None],
-    rebuild: str,
-    files: dict[str, Path],
-) -> None:
-    """Compare the input identities ``recorded`` in an artifact with the ``current`` ones.
+def check_inputs(cfg, what: str, path: Path, state: dict, inputs: dict[str, Path], rebuild: str) -> None:
+    """Compare the input identities recorded in a checkpoint (``state``) with the current ``inputs`` files.
 
-    Inputs whose current file is absent are not compared (data may be deleted after training). A mismatch is a
+    Inputs whose file is absent are not compared (data may be deleted after training). A mismatch is a
     StageError naming both files and how to rebuild, or a warning under ``allow_stale=true``.
     """
-    recorded = recorded or {}
+    recorded = (state.get("provenance") or {}).get("inputs", {})
+    current = {name: _identity(file) for name, file in inputs.items()}
     stale = [name for name, now in current.items() if now is not None and recorded.get(name) != now]
     if not stale:
         return
     details = "; ".join(
-        f"it was built on {name} {short(recorded.get(name)) or '(unrecorded)'}, but {files[name]} "
+        f"it was built on {name} {short(recorded.get(name)) or '(unrecorded)'}, but {inputs[name]} "
         f"is now {short(current[name])}"
         for name in stale
     )
@@ -336,24 +329,12 @@ def check_rnn_architecture(state: dict, cfg, path: Path) -> None:
             )
 
 
-def _recorded_inputs(state: dict) -> dict:
-    return (state.get("provenance") or {}).get("inputs", {})
-
-
 def load_vae(cfg, which: str = "best"):
     """The trained VAE (eval mode) and its path; a clear error if missing, of the wrong size, or stale."""
     path = vae_dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, "VAE checkpoint", "train_vae", cfg)
     check_vae_architecture(state, cfg, path)
-    check_inputs(
-        cfg,
-        "The VAE",
-        path,
-        _recorded_inputs(state),
-        {"rollouts": rollouts_id(cfg)},
-        stage_command("train_vae", cfg),
-        {"rollouts": manifest_path(cfg)},
-    )
+    check_inputs(cfg, "The VAE", path, state, {"rollouts": manifest_path(cfg)}, stage_command("train_vae", cfg))
     model = build_vae(cfg)
     model.load_state_dict(state["model"])
     return model.eval(), path
@@ -365,15 +346,7 @@ def load_rnn(cfg, which: str = "best"):
     path = rnn_dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
     check_rnn_architecture(state, cfg, path)
-    check_inputs(
-        cfg,
-        "The LSTM",
-        path,
-        _recorded_inputs(state),
-        {"vae": vae_id(cfg)},
-        stage_command("train_rnn", cfg),
-        {"vae": vae_dir(cfg) / "best.pt"},
-    )
+    check_inputs(cfg, "The LSTM", path, state, {"vae": vae_dir(cfg) / "best.pt"}, stage_command("train_rnn", cfg))
     model = build_rnn(cfg)
     model.load_state_dict(state["model"])
     return model.eval(), path
@@ -404,10 +377,9 @@ def load_actor(cfg, agent: AgentId, which: str = "last"):
         cfg,
         f"The agent {agent.key}",
         path,
-        _recorded_inputs(state),
-        {"vae": vae_id(cfg), "rnn": rnn_id(cfg)},
-        rebuild,
+        state,
         {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"},
+        rebuild,
     )
     actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
     actor.load_state_dict(state["agent"]["actor"])
