@@ -50,7 +50,7 @@ class NoisyAutopilot:
         self,
         steer_noise: float = 0.15,
         throttle_noise: float = 0.15,
-        excursion_rate: float = 0.04,
+        excursion_rate: float = 0.03,
         excursion_s: tuple[float, float] = (0.4, 1.5),
         onset_excursion_prob: float = 0.5,
         hard_swerve_share: float = 0.2,

@@ -15,7 +15,7 @@ Why these limits, and where their values come from:
   swerves only partly effective.
 * friction circle: lateral (v * r) and longitudinal acceleration together stay within mu * g. Lateral grip
   is served first (as an ABS car keeps steering while braking) and braking gets what is left, so full
-  braking with the wheel straight is exactly mu * g.
+  braking with the wheel straight (9.8 m/s^2) stays just inside mu * g (9.81 m/s^2 at mu = 1).
 * ``max_accel`` 3.0 m/s^2 at full throttle (a mid-size petrol car, 0-100 km/h in ~9 s).
 * brake request: action -1..0 maps linearly to 9.8..0 m/s^2 (the paper's action space, section III-C).
 

@@ -1,7 +1,6 @@
-"""Plumbing shared by every stage: paths, config composition, checkpoints, seeding, clear errors.
+"""Plumbing shared by every stage: clear errors, atomic writes, seeding and building the env.
 
-Every stage of ``experiment=NAME`` reads and writes under two fixed roots:
-``data/NAME/`` for datasets and ``runs/NAME/<stage>/`` for checkpoints, TensorBoard and reports.
+Paths and loaders live in ``artifacts.py``, config composition in ``config.py`` (docs/design.md §2, §9).
 """
 
 from __future__ import annotations

@@ -134,7 +134,7 @@ class RNNConfig(Checked):
     hidden: int = 512
     head: str = "mdn"  # mdn | gaussian | mse
     gaussians: int = 5
-    residual: bool = True  # predict z_{t+1} - z_t: an untrained model equals persistence
+    residual: bool = True  # predict z_{t+1} - z_t: an untrained model starts near persistence
     lr: float = 1e-4
     batch_size: int = 32
     epochs: int = 10

@@ -130,7 +130,8 @@ class Critic(nn.Module):
 class ReplayBuffer:
     """Fixed-capacity circular store of transitions in preallocated float32 arrays.
 
-    ``terminated`` is 1.0 only for true terminal states (collision, stop). A transition cut by a time limit
+    ``terminated`` is 1.0 only for true terminal states (a crash with a car or a static object, or leaving
+    the scene; stopping does not end an episode). A transition cut by a time limit
     is stored with terminated=0 so its value is bootstrapped from ``next_obs``.
     """
 
