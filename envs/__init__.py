@@ -12,7 +12,7 @@ from .env import DT, UrbanCollisionEnv
 from .injury import occupant_injury, pedestrian_injury
 from .policies import NoisyAutopilot, StraightLineBraking
 from .rollout import Episode, rollout
-from .scenario import BankEntry, ScenarioSpec, sample_scenario, test_bank
+from .scenario import BankEntry, ScenarioSpec, sample_focus_scenario, sample_scenario, test_bank
 from .scene import CLASS_NAMES, NUM_CLASSES, PALETTE
 
 ENV_ID = "UrbanCollision-v0"
@@ -34,6 +34,7 @@ __all__ = [
     "occupant_injury",
     "pedestrian_injury",
     "rollout",
+    "sample_focus_scenario",
     "sample_scenario",
     "test_bank",
 ]

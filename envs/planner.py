@@ -105,6 +105,11 @@ class PrivilegedPlanner:
         self.plan: _Plan | None = None
         self.rollouts = 0
 
+    @classmethod
+    def from_settings(cls, replan_every_s: float, **candidates) -> PrivilegedPlanner:
+        """From the config's units: ``replan_every_s`` in seconds, the rest as ``candidate_manoeuvres``."""
+        return cls(replan_every=max(1, round(float(replan_every_s) / DT)), **candidates)
+
     def reset(self, seed: int | None = None) -> None:
         self.plan = None
 

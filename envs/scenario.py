@@ -118,6 +118,38 @@ def sample_scenario(rng: np.random.Generator) -> ScenarioSpec:
     )
 
 
+def sample_focus_scenario(
+    rng: np.random.Generator,
+    hazard_share: float = 0.85,
+    speed_range: tuple[float, float] = (15.0, 30.0),
+    ttc_range: tuple[float, float] = (0.25, 1.1),
+) -> ScenarioSpec:
+    """Draw from the focus mix: the cells where braking leaves injuries a better manoeuvre avoids.
+
+    With probability ``hazard_share`` a pedestrian, a car or both (one third each, as in the bank) meet the ego;
+    otherwise there is no hazard, so a policy trained on the mix also sees that swerving there only costs. Speed
+    and TTC are uniform in their ranges; the other fields follow the paper's distributions.
+    """
+    if not 0.0 <= hazard_share <= 1.0:
+        raise ValueError(f"focus hazard_share={hazard_share} must be in [0, 1]")
+    for name, (lo, hi) in (("speed_range", speed_range), ("ttc_range", ttc_range)):
+        if not 0 < lo <= hi:
+            raise ValueError(f"focus {name}=({lo}, {hi}) must satisfy 0 < low <= high")
+    seed = int(rng.integers(0, 2**31 - 1))
+    hazard = BANK_HAZARDS[int(rng.integers(0, 3))] if rng.uniform() < hazard_share else "none"
+    return ScenarioSpec(
+        seed=seed,
+        ttc=float(rng.uniform(*ttc_range)),
+        ego_speed=float(rng.uniform(*speed_range)),
+        pedestrian_speed=float(rng.uniform(*PEDESTRIAN_SPEED_RANGE)),
+        n_cars=int(rng.integers(0, MAX_OTHERS + 1)),
+        n_pedestrians=int(rng.integers(0, MAX_OTHERS + 1)),
+        p_pedestrian=1.0 if hazard in ("pedestrian", "both") else 0.0,
+        p_car=1.0 if hazard in ("car", "both") else 0.0,
+        hazard_car_speed=float(rng.uniform(*HAZARD_CAR_SPEED_RANGE)),
+    )
+
+
 # ----------------------------------------------------------------------------- test bank
 BANK_TTCS = (0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5)
 BANK_SPEEDS = (10.0, 20.0, 30.0)

@@ -94,3 +94,23 @@ def test_the_lstm_is_fed_the_simulators_action():
 def test_unknown_action_options_are_named(override, key):
     with pytest.raises(StageError, match=key):
         validate(compose("train_agent", [override]))
+
+
+@pytest.mark.parametrize("anchor,steer", [("none", "wheel"), ("brake", "wheel"), ("brake", "grip"), ("none", "grip")])
+def test_from_env_inverts_to_env_where_it_can(anchor, steer):
+    """Demonstrations become actor targets through from_env: mapping them back must give the planner's action."""
+    m = ActionMap(anchor, steer, VehicleParams())
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        speed = float(rng.uniform(1.0, 30.0))
+        u = rng.uniform(-1, 1, 2).astype(np.float32)
+        if anchor == "brake":
+            u[1] = abs(u[1])  # below 0 the anchored pedal saturates at full braking: no inverse there
+        a = m.to_env(u, speed)
+        if abs(a[0]) >= 1.0:
+            continue  # the wheel limit clipped the request
+        np.testing.assert_allclose(m.to_env(m.from_env(a, speed), speed), a, atol=1e-5)
+        np.testing.assert_allclose(m.from_env(a, speed), u, atol=1e-4)
+    # the planner's hard swerve at 30 m/s asks for more than grip gives: all of it, in the swerve's direction
+    if steer == "grip":
+        assert m.from_env([-0.6, -1.0], 30.0)[0] == -1.0

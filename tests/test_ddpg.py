@@ -345,3 +345,105 @@ def test_agent_config_section_is_the_ddpg_schema():
             validate(compose("train_agent", [override]))
     with pytest.raises(ValueError, match="gamma"):
         DDPGConfig(gamma=1.5)
+
+
+# ----------------------------------------------------------------------------- issue 11's learner options
+def test_n_step_window_returns_match_hand_computation():
+    from worldmodel.models.ddpg import NStepWindow
+
+    g = 0.5
+    w = NStepWindow(3, g)
+    o = [np.full(2, float(i)) for i in range(6)]  # o[t] is the observation at step t
+    out = []
+    out += w.push(o[0], "a0", 1.0, o[1], False)
+    out += w.push(o[1], "a1", 2.0, o[2], False)
+    assert out == []  # nothing is complete before n steps
+    out += w.push(o[2], "a2", 4.0, o[3], False)
+    out += w.push(o[3], "a3", 8.0, o[4], True)  # a termination flushes the rest, each as long as remains
+    assert [t[1] for t in out] == ["a0", "a1", "a2", "a3"]
+    # (return, next obs index, terminated, steps)
+    expected = [(1 + 0.5 * 2 + 0.25 * 4, 3, False, 3), (2 + 0.5 * 4 + 0.25 * 8, 4, True, 3), (4 + 0.5 * 8, 4, True, 2)]
+    expected.append((8.0, 4, True, 1))
+    for (_, _, ret, nxt, term, k), (e_ret, e_next, e_term, e_k) in zip(out, expected):
+        assert ret == pytest.approx(e_ret) and nxt[0] == e_next and term == e_term and k == e_k
+    # a truncated episode: flush bootstraps every pending transition from the last observation
+    w.push(o[0], "b0", 1.0, o[1], False)
+    w.push(o[1], "b1", 1.0, o[2], False)
+    tail = w.flush()
+    assert [(t[2], t[3][0], t[4], t[5]) for t in tail] == [(1.5, 2.0, False, 2), (1.0, 2.0, False, 1)]
+
+
+def test_n_step_target_discounts_by_gamma_to_the_k():
+    cfg = DDPGConfig(**SMALL, gamma=0.9)
+    agent = DDPG(3, 1, cfg, seed=0)
+    batch = {
+        "obs": torch.zeros(2, 3),
+        "actions": torch.zeros(2, 1),
+        "rewards": torch.tensor([1.0, -2.0]),
+        "next_obs": torch.ones(2, 3),
+        "terminated": torch.tensor([0.0, 0.0]),
+        "steps": torch.tensor([3.0, 1.0]),
+    }
+    with torch.no_grad():
+        q_next = agent.critic_target(batch["next_obs"], agent.actor_target(batch["next_obs"]))
+    expected = batch["rewards"] + torch.tensor([0.9**3, 0.9]) * q_next
+    torch.testing.assert_close(agent.td_target(batch), expected)
+
+
+def test_twin_critic_target_takes_the_smaller_target_q():
+    agent = DDPG(3, 1, DDPGConfig(**SMALL, twin_critics=True), seed=0)
+    with torch.no_grad():  # make the two target critics disagree by a known amount
+        agent.critic2_target.net[-1].bias += 5.0
+    batch = {
+        "obs": torch.zeros(4, 3),
+        "actions": torch.zeros(4, 1),
+        "rewards": torch.zeros(4),
+        "next_obs": torch.randn(4, 3),
+        "terminated": torch.zeros(4),
+    }
+    with torch.no_grad():
+        a = agent.actor_target(batch["next_obs"])
+        q1 = agent.critic_target(batch["next_obs"], a)
+        q2 = agent.critic2_target(batch["next_obs"], a)
+    assert torch.all(q2 > q1)
+    torch.testing.assert_close(agent.td_target(batch), agent.cfg.gamma * torch.minimum(q1, q2))
+
+
+def test_q_filter_clones_only_where_the_critic_prefers_the_demonstration():
+    agent = DDPG(2, 1, DDPGConfig(**SMALL, bc_weight=1.0, q_filter=True), seed=0)
+    # a critic with a known shape: Q(s, a) = a (the bigger the action, the better)
+    critic = agent.critic
+    with torch.no_grad():
+        for p in critic.parameters():
+            p.zero_()
+    critic.forward = lambda obs, action: action[:, 0]
+    obs = torch.zeros(4, 2)
+    batch = {
+        "obs": obs,
+        "actions": torch.tensor([[0.5], [-0.5], [0.9], [0.0]]),
+        "demo": torch.tensor([1.0, 1.0, 1.0, 0.0]),  # the last sample is the agent's own
+    }
+    policy = torch.tensor([[0.2], [0.2], [0.2], [0.2]])
+    loss, kept = agent.bc_loss(batch, policy, critic(obs, policy))
+    # kept: demos 0 (0.5 > 0.2) and 2 (0.9 > 0.2); not 1 (-0.5 < 0.2); the non-demo never counts
+    assert kept == pytest.approx(2 / 3)
+    assert loss.item() == pytest.approx(((0.2 - 0.5) ** 2 + (0.2 - 0.9) ** 2) / 3)
+    agent.cfg.q_filter = False
+    loss, kept = agent.bc_loss(batch, policy, critic(obs, policy))
+    assert kept == 1.0 and loss.item() == pytest.approx((0.09 + 0.49 + 0.49) / 3)
+
+
+def test_critic_with_the_action_at_its_second_layer_uses_the_action():
+    critic = Critic(5, 2, (16, 8), action_layer=1)
+    assert critic.first[0].in_features == 5 and critic.net[0].in_features == 16 + 2
+    obs = torch.randn(3, 5)
+    a, b = torch.zeros(3, 2), torch.ones(3, 2)
+    torch.nn.init.normal_(critic.net[-1].weight)
+    assert not torch.allclose(critic(obs, a), critic(obs, b))
+
+
+def test_default_learner_is_unchanged_by_the_new_options():
+    """All options off: the same networks, from the same seed, as before they existed (no second critic drawn)."""
+    agent = DDPG(4, 2, DDPGConfig(**SMALL), seed=3)
+    assert agent.critic2 is None and isinstance(agent.critic.net[0], torch.nn.Linear)
+    assert agent.critic.net[0].in_features == 6

@@ -64,6 +64,23 @@ class ActionMap:
         wheel = math.atan(p.wheelbase * p.mu * G * abs(fraction) / v2)
         return math.copysign(min(1.0, wheel / p.max_steer), fraction)
 
+    def from_env(self, action, speed: float) -> np.ndarray:
+        """The actor output ``u`` that asks for the simulator's ``action`` at ``speed`` (the inverse of
+        ``to_env`` where it has one): how a demonstration's actions become the actor's targets. A wheel angle
+        beyond what grip allows at this speed becomes |u| = 1, which asks for all of it."""
+        action = np.clip(np.asarray(action, dtype=np.float32).reshape(2), -1.0, 1.0)
+        if self.identity:
+            return action
+        steer, pedal = float(action[0]), float(action[1])
+        if self.anchor == "brake":
+            pedal = (pedal + 1.0) / 2.0
+        if self.steer == "grip":
+            p = self.params
+            v2 = max(float(speed), 0.1) ** 2
+            fraction = v2 * math.tan(abs(steer) * p.max_steer) / (p.wheelbase * p.mu * G)
+            steer = math.copysign(min(1.0, fraction), steer)
+        return np.array([steer, pedal], dtype=np.float32)
+
     def to_dict(self) -> dict:
         return {"anchor": self.anchor, "steer": self.steer, "params": asdict(self.params)}
 

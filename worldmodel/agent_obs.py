@@ -54,6 +54,18 @@ class WorldModelEncoder:
             return self.encode_tensor(obs)[0].numpy().copy()
 
 
+def encode_episode(encoder: WorldModelEncoder, seg: np.ndarray, speed: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """The agent inputs a live run would have produced for a recorded episode: ``(T, dim)`` from its T frames and
+    speeds and the simulator's actions (``actions[t]`` taken after frame t), fed as ``WorldModelView`` feeds them."""
+    encoder.reset()
+    out = np.empty((len(seg), encoder.dim), np.float32)
+    for t in range(len(seg)):
+        out[t] = encoder.encode({"seg": seg[t], "speed": speed[t : t + 1]})
+        if t + 1 < len(seg):
+            encoder.note_action(actions[t])
+    return out
+
+
 class WorldModelView(gym.Wrapper):
     """A gymnasium env whose observation is the agent input vector and whose action is the actor's output ``u``,
     mapped to the simulator's action by ``action_map`` (``worldmodel/action_map.py``; the identity by default)."""

@@ -57,6 +57,10 @@ def manifest_path(cfg) -> Path:
     return rollouts_dir(cfg) / "manifest.json"
 
 
+def demos_dir(cfg) -> Path:
+    return data_dir(cfg) / "demos"
+
+
 def latents_path(cfg) -> Path:
     return data_dir(cfg) / "latents.h5"
 
@@ -284,6 +288,24 @@ def open_rollouts(cfg):
         return RolloutStore(root)
     except CorruptDataError as err:
         raise StageError(str(err)) from err
+
+
+def open_demos(cfg):
+    """The planner demonstrations of ``worldmodel.demonstrate``, checked to hold ``demos.episodes`` episodes."""
+    from .data import CorruptDataError, RolloutStore
+
+    root = demos_dir(cfg)
+    make = f"{stage_command('demonstrate', cfg)} demos.episodes={int(cfg.demos.episodes)}"
+    if not (root / "manifest.json").exists():
+        raise StageError(f"no complete planner demonstrations at {root}. Run `{make}` first.")
+    try:
+        store = RolloutStore(root)
+    except CorruptDataError as err:
+        raise StageError(str(err)) from err
+    if len(store.episodes("train")) + len(store.episodes("validation")) != int(cfg.demos.episodes):
+        n = int(cfg.demos.episodes)
+        raise StageError(f"{root} does not hold demos.episodes={n} episodes: delete it and run `{make}`")
+    return store
 
 
 def build_vae(cfg):

@@ -10,23 +10,13 @@ to an uninterrupted run.
 
 from __future__ import annotations
 
-import json
-import logging
-import multiprocessing as mp
-import time
-from pathlib import Path
-
 import numpy as np
 from omegaconf import OmegaConf
 
 from . import artifacts
-from .common import StageError, atomic_write_text, clean_temporaries
 from .config import hydra_main, validate
-from .data import SCHEMA_VERSION, shard_name, write_shard
-
-log = logging.getLogger(__name__)
-# The env settings that shape the recorded frames; the rest of the env section (horizons, camera) is set here.
-ENV_KEYS = {"image_size": int, "fov_deg": float, "mu": float, "occupants_per_car": int}
+from .data import SCHEMA_VERSION
+from .recording import env_settings, record_dataset
 
 
 def episode_spec(seed: int, index: int):
@@ -44,213 +34,32 @@ def _collection_settings(cfg) -> dict:
         "episodes_per_shard": int(c.episodes_per_shard),
         "max_episode_s": float(c.max_episode_s),
         "autopilot": OmegaConf.to_container(c.autopilot, resolve=True),
-        "env": {key: cast(cfg.env[key]) for key, cast in ENV_KEYS.items()},
+        "env": env_settings(cfg),
     }
 
 
-# ----------------------------------------------------------------------------- worker side
-_ENV = None
-
-
-def _worker_env(settings: dict):
-    global _ENV
-    if _ENV is None:
-        from envs import UrbanCollisionEnv
-
-        _ENV = UrbanCollisionEnv(
-            camera=True, horizon_after_ttc_s=None, max_episode_s=settings["max_episode_s"], **settings["env"]
-        )
-    return _ENV
-
-
-def record_episode(env, settings: dict, index: int) -> dict:
+def autopilot_of(settings: dict, spec):
     from envs import NoisyAutopilot
-    from envs.rollout import rollout
 
-    spec = episode_spec(settings["seed"], index)
     ap = settings["autopilot"]
-    pilot = NoisyAutopilot(**{**ap, "excursion_s": tuple(ap["excursion_s"])})
-    seg, speed, action, r1, r2 = [], [], [], [], []
-
-    def first(obs, info):
-        seg.append(obs["seg"])
-        speed.append(obs["speed"][0])
-
-    def record(obs, a, reward, info):
-        action.append(a)
-        r1.append(info["reward_r1"])
-        r2.append(info["reward_r2"])
-        seg.append(obs["seg"])
-        speed.append(obs["speed"][0])
-
-    episode = rollout(env, pilot, spec, on_step=record, on_reset=first)
-    n = len(seg)
-    done = np.zeros(n, np.uint8)
-    done[-2:] = 1
-    pad = np.zeros((1, 2), np.float32)
-    return {
-        "index": index,
-        "seed": spec.seed,
-        "n_steps": n - 1,
-        "terminated": episode.terminated,
-        "scenario": spec.to_json(),
-        "outcome": json.dumps(episode.outcome, sort_keys=True),
-        "seg": np.stack(seg).astype(np.uint8),
-        "speed": np.asarray(speed, np.float32),
-        "action": np.concatenate([np.asarray(action, np.float32), pad]),
-        "reward_r1": np.asarray(r1 + [0.0], np.float32),
-        "reward_r2": np.asarray(r2 + [0.0], np.float32),
-        "done": done,
-        "_outcome": episode.outcome,
-        "_hazard": spec.hazard,
-    }
+    return NoisyAutopilot(**{**ap, "excursion_s": tuple(ap["excursion_s"])})
 
 
-def collect_shard(task: tuple[dict, str, int, list[int]]) -> dict:
-    """Record the episodes of one shard and write it atomically; returns its statistics."""
-    settings, root, k, indices = task
-    env = _worker_env(settings)
-    episodes = [record_episode(env, settings, i) for i in indices]
-    meta = {
-        "class_names": json.dumps(__import__("envs").CLASS_NAMES),
-        "dt": 1.0 / 15.0,
-        "settings": json.dumps(settings, sort_keys=True),
-    }
-    write_shard(Path(root) / shard_name(k), episodes, meta)
-    return {
-        "shard": k,
-        "lengths": {e["index"]: len(e["seg"]) for e in episodes},
-        "hazards": [e["_hazard"] for e in episodes],
-        "outcomes": [e["_outcome"] for e in episodes],
-    }
-
-
-# ----------------------------------------------------------------------------- driver
-def _split(seed: int, episodes: int, fraction: float) -> dict:
-    order = np.random.default_rng([seed, 7919]).permutation(episodes)
-    n_val = max(1, int(round(fraction * episodes))) if episodes > 1 else 0
-    return {"train": sorted(int(i) for i in order[n_val:]), "validation": sorted(int(i) for i in order[:n_val])}
+def spec_of(settings: dict, index: int):
+    return episode_spec(settings["seed"], index)
 
 
 def run(cfg) -> dict:
     validate(cfg)
-    root = artifacts.rollouts_dir(cfg)
-    settings = _collection_settings(cfg)
-    manifest_path = artifacts.manifest_path(cfg)
-    config_path = root / "collect_config.json"
-
-    if config_path.exists():
-        previous = json.loads(config_path.read_text())
-        if previous != settings:
-            raise StageError(
-                f"{root} was collected with different settings ({config_path}). Use another "
-                f"experiment=NAME, or delete {root} to start again."
-            )
-        if manifest_path.exists():
-            log.info("[collect] %s is already complete; nothing to do.", root)
-            return json.loads(manifest_path.read_text())["summary"]
-        if not cfg.resume:
-            raise StageError(f"{root} holds a partial collection. Pass resume=true to finish it, or delete it.")
-    root.mkdir(parents=True, exist_ok=True)
-    clean_temporaries(root)
-    atomic_write_text(config_path, json.dumps(settings, indent=2, sort_keys=True))
-    split = _split(settings["seed"], settings["episodes"], float(cfg.collect.validation_fraction))
-    atomic_write_text(root / "split.json", json.dumps(split))
-
-    per = settings["episodes_per_shard"]
-    shards = [
-        (k, list(range(k * per, min(settings["episodes"], (k + 1) * per))))
-        for k in range((settings["episodes"] + per - 1) // per)
-    ]
-    todo = [(settings, str(root), k, ids) for k, ids in shards if not (root / shard_name(k)).exists()]
-    done_stats = _stats_of_existing(root, [k for k, _ in shards if (root / shard_name(k)).exists()])
-
-    from tqdm import tqdm
-
-    t0 = time.perf_counter()
-    workers = min(int(cfg.collect.num_workers), max(1, len(todo)))
-    new_stats = []
-    with tqdm(
-        total=settings["episodes"], initial=sum(len(s["lengths"]) for s in done_stats), unit="episode", desc="collect"
-    ) as bar:
-        if workers == 1:
-            for task in todo:
-                new_stats.append(collect_shard(task))
-                bar.update(len(task[3]))
-        else:
-            with mp.get_context("spawn").Pool(workers) as pool:
-                for stats in pool.imap_unordered(collect_shard, todo):
-                    new_stats.append(stats)
-                    bar.update(len(stats["lengths"]))
-    wall = time.perf_counter() - t0
-
-    all_stats = done_stats + new_stats
-    summary = _summarise(all_stats, wall, sum(sum(s["lengths"].values()) for s in new_stats))
-    lengths = {str(i): n for s in all_stats for i, n in s["lengths"].items()}
-    manifest = {
-        "schema_version": SCHEMA_VERSION,
-        "episodes": settings["episodes"],
-        "shards": [shard_name(k) for k, _ in shards],
-        "lengths": lengths,
-        "summary": summary,
-    }
-    atomic_write_text(manifest_path, json.dumps(manifest, indent=1, sort_keys=True))
-    _print_summary(root, summary)
-    return summary
-
-
-def _stats_of_existing(root: Path, ks: list[int]) -> list[dict]:
-    import h5py
-
-    from .data import check_shard, episode_key
-
-    stats = []
-    for k in ks:
-        path = root / shard_name(k)
-        ids = check_shard(path, full=False)
-        with h5py.File(path, "r") as f:
-            eps = [f[episode_key(i)] for i in ids]
-            stats.append(
-                {
-                    "shard": k,
-                    "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, eps)},
-                    "hazards": [json.loads(g.attrs["scenario"]) for g in eps],
-                    "outcomes": [json.loads(g.attrs["outcome"]) for g in eps],
-                }
-            )
-        # scenario JSON -> hazard name, as a fresh run reports it
-        from envs import ScenarioSpec
-
-        stats[-1]["hazards"] = [ScenarioSpec.from_dict(h).hazard for h in stats[-1]["hazards"]]
-    return stats
-
-
-def _summarise(stats: list[dict], wall: float, new_frames: int) -> dict:
-    outcomes = [o for s in stats for o in s["outcomes"]]
-    hazards = [h for s in stats for h in s["hazards"]]
-    frames = sum(sum(s["lengths"].values()) for s in stats)
-    return {
-        "episodes": len(outcomes),
-        "frames": frames,
-        "hazards": {k: hazards.count(k) for k in ("pedestrian", "car", "both", "none")},
-        "collisions": {k: int(sum(o[f"{k}_collision"] for o in outcomes)) for k in ("pedestrian", "vehicle", "static")},
-        "ended_by": {k: sum(o["end"] == k for o in outcomes) for k in ("crash", "left_scene", "horizon")},
-        "wall_s": round(wall, 2),
-        "frames_per_s_this_run": round(new_frames / wall, 1) if wall > 0 else None,
-    }
-
-
-def _print_summary(root: Path, s: dict) -> None:
-    log.info(
-        "[collect] %s: %d episodes, %d frames; hazards %s; collisions %s; ended by %s; %s s wall, %s frames/s",
-        root,
-        s["episodes"],
-        s["frames"],
-        s["hazards"],
-        s["collisions"],
-        s["ended_by"],
-        s["wall_s"],
-        s["frames_per_s_this_run"],
+    return record_dataset(
+        artifacts.rollouts_dir(cfg),
+        _collection_settings(cfg),
+        spec_of,
+        autopilot_of,
+        resume=bool(cfg.resume),
+        num_workers=int(cfg.collect.num_workers),
+        validation_fraction=float(cfg.collect.validation_fraction),
+        label="collect",
     )
 
 

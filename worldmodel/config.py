@@ -76,6 +76,48 @@ class CollectConfig(Checked):
 
 
 @dataclass
+class FocusConfig(Checked):
+    """The focus mix (``envs.sample_focus_scenario``): hazards at the speeds and TTCs where braking leaves
+    injuries that a better manoeuvre avoids, plus no-hazard episodes where swerving only costs."""
+
+    hazard_share: float = 0.85
+    speed_range: list[float] = field(default_factory=lambda: [15.0, 30.0])
+    ttc_range: list[float] = field(default_factory=lambda: [0.25, 1.1])
+
+    def problems(self):
+        if not 0.0 <= self.hazard_share <= 1.0:
+            yield ConfigValueError("hazard_share", self.hazard_share, "it must be in [0, 1]")
+        for key in ("speed_range", "ttc_range"):
+            value = list(getattr(self, key))
+            if len(value) != 2 or not 0 < value[0] <= value[1]:
+                yield ConfigValueError(key, value, "it must be [low, high] with 0 < low <= high")
+
+    def settings(self) -> dict:
+        return {
+            "hazard_share": float(self.hazard_share),
+            "speed_range": list(map(float, self.speed_range)),
+            "ttc_range": list(map(float, self.ttc_range)),
+        }
+
+
+@dataclass
+class DemosConfig(Checked):
+    """Planner demonstrations (``worldmodel.demonstrate``): the privileged planner drives the focus mix with the
+    camera on, recorded in the rollout schema to ``data/NAME/demos/``. The agent never sees the true state: it
+    learns from the frames, through the frozen world model."""
+
+    episodes: int = 0  # 0 = no demonstrations (the paper's configuration)
+    num_workers: int = 2
+    episodes_per_shard: int = 25
+    focus: FocusConfig = field(default_factory=FocusConfig)
+
+    def problems(self):
+        yield from _positive(self, "num_workers", "episodes_per_shard")
+        if self.episodes < 0:
+            yield ConfigValueError("episodes", self.episodes, "it must be >= 0 (0 = no demonstrations)")
+
+
+@dataclass
 class EnvConfig(Checked):
     """Keyword arguments of ``envs.UrbanCollisionEnv`` (its docstring gives units and sources);
     ``common.make_env`` instantiates it."""
@@ -160,12 +202,24 @@ class AgentConfig(DDPGConfig):
     # braking, so u = 0 is straight-line braking), and "wheel" | "grip" (steer as a share of mu g at this speed)
     anchor: str = "none"
     steer: str = "wheel"
+    # training episodes: this share from the focus mix (demos.focus), the rest from the paper's distributions
+    focus_share: float = 0.0
+    # planner demonstrations (needs demos.episodes > 0 and `python -m worldmodel.demonstrate`): this share of every
+    # minibatch comes from them (DDPGfD), and the actor is first cloned on them for bc_pretrain_steps minibatches
+    demo_share: float = 0.0
+    bc_pretrain_steps: int = 0
+    reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
 
     def problems(self):
         from .action_map import ANCHORS, STEERS
 
         yield from super().problems()
-        yield from _positive(self, "total_steps", "checkpoint_every")
+        yield from _positive(self, "total_steps", "checkpoint_every", "reward_scale")
+        for key in ("focus_share", "demo_share"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
+        if self.bc_pretrain_steps < 0:
+            yield ConfigValueError("bc_pretrain_steps", self.bc_pretrain_steps, "it must be >= 0")
         if self.anchor not in ANCHORS:
             yield ConfigValueError("anchor", self.anchor, f"it must be one of {', '.join(ANCHORS)}")
         if self.steer not in STEERS:
@@ -209,6 +263,18 @@ class OracleConfig(Checked):
             )
         except ValueError as err:
             yield ConfigValueError("oracle", "...", str(err))
+
+
+def oracle_settings(cfg) -> dict:
+    """``evaluate.oracle`` as plain keyword arguments of ``PrivilegedPlanner.from_settings``."""
+    o = cfg.evaluate.oracle
+    return {
+        "replan_every_s": float(o.replan_every_s),
+        "pedals": [float(x) for x in o.pedals],
+        "steers": [float(x) for x in o.steers],
+        "delays_s": [float(x) for x in o.delays_s],
+        "lane_change_s": [float(x) for x in o.lane_change_s],
+    }
 
 
 SCRIPTED_POLICIES = ("braking", "oracle")
@@ -269,6 +335,7 @@ class ExperimentConfig(Checked):
     scale_name: str | None = None  # set by conf/scale/*.yaml
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
+    demos: DemosConfig = field(default_factory=DemosConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
     vae: VAEConfig = field(default_factory=VAEConfig)
@@ -278,6 +345,16 @@ class ExperimentConfig(Checked):
 
     def problems(self):
         yield from _positive(self, "threads")
+        a = self.agent
+        for key in ("demo_share", "bc_pretrain_steps", "bc_weight"):
+            if getattr(a, key) > 0 and self.demos.episodes < 1:
+                yield ConfigValueError(
+                    f"agent.{key}", getattr(a, key), "it learns from planner demonstrations: set demos.episodes > 0"
+                )
+        if a.bc_weight > 0 and a.demo_share == 0:
+            yield ConfigValueError(
+                "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"
+            )
 
 
 def register() -> None:

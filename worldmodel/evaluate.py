@@ -25,7 +25,7 @@ from . import artifacts
 from .action_map import ActionMap
 from .artifacts import AgentId
 from .common import make_env, set_threads
-from .config import SCRIPTED_POLICIES, hydra_main, validate
+from .config import SCRIPTED_POLICIES, hydra_main, oracle_settings, validate
 from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
 
 log = logging.getLogger(__name__)
@@ -72,17 +72,9 @@ def run_policy(
 
 
 def make_oracle(cfg):
-    from envs import DT
     from envs.planner import PrivilegedPlanner
 
-    o = cfg.evaluate.oracle
-    return PrivilegedPlanner(
-        replan_every=max(1, round(float(o.replan_every_s) / DT)),
-        pedals=list(o.pedals),
-        steers=list(o.steers),
-        delays_s=list(o.delays_s),
-        lane_change_s=list(o.lane_change_s),
-    )
+    return PrivilegedPlanner.from_settings(**oracle_settings(cfg))
 
 
 def _policy_for(cfg, name: str):

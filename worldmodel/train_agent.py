@@ -28,6 +28,7 @@ from . import artifacts
 from .action_map import ActionMap
 from .common import StageError, check_finite, make_env, seed_everything, set_threads
 from .config import hydra_main, validate
+from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
 from .training import TrainingRun
 
 log = logging.getLogger(__name__)
@@ -46,9 +47,67 @@ def episode_seed(seed: int, episode: int) -> int:
     return int(np.random.default_rng([seed, 1729, episode]).integers(0, 2**31 - 1))
 
 
+def reset_options(cfg, episode: int) -> dict:
+    """How training episode ``episode`` starts: a focus-mix scenario with probability ``agent.focus_share``,
+    else the paper's distributions from the episode's seed. Depends only on (seed, episode)."""
+    seed, share = int(cfg.seed), float(cfg.agent.focus_share)
+    if share > 0:
+        from envs import sample_focus_scenario
+
+        rng = np.random.default_rng([seed, 4242, episode])
+        if rng.uniform() < share:
+            f = cfg.demos.focus
+            spec = sample_focus_scenario(rng, float(f.hazard_share), tuple(f.speed_range), tuple(f.ttc_range))
+            return {"options": {"scenario": spec}}
+    return {"seed": episode_seed(seed, episode)}
+
+
+def demonstration_buffer(cfg, encoder, action_map: ActionMap, reward: str, hp) -> tuple[ReplayBuffer, dict]:
+    """The planner's demonstrations (``worldmodel.demonstrate``) as agent transitions: every frame through the
+    frozen world model as a live run would feed it, every action as the actor output that asks for it, rewards
+    scaled and folded into ``agent.n_step`` returns like the agent's own."""
+    from .agent_obs import encode_episode
+
+    store = artifacts.open_demos(cfg)
+    episodes = store.episodes("train") + store.episodes("validation")
+    total = sum(int(store.attrs(i)["n_steps"]) for i in episodes)
+    buffer = ReplayBuffer(max(1, total), encoder.dim, 2)
+    window = NStepWindow(hp.n_step, hp.gamma)
+    from tqdm import tqdm
+
+    for i in tqdm(episodes, desc="encode demonstrations", unit="episode"):
+        seg, speed, action = store.read(i, "seg"), store.read(i, "speed"), store.read(i, "action")
+        rewards = store.read(i, f"reward_{reward}") * float(cfg.agent.reward_scale)
+        terminated = bool(store.attrs(i)["terminated"])
+        states = encode_episode(encoder, seg, speed, action)
+        n = len(seg) - 1
+        for t in range(n):
+            u = action_map.from_env(action[t], float(speed[t]))
+            for tr in window.push(states[t], u, float(rewards[t]), states[t + 1], terminated and t == n - 1):
+                buffer.add(*tr)
+        for tr in window.flush():
+            buffer.add(*tr)
+    store.close()
+    return buffer, {"episodes": len(episodes), "transitions": len(buffer)}
+
+
+def mixed_batch(buffer: ReplayBuffer, demos: ReplayBuffer | None, size: int, share: float, rng) -> dict:
+    """A minibatch with ``round(share * size)`` demonstration samples, marked by ``batch["demo"]``."""
+    import torch
+
+    n_demo = int(round(share * size)) if demos is not None else 0
+    batch = buffer.sample(size - n_demo, rng)
+    mask = torch.zeros(size - n_demo)
+    if n_demo:
+        extra = demos.sample(n_demo, rng)
+        batch = {k: torch.cat([batch[k], extra[k]]) for k in batch}
+        mask = torch.cat([mask, torch.ones(n_demo)])
+    batch["demo"] = mask
+    return batch
+
+
 def run(cfg) -> dict:
     from .agent_obs import WorldModelView
-    from .models.ddpg import DDPG, ReplayBuffer
 
     typed = validate(cfg)
     set_threads(cfg.threads)
@@ -64,6 +123,12 @@ def run(cfg) -> dict:
     agent = DDPG(obs_dim, 2, hp, seed=int(cfg.seed))
     buffer = ReplayBuffer(hp.buffer_size, obs_dim, 2)
     history: deque = deque(maxlen=ROLLING)
+    demos, demo_info = None, {}
+    if hp.demo_share > 0 or hp.bc_pretrain_steps > 0:
+        demos, demo_info = demonstration_buffer(cfg, encoder, action_map, agent_id.reward, hp)
+        log.info("[%s] %d demonstration transitions from %d planner episodes", name, len(demos), demo_info["episodes"])
+    window = NStepWindow(hp.n_step, hp.gamma)
+    scale = float(hp.reward_scale)
 
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), artifacts.provenance(cfg, "agent"), name=name) as run_:
         step, episode, best_return = 0, 0, -float("inf")
@@ -80,6 +145,15 @@ def run(cfg) -> dict:
             step, episode, best_return = state["step"], state["episode"], state["best_return"]
             history.extend(state["history"])
             run_.resumed(f"step {step}, episode {episode}")
+        elif hp.bc_pretrain_steps > 0:
+            losses = {}
+            for k in range(hp.bc_pretrain_steps):
+                b = demos.sample(hp.batch_size, agent.rng)
+                loss = agent.clone(b["obs"], b["actions"])
+                if k % 50 == 0:
+                    run_.writer.add_scalar("pretrain/bc_loss", loss, k)
+            agent.sync_targets()
+            log.info("[%s] cloned the planner for %d minibatches: loss %.4f", name, hp.bc_pretrain_steps, loss)
 
         def snapshot(best=False):
             run_.save(
@@ -102,7 +176,7 @@ def run(cfg) -> dict:
         from tqdm import tqdm
 
         writer = run_.writer
-        obs, info = env.reset(seed=episode_seed(int(cfg.seed), episode))
+        obs, info = env.reset(**reset_options(cfg, episode))
         ep_return, ep_len = 0.0, 0
         t0, steps_this_run = time.perf_counter(), 0
         losses = {}
@@ -110,7 +184,11 @@ def run(cfg) -> dict:
             while step < hp.total_steps:
                 action = agent.random_action() if step < hp.warmup_steps else agent.act(obs, explore=True)
                 next_obs, r, terminated, truncated, info = env.step(action)
-                buffer.add(obs, action, r, next_obs, terminated)
+                for transition in window.push(obs, action, r * scale, next_obs, terminated):
+                    buffer.add(*transition)
+                if truncated and not terminated:
+                    for transition in window.flush():
+                        buffer.add(*transition)
                 obs = next_obs
                 ep_return += r
                 ep_len += 1
@@ -119,9 +197,10 @@ def run(cfg) -> dict:
                 bar.update(1)
 
                 if step > hp.warmup_steps and len(buffer) >= hp.batch_size:
-                    losses = agent.update(buffer.sample(hp.batch_size, agent.rng))
-                    check_finite(losses["critic_loss"], "critic loss", step, run_.last)
-                    check_finite(losses["actor_loss"], "actor loss", step, run_.last)
+                    losses = agent.update(mixed_batch(buffer, demos, hp.batch_size, hp.demo_share, agent.rng))
+                    for key in ("critic_loss", "actor_loss"):
+                        if key in losses:
+                            check_finite(losses[key], key.replace("_", " "), step, run_.last)
 
                 if terminated or truncated:
                     o = info["outcome"]
@@ -131,7 +210,7 @@ def run(cfg) -> dict:
                     if step > hp.warmup_steps and len(history) >= min(ROLLING, 20) and rolling > best_return:
                         best_return = rolling
                         snapshot(best=True)
-                    obs, info = env.reset(seed=episode_seed(int(cfg.seed), episode))
+                    obs, info = env.reset(**reset_options(cfg, episode))
                     ep_return, ep_len = 0.0, 0
 
                 if losses and step % 50 == 0:
@@ -159,6 +238,7 @@ def run(cfg) -> dict:
                 for k in ("pedestrian", "vehicle", "static")
             },
             "steps_per_s": round(steps_this_run / (time.perf_counter() - t0), 1),
+            "demonstrations": demo_info,
         }
         log.info(
             "[%s] %d steps, %d episodes; rolling return %s; wrote %s",

@@ -71,12 +71,36 @@ class DDPGConfig(Checked):
     """the actor's last layer starts uniform in +-bound (Lillicrap: 3e-3, so first actions are near 0). 0 makes the
     untrained actor output exactly 0: with ``agent.anchor=brake``, exactly straight-line braking"""
 
+    # ---- learner options (issue 11; all off by default, which is Lillicrap's DDPG above)
+    n_step: int = 1
+    """n-step returns: the critic regresses onto r_t + ... + g^(k-1) r_(t+k-1) + g^k Q'(s_(t+k), mu'(s_(t+k))), k <= n
+    (fewer at an episode's end). Sparse terminal rewards then reach the decision that caused them n times faster"""
+    twin_critics: bool = False
+    """TD3 (Fujimoto et al. 2018): two critics, the target takes the smaller of their two target values, which
+    counters the overestimation of a single critic"""
+    policy_delay: int = 1
+    """update the actor (and the targets) once every this many critic updates (TD3: 2)"""
+    target_noise: float = 0.0
+    """TD3's target policy smoothing: Gaussian noise of this std on mu'(s') in the target, clipped to +-0.5"""
+    critic_action_layer: int = 0
+    """where the action enters the critic: 0 = with the observation at the input (CleanRL), 1 = at the second
+    layer (Lillicrap), so 2 action numbers do not drown among 256 latent ones"""
+    bc_weight: float = 0.0
+    """behaviour cloning in the actor's loss on demonstration samples: + bc_weight * |mu(s) - a_demo|^2
+    (Nair et al. 2018). 0 = off"""
+    q_filter: bool = True
+    """apply the cloning term only where the critic rates the demonstrated action above the actor's own (Nair et
+    al.'s Q-filter), so that a demonstrator that swerves left here and right there does not teach a half-swerve"""
+
     def problems(self):
         yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr")
         for key in ("gamma", "tau"):
             if not 0 < getattr(self, key) <= 1:
                 yield ConfigValueError(key, getattr(self, key), "it must be in (0, 1]")
-        for key in ("warmup_steps", "exploration_noise", "actor_final_bound"):
+        yield from positive_fields(self, "n_step", "policy_delay")
+        if self.critic_action_layer not in (0, 1):
+            yield ConfigValueError("critic_action_layer", self.critic_action_layer, "it must be 0 or 1")
+        for key in ("warmup_steps", "exploration_noise", "actor_final_bound", "target_noise", "bc_weight"):
             if getattr(self, key) < 0:
                 yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
         for key in ("actor_hidden", "critic_hidden"):
@@ -114,17 +138,57 @@ class Actor(nn.Module):
 
 
 class Critic(nn.Module):
-    """Q(s, a). The action joins at the input (as in CleanRL) rather than at the second layer (Lillicrap);
-    for our low-dimensional latent inputs the difference does not matter and this keeps one plain MLP."""
+    """Q(s, a). ``action_layer`` 0: the action joins the observation at the input (CleanRL); 1: it joins the
+    first hidden layer's output (Lillicrap), where it is 2 of ~400 inputs rather than 2 of ~258."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300)):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300), action_layer: int = 0):
         super().__init__()
-        self.net = mlp(obs_dim + act_dim, hidden, 1)
+        self.action_layer = int(action_layer)
+        if self.action_layer == 0:
+            self.net = mlp(obs_dim + act_dim, hidden, 1)
+        else:
+            self.first = nn.Sequential(nn.Linear(obs_dim, hidden[0]), nn.ReLU())
+            self.net = mlp(hidden[0] + act_dim, hidden[1:], 1)
         init_final_layer(self.net[-1])
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Returns Q with shape (batch,)."""
+        if self.action_layer:
+            obs = self.first(obs)
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
+
+
+class NStepWindow:
+    """Turns one-step transitions into n-step ones, in order, within one episode.
+
+    ``push`` returns the transitions that are complete; ``flush`` (at the episode's end) the rest, each with as
+    many steps as remain. A transition is (obs, action, return, next_obs, terminated, steps): return is
+    r_t + g r_(t+1) + ... + g^(k-1) r_(t+k-1) and next_obs is the observation k steps later, so the target is
+    return + g^k (1 - terminated) Q'(next_obs). A termination inside the window ends it: nothing after it counts.
+    """
+
+    def __init__(self, n: int, gamma: float):
+        self.n, self.gamma = int(n), float(gamma)
+        self.pending: list[tuple] = []
+
+    def _emit(self, k: int) -> tuple:
+        obs, action = self.pending[0][0], self.pending[0][1]
+        ret = sum(self.gamma**j * self.pending[j][2] for j in range(k))
+        _, _, _, next_obs, terminated = self.pending[k - 1]
+        self.pending.pop(0)
+        return obs, action, ret, next_obs, terminated, k
+
+    def push(self, obs, action, reward: float, next_obs, terminated: bool) -> list[tuple]:
+        self.pending.append((obs, action, float(reward), next_obs, bool(terminated)))
+        if terminated:
+            return self.flush()
+        return [self._emit(self.n)] if len(self.pending) == self.n else []
+
+    def flush(self) -> list[tuple]:
+        out = []
+        while self.pending:
+            out.append(self._emit(len(self.pending)))
+        return out
 
 
 class ReplayBuffer:
@@ -135,7 +199,7 @@ class ReplayBuffer:
     is stored with terminated=0 so its value is bootstrapped from ``next_obs``.
     """
 
-    FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
+    FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated", "steps")
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int):
         self.capacity = int(capacity)
@@ -144,14 +208,16 @@ class ReplayBuffer:
         self.rewards = np.zeros(self.capacity, dtype=np.float32)
         self.next_obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
         self.terminated = np.zeros(self.capacity, dtype=np.float32)
+        self.steps = np.ones(self.capacity, dtype=np.float32)  # k of an n-step transition: the target uses g^k
         self.pos = 0  # where the next transition goes; once full, also the oldest one
         self.size = 0
 
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs, action, reward: float, next_obs, terminated: bool) -> None:
+    def add(self, obs, action, reward: float, next_obs, terminated: bool, steps: int = 1) -> None:
         i = self.pos
+        self.steps[i] = steps
         self.obs[i] = obs
         self.actions[i] = action
         self.rewards[i] = reward
@@ -161,7 +227,7 @@ class ReplayBuffer:
         self.size = min(self.size + 1, self.capacity)
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        """Uniform sample with replacement. Keys: obs, actions, rewards, next_obs, terminated."""
+        """Uniform sample with replacement. Keys: obs, actions, rewards, next_obs, terminated, steps."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         idx = rng.integers(0, self.size, size=batch_size)
@@ -183,32 +249,50 @@ class ReplayBuffer:
             )
         size = int(state["size"])
         for name in self.FIELDS:
-            getattr(self, name)[:size] = state[name]
+            if name in state:  # checkpoints from before n-step returns have no `steps`: all were one-step
+                getattr(self, name)[:size] = state[name]
         self.pos = int(state["pos"])
         self.size = size
 
 
 class DDPG:
-    """Actor, critic, their targets and optimisers, and the agent's own random generator."""
+    """Actor, critic(s), their targets and optimisers, and the agent's own random generator.
+
+    With every learner option off this is Lillicrap's DDPG. ``twin_critics``, ``policy_delay`` and
+    ``target_noise`` make it TD3; ``n_step`` is read from each transition's ``steps``; ``bc_weight`` adds
+    behaviour cloning on the samples a batch marks as demonstrations (``batch["demo"]``), Q-filtered if asked.
+    """
 
     def __init__(self, obs_dim: int, act_dim: int, cfg: DDPGConfig, seed: int):
         self.obs_dim, self.act_dim, self.cfg = int(obs_dim), int(act_dim), cfg
         self.rng = np.random.default_rng(seed)
+        self.updates = 0
+        critic = lambda: Critic(obs_dim, act_dim, cfg.critic_hidden, cfg.critic_action_layer)  # noqa: E731
         # Initialise the networks from `seed` without consuming or resetting the global torch RNG,
         # which the caller may be using for something else.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound)
-            self.critic = Critic(obs_dim, act_dim, cfg.critic_hidden)
+            self.critic = critic()
             self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound)
-            self.critic_target = Critic(obs_dim, act_dim, cfg.critic_hidden)
+            self.critic_target = critic()
+            self.critic2 = critic() if cfg.twin_critics else None
+            self.critic2_target = critic() if cfg.twin_critics else None
+            # the target-smoothing noise draws from its own torch generator, saved with the agent
+            self.torch_rng = torch.Generator().manual_seed(int(seed))
         self.actor_target.load_state_dict(self.actor.state_dict())
         self.critic_target.load_state_dict(self.critic.state_dict())
+        if self.critic2 is not None:
+            self.critic2_target.load_state_dict(self.critic2.state_dict())
         # Targets are only ever read under no_grad and moved by soft_update.
-        self.actor_target.requires_grad_(False)
-        self.critic_target.requires_grad_(False)
+        for target in self._targets():
+            target.requires_grad_(False)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        critic_params = list(self.critic.parameters()) + (list(self.critic2.parameters()) if self.critic2 else [])
+        self.critic_optimizer = torch.optim.Adam(critic_params, lr=cfg.critic_lr)
+
+    def _targets(self):
+        return [t for t in (self.actor_target, self.critic_target, self.critic2_target) if t is not None]
 
     # ------------------------------------------------------------------ acting
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -228,43 +312,99 @@ class DDPG:
     # ------------------------------------------------------------------ learning
     @torch.no_grad()
     def td_target(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """y = r + gamma * (1 - terminated) * Q'(s', mu'(s')), from the target networks.
+        """y = R + g^k (1 - terminated) Q'(s', mu'(s')) from the target networks; R and k are the transition's
+        (n-step) return and length, k = 1 for a one-step transition. With twin critics Q' is the smaller of the
+        two; with ``target_noise`` mu'(s') is smoothed by clipped Gaussian noise (TD3).
 
         Only true terminations stop the bootstrap; a time-limit truncation must be stored with terminated=0.
         """
         next_obs = batch["next_obs"]
-        next_q = self.critic_target(next_obs, self.actor_target(next_obs))
-        return batch["rewards"] + self.cfg.gamma * (1.0 - batch["terminated"]) * next_q
+        next_action = self.actor_target(next_obs)
+        if self.cfg.target_noise > 0:
+            noise = torch.randn(next_action.shape, generator=self.torch_rng) * self.cfg.target_noise
+            next_action = (next_action + noise.clamp(-0.5, 0.5)).clamp(-1.0, 1.0)
+        next_q = self.critic_target(next_obs, next_action)
+        if self.critic2_target is not None:
+            next_q = torch.minimum(next_q, self.critic2_target(next_obs, next_action))
+        steps = batch.get("steps")
+        discount = self.cfg.gamma if steps is None else self.cfg.gamma**steps
+        return batch["rewards"] + discount * (1.0 - batch["terminated"]) * next_q
+
+    def bc_loss(self, batch: Mapping[str, torch.Tensor], policy_action: torch.Tensor, q_policy: torch.Tensor):
+        """Behaviour cloning on the batch's demonstration samples: mean over them of keep * |mu(s) - a|^2, where
+        keep is 1, or with the Q-filter 1 only where Q(s, a_demo) > Q(s, mu(s)). Returns (loss, share kept)."""
+        demo = batch["demo"]
+        n_demo = demo.sum()
+        if n_demo == 0:
+            return policy_action.sum() * 0.0, 0.0
+        keep = demo
+        if self.cfg.q_filter:
+            with torch.no_grad():
+                keep = demo * (self.critic(batch["obs"], batch["actions"]) > q_policy.detach()).float()
+        error = ((policy_action - batch["actions"]) ** 2).sum(-1)
+        return (keep * error).sum() / n_demo, float(keep.sum() / n_demo)
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
-        """One gradient step on critic and actor, then a soft update of both targets."""
+        """One gradient step on the critic(s); every ``policy_delay``-th call also one on the actor, then a soft
+        update of the targets."""
         target = self.td_target(batch)
         q = self.critic(batch["obs"], batch["actions"])
         critic_loss = F.mse_loss(q, target)
+        if self.critic2 is not None:
+            critic_loss = critic_loss + F.mse_loss(self.critic2(batch["obs"], batch["actions"]), target)
         self.critic_optimizer.zero_grad()
         critic_loss.backward()
         self.critic_optimizer.step()
+        self.updates += 1
+        out = {"critic_loss": critic_loss.item(), "q_mean": q.mean().item()}
+        if self.updates % self.cfg.policy_delay:
+            return out
 
         # The actor is judged by the critic just updated (as in Lillicrap's Algorithm 1). The gradients this
         # leaves on the critic's parameters are discarded by the critic's zero_grad on the next update.
-        actor_loss = -self.critic(batch["obs"], self.actor(batch["obs"])).mean()
+        policy_action = self.actor(batch["obs"])
+        q_policy = self.critic(batch["obs"], policy_action)
+        actor_loss = -q_policy.mean()
+        if self.cfg.bc_weight > 0 and "demo" in batch:
+            bc, kept = self.bc_loss(batch, policy_action, q_policy)
+            actor_loss = actor_loss + self.cfg.bc_weight * bc
+            out.update(bc_loss=bc.item(), bc_kept=kept)
         self.actor_optimizer.zero_grad()
         actor_loss.backward()
         self.actor_optimizer.step()
 
         self.soft_update()
-        return {"critic_loss": critic_loss.item(), "actor_loss": actor_loss.item(), "q_mean": q.mean().item()}
+        out["actor_loss"] = actor_loss.item()
+        return out
+
+    def clone(self, obs: torch.Tensor, actions: torch.Tensor) -> float:
+        """One supervised step of the actor towards ``actions`` (behaviour-cloning pre-training); returns the loss."""
+        loss = ((self.actor(obs) - actions) ** 2).sum(-1).mean()
+        self.actor_optimizer.zero_grad()
+        loss.backward()
+        self.actor_optimizer.step()
+        return loss.item()
+
+    def sync_targets(self) -> None:
+        """Targets := online networks (after pre-training, so the targets start from what was learnt)."""
+        self.actor_target.load_state_dict(self.actor.state_dict())
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        if self.critic2 is not None:
+            self.critic2_target.load_state_dict(self.critic2.state_dict())
 
     @torch.no_grad()
     def soft_update(self) -> None:
-        """target <- (1 - tau) * target + tau * online, for actor and critic."""
-        for online, target in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
+        """target <- (1 - tau) * target + tau * online, for the actor and every critic."""
+        pairs = [(self.actor, self.actor_target), (self.critic, self.critic_target)]
+        if self.critic2 is not None:
+            pairs.append((self.critic2, self.critic2_target))
+        for online, target in pairs:
             for p, tp in zip(online.parameters(), target.parameters()):
                 tp.lerp_(p, self.cfg.tau)
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),
             "actor_target": self.actor_target.state_dict(),
@@ -272,13 +412,24 @@ class DDPG:
             "actor_optimizer": self.actor_optimizer.state_dict(),
             "critic_optimizer": self.critic_optimizer.state_dict(),
             "rng": self.rng.bit_generator.state,
+            "torch_rng": self.torch_rng.get_state(),
+            "updates": self.updates,
         }
+        if self.critic2 is not None:
+            state.update(critic2=self.critic2.state_dict(), critic2_target=self.critic2_target.state_dict())
+        return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         self.actor_target.load_state_dict(state["actor_target"])
         self.critic_target.load_state_dict(state["critic_target"])
+        if self.critic2 is not None:
+            self.critic2.load_state_dict(state["critic2"])
+            self.critic2_target.load_state_dict(state["critic2_target"])
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.rng.bit_generator.state = state["rng"]
+        if "torch_rng" in state:  # absent from checkpoints made before TD3's options
+            self.torch_rng.set_state(state["torch_rng"])
+            self.updates = int(state["updates"])

@@ -1,0 +1,242 @@
+"""Recording episodes to the HDF5 rollout store: the machinery the collection and the demonstrations share.
+
+A dataset is defined by a JSON-able ``settings`` dict and two module-level functions (picklable, so spawned
+workers can use them): ``spec_of(settings, index)`` gives episode ``index``'s scenario and ``policy_of(settings,
+spec)`` the policy that drives it. Episode i depends only on (settings, i), so a dataset is identical whatever the
+worker count. Shards appear only when complete; after a kill, ``resume=true`` writes exactly the missing shards.
+``collect_config.json`` holds the settings (a resume with others is refused), ``split.json`` the seeded
+train/validation split and ``manifest.json``, written last, marks the dataset complete (docs/design.md §4).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .common import StageError, atomic_write_text, clean_temporaries
+from .data import SCHEMA_VERSION, shard_name, write_shard
+
+log = logging.getLogger(__name__)
+
+# The env settings that shape the recorded frames; the rest of the env section (horizons, camera) is the dataset's.
+ENV_KEYS = {"image_size": int, "fov_deg": float, "mu": float, "occupants_per_car": int}
+_ENV = None
+
+
+def env_settings(cfg) -> dict:
+    return {key: cast(cfg.env[key]) for key, cast in ENV_KEYS.items()}
+
+
+def _worker_env(settings: dict):
+    """One camera env per process, built from ``settings["env"]`` and the horizons in ``settings``."""
+    global _ENV
+    if _ENV is None:
+        from envs import UrbanCollisionEnv
+
+        _ENV = UrbanCollisionEnv(
+            camera=True,
+            horizon_after_ttc_s=settings.get("horizon_after_ttc_s"),
+            max_episode_s=settings["max_episode_s"],
+            **settings["env"],
+        )
+    return _ENV
+
+
+def record_episode(env, policy, spec, index: int) -> dict:
+    """Drive ``policy`` through ``spec`` and return the episode in the store's layout (``data.write_shard``)."""
+    from envs.rollout import rollout
+
+    seg, speed, action, r1, r2 = [], [], [], [], []
+
+    def first(obs, info):
+        seg.append(obs["seg"])
+        speed.append(obs["speed"][0])
+
+    def record(obs, a, reward, info):
+        action.append(a)
+        r1.append(info["reward_r1"])
+        r2.append(info["reward_r2"])
+        seg.append(obs["seg"])
+        speed.append(obs["speed"][0])
+
+    episode = rollout(env, policy, spec, on_step=record, on_reset=first)
+    n = len(seg)
+    done = np.zeros(n, np.uint8)
+    done[-2:] = 1
+    pad = np.zeros((1, 2), np.float32)
+    return {
+        "index": index,
+        "seed": spec.seed,
+        "n_steps": n - 1,
+        "terminated": episode.terminated,
+        "scenario": spec.to_json(),
+        "outcome": json.dumps(episode.outcome, sort_keys=True),
+        "seg": np.stack(seg).astype(np.uint8),
+        "speed": np.asarray(speed, np.float32),
+        "action": np.concatenate([np.asarray(action, np.float32), pad]),
+        "reward_r1": np.asarray(r1 + [0.0], np.float32),
+        "reward_r2": np.asarray(r2 + [0.0], np.float32),
+        "done": done,
+        "_outcome": episode.outcome,
+        "_hazard": spec.hazard,
+    }
+
+
+def record_shard(task: tuple) -> dict:
+    """Record the episodes of one shard and write it atomically; returns its statistics."""
+    settings, root, k, indices, spec_of, policy_of = task
+    env = _worker_env(settings)
+    episodes = []
+    for i in indices:
+        spec = spec_of(settings, i)
+        episodes.append(record_episode(env, policy_of(settings, spec), spec, i))
+    meta = {
+        "class_names": json.dumps(__import__("envs").CLASS_NAMES),
+        "dt": 1.0 / 15.0,
+        "settings": json.dumps(settings, sort_keys=True),
+    }
+    write_shard(Path(root) / shard_name(k), episodes, meta)
+    return {
+        "shard": k,
+        "lengths": {e["index"]: len(e["seg"]) for e in episodes},
+        "hazards": [e["_hazard"] for e in episodes],
+        "outcomes": [e["_outcome"] for e in episodes],
+    }
+
+
+def split_episodes(seed: int, episodes: int, fraction: float) -> dict:
+    order = np.random.default_rng([seed, 7919]).permutation(episodes)
+    n_val = max(1, int(round(fraction * episodes))) if episodes > 1 else 0
+    return {"train": sorted(int(i) for i in order[n_val:]), "validation": sorted(int(i) for i in order[:n_val])}
+
+
+def record_dataset(
+    root: Path,
+    settings: dict,
+    spec_of: Callable,
+    policy_of: Callable,
+    *,
+    resume: bool,
+    num_workers: int,
+    validation_fraction: float,
+    label: str,
+) -> dict:
+    """Write (or finish, or confirm) the dataset ``settings`` defines under ``root``; returns its summary."""
+    manifest_path = root / "manifest.json"
+    config_path = root / "collect_config.json"
+    if config_path.exists():
+        previous = json.loads(config_path.read_text())
+        if previous != settings:
+            raise StageError(
+                f"{root} was recorded with different settings ({config_path}). Use another "
+                f"experiment=NAME, or delete {root} to start again."
+            )
+        if manifest_path.exists():
+            log.info("[%s] %s is already complete; nothing to do.", label, root)
+            return json.loads(manifest_path.read_text())["summary"]
+        if not resume:
+            raise StageError(f"{root} holds a partial dataset. Pass resume=true to finish it, or delete it.")
+    root.mkdir(parents=True, exist_ok=True)
+    clean_temporaries(root)
+    atomic_write_text(config_path, json.dumps(settings, indent=2, sort_keys=True))
+    split = split_episodes(settings["seed"], settings["episodes"], validation_fraction)
+    atomic_write_text(root / "split.json", json.dumps(split))
+
+    per = settings["episodes_per_shard"]
+    shards = [
+        (k, list(range(k * per, min(settings["episodes"], (k + 1) * per))))
+        for k in range((settings["episodes"] + per - 1) // per)
+    ]
+    todo = [
+        (settings, str(root), k, ids, spec_of, policy_of) for k, ids in shards if not (root / shard_name(k)).exists()
+    ]
+    done_stats = _stats_of_existing(root, [k for k, _ in shards if (root / shard_name(k)).exists()])
+
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    workers = min(int(num_workers), max(1, len(todo)))
+    new_stats = []
+    done_episodes = sum(len(s["lengths"]) for s in done_stats)
+    with tqdm(total=settings["episodes"], initial=done_episodes, unit="episode", desc=label) as bar:
+        if workers == 1:
+            for task in todo:
+                new_stats.append(record_shard(task))
+                bar.update(len(task[3]))
+        else:
+            with mp.get_context("spawn").Pool(workers) as pool:
+                for stats in pool.imap_unordered(record_shard, todo):
+                    new_stats.append(stats)
+                    bar.update(len(stats["lengths"]))
+    wall = time.perf_counter() - t0
+
+    all_stats = done_stats + new_stats
+    summary = _summarise(all_stats, wall, sum(sum(s["lengths"].values()) for s in new_stats))
+    lengths = {str(i): n for s in all_stats for i, n in s["lengths"].items()}
+    manifest = {
+        "schema_version": SCHEMA_VERSION,
+        "episodes": settings["episodes"],
+        "shards": [shard_name(k) for k, _ in shards],
+        "lengths": lengths,
+        "summary": summary,
+    }
+    atomic_write_text(manifest_path, json.dumps(manifest, indent=1, sort_keys=True))
+    log.info(
+        "[%s] %s: %d episodes, %d frames; hazards %s; collisions %s; ended by %s; %s s wall, %s frames/s",
+        label,
+        root,
+        summary["episodes"],
+        summary["frames"],
+        summary["hazards"],
+        summary["collisions"],
+        summary["ended_by"],
+        summary["wall_s"],
+        summary["frames_per_s_this_run"],
+    )
+    return summary
+
+
+def _stats_of_existing(root: Path, ks: list[int]) -> list[dict]:
+    import h5py
+
+    from envs import ScenarioSpec
+
+    from .data import check_shard, episode_key
+
+    stats = []
+    for k in ks:
+        path = root / shard_name(k)
+        ids = check_shard(path, full=False)
+        with h5py.File(path, "r") as f:
+            eps = [f[episode_key(i)] for i in ids]
+            stats.append(
+                {
+                    "shard": k,
+                    "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, eps)},
+                    # scenario JSON -> hazard name, as a fresh run reports it
+                    "hazards": [ScenarioSpec.from_dict(json.loads(g.attrs["scenario"])).hazard for g in eps],
+                    "outcomes": [json.loads(g.attrs["outcome"]) for g in eps],
+                }
+            )
+    return stats
+
+
+def _summarise(stats: list[dict], wall: float, new_frames: int) -> dict:
+    outcomes = [o for s in stats for o in s["outcomes"]]
+    hazards = [h for s in stats for h in s["hazards"]]
+    frames = sum(sum(s["lengths"].values()) for s in stats)
+    return {
+        "episodes": len(outcomes),
+        "frames": frames,
+        "hazards": {k: hazards.count(k) for k in ("pedestrian", "car", "both", "none")},
+        "collisions": {k: int(sum(o[f"{k}_collision"] for o in outcomes)) for k in ("pedestrian", "vehicle", "static")},
+        "ended_by": {k: sum(o["end"] == k for o in outcomes) for k in ("crash", "left_scene", "horizon")},
+        "wall_s": round(wall, 2),
+        "frames_per_s_this_run": round(new_frames / wall, 1) if wall > 0 else None,
+    }
