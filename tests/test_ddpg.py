@@ -447,3 +447,17 @@ def test_default_learner_is_unchanged_by_the_new_options():
     agent = DDPG(4, 2, DDPGConfig(**SMALL), seed=3)
     assert agent.critic2 is None and isinstance(agent.critic.net[0], torch.nn.Linear)
     assert agent.critic.net[0].in_features == 6
+
+
+def test_cloning_fits_a_known_state_to_action_map():
+    torch.manual_seed(0)
+    agent = DDPG(4, 2, DDPGConfig(**SMALL, actor_final_bound=0.0), seed=0)
+    obs = torch.randn(512, 4)
+    target = torch.tanh(obs[:, :2] - 0.5 * obs[:, 2:])  # reachable by the tanh actor
+    before = ((agent.actor(obs) - target) ** 2).sum(-1).mean().item()
+    for _ in range(600):
+        idx = torch.randint(0, 512, (64,))
+        agent.clone(obs[idx], target[idx])
+    with torch.no_grad():
+        after = ((agent.actor(obs) - target) ** 2).sum(-1).mean().item()
+    assert after < 0.05 * before

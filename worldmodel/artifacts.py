@@ -83,17 +83,24 @@ def stale_dir(cfg) -> Path:
 
 
 # ----------------------------------------------------------------------------- agent naming
+PAPER_VARIANT = "ddpg"  # conf/agent/ddpg.yaml, the paper's agent: its runs keep the plain name agent_r1
+
+
 @dataclass(frozen=True, order=True)
 class AgentId:
-    """One trained agent: its reward and training seed. ``key`` (``agent_r1/seed0``) names it in evaluation rows,
-    on disk under ``runs/NAME/`` and in the pipeline; ``policy`` (``agent_r1``) pools its seeds in the reports."""
+    """One trained agent: its reward, training seed and variant (the ``conf/agent/<variant>.yaml`` preset it was
+    trained with). ``key`` (``agent_r1/seed0``, ``agent_r2_fd/seed1``) names it in evaluation rows, on disk under
+    ``runs/NAME/`` and in the pipeline; ``policy`` (``agent_r1``, ``agent_r2_fd``) pools its seeds in the reports.
+    The paper's variant has no suffix."""
 
     reward: str
     seed: int
+    variant: str = PAPER_VARIANT
 
     @property
     def policy(self) -> str:
-        return f"agent_{self.reward}"
+        suffix = "" if self.variant == PAPER_VARIANT else f"_{self.variant}"
+        return f"agent_{self.reward}{suffix}"
 
     @property
     def key(self) -> str:
@@ -105,15 +112,15 @@ class AgentId:
     @classmethod
     def parse(cls, key: str) -> AgentId:
         policy, _, seed = key.partition("/seed")
-        reward = policy.removeprefix("agent_")
+        reward, _, variant = policy.removeprefix("agent_").partition("_")
         if not policy.startswith("agent_") or reward not in AGENT_REWARDS or not seed.isdigit():
-            raise ValueError(f"{key!r} does not name an agent (expected e.g. 'agent_r1/seed0')")
-        return cls(reward, int(seed))
+            raise ValueError(f"{key!r} does not name an agent (expected e.g. 'agent_r1/seed0' or 'agent_r2_fd/seed0')")
+        return cls(reward, int(seed), variant or PAPER_VARIANT)
 
     @classmethod
     def of(cls, cfg) -> AgentId:
         """The agent that ``train_agent`` with this config trains."""
-        return cls(str(cfg.reward.name), int(cfg.seed))
+        return cls(str(cfg.reward.name), int(cfg.seed), str(cfg.agent.variant))
 
 
 def agent_dir(cfg) -> Path:

@@ -195,6 +195,8 @@ class RNNConfig(Checked):
 class AgentConfig(DDPGConfig):
     """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there) and the training loop's settings."""
 
+    # names the run (runs/NAME/agent_r2_<variant>/seed0/): set by each preset in conf/agent/ to its file name
+    variant: str = "ddpg"
     total_steps: int = 20000
     use_speed: bool = False  # append ego speed to the agent input
     checkpoint_every: int = 2000
@@ -214,7 +216,11 @@ class AgentConfig(DDPGConfig):
         from .action_map import ANCHORS, STEERS
 
         yield from super().problems()
-        yield from _positive(self, "total_steps", "checkpoint_every", "reward_scale")
+        yield from _positive(self, "checkpoint_every", "reward_scale")
+        if self.total_steps < 0 or (self.total_steps == 0 and self.bc_pretrain_steps == 0):
+            yield ConfigValueError("total_steps", self.total_steps, "it must be > 0 (or 0 with bc_pretrain_steps > 0)")
+        if not self.variant.isalnum() or not self.variant.islower():
+            yield ConfigValueError("variant", self.variant, "it must be a lower-case alphanumeric name (the preset's)")
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
@@ -263,6 +269,23 @@ class OracleConfig(Checked):
             )
         except ValueError as err:
             yield ConfigValueError("oracle", "...", str(err))
+
+
+def agent_preset(cfg, name: str):
+    """The ``agent`` section as ``train_agent experiment=... agent=<name>`` would compose it: the schema's defaults,
+    then the preset ``conf/agent/<name>.yaml``, then the scale's ``agent`` keys (the order of base.yaml's defaults).
+    The preset the config was composed with keeps its command-line overrides."""
+    if str(cfg.agent.variant) == name:
+        return cfg.agent
+    path = CONF_DIR / "agent" / f"{name}.yaml"
+    if not path.exists():
+        raise StageError(f"agent variant {name!r} has no preset {path}: restore it, or move its runs aside")
+    preset = OmegaConf.load(path)
+    preset.pop("defaults", None)
+    scale = OmegaConf.create()
+    if cfg.get("scale_name"):
+        scale = OmegaConf.load(CONF_DIR / "scale" / f"{cfg.scale_name}.yaml").get("agent", OmegaConf.create())
+    return OmegaConf.merge(OmegaConf.structured(AgentConfig), preset, scale)
 
 
 def oracle_settings(cfg) -> dict:
@@ -333,6 +356,8 @@ class ExperimentConfig(Checked):
     # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
+    # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with rewards r1 and r2
+    agents: list[str] = field(default_factory=lambda: ["ddpg"])
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     demos: DemosConfig = field(default_factory=DemosConfig)
@@ -351,6 +376,10 @@ class ExperimentConfig(Checked):
                 yield ConfigValueError(
                     f"agent.{key}", getattr(a, key), "it learns from planner demonstrations: set demos.episodes > 0"
                 )
+        for name in self.agents:
+            if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
+                known = sorted(p.stem for p in (CONF_DIR / "agent").glob("*.yaml"))
+                yield ConfigValueError("agents", list(self.agents), f"{name!r} is not a preset: use {', '.join(known)}")
         if a.bc_weight > 0 and a.demo_share == 0:
             yield ConfigValueError(
                 "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"

@@ -31,7 +31,7 @@ from omegaconf import OmegaConf
 from . import artifacts
 from .artifacts import AgentId
 from .common import atomic_write_text
-from .config import hydra_main, validate
+from .config import agent_preset, hydra_main, validate
 
 log = logging.getLogger(__name__)
 
@@ -87,14 +87,14 @@ def steps(cfg) -> list[Step]:
     """The stages in order: every later stage only reads what the earlier ones wrote."""
     from . import collect, evaluate, train_agent, train_rnn, train_vae
 
-    agents = {AgentId(reward, int(cfg.seed)) for reward in artifacts.AGENT_REWARDS}
+    agents = {AgentId(r, int(cfg.seed), v) for r in artifacts.AGENT_REWARDS for v in cfg.agents}
     agents |= set(artifacts.trained_agents(cfg))
     agent_steps = [
         Step(
             a.key if a.seed != int(cfg.seed) else a.policy,
             "agent",
             train_agent.run,
-            {"reward": {"name": a.reward}, "seed": a.seed},
+            {"reward": {"name": a.reward}, "seed": a.seed, "agent": agent_preset(cfg, a.variant)},
             a,
         )
         for a in sorted(agents)

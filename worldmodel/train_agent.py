@@ -69,7 +69,7 @@ def demonstration_buffer(cfg, encoder, action_map: ActionMap, reward: str, hp) -
     from .agent_obs import encode_episode
 
     store = artifacts.open_demos(cfg)
-    episodes = store.episodes("train") + store.episodes("validation")
+    episodes = sorted(store.episodes("train") + store.episodes("validation"))
     total = sum(int(store.attrs(i)["n_steps"]) for i in episodes)
     buffer = ReplayBuffer(max(1, total), encoder.dim, 2)
     window = NStepWindow(hp.n_step, hp.gamma)

@@ -88,12 +88,14 @@ class DDPGConfig(Checked):
     bc_weight: float = 0.0
     """behaviour cloning in the actor's loss on demonstration samples: + bc_weight * |mu(s) - a_demo|^2
     (Nair et al. 2018). 0 = off"""
+    bc_lr: float = 1e-3
+    """Adam learning rate of behaviour-cloning pre-training (a supervised problem: faster than actor_lr)"""
     q_filter: bool = True
     """apply the cloning term only where the critic rates the demonstrated action above the actor's own (Nair et
     al.'s Q-filter), so that a demonstrator that swerves left here and right there does not teach a half-swerve"""
 
     def problems(self):
-        yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr")
+        yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr", "bc_lr")
         for key in ("gamma", "tau"):
             if not 0 < getattr(self, key) <= 1:
                 yield ConfigValueError(key, getattr(self, key), "it must be in (0, 1]")
@@ -379,10 +381,13 @@ class DDPG:
 
     def clone(self, obs: torch.Tensor, actions: torch.Tensor) -> float:
         """One supervised step of the actor towards ``actions`` (behaviour-cloning pre-training); returns the loss."""
+        if getattr(self, "_clone_optimizer", None) is None:
+            # its own optimiser: pre-training ends before RL starts, and the actor's Adam state stays fresh
+            self._clone_optimizer = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.bc_lr)
         loss = ((self.actor(obs) - actions) ** 2).sum(-1).mean()
-        self.actor_optimizer.zero_grad()
+        self._clone_optimizer.zero_grad()
         loss.backward()
-        self.actor_optimizer.step()
+        self._clone_optimizer.step()
         return loss.item()
 
     def sync_targets(self) -> None:
