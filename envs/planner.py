@@ -91,14 +91,18 @@ class _Plan:
 class PrivilegedPlanner:
     """Scripted-policy interface (``reset``, ``act``) plus ``bind(env)``, which evaluation calls after each reset
     so the planner can read the true state. ``replan_every``: steps between decisions (1 = every step).
-    Other arguments: ``candidate_manoeuvres``."""
+    ``brake_first``: steps of straight-line braking before the planner takes over, the perception ceiling of a
+    camera policy that needs that many frames to see the hazard (0 = plan from the first frame). Other arguments:
+    ``candidate_manoeuvres``."""
 
     name = "oracle"
 
-    def __init__(self, replan_every: int = 3, **candidates):
+    def __init__(self, replan_every: int = 3, brake_first: int = 0, **candidates):
         if int(replan_every) < 1:
             raise ValueError(f"planner replan_every={replan_every} must be >= 1 step")
-        self.replan_every = int(replan_every)
+        if int(brake_first) < 0:
+            raise ValueError(f"planner brake_first={brake_first} must be >= 0 steps")
+        self.replan_every, self.brake_first = int(replan_every), int(brake_first)
         self.candidates = candidate_manoeuvres(**candidates)
         self.env: UrbanCollisionEnv | None = None
         self._twin: UrbanCollisionEnv | None = None
@@ -106,9 +110,9 @@ class PrivilegedPlanner:
         self.rollouts = 0
 
     @classmethod
-    def from_settings(cls, replan_every_s: float, **candidates) -> PrivilegedPlanner:
+    def from_settings(cls, replan_every_s: float, brake_first: int = 0, **candidates) -> PrivilegedPlanner:
         """From the config's units: ``replan_every_s`` in seconds, the rest as ``candidate_manoeuvres``."""
-        return cls(replan_every=max(1, round(float(replan_every_s) / DT)), **candidates)
+        return cls(replan_every=max(1, round(float(replan_every_s) / DT)), brake_first=brake_first, **candidates)
 
     def reset(self, seed: int | None = None) -> None:
         self.plan = None
@@ -122,6 +126,8 @@ class PrivilegedPlanner:
         if self.env is None:
             raise RuntimeError("PrivilegedPlanner reads the simulator state: call bind(env) after each reset")
         t = self.env.t_step
+        if t < self.brake_first:
+            return np.array([0.0, -1.0], dtype=np.float32)
         if self.plan is None or t % self.replan_every == 0:
             self._replan(t)
         return self.plan.action(t)

@@ -254,12 +254,17 @@ class OracleConfig(Checked):
     steers: list[float] = field(default_factory=lambda: [0.3, 0.6, 1.0])  # steering magnitudes, both ways
     delays_s: list[float] = field(default_factory=lambda: [0.0, 0.2, 0.4])  # when the steering starts
     lane_change_s: list[float] = field(default_factory=lambda: [0.3, 0.6])  # steer-then-counter-steer lengths
+    # frames of straight-line braking before planning starts: the perception ceiling (a camera policy that needs
+    # this many frames to see the hazard); 0 for the ceiling itself
+    brake_first: int = 0
 
     def problems(self):
         from envs.planner import candidate_manoeuvres
 
         if self.replan_every_s <= 0:
             yield ConfigValueError("oracle.replan_every_s", self.replan_every_s, "it must be > 0")
+        if self.brake_first < 0:
+            yield ConfigValueError("oracle.brake_first", self.brake_first, "it must be >= 0 frames")
         try:
             candidate_manoeuvres(
                 pedals=list(self.pedals),
@@ -293,6 +298,7 @@ def oracle_settings(cfg) -> dict:
     o = cfg.evaluate.oracle
     return {
         "replan_every_s": float(o.replan_every_s),
+        "brake_first": int(o.brake_first),
         "pedals": [float(x) for x in o.pedals],
         "steers": [float(x) for x in o.steers],
         "delays_s": [float(x) for x in o.delays_s],

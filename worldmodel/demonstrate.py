@@ -37,7 +37,8 @@ def demo_settings(cfg) -> dict:
         "max_episode_s": MAX_EPISODE_S,
         "horizon_after_ttc_s": float(cfg.env.horizon_after_ttc_s or 3.0),
         "focus": typed.demos.focus.settings(),
-        "planner": oracle_settings(cfg),
+        # the planner as evaluated, planning from the first frame (brake_first is for the perception ceiling)
+        "planner": {k: v for k, v in oracle_settings(cfg).items() if k != "brake_first"},
         "env": env_settings(cfg),
     }
 

@@ -1,0 +1,169 @@
+"""Issue 11's ablation: one agent variant per lever, added in turn, trained and judged on the validation bank.
+
+    python -m experiments.ablation experiment=quick [ablation.rows=[ddpg,speed,...]] [seed=0] [scale=quick]
+
+Each row is an agent preset (``conf/agent/<row>.yaml`` when one exists, else the overrides in ``ROWS``) trained
+with reward R2 as ``runs/NAME/agent_r2_<row>/seed<S>/`` and evaluated on the validation bank
+(``evaluate.bank=validation``), never the test bank. Straight-line braking and the planner are evaluated once
+and cached, as is every agent's rows (keyed by its actor's hash), so adding a row costs one training.
+
+Writes ``runs/NAME/ablation/ablation.md`` (the table: whole-bank share of the achievable improvement, collision
+rates by kind, lane departures, injuries) and ``results.csv`` (every row), then prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+from pathlib import Path
+
+from worldmodel import artifacts, evaluate, train_agent
+from worldmodel.config import compose
+from worldmodel.report import _mean, overall_achievable_share, read_results_csv, write_results_csv
+
+log = logging.getLogger("ablation")
+
+# name -> (what it adds, overrides). Each row includes the rows before it; names are agent variants.
+LEARNER = [
+    "agent.twin_critics=true",
+    "agent.policy_delay=2",
+    "agent.target_noise=0.2",
+    "agent.n_step=3",
+    "agent.critic_action_layer=1",
+]
+DEMO = ["demos.episodes=500", "agent.bc_pretrain_steps=6000"]
+ROWS: dict[str, tuple[str, list[str]]] = {
+    "ddpg": ("the paper's agent: [z, zhat], the identity action map, DDPG", ["agent.use_speed=false"]),
+    "speed": ("+ speed in the observation", ["agent.use_speed=true"]),
+    "anchor": ("+ braking anchor (untrained actor = braking)", ["agent.anchor=brake", "agent.actor_final_bound=0"]),
+    "grip": ("+ grip-scaled steering and noise", ["agent.steer=grip"]),
+    "td": ("+ TD3 (twin critics, smoothing, delay), 3-step returns, action at 2nd critic layer", LEARNER),
+    "focus": ("+ focus training mix (half the episodes)", ["agent.focus_share=0.5"]),
+    "bc": ("planner demonstrations, behaviour cloning only (no RL)", [*DEMO, "agent.total_steps=0"]),
+    "fd": (
+        "+ DDPG from demonstrations (BC pre-training, 25 % demo batches, Q-filtered BC)",
+        [*DEMO, "agent.demo_share=0.25", "agent.bc_weight=1.0"],
+    ),
+}
+
+
+def row_overrides(name: str) -> list[str]:
+    """The cumulative overrides of row ``name`` (every row before it, then its own)."""
+    out = []
+    for row, (_, overrides) in ROWS.items():
+        out += overrides
+        if row == name:
+            return out + [f"agent.variant={name}"]
+    raise SystemExit(f"unknown ablation row {name!r}: use {', '.join(ROWS)}")
+
+
+def cached_rows(path: Path, sha: str | None, make) -> list[dict]:
+    if path.exists():
+        rows = read_results_csv(path)
+        if sha is None or all(r.get("actor_sha") == artifacts.short(sha) for r in rows):
+            return rows
+    rows = make()
+    write_results_csv(rows, path)
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=quick seed=0")
+    parser.add_argument("--rows", default=",".join(ROWS), help="comma-separated rows, in order")
+    parser.add_argument(
+        "--ceiling", default="1,2", help="perception ceiling: the planner braking straight for its first K frames"
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    base = [*args.overrides, "reward=r2", "evaluate.bank=validation"]
+    cfg = compose("evaluate", base)
+    out = artifacts.runs_root(cfg) / "ablation"
+    out.mkdir(parents=True, exist_ok=True)
+    entries = evaluate.bank(cfg)
+    workers = int(cfg.evaluate.num_workers)
+
+    rows = []
+    for name in ("braking", "oracle"):
+        make = lambda n=name: evaluate.evaluate_policy(cfg, n, entries, workers)  # noqa: E731
+        rows += cached_rows(out / f"rows_{name}.csv", None, make)
+    ceilings = [int(k) for k in args.ceiling.split(",") if k]
+    for k in ceilings:
+        delayed = compose("evaluate", [*base, f"evaluate.oracle.brake_first={k}"])
+
+        def make(c=delayed, k=k):
+            return [r | {"policy": f"oracle_brake{k}"} for r in evaluate.evaluate_policy(c, "oracle", entries, workers)]
+
+        rows += cached_rows(out / f"rows_oracle_brake{k}.csv", None, make)
+    table = []
+    for name in [r for r in args.rows.split(",") if r]:
+        agent_cfg = compose("train_agent", [*base, *row_overrides(name)])
+        agent = artifacts.AgentId.of(agent_cfg)
+        if not (agent.dir(agent_cfg) / "metrics.json").exists():
+            log.info("[ablation] training %s", agent.key)
+            train_agent.run(agent_cfg)
+        eval_cfg = compose("evaluate", [*base, *row_overrides(name)])
+        sha = artifacts.actor_id(eval_cfg, agent)
+        make = lambda a=agent, c=eval_cfg: evaluate.evaluate_policy(c, a.key, entries, workers)  # noqa: E731
+        rows += cached_rows(out / f"rows_{name}.csv", sha, make)
+        table.append((name, agent.policy))
+    write_results_csv(rows, out / "results.csv")
+    text = ablation_markdown(rows, table, cfg, ceilings)
+    (out / "ablation.md").write_text(text)
+    print(text)
+    return 0
+
+
+def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, ceilings=()) -> str:
+    head = [
+        "row",
+        "what it adds",
+        "share of achievable %",
+        "total risk %",
+        "pedestrian coll. %",
+        "vehicle coll. %",
+        "static coll. %",
+        "lane departure %",
+        "pedestrian injury",
+        "occupant injury",
+    ]
+    lines = [
+        f"Validation bank (seed {cfg.evaluate.validation_seed}, {len(evaluate.bank(cfg))} scenarios), reward R2, "
+        f"training seed {cfg.seed}. Rates are % of all scenarios; injuries are mean P(severe) per scenario.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * 2 + "---:|" * (len(head) - 2),
+    ]
+
+    def line(label, what, policy):
+        prow = [r for r in rows if r["policy"] == policy]
+        share = (
+            overall_achievable_share(rows, policy)
+            if policy not in ("braking", "oracle")
+            else (0.0 if policy == "braking" else 100.0)
+        )
+        total = 100 * _mean(prow, "total_injury")
+        cells = [label, what, "n/a" if math.isnan(share) else f"{share:.0f}", f"{total:.2f}"]
+        cells += [
+            f"{100 * _mean(prow, c):.1f}"
+            for c in ("pedestrian_collision", "vehicle_collision", "static_collision", "lane_departure")
+        ]
+        cells += [f"{_mean(prow, c):.4f}" for c in ("pedestrian_injury", "occupant_injury")]
+        lines.append("| " + " | ".join(cells) + " |")
+
+    line("braking", "straight-line emergency braking (the floor)", "braking")
+    for name, policy in table:
+        line(name, ROWS[name][0], policy)
+    for k in ceilings:
+        line(
+            f"planner, brake {k}",
+            f"the planner after braking straight for {k} frame(s): perception ceiling",
+            f"oracle_brake{k}",
+        )
+    line("planner", "privileged planner (the ceiling)", "oracle")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
