@@ -77,6 +77,11 @@ class WorldModelView(gym.Wrapper):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (encoder.dim,), np.float32)
         self._speed = 0.0
 
+    @property
+    def speed(self) -> float:
+        """The ego speed of the last observation (m/s): what grip-scaled steering reads."""
+        return self._speed
+
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self.encoder.reset()

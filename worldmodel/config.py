@@ -210,6 +210,10 @@ class AgentConfig(DDPGConfig):
     # minibatch comes from them (DDPGfD), and the actor is first cloned on them for bc_pretrain_steps minibatches
     demo_share: float = 0.0
     bc_pretrain_steps: int = 0
+    # DAgger rounds after the first cloning: the student drives dagger_episodes focus-mix episodes, the planner
+    # labels every state it reaches, and the actor is cloned again on everything so far
+    dagger_rounds: int = 0
+    dagger_episodes: int = 100
     reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
 
     def problems(self):
@@ -224,6 +228,10 @@ class AgentConfig(DDPGConfig):
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
+        if self.dagger_rounds < 0 or self.dagger_episodes < 1:
+            yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
+        if self.dagger_rounds and not self.bc_pretrain_steps:
+            yield ConfigValueError("dagger_rounds", self.dagger_rounds, "DAgger clones: set bc_pretrain_steps > 0")
         if self.bc_pretrain_steps < 0:
             yield ConfigValueError("bc_pretrain_steps", self.bc_pretrain_steps, "it must be >= 0")
         if self.anchor not in ANCHORS:
