@@ -24,7 +24,7 @@ from worldmodel.report import _mean, overall_achievable_share, read_results_csv,
 
 log = logging.getLogger("ablation")
 
-# name -> (what it adds, overrides). Each row includes the rows before it; names are agent variants.
+# name -> (the row it extends, what it adds, its own overrides). Names are agent variants.
 LEARNER = [
     "agent.twin_critics=true",
     "agent.policy_delay=2",
@@ -32,30 +32,39 @@ LEARNER = [
     "agent.n_step=3",
     "agent.critic_action_layer=1",
 ]
-DEMO = ["demos.episodes=500", "agent.bc_pretrain_steps=6000"]
-ROWS: dict[str, tuple[str, list[str]]] = {
-    "ddpg": ("the paper's agent: [z, zhat], the identity action map, DDPG", ["agent.use_speed=false"]),
-    "speed": ("+ speed in the observation", ["agent.use_speed=true"]),
-    "anchor": ("+ braking anchor (untrained actor = braking)", ["agent.anchor=brake", "agent.actor_final_bound=0"]),
-    "grip": ("+ grip-scaled steering and noise", ["agent.steer=grip"]),
-    "td": ("+ TD3 (twin critics, smoothing, delay), 3-step returns, action at 2nd critic layer", LEARNER),
-    "focus": ("+ focus training mix (half the episodes)", ["agent.focus_share=0.5"]),
-    "bc": ("planner demonstrations, behaviour cloning only (no RL)", [*DEMO, "agent.total_steps=0"]),
+CLONE = ["demos.episodes=500", "agent.bc_pretrain_steps=6000"]
+ROWS: dict[str, tuple[str | None, str, list[str]]] = {
+    "ddpg": (None, "the paper's agent: [z, zhat], the identity action map, DDPG", ["agent.use_speed=false"]),
+    "speed": ("ddpg", "+ speed in the observation", ["agent.use_speed=true"]),
+    "anchor": (
+        "speed",
+        "+ braking anchor (untrained actor = braking)",
+        ["agent.anchor=brake", "agent.actor_final_bound=0"],
+    ),
+    "grip": ("anchor", "+ grip-scaled steering and noise", ["agent.steer=grip"]),
+    "td": ("grip", "+ TD3 (twin critics, smoothing, delay), 3-step returns, action at 2nd critic layer", LEARNER),
+    "focus": ("td", "+ focus training mix (half the episodes)", ["agent.focus_share=0.5"]),
+    "bc": ("focus", "planner demonstrations: behaviour cloning only, no RL", [*CLONE, "agent.total_steps=0"]),
+    "dag": (
+        "bc",
+        "+ 2 DAgger rounds of 100 episodes (the planner labels the student's states)",
+        ["agent.dagger_rounds=2", "agent.dagger_episodes=100"],
+    ),
     "fd": (
-        "+ DDPG from demonstrations (BC pre-training, 25 % demo batches, Q-filtered BC)",
-        [*DEMO, "agent.demo_share=0.25", "agent.bc_weight=1.0"],
+        "focus",
+        "+ cloning, then DDPG from demonstrations (25 % demo batches, Q-filtered cloning)",
+        [*CLONE, "agent.demo_share=0.25", "agent.bc_weight=1.0"],
     ),
 }
 
 
 def row_overrides(name: str) -> list[str]:
-    """The cumulative overrides of row ``name`` (every row before it, then its own)."""
-    out = []
-    for row, (_, overrides) in ROWS.items():
-        out += overrides
-        if row == name:
-            return out + [f"agent.variant={name}"]
-    raise SystemExit(f"unknown ablation row {name!r}: use {', '.join(ROWS)}")
+    """The overrides of row ``name``: those of the rows it extends, then its own."""
+    if name not in ROWS:
+        raise SystemExit(f"unknown ablation row {name!r}: use {', '.join(ROWS)}")
+    parent, _, own = ROWS[name]
+    inherited = [o for o in row_overrides(parent) if not o.startswith("agent.variant=")] if parent else []
+    return [*inherited, *own, f"agent.variant={name}"]
 
 
 def cached_rows(path: Path, sha: str | None, make) -> list[dict]:
@@ -154,7 +163,7 @@ def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, ceili
 
     line("braking", "straight-line emergency braking (the floor)", "braking")
     for name, policy in table:
-        line(name, ROWS[name][0], policy)
+        line(name, ROWS[name][1], policy)
     for k in ceilings:
         line(
             f"planner, brake {k}",

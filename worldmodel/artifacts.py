@@ -61,6 +61,12 @@ def demos_dir(cfg) -> Path:
     return data_dir(cfg) / "demos"
 
 
+def uses_demos(cfg) -> bool:
+    """Whether the agent ``cfg`` trains learns from the planner's demonstrations (or its DAgger labels)."""
+    a = cfg.agent
+    return float(a.demo_share) > 0 or int(a.bc_pretrain_steps) > 0
+
+
 def latents_path(cfg) -> Path:
     return data_dir(cfg) / "latents.h5"
 
@@ -204,6 +210,10 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         agent = agent or AgentId.of(cfg)
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
+        if uses_demos(cfg):
+            inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")
+        if uses_demos(cfg) or float(cfg.agent.focus_share) > 0:  # the focus mix's ranges shape the training
+            settings["focus"] = _config(cfg, "demos")["demos"]["focus"]
     elif stage == "eval":
         inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg)}
         settings = _config(cfg, "evaluate", "env")
@@ -425,10 +435,10 @@ def output_dir(cfg, stage: str, agent: AgentId | None = None) -> Path:
     """Where ``stage`` (``collect``, ``vae``, ``rnn``, ``agent``, ``eval``) writes."""
     if stage == "agent":
         return (agent or AgentId.of(cfg)).dir(cfg)
-    return {"collect": rollouts_dir, "vae": vae_dir, "rnn": rnn_dir, "eval": eval_dir}[stage](cfg)
+    return {"collect": rollouts_dir, "demos": demos_dir, "vae": vae_dir, "rnn": rnn_dir, "eval": eval_dir}[stage](cfg)
 
 
 def marker(cfg, stage: str, agent: AgentId | None = None) -> Path:
     """The file whose existence means ``stage`` finished."""
-    done = {"collect": "manifest.json", "eval": "summary.json"}.get(stage, "metrics.json")
+    done = {"collect": "manifest.json", "demos": "manifest.json", "eval": "summary.json"}.get(stage, "metrics.json")
     return output_dir(cfg, stage, agent) / done

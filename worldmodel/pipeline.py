@@ -85,7 +85,7 @@ class Step:
 
 def steps(cfg) -> list[Step]:
     """The stages in order: every later stage only reads what the earlier ones wrote."""
-    from . import collect, evaluate, train_agent, train_rnn, train_vae
+    from . import collect, demonstrate, evaluate, train_agent, train_rnn, train_vae
 
     agents = {AgentId(r, int(cfg.seed), v) for r in artifacts.AGENT_REWARDS for v in cfg.agents}
     agents |= set(artifacts.trained_agents(cfg))
@@ -103,6 +103,7 @@ def steps(cfg) -> list[Step]:
         Step("collect", "collect", collect.run),
         Step("vae", "vae", train_vae.run),
         Step("rnn", "rnn", train_rnn.run),
+        *([Step("demos", "demos", demonstrate.run)] if int(cfg.demos.episodes) > 0 else []),
         *agent_steps,
         Step("eval", "eval", evaluate.run),
     ]
@@ -112,7 +113,7 @@ def status(cfg, step: Step) -> tuple[str, list[str]]:
     """``(state, reasons)``: state is ``complete``, ``resume`` (unfinished, inputs unchanged), ``fresh`` (nothing
     there) or ``stale`` (reasons say what changed). The collection checks its own settings when it runs."""
     done = artifacts.marker(cfg, step.kind, step.agent).exists()
-    if step.kind == "collect":
+    if step.kind in ("collect", "demos"):
         return ("complete" if done else "resume"), []
     directory = artifacts.output_dir(cfg, step.kind, step.agent)
     if not directory.exists():
