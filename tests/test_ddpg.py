@@ -84,8 +84,7 @@ def test_learns_contextual_bandit_optimal_action():
     elapsed = time.perf_counter() - start
     print(f"bandit: mean |a - a*| {error_before:.3f} -> {error_after:.3f} in {elapsed:.1f}s")
     assert error_before > 0.3, "an untrained actor should be far from a*"
-    assert error_after < 0.1
-    assert elapsed < 30
+    assert error_after < 0.1  # (its time is printed, not asserted: speed belongs to benchmarks/)
 
 
 @pytest.mark.parametrize("first_step_terminated, expected_q", [(False, [0.64, 0.8, 1.0]), (True, [0.0, 0.8, 1.0])])

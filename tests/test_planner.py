@@ -90,3 +90,19 @@ def test_evaluation_config_for_the_planner_is_validated(tmp_path):
     with pytest.raises(StageError, match="evaluate.oracle.replan_every_s"):
         validate(cfg("evaluate.oracle.replan_every_s=0"))
     validate(cfg())
+
+
+def test_perception_ceiling_brakes_straight_for_its_first_frames_then_plans():
+    """brake_first=k: the planner a camera policy could be if it needed k frames to see the hazard."""
+    env = UrbanCollisionEnv(camera=False)
+    spec = ScenarioSpec(seed=5, ttc=0.75, ego_speed=30.0, pedestrian_speed=2.0, p_pedestrian=1.0)
+    actions = {}
+    for k in (0, 2):
+        seen = []
+        rollout(env, PrivilegedPlanner(brake_first=k), spec, on_step=lambda o, a, r, i, s=seen: s.append(a))
+        actions[k] = np.array(seen)
+    assert np.abs(actions[0][:3, 0]).max() > 0  # at 30 m/s and TTC 0.75 s the planner swerves at once
+    np.testing.assert_array_equal(actions[2][:2], [[0.0, -1.0], [0.0, -1.0]])
+    assert np.abs(actions[2][2:, 0]).max() > 0  # and then it still plans
+    with pytest.raises(ValueError, match="brake_first"):
+        PrivilegedPlanner(brake_first=-1)

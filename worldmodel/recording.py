@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 # The env settings that shape the recorded frames; the rest of the env section (horizons, camera) is the dataset's.
 ENV_KEYS = {"image_size": int, "fov_deg": float, "mu": float, "occupants_per_car": int}
 _ENV = None
+_ENV_KWARGS: dict | None = None
 
 
 def env_settings(cfg) -> dict:
@@ -34,17 +35,21 @@ def env_settings(cfg) -> dict:
 
 
 def _worker_env(settings: dict):
-    """One camera env per process, built from ``settings["env"]`` and the horizons in ``settings``."""
-    global _ENV
-    if _ENV is None:
+    """One camera env per process, built from ``settings["env"]`` and the horizons in ``settings``; rebuilt when a
+    dataset with other settings is recorded in the same process (a test session records several)."""
+    global _ENV, _ENV_KWARGS
+    kwargs = {
+        "camera": True,
+        "horizon_after_ttc_s": settings.get("horizon_after_ttc_s"),
+        "max_episode_s": settings["max_episode_s"],
+        **settings["env"],
+    }
+    if _ENV is None or kwargs != _ENV_KWARGS:
         from envs import UrbanCollisionEnv
 
-        _ENV = UrbanCollisionEnv(
-            camera=True,
-            horizon_after_ttc_s=settings.get("horizon_after_ttc_s"),
-            max_episode_s=settings["max_episode_s"],
-            **settings["env"],
-        )
+        if _ENV is not None:
+            _ENV.close()
+        _ENV, _ENV_KWARGS = UrbanCollisionEnv(**kwargs), kwargs
     return _ENV
 
 

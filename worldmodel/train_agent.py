@@ -19,6 +19,7 @@ optimiser state carry over.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 
@@ -95,16 +96,27 @@ def demonstration_buffer(
     return buffer, {"episodes": len(episodes), "transitions": len(buffer)}
 
 
-def clone(agent: DDPG, inputs: np.ndarray, targets: np.ndarray, hp, writer, round_: int) -> float:
-    """``hp.bc_pretrain_steps`` minibatches of behaviour cloning on (inputs, targets); returns the last loss."""
+def clone(agent: DDPG, inputs: np.ndarray, targets: np.ndarray, hp, writer, round_: int, held_out) -> float:
+    """Up to ``hp.bc_pretrain_steps`` minibatches of behaviour cloning on (inputs, targets), stopped early: the
+    actor kept is the one with the best fit on the held-out demonstrations, checked every 250 minibatches (the
+    student overfits a few hundred episodes within a few thousand minibatches). Returns the last training loss."""
+    import copy
+
     import torch
 
-    loss = float("nan")
+    loss, best, best_state = float("nan"), math.inf, None
     for k in range(hp.bc_pretrain_steps):
         idx = agent.rng.integers(0, len(inputs), size=hp.batch_size)
         loss = agent.clone(torch.from_numpy(inputs[idx]), torch.from_numpy(targets[idx]))
         if k % 50 == 0:
             writer.add_scalar(f"pretrain/bc_loss_round{round_}", loss, k)
+        if (k + 1) % 250 == 0 or k + 1 == hp.bc_pretrain_steps:
+            fit = cloning_fit(agent, held_out)["actor"]
+            writer.add_scalar(f"pretrain/bc_held_out_round{round_}", fit, k)
+            if fit < best:
+                best, best_state = fit, copy.deepcopy(agent.actor.state_dict())
+    if best_state is not None and len(held_out):
+        agent.actor.load_state_dict(best_state)
     return loss
 
 
@@ -233,7 +245,7 @@ def run(cfg) -> dict:
                         outcome,
                     )
                     demo_info[f"dagger_round{round_}"] = {"labels": len(x), "student": outcome}
-                loss = clone(agent, inputs, targets, hp, run_.writer, round_)
+                loss = clone(agent, inputs, targets, hp, run_.writer, round_, held_out)
                 demo_info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)
                 log.info(
                     "[%s] cloned the planner (round %d, %d examples, %d minibatches): training loss %.4f; held-out %s",

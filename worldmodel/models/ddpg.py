@@ -90,6 +90,8 @@ class DDPGConfig(Checked):
     (Nair et al. 2018). 0 = off"""
     bc_lr: float = 1e-3
     """Adam learning rate of behaviour-cloning pre-training (a supervised problem: faster than actor_lr)"""
+    bc_weight_decay: float = 0.0
+    """AdamW weight decay of behaviour-cloning pre-training: a few hundred demonstrations overfit a 400-300 actor"""
     q_filter: bool = True
     """apply the cloning term only where the critic rates the demonstrated action above the actor's own (Nair et
     al.'s Q-filter), so that a demonstrator that swerves left here and right there does not teach a half-swerve"""
@@ -102,7 +104,8 @@ class DDPGConfig(Checked):
         yield from positive_fields(self, "n_step", "policy_delay")
         if self.critic_action_layer not in (0, 1):
             yield ConfigValueError("critic_action_layer", self.critic_action_layer, "it must be 0 or 1")
-        for key in ("warmup_steps", "exploration_noise", "actor_final_bound", "target_noise", "bc_weight"):
+        non_negative = ("warmup_steps", "exploration_noise", "actor_final_bound", "target_noise", "bc_weight")
+        for key in (*non_negative, "bc_weight_decay"):
             if getattr(self, key) < 0:
                 yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
         for key in ("actor_hidden", "critic_hidden"):
@@ -383,7 +386,9 @@ class DDPG:
         """One supervised step of the actor towards ``actions`` (behaviour-cloning pre-training); returns the loss."""
         if getattr(self, "_clone_optimizer", None) is None:
             # its own optimiser: pre-training ends before RL starts, and the actor's Adam state stays fresh
-            self._clone_optimizer = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.bc_lr)
+            self._clone_optimizer = torch.optim.AdamW(
+                self.actor.parameters(), lr=self.cfg.bc_lr, weight_decay=self.cfg.bc_weight_decay
+            )
         loss = ((self.actor(obs) - actions) ** 2).sum(-1).mean()
         self._clone_optimizer.zero_grad()
         loss.backward()
