@@ -117,3 +117,21 @@ def test_variants_are_named_apart_and_parsed_back():
     assert artifacts.AgentId.parse(variant.key) == variant and artifacts.AgentId.parse(paper.key) == paper
     with pytest.raises(ValueError, match="does not name an agent"):
         artifacts.AgentId.parse("agent_r3_fd/seed0")
+
+
+def test_pipeline_plans_demonstrations_and_preset_variants(stage_cfg):
+    from worldmodel import pipeline
+
+    plain = [s.name for s in pipeline.steps(stage_cfg("pipeline"))]
+    assert plain == ["collect", "vae", "rnn", "agent_r1", "agent_r2", "eval"]  # the paper's pipeline, unchanged
+    with pytest.raises(StageError, match="demos.episodes"):
+        pipeline.steps(stage_cfg("pipeline", "agents=[ddpg,dag]"))
+    steps = pipeline.steps(stage_cfg("pipeline", "agents=[ddpg,dag]", "demos.episodes=3"))
+    names = [s.name for s in steps]
+    assert names == ["collect", "vae", "rnn", "demos", "agent_r1_dag", "agent_r1", "agent_r2_dag", "agent_r2", "eval"]
+    dag = next(s for s in steps if s.name == "agent_r2_dag")
+    # the preset wins over the scale (smoke sets total_steps 300; the preset clones only)
+    assert dag.changes["agent"].total_steps == 0 and dag.changes["agent"].dagger_rounds == 2
+    assert dag.changes["agent"].batch_size == 16  # a scale key the preset leaves alone
+    with pytest.raises(StageError, match="no preset"):
+        pipeline.steps(stage_cfg("pipeline", "agents=[nosuch]"))

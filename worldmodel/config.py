@@ -286,7 +286,7 @@ class OracleConfig(Checked):
 
 def agent_preset(cfg, name: str):
     """The ``agent`` section as ``train_agent experiment=... agent=<name>`` would compose it: the schema's defaults,
-    then the preset ``conf/agent/<name>.yaml``, then the scale's ``agent`` keys (the order of base.yaml's defaults).
+    then the scale's ``agent`` keys, then the preset ``conf/agent/<name>.yaml`` (the order of base.yaml's defaults).
     The preset the config was composed with keeps its command-line overrides."""
     if str(cfg.agent.variant) == name:
         return cfg.agent
@@ -298,7 +298,7 @@ def agent_preset(cfg, name: str):
     scale = OmegaConf.create()
     if cfg.get("scale_name"):
         scale = OmegaConf.load(CONF_DIR / "scale" / f"{cfg.scale_name}.yaml").get("agent", OmegaConf.create())
-    return OmegaConf.merge(OmegaConf.structured(AgentConfig), preset, scale)
+    return OmegaConf.merge(OmegaConf.structured(AgentConfig), scale, preset)
 
 
 def oracle_settings(cfg) -> dict:

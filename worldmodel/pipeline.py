@@ -30,7 +30,7 @@ from omegaconf import OmegaConf
 
 from . import artifacts
 from .artifacts import AgentId
-from .common import atomic_write_text
+from .common import StageError, atomic_write_text
 from .config import agent_preset, hydra_main, validate
 
 log = logging.getLogger(__name__)
@@ -99,11 +99,15 @@ def steps(cfg) -> list[Step]:
         )
         for a in sorted(agents)
     ]
+    needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes)) for s in agent_steps)
+    if needs_demos and int(cfg.demos.episodes) < 1:
+        users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes))]
+        raise StageError(f"{', '.join(users)} learn from planner demonstrations: pass demos.episodes=N (e.g. 300)")
     return [
         Step("collect", "collect", collect.run),
         Step("vae", "vae", train_vae.run),
         Step("rnn", "rnn", train_rnn.run),
-        *([Step("demos", "demos", demonstrate.run)] if int(cfg.demos.episodes) > 0 else []),
+        *([Step("demos", "demos", demonstrate.run)] if needs_demos else []),
         *agent_steps,
         Step("eval", "eval", evaluate.run),
     ]
