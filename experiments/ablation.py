@@ -50,6 +50,11 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
         "+ 2 DAgger rounds of 100 episodes (the planner labels the student's states)",
         ["agent.dagger_rounds=2", "agent.dagger_episodes=100"],
     ),
+    "dagreg": (
+        "dag",
+        "+ cloning regularised: weight decay 0.01, stopped early on held-out demonstrations",
+        ["agent.bc_weight_decay=0.01"],
+    ),
     "fd": (
         "focus",
         "+ cloning, then DDPG from demonstrations (25 % demo batches, Q-filtered cloning)",
