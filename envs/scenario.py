@@ -137,10 +137,17 @@ def sample_focus_scenario(
             raise ValueError(f"focus {name}=({lo}, {hi}) must satisfy 0 < low <= high")
     seed = int(rng.integers(0, 2**31 - 1))
     hazard = BANK_HAZARDS[int(rng.integers(0, 3))] if rng.uniform() < hazard_share else "none"
+    ttc, speed = float(rng.uniform(*ttc_range)), float(rng.uniform(*speed_range))
+    return hazard_scenario(rng, seed, hazard, ttc, speed)
+
+
+def hazard_scenario(rng: np.random.Generator, seed: int, hazard: str, ttc: float, speed: float) -> ScenarioSpec:
+    """A scenario with the given hazard ('pedestrian', 'car', 'both' or 'none'), TTC and speed; pedestrian speed,
+    traffic and the crossing car's speed drawn from ``rng`` (in that order) from the paper's ranges."""
     return ScenarioSpec(
         seed=seed,
-        ttc=float(rng.uniform(*ttc_range)),
-        ego_speed=float(rng.uniform(*speed_range)),
+        ttc=float(ttc),
+        ego_speed=float(speed),
         pedestrian_speed=float(rng.uniform(*PEDESTRIAN_SPEED_RANGE)),
         n_cars=int(rng.integers(0, MAX_OTHERS + 1)),
         n_pedestrians=int(rng.integers(0, MAX_OTHERS + 1)),
@@ -185,17 +192,7 @@ def test_bank(
                 for i in range(per_cell):
                     key = [seed, BANK_HAZARDS.index(hazard), int(round(ttc * 1000)), int(round(speed * 1000)), i]
                     rng = np.random.default_rng(key)
-                    spec = ScenarioSpec(
-                        seed=int(rng.integers(0, 2**31 - 1)),
-                        ttc=float(ttc),
-                        ego_speed=float(speed),
-                        pedestrian_speed=float(rng.uniform(*PEDESTRIAN_SPEED_RANGE)),
-                        n_cars=int(rng.integers(0, MAX_OTHERS + 1)),
-                        n_pedestrians=int(rng.integers(0, MAX_OTHERS + 1)),
-                        p_pedestrian=1.0 if hazard in ("pedestrian", "both") else 0.0,
-                        p_car=1.0 if hazard in ("car", "both") else 0.0,
-                        hazard_car_speed=float(rng.uniform(*HAZARD_CAR_SPEED_RANGE)),
-                    )
+                    spec = hazard_scenario(rng, int(rng.integers(0, 2**31 - 1)), hazard, ttc, speed)
                     entries.append(BankEntry(len(entries), hazard, float(ttc), float(speed), i, spec))
     return entries
 
