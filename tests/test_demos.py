@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import artifacts, demonstrate, train_agent
+from worldmodel import artifacts, demonstrate, imitation, train_agent
 from worldmodel.action_map import ActionMap
 from worldmodel.common import StageError
 from worldmodel.data import RolloutStore, validate
@@ -64,7 +64,7 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
     cfg = compose("train_agent", [*base, *DEMOS, *LEARNER, "agent.total_steps=0", "agent.bc_pretrain_steps=50"])
     encoder = artifacts.load_world_model(cfg, use_speed=True)
     action_map = ActionMap("brake", "grip")
-    demos, info = train_agent.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent)
+    demos, info = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent)
     store = RolloutStore(tmp_path / "data/t/demos")
     assert info == {"episodes": 3, "transitions": sum(int(store.attrs(i)["n_steps"]) for i in range(3))}
 
