@@ -135,3 +135,29 @@ def test_pipeline_plans_demonstrations_and_preset_variants(stage_cfg):
     assert dag.changes["agent"].batch_size == 16  # a scale key the preset leaves alone
     with pytest.raises(StageError, match="no preset"):
         pipeline.steps(stage_cfg("pipeline", "agents=[nosuch]"))
+
+
+def test_minibatches_mix_demonstrations_in_the_asked_share():
+    from worldmodel.models.ddpg import ReplayBuffer
+
+    own, demos = ReplayBuffer(50, 3, 2), ReplayBuffer(50, 3, 2)
+    for _ in range(20):
+        own.add(np.zeros(3), np.zeros(2), 0.0, np.zeros(3), False)
+        demos.add(np.ones(3), np.ones(2), -1.0, np.ones(3), True)
+    batch = imitation.mixed_batch(own, demos, 16, 0.25, np.random.default_rng(0))
+    assert batch["obs"].shape == (16, 3) and batch["demo"].sum().item() == 4
+    # the mask marks exactly the demonstration samples
+    np.testing.assert_array_equal(batch["obs"][:, 0].numpy(), batch["demo"].numpy())
+    assert "demo" in imitation.mixed_batch(own, None, 16, 0.25, np.random.default_rng(0))
+    assert imitation.mixed_batch(own, None, 16, 0.25, np.random.default_rng(0))["demo"].sum() == 0
+
+
+def test_focus_share_draws_training_episodes_from_the_focus_mix(stage_cfg):
+    paper = train_agent.reset_options(stage_cfg("train_agent"), 7)
+    assert set(paper) == {"seed"}
+    focus = [train_agent.reset_options(stage_cfg("train_agent", "agent.focus_share=1.0"), e) for e in range(20)]
+    specs = [f["options"]["scenario"] for f in focus]
+    assert all(15.0 <= s.ego_speed <= 30.0 and 0.25 <= s.ttc <= 1.1 for s in specs)
+    assert sum(s.hazard != "none" for s in specs) >= 12  # 85 % hazards
+    again = train_agent.reset_options(stage_cfg("train_agent", "agent.focus_share=1.0"), 3)
+    assert again["options"]["scenario"] == specs[3]  # depends only on (seed, episode)
