@@ -155,9 +155,10 @@ def test_minibatches_mix_demonstrations_in_the_asked_share():
 def test_focus_share_draws_training_episodes_from_the_focus_mix(stage_cfg):
     paper = train_agent.reset_options(stage_cfg("train_agent"), 7)
     assert set(paper) == {"seed"}
-    focus = [train_agent.reset_options(stage_cfg("train_agent", "agent.focus_share=1.0"), e) for e in range(20)]
+    cfg = stage_cfg("train_agent", "agent.focus_share=1.0")
+    focus = [train_agent.reset_options(cfg, e) for e in range(20)]
     specs = [f["options"]["scenario"] for f in focus]
     assert all(15.0 <= s.ego_speed <= 30.0 and 0.25 <= s.ttc <= 1.1 for s in specs)
     assert sum(s.hazard != "none" for s in specs) >= 12  # 85 % hazards
-    again = train_agent.reset_options(stage_cfg("train_agent", "agent.focus_share=1.0"), 3)
+    again = train_agent.reset_options(cfg, 3)
     assert again["options"]["scenario"] == specs[3]  # depends only on (seed, episode)

@@ -124,7 +124,8 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
 def test_parallel_evaluation_equals_one_process(experiment):
     cfg = smoke_cfg(experiment, "evaluate")
     entries = evaluate.bank(cfg)[:6]
-    for name in ("braking", "oracle", "agent_r2/seed0"):
+    # a scripted policy and an agent (torch in the workers): how scenarios are split among workers must not matter
+    for name in ("braking", "agent_r2/seed0"):
         one = evaluate.evaluate_policy(cfg, name, entries, workers=1)
         two = evaluate.evaluate_policy(cfg, name, entries, workers=2)
         assert repr(one) == repr(two)
@@ -167,7 +168,8 @@ def test_agent_built_on_another_vae_refuses_to_load(new_vae):
 
 
 def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
-    cfg = smoke_cfg(new_vae, "pipeline", "vae.kl_weight=0.5")
+    # shorter agents and no planner in the evaluation keep the rebuild quick; the new VAE alone makes them stale
+    cfg = smoke_cfg(new_vae, "pipeline", "vae.kl_weight=0.5", "agent.total_steps=150", "evaluate.policies=[braking]")
     kept = {rel: (new_vae / rel).stat().st_mtime_ns for rel in ("data/t/rollouts/manifest.json", "runs/t/vae/best.pt")}
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(cfg)
