@@ -1,0 +1,82 @@
+"""Issue 11's feasibility gate: how much of the planner's decisions the world model's view carries.
+
+    python -m experiments.cloning_gate experiment=quick demos.episodes=500
+
+Encodes the planner demonstrations (``worldmodel.demonstrate``) through the frozen world model exactly as the agent
+sees them, with the braking anchor and grip steering, then fits students on the store's train split and reports the
+mean |mu(s) - a|^2 on its held-out split for: the zero action (braking), the best constant action, a regularised
+MLP (256-256, dropout 0.5, AdamW weight decay 0.1, lr 3e-4, the best of checks every 250 of 4000 minibatches) on
+[z, zhat, speed], on z and speed, on speed alone, and on 1/4 and 1/2 of the training episodes. Prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from worldmodel import artifacts, imitation
+from worldmodel.action_map import ActionMap
+from worldmodel.common import set_threads
+from worldmodel.config import compose
+
+
+def fit(x, y, xv, yv, steps: int = 4000, seed: int = 0) -> float:
+    """The best held-out error of a regularised MLP student trained on (x, y)."""
+    torch.manual_seed(seed)
+    m, s = x.mean(0), x.std(0) + 1e-3
+    net = torch.nn.Sequential(
+        torch.nn.Linear(x.shape[1], 256), torch.nn.ReLU(), torch.nn.Dropout(0.5),
+        torch.nn.Linear(256, 256), torch.nn.ReLU(), torch.nn.Dropout(0.5),
+        torch.nn.Linear(256, 2),
+    )  # fmt: skip
+    opt = torch.optim.AdamW(net.parameters(), lr=3e-4, weight_decay=0.1)
+    g = torch.Generator().manual_seed(seed)
+    best = float("inf")
+    for k in range(steps):
+        idx = torch.randint(0, len(x), (64,), generator=g)
+        net.train()
+        loss = ((torch.tanh(net((x[idx] - m) / s)) - y[idx]) ** 2).sum(-1).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if (k + 1) % 250 == 0:
+            net.eval()
+            with torch.no_grad():
+                best = min(best, ((torch.tanh(net((xv - m) / s)) - yv) ** 2).sum(-1).mean().item())
+    return best
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=quick demos.episodes=500")
+    args = parser.parse_args(argv)
+    cfg = compose("train_agent", [*args.overrides, "agent.use_speed=true"])
+    set_threads(1)
+    encoder = artifacts.load_world_model(cfg, use_speed=True)
+    action_map = ActionMap("brake", "grip")
+    train, _ = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent, "train")
+    held, _ = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent, "validation")
+    x, y = torch.from_numpy(train.obs[: len(train)]), torch.from_numpy(train.actions[: len(train)])
+    xv, yv = torch.from_numpy(held.obs[: len(held)]), torch.from_numpy(held.actions[: len(held)])
+    d = encoder.latent_dim
+    z_and_speed = list(range(d)) + [2 * d]
+    rows = [
+        ("zero action (= straight-line braking)", (yv**2).sum(-1).mean().item()),
+        ("best constant action", ((y.mean(0) - yv) ** 2).sum(-1).mean().item()),
+        ("[z, zhat, speed]", fit(x, y, xv, yv)),
+        ("[z, speed]", fit(x[:, z_and_speed], y, xv[:, z_and_speed], yv)),
+        ("speed only", fit(x[:, [2 * d]], y, xv[:, [2 * d]], yv)),
+    ]
+    for share in (0.25, 0.5):
+        n = int(share * len(x))  # the store's order is by episode, so a prefix is whole episodes but the last
+        rows.append((f"[z, zhat, speed], {share:g} of the training episodes", fit(x[:n], y[:n], xv, yv)))
+    print(f"{len(x)} training and {len(xv)} held-out decisions from {cfg.demos.episodes} demonstrations\n")
+    print("| student input | held-out mean squared error |\n|---|---:|")
+    for name, value in rows:
+        print(f"| {name} | {value:.3f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
