@@ -55,6 +55,11 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
         "+ cloning regularised: weight decay 0.01, stopped early on held-out demonstrations",
         ["agent.bc_weight_decay=0.01"],
     ),
+    "view": (
+        "dag",
+        "+ the raw frame's hazard profiles (where pedestrians and vehicles are, this frame and the last)",
+        ["agent.frame_view=true"],
+    ),
     "fd": (
         "focus",
         "+ cloning, then DDPG from demonstrations (25 % demo batches, Q-filtered cloning)",

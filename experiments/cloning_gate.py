@@ -6,7 +6,8 @@ Encodes the planner demonstrations (``worldmodel.demonstrate``) through the froz
 sees them, with the braking anchor and grip steering, then fits students on the store's train split and reports the
 mean |mu(s) - a|^2 on its held-out split for: the zero action (braking), the best constant action, a regularised
 MLP (256-256, dropout 0.5, AdamW weight decay 0.1, lr 3e-4, the best of checks every 250 of 4000 minibatches) on
-[z, zhat, speed], on z and speed, on speed alone, and on 1/4 and 1/2 of the training episodes. Prints a table.
+[z, zhat, speed], on z and speed, on speed alone, on the raw frame's hazard profiles (``agent.frame_view``,
+``envs/views.py``) with and without the latents, and on 1/4 and 1/2 of the training episodes. Prints a table.
 """
 
 from __future__ import annotations
@@ -53,24 +54,31 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     cfg = compose("train_agent", [*args.overrides, "agent.use_speed=true"])
     set_threads(1)
-    encoder = artifacts.load_world_model(cfg, use_speed=True)
+    encoder = artifacts.load_world_model(cfg, use_speed=True, frame_view=True)
     action_map = ActionMap("brake", "grip")
     train, _ = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent, "train")
     held, _ = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent, "validation")
     x, y = torch.from_numpy(train.obs[: len(train)]), torch.from_numpy(train.actions[: len(train)])
     xv, yv = torch.from_numpy(held.obs[: len(held)]), torch.from_numpy(held.actions[: len(held)])
     d = encoder.latent_dim
-    z_and_speed = list(range(d)) + [2 * d]
+    columns = {  # the encoder's output is [z | zhat | speed | frame view]
+        "[z, zhat, speed]": list(range(2 * d + 1)),
+        "[z, speed]": list(range(d)) + [2 * d],
+        "speed only": [2 * d],
+        "[frame view, speed]": list(range(2 * d, x.shape[1])),
+        "[z, speed, frame view]": list(range(d)) + list(range(2 * d, x.shape[1])),
+        "[z, zhat, speed, frame view]": list(range(x.shape[1])),
+    }
     rows = [
         ("zero action (= straight-line braking)", (yv**2).sum(-1).mean().item()),
         ("best constant action", ((y.mean(0) - yv) ** 2).sum(-1).mean().item()),
-        ("[z, zhat, speed]", fit(x, y, xv, yv)),
-        ("[z, speed]", fit(x[:, z_and_speed], y, xv[:, z_and_speed], yv)),
-        ("speed only", fit(x[:, [2 * d]], y, xv[:, [2 * d]], yv)),
     ]
+    for name, c in columns.items():
+        rows.append((name, fit(x[:, c], y, xv[:, c], yv)))
+    c = columns["[z, zhat, speed]"]
     for share in (0.25, 0.5):
         n = int(share * len(x))  # the store's order is by episode, so a prefix is whole episodes but the last
-        rows.append((f"[z, zhat, speed], {share:g} of the training episodes", fit(x[:n], y[:n], xv, yv)))
+        rows.append((f"[z, zhat, speed], {share:g} of the training episodes", fit(x[:n, c], y[:n], xv[:, c], yv)))
     print(f"{len(x)} training and {len(xv)} held-out decisions from {cfg.demos.episodes} demonstrations\n")
     print("| student input | held-out mean squared error |\n|---|---:|")
     for name, value in rows:

@@ -16,7 +16,13 @@ from worldmodel.common import StageError
 from worldmodel.data import RolloutStore, validate
 
 DEMOS = ["demos.episodes=3", "demos.episodes_per_shard=1"]
-LEARNER = ["agent.anchor=brake", "agent.steer=grip", "agent.use_speed=true", "agent.actor_final_bound=0"]
+LEARNER = [
+    "agent.anchor=brake",
+    "agent.steer=grip",
+    "agent.use_speed=true",
+    "agent.frame_view=true",
+    "agent.actor_final_bound=0",
+]
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +68,8 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
     shutil.copytree(root, tmp_path, dirs_exist_ok=True)
     base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", *base[2:]]
     cfg = compose("train_agent", [*base, *DEMOS, *LEARNER, "agent.total_steps=0", "agent.bc_pretrain_steps=50"])
-    encoder = artifacts.load_world_model(cfg, use_speed=True)
+    encoder = artifacts.load_world_model(cfg)  # speed and the frame's hazard profiles, as LEARNER asks
+    assert encoder.dim == 2 * encoder.latent_dim + 1 + encoder.frame_view.dim
     action_map = ActionMap("brake", "grip")
     demos, info = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent)
     store = RolloutStore(tmp_path / "data/t/demos")
@@ -95,11 +102,27 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
         np.testing.assert_allclose(demos.actions[t], action_map.from_env(actions[t], speed[t]), atol=1e-6)
     np.testing.assert_allclose(demos.rewards[:n], store.read(0, "reward_r2")[:n])
 
+    # the frame view's second half is the previous frame's first half, zero at the first frame
+    half = encoder.frame_view.dim // 2
+    assert not first[0, -half:].any()
+    np.testing.assert_array_equal(first[1:, -half:], first[:-1, -2 * half : -half])
+
     # cloning runs and moves the actor away from its zero start
     train_agent.run(cfg)
     actor, _ = artifacts.load_actor(cfg, artifacts.AgentId.of(cfg))
     with torch.no_grad():
         assert actor(torch.from_numpy(first)).abs().max() > 0.01
+    # evaluation rebuilds the agent's own input from its checkpoint, whatever the current config says
+    from worldmodel.config import compose as compose_eval
+    from worldmodel.evaluate import _policy_for
+
+    policy, _, _ = _policy_for(compose_eval("evaluate", base), artifacts.AgentId.of(cfg).key)
+    assert policy.encoder.dim == encoder.dim
+    policy.reset(0)
+    obs = {"seg": store.read(0, "seg")[0], "speed": speed[:1]}
+    with torch.no_grad():
+        u = actor(torch.from_numpy(first[:1]))[0].numpy()
+    np.testing.assert_allclose(policy.act(obs, None), action_map.to_env(u, float(speed[0])), atol=1e-5)
 
 
 def test_missing_or_absent_demonstrations_are_clear_errors(stage_cfg, experiment_copy):

@@ -1,5 +1,7 @@
 """The agent's view of the live env: [z_t, zhat_{t+1}] (optionally with speed), as in the paper's phase 3.
 
+With ``agent.frame_view`` the hazard profiles of the current and previous frame (``envs/views.py``) follow.
+
 * z_t is the VAE's mean mu(obs_t) for the current frame (no sampling at decision time).
 * zhat_{t+1} is the LSTM's point prediction after feeding (z_t, a_{t-1}). The current action a_t is not known
   yet when the agent decides, so the previous action is held; the LSTM state is advanced with that same pair.
@@ -20,22 +22,30 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from envs.views import HazardView
+
 from .action_map import ActionMap
 from .models.fast_decision import actor_path, decision_path
+from .models.vae import IMAGE_SIZE
 
 
 class WorldModelEncoder:
     """The recurrent agent input: VAE + LSTM behind one decision path (``path``: auto | fast | module)."""
 
-    def __init__(self, vae, rnn, use_speed: bool = False, path: str = "auto"):
+    def __init__(self, vae, rnn, use_speed: bool = False, path: str = "auto", frame_view: bool = False):
         self.vae, self.rnn, self.use_speed = vae.eval(), rnn.eval(), bool(use_speed)
         self.latent_dim = vae.latent_dim
         self.decision = decision_path(self.vae, self.rnn, self.use_speed, path)
         self.path = self.decision.path
-        self.dim = self.decision.dim
+        # the hazard profiles of the raw frame (envs/views.py), appended after the world model's part
+        self.frame_view = HazardView(IMAGE_SIZE) if frame_view else None
+        self.dim = self.decision.dim + (self.frame_view.dim if self.frame_view else 0)
+        self._out = torch.zeros(1, self.dim)
 
     def reset(self) -> None:
         self.decision.reset()
+        if self.frame_view is not None:
+            self.frame_view.reset()
 
     def note_action(self, action) -> None:
         self.decision.note_action(action)
@@ -46,7 +56,13 @@ class WorldModelEncoder:
 
     def encode_tensor(self, obs: dict) -> torch.Tensor:
         """The agent input as a ``(1, dim)`` tensor that the next call overwrites."""
-        return self.decision.encode(obs["seg"], obs.get("speed") if self.use_speed else None)
+        x = self.decision.encode(obs["seg"], obs.get("speed") if self.use_speed else None)
+        if self.frame_view is None:
+            return x
+        d = self.decision.dim
+        self._out[:, :d] = x
+        self._out[0, d:] = torch.from_numpy(self.frame_view(np.asarray(obs["seg"])))
+        return self._out
 
     def encode(self, obs: dict) -> np.ndarray:
         # inference_mode is not needed (nothing here requires grad) but measured ~15 us faster per decision

@@ -391,18 +391,29 @@ def load_rnn(cfg, which: str = "best"):
     return model.eval(), path
 
 
-def load_world_model(cfg, use_speed: bool | None = None):
-    """VAE + LSTM behind the agent's observation encoder (with speed as ``use_speed``, default ``agent.use_speed``)."""
+def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None = None):
+    """VAE + LSTM behind the agent's observation encoder (with speed as ``use_speed``, default ``agent.use_speed``,
+    and the frame's hazard profiles as ``frame_view``, default ``agent.frame_view``)."""
     from .agent_obs import WorldModelEncoder
 
     vae, _ = load_vae(cfg, "best")
     rnn, _ = load_rnn(cfg, "best")
-    return WorldModelEncoder(vae, rnn, use_speed=bool(cfg.agent.use_speed if use_speed is None else use_speed))
+    return WorldModelEncoder(
+        vae,
+        rnn,
+        use_speed=bool(cfg.agent.use_speed if use_speed is None else use_speed),
+        frame_view=bool(cfg.agent.frame_view if frame_view is None else frame_view),
+    )
 
 
 def agent_uses_speed(state: dict, latent_dim: int) -> bool:
     """Whether an agent's checkpoint was trained with speed in its input (older ones tell by their input size)."""
     return bool(state.get("use_speed", state["obs_dim"] == 2 * int(latent_dim) + 1))
+
+
+def agent_input(state: dict, latent_dim: int) -> dict:
+    """The encoder settings an agent's checkpoint was trained with: ``load_world_model``'s keyword arguments."""
+    return {"use_speed": agent_uses_speed(state, latent_dim), "frame_view": bool(state.get("frame_view", False))}
 
 
 def load_actor(cfg, agent: AgentId, which: str = "last"):

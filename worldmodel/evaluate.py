@@ -90,7 +90,7 @@ def _policy_for(cfg, name: str):
     agent = AgentId.parse(name)
     actor, state = artifacts.load_actor(cfg, agent)
     # each agent acts as it was trained: its own input (speed or not) and its own action map
-    encoder = artifacts.load_world_model(cfg, use_speed=artifacts.agent_uses_speed(state, cfg.vae.latent_dim))
+    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
     policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
     return policy, agent.seed, artifacts.models_of(cfg, agent)
 

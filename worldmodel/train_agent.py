@@ -95,7 +95,7 @@ def run(cfg) -> dict:
             if state["obs_dim"] != obs_dim:
                 raise StageError(
                     f"{run_.last} expects agent inputs of size {state['obs_dim']}, the world model "
-                    f"gives {obs_dim} (vae.latent_dim / agent.use_speed changed); delete {run_.dir} "
+                    f"gives {obs_dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed); delete {run_.dir} "
                     "to retrain"
                 )
             agent.load_state_dict(state["agent"])
@@ -143,6 +143,7 @@ def run(cfg) -> dict:
                     "actor_hidden": list(hp.actor_hidden),
                     "action_map": action_map.to_dict(),
                     "use_speed": bool(cfg.agent.use_speed),
+                    "frame_view": bool(cfg.agent.frame_view),
                     "reward": agent_id.reward,
                 },
                 best=best,
