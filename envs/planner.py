@@ -55,9 +55,11 @@ def candidate_manoeuvres(
     steers: Sequence[float] = (0.3, 0.6, 1.0),
     delays_s: Sequence[float] = (0.0, 0.2, 0.4),
     lane_change_s: Sequence[float] = (0.3, 0.6),
+    sides: Sequence[float] = (1.0, -1.0),
 ) -> list[Manoeuvre]:
     """Every combination, gentlest first: straight-line braking, the other straight pedals, then steering
-    manoeuvres by increasing steer, later starts before earlier ones."""
+    manoeuvres by increasing steer, later starts before earlier ones. ``sides``: the steering directions tried, in
+    order (1 right, -1 left); one side only makes a teacher whose choices a camera student can tell apart."""
     if not pedals or -1.0 not in [float(p) for p in pedals]:
         raise ValueError("planner pedals must include -1.0 (full brake): straight-line braking is its floor")
     for name, values, lo, hi in (("pedals", pedals, -1.0, 1.0), ("steers", steers, 0.0, 1.0)):
@@ -65,6 +67,8 @@ def candidate_manoeuvres(
             raise ValueError(f"planner {name}={list(values)} must lie in [{lo}, {hi}]")
     if any(float(d) < 0 for d in delays_s) or any(float(h) <= 0 for h in lane_change_s):
         raise ValueError("planner delays_s must be >= 0 and lane_change_s > 0")
+    if not sides or any(float(x) not in (1.0, -1.0) for x in sides) or len(set(sides)) != len(sides):
+        raise ValueError(f"planner sides={list(sides)} must be distinct values of 1.0 (right) and -1.0 (left)")
     pedals = sorted({float(p) for p in pedals}, key=lambda p: (p != -1.0, abs(p + 1.0)))
     out = [Manoeuvre(p) for p in pedals]
     steps = lambda s: int(round(float(s) / DT))  # noqa: E731
@@ -73,8 +77,8 @@ def candidate_manoeuvres(
         for delay in sorted({steps(d) for d in delays_s}, reverse=True):
             for shape, hold in shapes:
                 for p in pedals:
-                    for sign in (1.0, -1.0):
-                        out.append(Manoeuvre(p, sign * steer, delay, shape, hold))
+                    for sign in sides:
+                        out.append(Manoeuvre(p, float(sign) * steer, delay, shape, hold))
     return out
 
 

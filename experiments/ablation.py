@@ -1,11 +1,12 @@
 """Issue 11's ablation: one agent variant per lever, added in turn, trained and judged on the validation bank.
 
-    python -m experiments.ablation experiment=quick [ablation.rows=[ddpg,speed,...]] [seed=0] [scale=quick]
+    python -m experiments.ablation experiment=quick [seed=0] [--rows ddpg,speed,...] [--planners brake1,right,...]
 
 Each row is an agent preset (``conf/agent/<row>.yaml`` when one exists, else the overrides in ``ROWS``) trained
 with reward R2 as ``runs/NAME/agent_r2_<row>/seed<S>/`` and evaluated on the validation bank
-(``evaluate.bank=validation``), never the test bank. Straight-line braking and the planner are evaluated once
-and cached, as is every agent's rows (keyed by its actor's hash), so adding a row costs one training.
+(``evaluate.bank=validation``), never the test bank. Straight-line braking, the planner and the planner variants
+in ``PLANNERS`` (the perception ceiling, one-sided teachers) are evaluated once and cached, as is every agent's
+rows (keyed by its actor's hash), so adding a row costs one training.
 
 Writes ``runs/NAME/ablation/ablation.md`` (the table: whole-bank share of the achievable improvement, collision
 rates by kind, lane departures, injuries) and ``results.csv`` (every row), then prints the table.
@@ -68,6 +69,23 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
 }
 
 
+# planner variants evaluated beside the rows: name -> (what it shows, overrides); policy ``oracle_<name>``
+PLANNERS: dict[str, tuple[str, list[str]]] = {
+    **{
+        f"brake{k}": (
+            f"the planner after braking straight for {k} frame(s): perception ceiling",
+            [f"evaluate.oracle.brake_first={k}"],
+        )
+        for k in (1, 2, 3)
+    },
+    "right": (
+        "the planner steering right only: a teacher without left/right ambiguity",
+        ["evaluate.oracle.sides=[1.0]"],
+    ),
+    "left": ("the planner steering left only", ["evaluate.oracle.sides=[-1.0]"]),
+}
+
+
 def row_overrides(name: str) -> list[str]:
     """The overrides of row ``name``: those of the rows it extends, then its own."""
     if name not in ROWS:
@@ -92,7 +110,7 @@ def main(argv=None) -> int:
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=quick seed=0")
     parser.add_argument("--rows", default=",".join(ROWS), help="comma-separated rows, in order")
     parser.add_argument(
-        "--ceiling", default="1,2", help="perception ceiling: the planner braking straight for its first K frames"
+        "--planners", default="brake1,brake2", help=f"comma-separated planner variants: {', '.join(PLANNERS)}"
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -107,14 +125,16 @@ def main(argv=None) -> int:
     for name in ("braking", "oracle"):
         make = lambda n=name: evaluate.evaluate_policy(cfg, n, entries, workers)  # noqa: E731
         rows += cached_rows(out / f"rows_{name}.csv", None, make)
-    ceilings = [int(k) for k in args.ceiling.split(",") if k]
-    for k in ceilings:
-        delayed = compose("evaluate", [*base, f"evaluate.oracle.brake_first={k}"])
+    planners = [p for p in args.planners.split(",") if p]
+    for p in planners:
+        if p not in PLANNERS:
+            raise SystemExit(f"unknown planner row {p!r}: use {', '.join(PLANNERS)}")
+        variant = compose("evaluate", [*base, *PLANNERS[p][1]])
 
-        def make(c=delayed, k=k):
-            return [r | {"policy": f"oracle_brake{k}"} for r in evaluate.evaluate_policy(c, "oracle", entries, workers)]
+        def make(c=variant, p=p):
+            return [r | {"policy": f"oracle_{p}"} for r in evaluate.evaluate_policy(c, "oracle", entries, workers)]
 
-        rows += cached_rows(out / f"rows_oracle_brake{k}.csv", None, make)
+        rows += cached_rows(out / f"rows_oracle_{p}.csv", None, make)
     table = []
     for name in [r for r in args.rows.split(",") if r]:
         agent_cfg = compose("train_agent", [*base, *row_overrides(name)])
@@ -133,13 +153,13 @@ def main(argv=None) -> int:
             if not any(r["policy"] == policy and path.stem.endswith(f"seed{r['policy_seed']}") for r in rows):
                 rows += read_results_csv(path)
     write_results_csv(rows, out / "results.csv")
-    text = ablation_markdown(rows, table, cfg, ceilings)
+    text = ablation_markdown(rows, table, cfg, planners)
     (out / "ablation.md").write_text(text)
     print(text)
     return 0
 
 
-def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, ceilings=()) -> str:
+def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, planners=()) -> str:
     head = [
         "row",
         "what it adds",
@@ -180,12 +200,8 @@ def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, ceili
     for name, policy in table:
         seeds = sorted({int(r["policy_seed"]) for r in rows if r["policy"] == policy})
         line(f"{name} (seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))})", ROWS[name][1], policy)
-    for k in ceilings:
-        line(
-            f"planner, brake {k}",
-            f"the planner after braking straight for {k} frame(s): perception ceiling",
-            f"oracle_brake{k}",
-        )
+    for p in planners:
+        line(f"planner, {p}", PLANNERS[p][0], f"oracle_{p}")
     line("planner", "privileged planner (the ceiling)", "oracle")
     return "\n".join(lines) + "\n"
 

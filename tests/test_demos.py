@@ -62,7 +62,7 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
     from envs.planner import PrivilegedPlanner
     from worldmodel.agent_obs import WorldModelView
     from worldmodel.common import make_env
-    from worldmodel.config import compose, oracle_settings
+    from worldmodel.config import compose, teacher_settings
 
     root, base = with_demos
     shutil.copytree(root, tmp_path, dirs_exist_ok=True)
@@ -80,7 +80,7 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
     sim = make_env(cfg, horizon_after_ttc_s=3.0)
     view = WorldModelView(sim, encoder, ActionMap())  # the identity: the planner's actions go in unchanged
     states, actions = [], []
-    planner = PrivilegedPlanner.from_settings(**oracle_settings(cfg))
+    planner = PrivilegedPlanner.from_settings(**teacher_settings(cfg))
     obs, _ = view.reset(options={"scenario": spec})
     states.append(obs)
     planner.reset(spec.seed)

@@ -110,3 +110,37 @@ def test_perception_ceiling_brakes_straight_for_its_first_frames_then_plans():
     assert np.abs(actions[2][2:, 0]).max() > 0  # and then it still plans
     with pytest.raises(ValueError, match="brake_first"):
         PrivilegedPlanner(brake_first=-1)
+
+
+def test_a_one_sided_teacher_steers_only_to_its_side(tmp_path):
+    """demos.teacher_sides: the planner that demonstrates starts its manoeuvres only to the sides asked for, and its
+    store is kept apart from the two-sided one; the evaluation planner (the ceiling) is unchanged."""
+    from worldmodel import artifacts
+    from worldmodel.config import oracle_settings, teacher_settings
+
+    right = candidate_manoeuvres(sides=(1.0,))
+    both = candidate_manoeuvres()
+    assert all(m.steer >= 0 for m in right) and len(both) == 2 * len(right) - 4  # the 4 straight pedals are shared
+    with pytest.raises(ValueError, match="sides"):
+        candidate_manoeuvres(sides=(1.0, 1.0))
+    with pytest.raises(ValueError, match="sides"):
+        candidate_manoeuvres(sides=(0.5,))
+
+    env = UrbanCollisionEnv(camera=False)
+    spec = ScenarioSpec(seed=5, ttc=0.75, ego_speed=30.0, pedestrian_speed=2.0, p_pedestrian=1.0)
+    small = {"pedals": (-1.0, 0.0), "steers": (1.0,), "delays_s": (0.0,), "lane_change_s": (0.3,)}
+    for side in (1.0, -1.0):
+        seen = []
+        rollout(env, PrivilegedPlanner(sides=(side,), **small), spec, on_step=lambda o, a, r, i, s=seen: s.append(a))
+        steer = np.array(seen)[:, 0]
+        assert steer[np.flatnonzero(steer)[0]] == side  # it steers to its side first (a lane change counter-steers)
+
+    def cfg(*overrides):
+        return compose("demonstrate", [f"paths.data_root={tmp_path}", f"paths.runs_root={tmp_path}", *overrides])
+
+    default, one = cfg(), cfg("demos.teacher_sides=[1.0]")
+    assert teacher_settings(default) == {k: v for k, v in oracle_settings(default).items() if k != "brake_first"}
+    assert teacher_settings(one)["sides"] == [1.0] and "sides" not in oracle_settings(one)
+    assert (artifacts.demos_dir(default).name, artifacts.demos_dir(one).name) == ("demos", "demos_right")
+    with pytest.raises(StageError, match="demos.teacher_sides"):
+        validate(cfg("demos.teacher_sides=[1.0,1.0]"))

@@ -58,7 +58,11 @@ def manifest_path(cfg) -> Path:
 
 
 def demos_dir(cfg) -> Path:
-    return data_dir(cfg) / "demos"
+    """``data/NAME/demos/``, or ``demos_<sides>/`` for a teacher steering to one side (``demos.teacher_sides``)."""
+    from .config import validate
+
+    sides = validate(cfg).demos.side_names()
+    return data_dir(cfg) / ("demos_" + sides if sides else "demos")
 
 
 def uses_demos(cfg) -> bool:

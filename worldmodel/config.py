@@ -110,11 +110,23 @@ class DemosConfig(Checked):
     num_workers: int = 2
     episodes_per_shard: int = 25
     focus: FocusConfig = field(default_factory=FocusConfig)
+    # the teacher's steering directions (1 right, -1 left): evaluate.oracle's planner, but steering only to these
+    # sides. One side takes the left/right ambiguity out of the teacher, which a student cloning by least squares
+    # would otherwise average into braking straight. Stored apart: data/NAME/demos_right/ for [1.0].
+    teacher_sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
 
     def problems(self):
         yield from _positive(self, "num_workers", "episodes_per_shard")
         if self.episodes < 0:
             yield ConfigValueError("episodes", self.episodes, "it must be >= 0 (0 = no demonstrations)")
+        sides = [float(x) for x in self.teacher_sides]
+        if not sides or any(x not in (1.0, -1.0) for x in sides) or len(set(sides)) != len(sides):
+            yield ConfigValueError("teacher_sides", sides, "use distinct values of 1.0 (right) and -1.0 (left)")
+
+    def side_names(self) -> str:
+        """'' for both sides in the default order, else e.g. 'right' or 'left_right' (names the store)."""
+        sides = [float(x) for x in self.teacher_sides]
+        return "" if sides == [1.0, -1.0] else "_".join("right" if x > 0 else "left" for x in sides)
 
 
 @dataclass
@@ -265,6 +277,8 @@ class OracleConfig(Checked):
     steers: list[float] = field(default_factory=lambda: [0.3, 0.6, 1.0])  # steering magnitudes, both ways
     delays_s: list[float] = field(default_factory=lambda: [0.0, 0.2, 0.4])  # when the steering starts
     lane_change_s: list[float] = field(default_factory=lambda: [0.3, 0.6])  # steer-then-counter-steer lengths
+    # steering directions tried, in order: 1 right, -1 left (one side: a teacher without left/right ambiguity)
+    sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
     # frames of straight-line braking before planning starts: the perception ceiling (a camera policy that needs
     # this many frames to see the hazard); 0 for the ceiling itself
     brake_first: int = 0
@@ -282,6 +296,7 @@ class OracleConfig(Checked):
                 steers=list(self.steers),
                 delays_s=list(self.delays_s),
                 lane_change_s=list(self.lane_change_s),
+                sides=list(self.sides),
             )
         except ValueError as err:
             yield ConfigValueError("oracle", "...", str(err))
@@ -307,7 +322,7 @@ def agent_preset(cfg, name: str):
 def oracle_settings(cfg) -> dict:
     """``evaluate.oracle`` as plain keyword arguments of ``PrivilegedPlanner.from_settings``."""
     o = cfg.evaluate.oracle
-    return {
+    settings = {
         "replan_every_s": float(o.replan_every_s),
         "brake_first": int(o.brake_first),
         "pedals": [float(x) for x in o.pedals],
@@ -315,6 +330,20 @@ def oracle_settings(cfg) -> dict:
         "delays_s": [float(x) for x in o.delays_s],
         "lane_change_s": [float(x) for x in o.lane_change_s],
     }
+    sides = [float(x) for x in o.sides]
+    if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
+        settings["sides"] = sides
+    return settings
+
+
+def teacher_settings(cfg) -> dict:
+    """The planner that records demonstrations and labels DAgger states: ``evaluate.oracle`` planning from the first
+    frame, steering to ``demos.teacher_sides`` (``PrivilegedPlanner.from_settings`` keyword arguments)."""
+    settings = {k: v for k, v in oracle_settings(cfg).items() if k not in ("brake_first", "sides")}
+    sides = [float(x) for x in cfg.demos.teacher_sides]
+    if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
+        settings["sides"] = sides
+    return settings
 
 
 SCRIPTED_POLICIES = ("braking", "oracle")

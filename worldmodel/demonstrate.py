@@ -18,7 +18,7 @@ import numpy as np
 
 from . import artifacts
 from .common import StageError
-from .config import hydra_main, oracle_settings, validate
+from .config import hydra_main, teacher_settings, validate
 from .data import SCHEMA_VERSION
 from .recording import env_settings, record_dataset
 
@@ -37,8 +37,8 @@ def demo_settings(cfg) -> dict:
         "max_episode_s": MAX_EPISODE_S,
         "horizon_after_ttc_s": float(cfg.env.horizon_after_ttc_s or 3.0),
         "focus": typed.demos.focus.settings(),
-        # the planner as evaluated, planning from the first frame (brake_first is for the perception ceiling)
-        "planner": {k: v for k, v in oracle_settings(cfg).items() if k != "brake_first"},
+        # the planner as evaluated, planning from the first frame, steering to demos.teacher_sides
+        "planner": teacher_settings(cfg),
         "env": env_settings(cfg),
     }
 

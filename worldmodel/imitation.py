@@ -22,7 +22,7 @@ from . import artifacts
 from .action_map import ActionMap
 from .agent_obs import WorldModelView, encode_episode
 from .common import make_env
-from .config import oracle_settings
+from .config import teacher_settings
 from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
 
 
@@ -85,7 +85,7 @@ def dagger_labels(cfg, agent: DDPG, encoder, action_map: ActionMap, round_: int)
     demonstrations the cloned actor steers 0.14 at the first frame of a planner swerve and 0.69 by the third)."""
     sim = make_env(cfg)
     view = WorldModelView(sim, encoder, action_map)
-    planner = PrivilegedPlanner.from_settings(**oracle_settings(cfg))
+    planner = PrivilegedPlanner.from_settings(**teacher_settings(cfg))
     f = cfg.demos.focus
     xs, ys, hits = [], [], {"pedestrian": 0, "vehicle": 0, "static": 0}
     for e in tqdm(range(int(cfg.agent.dagger_episodes)), desc=f"DAgger round {round_}", unit="episode"):
