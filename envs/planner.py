@@ -92,6 +92,18 @@ class _Plan:
         return self.manoeuvre.action(t_step - self.start)
 
 
+def plan_cost(twin: UrbanCollisionEnv, snap: dict, plan: _Plan, bound: float = math.inf) -> float:
+    """R2 cost (the sum of injury probabilities) of the rest of the episode from ``snap`` under ``plan``,
+    simulated on the camera-less ``twin``; stops early once it reaches ``bound``."""
+    twin.restore(snap)
+    cost = 0.0
+    while True:
+        _, _, terminated, truncated, info = twin.step(plan.action(twin.t_step))
+        cost -= info["reward_r2"]
+        if cost >= bound or terminated or truncated:
+            return cost
+
+
 class PrivilegedPlanner:
     """Scripted-policy interface (``reset``, ``act``) plus ``bind(env)``, which evaluation calls after each reset
     so the planner can read the true state. ``replan_every``: steps between decisions (1 = every step).
@@ -137,16 +149,8 @@ class PrivilegedPlanner:
         return self.plan.action(t)
 
     def _cost(self, snap: dict, plan: _Plan, bound: float) -> float:
-        """R2 cost of the rest of the episode under ``plan``; stops early once it reaches ``bound``."""
-        twin = self._twin
-        twin.restore(snap)
         self.rollouts += 1
-        cost = 0.0
-        while True:
-            _, _, terminated, truncated, info = twin.step(plan.action(twin.t_step))
-            cost -= info["reward_r2"]
-            if cost >= bound or terminated or truncated:
-                return cost
+        return plan_cost(self._twin, snap, plan, bound)
 
     def _replan(self, t: int) -> None:
         snap = self.env.snapshot()

@@ -61,6 +61,12 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
         "+ the raw frame's hazard profiles (where pedestrians and vehicles are, this frame and the last)",
         ["agent.frame_view=true"],
     ),
+    "right": (
+        "dag",
+        "+ a one-sided teacher: the planner steering right only (demos.teacher_sides=[1.0])",
+        ["demos.teacher_sides=[1.0]"],
+    ),
+    "rightview": ("right", "+ the raw frame's hazard profiles", ["agent.frame_view=true"]),
     "fd": (
         "focus",
         "+ cloning, then DDPG from demonstrations (25 % demo batches, Q-filtered cloning)",

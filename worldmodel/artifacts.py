@@ -421,9 +421,20 @@ def agent_input(state: dict, latent_dim: int) -> dict:
 
 
 def load_actor(cfg, agent: AgentId, which: str = "last"):
-    """A trained actor (eval mode) and its checkpoint; refuses one built on another VAE or LSTM."""
+    """A trained actor (eval mode) and its checkpoint; refuses one built on another VAE or LSTM. A chooser's
+    checkpoint (``agent.learner=chooser``) has no actor: the actor returned is None."""
     from .models.ddpg import Actor
 
+    state = load_agent_state(cfg, agent, which)
+    if state.get("learner", "ddpg") == "chooser":
+        return None, state
+    actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
+    actor.load_state_dict(state["agent"]["actor"])
+    return actor.eval(), state
+
+
+def load_agent_state(cfg, agent: AgentId, which: str = "last") -> dict:
+    """An agent's checkpoint, after checking that it was built on the current VAE and LSTM."""
     path = agent.dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
     rebuild = f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} seed={agent.seed}"
@@ -435,9 +446,7 @@ def load_actor(cfg, agent: AgentId, which: str = "last"):
         {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"},
         rebuild,
     )
-    actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
-    actor.load_state_dict(state["agent"]["actor"])
-    return actor.eval(), state
+    return state
 
 
 def models_of(cfg, agent: AgentId) -> dict[str, str]:

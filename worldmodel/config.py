@@ -204,6 +204,75 @@ class RNNConfig(Checked):
 
 
 @dataclass
+class ChooserConfig(Checked):
+    """The chooser agent (``agent.learner=chooser``; ``envs/chooser.py``, ``worldmodel/chooser.py``): it brakes,
+    and switches once to the candidate manoeuvre its scorer predicts to cost least. The scorer learns the exact
+    costs of every candidate on straight-line braking's states, labelled by the simulator."""
+
+    episodes: int = 600  # labelled braking episodes (data/NAME/chooser_labels/), the last 10 % held out
+    num_workers: int = 2
+    # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
+    hazard_share: float = 0.85
+    speed_range: list[float] = field(default_factory=lambda: [8.0, 30.0])
+    ttc_range: list[float] = field(default_factory=lambda: [0.25, 1.5])
+    decide_s: float = 1.5  # the chooser may switch during its first decide_s seconds, then it keeps braking
+    # the candidates after straight-line braking: steer magnitudes x {held swerve, lane changes} x pedals x sides
+    steers: list[float] = field(default_factory=lambda: [0.3, 1.0])
+    lane_change_s: list[float] = field(default_factory=lambda: [0.3, 0.6])
+    pedals: list[float] = field(default_factory=lambda: [-1.0])
+    sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
+    margin: float = 0.0  # switch only when the predicted saving over braking exceeds this (R2 units)
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    dropout: float = 0.2
+    lr: float = 1.0e-3
+    weight_decay: float = 1.0e-4
+    batch_size: int = 256
+    steps: int = 6000  # minibatches; the scorer kept is the best on the held-out labelled episodes
+
+    def problems(self):
+        from envs.chooser import chooser_candidates
+
+        yield from _positive(self, "episodes", "num_workers", "decide_s", "lr", "batch_size", "steps")
+        if not 0.0 <= self.hazard_share <= 1.0:
+            yield ConfigValueError("chooser.hazard_share", self.hazard_share, "it must be in [0, 1]")
+        for key in ("speed_range", "ttc_range"):
+            value = list(getattr(self, key))
+            if len(value) != 2 or not 0 < value[0] <= value[1]:
+                yield ConfigValueError(f"chooser.{key}", value, "it must be [low, high] with 0 < low <= high")
+        if self.margin < 0 or not 0.0 <= self.dropout < 1.0 or self.weight_decay < 0:
+            yield ConfigValueError("chooser.margin", self.margin, "margin and weight_decay >= 0, dropout in [0, 1)")
+        if not self.hidden or any(int(h) < 1 for h in self.hidden):
+            yield ConfigValueError("chooser.hidden", list(self.hidden), "use a non-empty list of layer sizes >= 1")
+        try:
+            chooser_candidates(self.steers, self.lane_change_s, self.pedals, self.sides)
+        except ValueError as err:
+            yield ConfigValueError("chooser", "...", str(err))
+
+    def candidates(self):
+        from envs.chooser import chooser_candidates
+
+        return chooser_candidates(
+            [float(x) for x in self.steers],
+            [float(x) for x in self.lane_change_s],
+            [float(x) for x in self.pedals],
+            [float(x) for x in self.sides],
+        )
+
+    def label_settings(self) -> dict:
+        """What the labels depend on (the store is rebuilt when any of it changes)."""
+        return {
+            "hazard_share": float(self.hazard_share),
+            "speed_range": [float(x) for x in self.speed_range],
+            "ttc_range": [float(x) for x in self.ttc_range],
+            "decide_s": float(self.decide_s),
+            "candidates": [vars(m) for m in self.candidates()],
+        }
+
+
+LEARNERS = ("ddpg", "chooser")
+
+
+@dataclass
 class AgentConfig(DDPGConfig):
     """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there) and the training loop's settings."""
 
@@ -230,13 +299,23 @@ class AgentConfig(DDPGConfig):
     dagger_rounds: int = 0
     dagger_episodes: int = 100
     reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
+    # the rewards the pipeline trains this preset with (`agents:`); a student that only clones the R2 planner
+    # lists r2 alone, since its R1 run would be the same network under another name
+    rewards: list[str] = field(default_factory=lambda: ["r1", "r2"])
+    # "ddpg" (the paper's learner, with the options above) or "chooser" (agent.chooser: costs of manoeuvres learnt
+    # from the simulator's labels; R2 only, and none of the DDPG keys apply)
+    learner: str = "ddpg"
+    chooser: ChooserConfig = field(default_factory=ChooserConfig)
 
     def problems(self):
         from .action_map import ANCHORS, STEERS
 
+        if self.learner not in LEARNERS:
+            yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
+
         yield from super().problems()
         yield from _positive(self, "checkpoint_every", "reward_scale")
-        if self.total_steps < 0 or (self.total_steps == 0 and self.bc_pretrain_steps == 0):
+        if self.learner == "ddpg" and (self.total_steps < 0 or (self.total_steps == 0 and self.bc_pretrain_steps == 0)):
             yield ConfigValueError("total_steps", self.total_steps, "it must be > 0 (or 0 with bc_pretrain_steps > 0)")
         if not self.variant.isalnum() or not self.variant.islower():
             yield ConfigValueError("variant", self.variant, "it must be a lower-case alphanumeric name (the preset's)")
@@ -249,6 +328,10 @@ class AgentConfig(DDPGConfig):
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "DAgger clones: set bc_pretrain_steps > 0")
         if self.bc_pretrain_steps < 0:
             yield ConfigValueError("bc_pretrain_steps", self.bc_pretrain_steps, "it must be >= 0")
+        from envs.rewards import REWARDS
+
+        if not self.rewards or any(r not in REWARDS for r in self.rewards):
+            yield ConfigValueError("rewards", list(self.rewards), f"use a non-empty list of {', '.join(REWARDS)}")
         if self.anchor not in ANCHORS:
             yield ConfigValueError("anchor", self.anchor, f"it must be one of {', '.join(ANCHORS)}")
         if self.steer not in STEERS:
@@ -402,7 +485,7 @@ class ExperimentConfig(Checked):
     # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
-    # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with rewards r1 and r2
+    # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
     agents: list[str] = field(default_factory=lambda: ["ddpg"])
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)

@@ -91,6 +91,10 @@ def _policy_for(cfg, name: str):
     actor, state = artifacts.load_actor(cfg, agent)
     # each agent acts as it was trained: its own input (speed or not) and its own action map
     encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
+    if actor is None:  # a chooser (agent.learner=chooser)
+        from .chooser import build_policy
+
+        return build_policy(agent.policy, encoder, state), agent.seed, artifacts.models_of(cfg, agent)
     policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
     return policy, agent.seed, artifacts.models_of(cfg, agent)
 

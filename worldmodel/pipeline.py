@@ -87,7 +87,7 @@ def steps(cfg) -> list[Step]:
     """The stages in order: every later stage only reads what the earlier ones wrote."""
     from . import collect, demonstrate, evaluate, train_agent, train_rnn, train_vae
 
-    agents = {AgentId(r, int(cfg.seed), v) for r in artifacts.AGENT_REWARDS for v in cfg.agents}
+    agents = {AgentId(r, int(cfg.seed), v) for v in cfg.agents for r in agent_preset(cfg, v).rewards}
     agents |= set(artifacts.trained_agents(cfg))
     agent_steps = [
         Step(

@@ -70,6 +70,8 @@ def run(cfg) -> dict:
     set_threads(cfg.threads)
     agent_id = artifacts.AgentId.of(cfg)
     name = agent_id.policy
+    if typed.agent.learner == "chooser":
+        return run_chooser(cfg, agent_id)
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
     action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
@@ -224,6 +226,23 @@ def run(cfg) -> dict:
             metrics["rolling_return"],
             run_.dir,
         )
+        return run_.finish(metrics)
+
+
+def run_chooser(cfg, agent_id) -> dict:
+    """``agent.learner=chooser``: the scorer of ``worldmodel/chooser.py`` instead of DDPG, in the same run folder."""
+    from . import chooser
+
+    if agent_id.reward != "r2":
+        raise StageError("the chooser learns R2 costs (injury risk): train it with reward=r2")
+    record = artifacts.provenance(cfg, "agent")
+    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+        if run_.state is not None:  # the scorer trains in minutes: a stopped run starts again (labels are kept)
+            run_.resumed("refitting the scorer from the stored labels")
+        metrics = chooser.train(cfg, run_, agent_id)
+        if run_.stop.requested:
+            return run_.stopped(0)
+        log.info("[%s] held-out R2 cost per episode: %s; wrote %s", agent_id.policy, metrics["held_out_cost"], run_.dir)
         return run_.finish(metrics)
 
 

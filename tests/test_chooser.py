@@ -1,0 +1,161 @@
+"""The chooser (``envs/chooser.py``, ``worldmodel/chooser.py``): brake, then switch once to the manoeuvre predicted
+cheapest. Checked on the real scene and the real smoke-scale world model: the exact-cost chooser is never worse
+than braking, the offline cost of a labelled episode equals the simulated one, the labels are reproducible, and a
+trained chooser acts in evaluation on exactly the inputs it was trained on."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from envs import StraightLineBraking, UrbanCollisionEnv, rollout, sample_focus_scenario
+from envs.chooser import ExactCosts, ManoeuvreChooser, chooser_candidates, cost_labels, decide_steps_for
+from envs.planner import Manoeuvre
+from worldmodel import artifacts, chooser, evaluate, train_agent
+from worldmodel.common import StageError
+
+CANDIDATES = chooser_candidates(steers=(1.0,), lane_change_s=(0.3,))  # braking + 4 manoeuvres: cheap to label
+
+
+def scenarios(n: int, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    return [sample_focus_scenario(rng, 1.0, (25.0, 30.0), (0.4, 0.9)) for _ in range(n)]
+
+
+def total_risk(outcome: dict) -> float:
+    return outcome["pedestrian_injury"] + outcome["occupant_injury"]
+
+
+def test_candidates_start_with_braking_and_are_checked():
+    assert CANDIDATES[0] == Manoeuvre(-1.0)
+    assert len(chooser_candidates()) == 1 + 2 * 3 * 2  # steers x {swerve, 2 lane changes} x sides
+    assert {m.delay for m in chooser_candidates()} == {0}  # waiting is deciding again at the next step
+    with pytest.raises(ValueError, match="steers"):
+        chooser_candidates(steers=(0.0,))
+    with pytest.raises(ValueError, match="sides"):
+        chooser_candidates(sides=(1.0, 1.0))
+    with pytest.raises(ValueError, match="straight-line braking"):
+        ManoeuvreChooser(CANDIDATES[1:], lambda o, t: np.zeros(4), 5)
+
+
+def test_scripted_scores_commit_once_and_follow_the_manoeuvre():
+    """A scorer that prefers candidate 2 from step 3 on: braking for 3 steps, then candidate 2's actions, open loop,
+    with no further scoring; a margin above the saving keeps it braking."""
+    calls = []
+
+    def scores(obs, t):
+        calls.append(t)
+        return np.array([1.0, 2.0, 0.5, 2.0, 2.0]) if t >= 3 else np.array([1.0, 2.0, 2.0, 2.0, 2.0])
+
+    policy = ManoeuvreChooser(CANDIDATES, scores, decide_steps=10)
+    policy.reset()
+    actions = [policy.act(None, None) for _ in range(8)]
+    assert calls == [0, 1, 2, 3] and policy.choice == 2
+    np.testing.assert_array_equal(actions[:3], [[0.0, -1.0]] * 3)
+    np.testing.assert_array_equal(actions[3:], [CANDIDATES[2].action(k) for k in range(5)])
+    cautious = ManoeuvreChooser(CANDIDATES, scores, decide_steps=10, margin=0.6)
+    cautious.reset()
+    assert all((cautious.act(None, None) == [0.0, -1.0]).all() for _ in range(12)) and cautious.choice is None
+
+
+def test_exact_costs_never_lose_to_braking_and_offline_cost_equals_the_simulated_one():
+    """The exact-cost chooser's episode costs at most braking's, strictly less in some; and policy_cost on the
+    labels of braking's states gives exactly the R2 cost the chooser's simulated episode returns."""
+    env = UrbanCollisionEnv(camera=False)
+    twin = env.planning_twin()
+    steps = decide_steps_for(1.0)
+    better = 0
+    for spec in scenarios(6):
+        brake = total_risk(rollout(env, StraightLineBraking(), spec).outcome)
+        policy = ManoeuvreChooser(CANDIDATES, ExactCosts(CANDIDATES), steps)
+        live = rollout(env, policy, spec).outcome
+        assert total_risk(live) <= brake + 1e-9
+        better += total_risk(live) < brake - 1e-6
+        lab = cost_labels(env, spec, CANDIDATES, steps, twin)
+        offline = chooser.policy_cost(lab["costs"], lab["costs"], np.zeros(len(lab["costs"]), int), 0.0)
+        assert offline[0] == pytest.approx(-live["return_r2"], abs=1e-5)
+        assert lab["costs"][0, 0] == pytest.approx(brake, abs=1e-5)
+    assert better >= 1
+
+
+def test_policy_cost_by_hand():
+    # episode 0: the prediction first favours candidate 1 at t = 1; braking's cost falls 0.9 -> 0.8 by then
+    costs = np.array([[0.9, 0.7], [0.8, 0.1], [0.8, 0.8], [0.5, 0.2]], np.float32)
+    pred = np.array([[0.5, 0.6], [0.5, 0.2], [0.0, 0.0], [0.5, 0.1]], np.float32)
+    episode = np.array([0, 0, 0, 1])
+    np.testing.assert_allclose(chooser.policy_cost(pred, costs, episode, 0.0), [0.9 - 0.8 + 0.1, 0.2], atol=1e-6)
+    # a margin of 0.35 lets only episode 1's saving (0.4) through
+    np.testing.assert_allclose(chooser.policy_cost(pred, costs, episode, 0.35), [0.9, 0.2], atol=1e-6)
+
+
+OVERRIDES = [
+    "reward=r2",
+    "agent=chooser",
+    "agent.chooser.episodes=4",
+    "agent.chooser.steers=[1.0]",
+    "agent.chooser.lane_change_s=[0.3]",
+    "agent.chooser.decide_s=0.5",
+    "agent.chooser.steps=250",
+    "agent.chooser.batch_size=16",
+]
+
+
+@pytest.fixture(scope="module")
+def trained(smoke_builds, tmp_path_factory):
+    """A chooser trained on the smoke world model (4 labelled episodes, 1 worker)."""
+    from worldmodel.config import compose
+
+    root = tmp_path_factory.mktemp("chooser")
+    shutil.copytree(smoke_builds("rnn"), root, dirs_exist_ok=True)
+    base = [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke", "threads=1"]
+    cfg = compose("train_agent", [*base, *OVERRIDES, "agent.chooser.num_workers=1"])
+    metrics = train_agent.run(cfg)
+    return root, base, cfg, metrics
+
+
+def test_labels_are_reproducible_for_any_worker_count(trained, stage_cfg, tmp_path):
+    _, _, cfg, metrics = trained
+    assert metrics["learner"] == "chooser" and metrics["labelled_episodes"] == 4
+    again = stage_cfg("train_agent", *OVERRIDES, "agent.chooser.num_workers=2", root=tmp_path)
+    a, b = chooser.labels(cfg), chooser.labels(again)
+    for key in ("seg", "speed", "costs", "episode", "t"):
+        np.testing.assert_array_equal(a[key], b[key])
+    assert a["costs"].shape[1] == len(CANDIDATES) and a["t"].max() < decide_steps_for(0.5)
+    # a corrupt shard is named, with what to do
+    shard = next(chooser.labels_dir(again).glob("shard_*.h5"))
+    shard.write_bytes(b"not hdf5")
+    with pytest.raises(StageError, match="delete it and rerun"):
+        chooser.labels(again)
+
+
+def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
+    """Evaluation finds the chooser, and its live scores on a labelled episode equal the scorer applied offline to
+    the encoded labels (same world-model state, same normalisation)."""
+    _, base, cfg, _ = trained
+    from worldmodel.config import compose
+
+    agent = artifacts.AgentId.of(cfg)
+    assert agent.key == "agent_r2_chooser/seed0"
+    ecfg = compose("evaluate", base)
+    policy, _, models = evaluate._policy_for(ecfg, agent.key)
+    assert isinstance(policy, ManoeuvreChooser) and models["actor_sha"]
+    data = chooser.labels(cfg)
+    rows = np.flatnonzero(data["episode"] == 0)
+    encoder = artifacts.load_world_model(cfg)
+    offline_x = chooser.features(chooser.encode_labels(encoder, data), data["t"], policy.decide_steps)[rows]
+    with torch.no_grad():
+        offline = policy.scores.scorer(torch.from_numpy(offline_x)).numpy()
+    # the same episode live: the policy never commits (huge margin), so it brakes exactly as labelled
+    policy.margin = 1e9
+    seen = []
+    inner = policy.scores
+    policy.scores = lambda obs, t: seen.append(inner(obs, t)) or seen[-1]
+    env = evaluate.make_env(ecfg, camera=True)
+    rollout(env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))
+    np.testing.assert_allclose(np.stack(seen)[: len(rows)], offline, atol=1e-4)
+    # a chooser needs R2
+    with pytest.raises(StageError, match="reward=r2"):
+        train_agent.run(compose("train_agent", [*base, *OVERRIDES, "reward=r1", "agent.variant=chooserr1"]))

@@ -1,0 +1,310 @@
+"""The chooser agent (``agent.learner=chooser``; docs/design.md §5): the costs of manoeuvres, learnt from the camera.
+
+``envs/chooser.py`` holds the decision rule: brake from onset, and switch once, within the first ``decide_s``
+seconds, to the candidate manoeuvre whose predicted R2 cost is lowest when it beats braking by more than
+``margin``. This module learns the prediction:
+
+1. **Labels** (``labels``): straight-line braking through ``chooser.episodes`` scenarios with the camera on; at
+   each decision step the simulator gives the exact cost of starting every candidate there (the planner's
+   re-simulation, ``envs.planner.plan_cost``). Stored under ``data/NAME/chooser_labels/<settings>-seed<S>/`` in
+   HDF5 shards, written atomically; an interrupted labelling continues where it stopped.
+2. **Scorer** (``train``): every labelled frame through the frozen world model exactly as a live run feeds it
+   (``encode_episode``, braking actions), plus the decision step, normalised by fixed per-feature statistics of
+   the training split; an MLP regresses all candidates' costs by least squares, i.e. their expectation given what
+   the camera shows. The scorer kept is the one whose chooser costs least on the held-out labelled episodes.
+
+Because the chooser brakes until it switches, its decision states are exactly the labelled ones, and its cost on a
+labelled episode is known without simulating (``policy_cost``): braking's cost up to the switch plus the exact cost
+of the chosen manoeuvre from there. That is the selection criterion, and ``metrics.json`` reports it beside braking
+and the exact-cost chooser (the same rule with the true costs: this agent's ceiling).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from envs.chooser import BRAKE, ManoeuvreChooser, cost_labels, decide_steps_for
+from envs.planner import Manoeuvre
+
+from . import artifacts
+from .common import StageError, atomic_output, make_env, seed_everything, set_threads
+
+log = logging.getLogger(__name__)
+SHARD = 25  # labelled episodes per file
+HELD_OUT = 0.15  # share of labelled episodes held out for selecting the scorer
+
+
+# ----------------------------------------------------------------------------- labels
+def labels_dir(cfg) -> Path:
+    """``data/NAME/chooser_labels/<hash of the label settings>-seed<S>/``."""
+    settings = cfg_chooser(cfg).label_settings()
+    return artifacts.data_dir(cfg) / "chooser_labels" / f"{artifacts.config_sha256(settings)[:10]}-seed{cfg.seed}"
+
+
+def cfg_chooser(cfg):
+    from omegaconf import OmegaConf
+
+    from .config import ChooserConfig
+
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(ChooserConfig), cfg.agent.chooser))
+
+
+def label_scenario(seed: int, episode: int, c):
+    from envs import sample_focus_scenario
+
+    rng = np.random.default_rng([int(seed), 8128, int(episode)])
+    return sample_focus_scenario(rng, float(c.hazard_share), tuple(c.speed_range), tuple(c.ttc_range))
+
+
+def _label_shard(task) -> int:
+    """Worker: label the episodes of one shard and write it atomically."""
+    cfg_dict, shard, path = task
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create(cfg_dict)
+    c = cfg_chooser(cfg)
+    candidates, steps = c.candidates(), decide_steps_for(c.decide_s)
+    env = make_env(cfg, camera=True)
+    twin = env.planning_twin()
+    parts = []
+    for e in range(shard * SHARD, min((shard + 1) * SHARD, int(c.episodes))):
+        spec = label_scenario(int(cfg.seed), e, c)
+        lab = cost_labels(env, spec, candidates, steps, twin)
+        n = len(lab["speed"])
+        parts.append({**lab, "episode": np.full(n, e, np.int32), "t": np.arange(n, dtype=np.int16)})
+    env.close()
+    with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
+        for key in ("seg", "speed", "costs", "episode", "t"):
+            f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
+    return shard
+
+
+def labels(cfg) -> dict:
+    """The labelled decision states (``seg``, ``speed``, ``costs``, ``episode``, ``t``), making what is missing."""
+    c = cfg_chooser(cfg)
+    out = labels_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {**c.label_settings(), "seed": int(cfg.seed)}
+    meta = out / "settings.json"
+    if not meta.exists():
+        meta.write_text(json.dumps(settings, indent=1))
+    n_shards = math.ceil(int(c.episodes) / SHARD)
+    paths = [out / f"shard_{k:04d}.h5" for k in range(n_shards)]
+    todo = [k for k, p in enumerate(paths) if not p.exists()]
+    if todo:
+        from omegaconf import OmegaConf
+
+        cfg_dict = OmegaConf.to_container(cfg, resolve=True)
+        tasks = [(cfg_dict, k, str(paths[k])) for k in todo]
+        t0 = time.perf_counter()
+        with tqdm(total=len(todo) * SHARD, desc="chooser labels", unit="episode") as bar:
+            if int(c.num_workers) <= 1:
+                for t in tasks:
+                    _label_shard(t)
+                    bar.update(SHARD)
+            else:
+                with mp.get_context("spawn").Pool(int(c.num_workers)) as pool:
+                    for _ in pool.imap_unordered(_label_shard, tasks):
+                        bar.update(SHARD)
+        log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)
+    data: dict[str, list] = {k: [] for k in ("seg", "speed", "costs", "episode", "t")}
+    for p in paths:
+        try:
+            with h5py.File(p, "r") as f:
+                for k in data:
+                    data[k].append(f[k][...])
+        except OSError as err:
+            raise StageError(f"{p} is not a readable HDF5 file ({err}); delete it and rerun to relabel it") from None
+    return {k: np.concatenate(v) for k, v in data.items()}
+
+
+# ----------------------------------------------------------------------------- the scorer
+class Scorer(nn.Module):
+    """Normalised features -> predicted cost of every candidate (the normalisation is part of the module)."""
+
+    def __init__(self, in_dim: int, n_out: int, hidden=(256, 256), dropout: float = 0.2):
+        super().__init__()
+        layers, d = [], in_dim
+        for h in hidden:
+            layers += [nn.Linear(d, int(h)), nn.ReLU(), nn.Dropout(float(dropout))]
+            d = int(h)
+        self.net = nn.Sequential(*layers, nn.Linear(d, n_out))
+        self.register_buffer("mean", torch.zeros(in_dim))
+        self.register_buffer("std", torch.ones(in_dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net((x - self.mean) / self.std)
+
+
+def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarray:
+    """The scorer's input: the agent input of the world model, then the decision step as a share of the window."""
+    return np.concatenate([encoded, (np.asarray(t, np.float32) / decide_steps)[:, None]], axis=1).astype(np.float32)
+
+
+def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float) -> np.ndarray:
+    """Per labelled episode, the exact R2 cost of the chooser that acts on ``pred``: braking until the first step
+    where some candidate is predicted cheaper than braking by more than ``margin``, then that candidate."""
+    out = []
+    for e in np.unique(episode):
+        rows = np.flatnonzero(episode == e)
+        p, c = pred[rows], costs[rows]
+        total = float(c[0, 0])
+        for t in range(len(rows)):
+            k = int(np.argmin(p[t]))
+            if p[t, 0] - p[t, k] > margin:
+                total = float(c[0, 0] - c[t, 0] + c[t, k])
+                break
+        out.append(total)
+    return np.asarray(out)
+
+
+def encode_labels(encoder, data: dict) -> np.ndarray:
+    """Every labelled frame as a live chooser's encoder sees it (braking before every frame)."""
+    from .agent_obs import encode_episode
+
+    out = np.empty((len(data["speed"]), encoder.dim), np.float32)
+    for e in tqdm(np.unique(data["episode"]), desc="encode chooser labels", unit="episode"):
+        rows = np.flatnonzero(data["episode"] == e)
+        brake = np.repeat(BRAKE[None], len(rows), axis=0)
+        out[rows] = encode_episode(encoder, data["seg"][rows], data["speed"][rows], brake)
+    return out
+
+
+def train(cfg, run_, agent_id) -> dict:
+    """Label (or reuse labels), encode, fit the scorer; saves the chooser's checkpoint through ``run_``."""
+    from .action_map import ActionMap
+
+    c = cfg_chooser(cfg)
+    set_threads(cfg.threads)
+    seed_everything(int(cfg.seed))
+    steps = decide_steps_for(c.decide_s)
+    candidates = c.candidates()
+    data = labels(cfg)
+    encoder = artifacts.load_world_model(cfg)
+    x = features(encode_labels(encoder, data), data["t"], steps)
+    y = data["costs"].astype(np.float32)
+    episodes = np.unique(data["episode"])
+    held = set(episodes[int(round(len(episodes) * (1 - HELD_OUT))) :].tolist())
+    is_held = np.array([e in held for e in data["episode"]])
+    xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
+    xv, yv = torch.from_numpy(x[is_held]), y[is_held]
+
+    scorer = Scorer(x.shape[1], len(candidates), tuple(c.hidden), c.dropout)
+    scorer.mean.copy_(xt.mean(0))
+    scorer.std.copy_(xt.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
+    opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
+    rng = np.random.default_rng([int(cfg.seed), 77])
+    ev = data["episode"][is_held]
+
+    def held_out(margin: float) -> tuple[float, float]:
+        scorer.eval()
+        with torch.no_grad():
+            pred = scorer(xv).numpy()
+        scorer.train()
+        return float(policy_cost(pred, yv, ev, margin).mean()), float(((pred - yv) ** 2).mean())
+
+    best, best_state, history = math.inf, None, []
+    for k in tqdm(range(int(c.steps)), desc="chooser scorer", unit="batch"):
+        idx = torch.from_numpy(rng.integers(0, len(xt), size=int(c.batch_size)))
+        loss = ((scorer(xt[idx]) - yt[idx]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if k % 50 == 0:
+            run_.writer.add_scalar("chooser/train_mse", loss.item(), k)
+        if (k + 1) % 250 == 0 or k + 1 == int(c.steps):
+            cost, mse = held_out(float(c.margin))
+            run_.writer.add_scalar("chooser/held_out_cost", cost, k)
+            run_.writer.add_scalar("chooser/held_out_mse", mse, k)
+            history.append((k + 1, cost, mse))
+            if cost < best:
+                best, best_state = cost, {n: v.clone() for n, v in scorer.state_dict().items()}
+        if run_.stop.requested:
+            break
+    scorer.load_state_dict(best_state)
+    exact = policy_cost(yv, yv, ev, 0.0)
+    braking = yv[np.r_[True, ev[1:] != ev[:-1]], 0]
+    margins = {m: held_out(m)[0] for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
+    state = {
+        "learner": "chooser",
+        "scorer": scorer.state_dict(),
+        "in_dim": int(x.shape[1]),
+        "hidden": [int(h) for h in c.hidden],
+        "dropout": float(c.dropout),
+        "candidates": [vars(m) for m in candidates],
+        "decide_steps": steps,
+        "margin": float(c.margin),
+        "obs_dim": int(encoder.dim),
+        "use_speed": bool(cfg.agent.use_speed),
+        "frame_view": bool(cfg.agent.frame_view),
+        "action_map": ActionMap().to_dict(),
+        "reward": agent_id.reward,
+        "step": int(c.steps),
+    }
+    run_.save(state)
+    return {
+        "reward": agent_id.reward,
+        "learner": "chooser",
+        "labelled_episodes": int(len(episodes)),
+        "labelled_states": int(len(y)),
+        "held_out_episodes": int(len(held)),
+        "held_out_cost": {
+            "braking": round(float(braking.mean()), 5),
+            "exact_chooser": round(float(exact.mean()), 5),
+            "learned": round(best, 5),
+            "learned_by_margin": {str(m): round(v, 5) for m, v in margins.items()},
+        },
+        "checks": [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history],
+    }
+
+
+# ----------------------------------------------------------------------------- acting
+class LearnedScorer:
+    """The trained scorer behind ``ManoeuvreChooser``'s ``scores(obs, t)``, with the world model's state."""
+
+    def __init__(self, encoder, scorer: Scorer, decide_steps: int):
+        self.encoder, self.scorer, self.decide_steps = encoder, scorer.eval(), int(decide_steps)
+
+    def reset(self) -> None:
+        self.encoder.reset()
+
+    def note_action(self, action) -> None:
+        self.encoder.note_action(action)
+
+    def __call__(self, obs, t: int) -> np.ndarray:
+        x = features(self.encoder.encode(obs)[None], np.array([t]), self.decide_steps)
+        with torch.inference_mode():
+            return self.scorer(torch.from_numpy(x))[0].numpy()
+
+
+def build_policy(name: str, encoder, state: dict, margin: float | None = None) -> ManoeuvreChooser:
+    """A chooser checkpoint as a scripted-policy (``reset``, ``act``)."""
+    candidates = [Manoeuvre(**m) for m in state["candidates"]]
+    scorer = Scorer(int(state["in_dim"]), len(candidates), tuple(state["hidden"]), float(state["dropout"]))
+    scorer.load_state_dict(state["scorer"])
+    if encoder.dim + 1 != int(state["in_dim"]):
+        raise StageError(
+            f"the chooser {name} expects {int(state['in_dim']) - 1} world-model features, the world model gives "
+            f"{encoder.dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed): retrain it"
+        )
+    learned = LearnedScorer(encoder, scorer, int(state["decide_steps"]))
+    return ManoeuvreChooser(
+        candidates,
+        learned,
+        int(state["decide_steps"]),
+        float(state["margin"] if margin is None else margin),
+        name=name,
+        reset_scorer=learned.reset,
+        note_action=learned.note_action,
+    )
