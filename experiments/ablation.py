@@ -67,6 +67,17 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
         ["demos.teacher_sides=[1.0]"],
     ),
     "rightview": ("right", "+ the raw frame's hazard profiles", ["agent.frame_view=true"]),
+    "chooser": (
+        None,
+        "the chooser: brakes, then switches once to the manoeuvre whose cost its scorer predicts lowest from "
+        "[z, zhat, speed, frame view] (costs labelled by the simulator on braking's states)",
+        ["agent=chooser"],
+    ),
+    "chooserwm": (
+        "chooser",
+        "the chooser on the world model alone: [z, zhat, speed], no frame view",
+        ["agent.frame_view=false"],
+    ),
     "fd": (
         "focus",
         "+ cloning, then DDPG from demonstrations (25 % demo batches, Q-filtered cloning)",
@@ -89,6 +100,7 @@ PLANNERS: dict[str, tuple[str, list[str]]] = {
         ["evaluate.oracle.sides=[1.0]"],
     ),
     "left": ("the planner steering left only", ["evaluate.oracle.sides=[-1.0]"]),
+    "chooser": ("the chooser's rule on exact costs (agent.chooser's candidates): its ceiling", []),
 }
 
 
@@ -138,7 +150,8 @@ def main(argv=None) -> int:
         variant = compose("evaluate", [*base, *PLANNERS[p][1]])
 
         def make(c=variant, p=p):
-            return [r | {"policy": f"oracle_{p}"} for r in evaluate.evaluate_policy(c, "oracle", entries, workers)]
+            source = evaluate.EXACT_CHOOSER if p == "chooser" else "oracle"
+            return [r | {"policy": f"oracle_{p}"} for r in evaluate.evaluate_policy(c, source, entries, workers)]
 
         rows += cached_rows(out / f"rows_oracle_{p}.csv", None, make)
     table = []

@@ -46,10 +46,33 @@ HELD_OUT = 0.15  # share of labelled episodes held out for selecting the scorer
 
 
 # ----------------------------------------------------------------------------- labels
-def labels_dir(cfg) -> Path:
-    """``data/NAME/chooser_labels/<hash of the label settings>-seed<S>/``."""
+SOURCES = ("train", "validation")  # training labels, or the validation bank's scenarios (for choosing settings)
+
+
+def labels_dir(cfg, source: str = "train") -> Path:
+    """``data/NAME/chooser_labels/<hash of the label settings>-seed<S>/`` for the training labels;
+    ``.../validation-<hash>/`` for the validation bank's scenarios (independent of the training seed)."""
     settings = cfg_chooser(cfg).label_settings()
+    if source == "validation":
+        e = cfg.evaluate
+        settings = {**settings, "bank": [list(e.ttcs), list(e.speeds), list(e.hazards), int(e.per_cell)]}
+        settings["bank_seed"] = int(e.validation_seed)
+        return artifacts.data_dir(cfg) / "chooser_labels" / f"validation-{artifacts.config_sha256(settings)[:10]}"
     return artifacts.data_dir(cfg) / "chooser_labels" / f"{artifacts.config_sha256(settings)[:10]}-seed{cfg.seed}"
+
+
+def validation_entries(cfg):
+    """The validation bank (``evaluate.bank=validation``): the same grid and seed as evaluation draws."""
+    from envs import test_bank
+
+    e = cfg.evaluate
+    return test_bank(
+        ttcs=tuple(e.ttcs),
+        speeds=tuple(e.speeds),
+        hazards=tuple(e.hazards),
+        per_cell=int(e.per_cell),
+        seed=int(e.validation_seed),
+    )
 
 
 def cfg_chooser(cfg):
@@ -69,7 +92,7 @@ def label_scenario(seed: int, episode: int, c):
 
 def _label_shard(task) -> int:
     """Worker: label the episodes of one shard and write it atomically."""
-    cfg_dict, shard, path = task
+    cfg_dict, shard, path, source = task
     from omegaconf import OmegaConf
 
     cfg = OmegaConf.create(cfg_dict)
@@ -78,8 +101,10 @@ def _label_shard(task) -> int:
     env = make_env(cfg, camera=True)
     twin = env.planning_twin()
     parts = []
-    for e in range(shard * SHARD, min((shard + 1) * SHARD, int(c.episodes))):
-        spec = label_scenario(int(cfg.seed), e, c)
+    bank = validation_entries(cfg) if source == "validation" else None
+    n = len(bank) if bank is not None else int(c.episodes)
+    for e in range(shard * SHARD, min((shard + 1) * SHARD, n)):
+        spec = bank[e].spec if bank is not None else label_scenario(int(cfg.seed), e, c)
         lab = cost_labels(env, spec, candidates, steps, twin)
         n = len(lab["speed"])
         parts.append({**lab, "episode": np.full(n, e, np.int32), "t": np.arange(n, dtype=np.int16)})
@@ -90,25 +115,29 @@ def _label_shard(task) -> int:
     return shard
 
 
-def labels(cfg) -> dict:
-    """The labelled decision states (``seg``, ``speed``, ``costs``, ``episode``, ``t``), making what is missing."""
+def labels(cfg, source: str = "train") -> dict:
+    """The labelled decision states (``seg``, ``speed``, ``costs``, ``episode``, ``t``), making what is missing.
+    ``source``: the training scenarios, or the validation bank's (episode = the bank entry's index)."""
+    if source not in SOURCES:
+        raise ValueError(f"chooser label source {source!r}: use one of {SOURCES}")
     c = cfg_chooser(cfg)
-    out = labels_dir(cfg)
+    out = labels_dir(cfg, source)
     out.mkdir(parents=True, exist_ok=True)
-    settings = {**c.label_settings(), "seed": int(cfg.seed)}
+    settings = {**c.label_settings(), "seed": int(cfg.seed), "source": source}
     meta = out / "settings.json"
     if not meta.exists():
         meta.write_text(json.dumps(settings, indent=1))
-    n_shards = math.ceil(int(c.episodes) / SHARD)
+    n = len(validation_entries(cfg)) if source == "validation" else int(c.episodes)
+    n_shards = math.ceil(n / SHARD)
     paths = [out / f"shard_{k:04d}.h5" for k in range(n_shards)]
     todo = [k for k, p in enumerate(paths) if not p.exists()]
     if todo:
         from omegaconf import OmegaConf
 
         cfg_dict = OmegaConf.to_container(cfg, resolve=True)
-        tasks = [(cfg_dict, k, str(paths[k])) for k in todo]
+        tasks = [(cfg_dict, k, str(paths[k]), source) for k in todo]
         t0 = time.perf_counter()
-        with tqdm(total=len(todo) * SHARD, desc="chooser labels", unit="episode") as bar:
+        with tqdm(total=min(len(todo) * SHARD, n), desc=f"chooser labels ({source})", unit="episode") as bar:
             if int(c.num_workers) <= 1:
                 for t in tasks:
                     _label_shard(t)
@@ -131,20 +160,42 @@ def labels(cfg) -> dict:
 
 # ----------------------------------------------------------------------------- the scorer
 class Scorer(nn.Module):
-    """Normalised features -> predicted cost of every candidate (the normalisation is part of the module)."""
+    """Features -> predicted cost of every candidate: the mean of ``members`` MLPs, each on features normalised by
+    fixed statistics of the training split (buffers, so they travel with the checkpoint).
 
-    def __init__(self, in_dim: int, n_out: int, hidden=(256, 256), dropout: float = 0.2):
+    ``advantage``: each MLP predicts braking's cost and every other candidate's cost *minus* braking's, so the
+    decision (is some candidate cheaper than braking?) is one output's sign rather than the difference of two
+    outputs, each with its own error."""
+
+    def __init__(
+        self, in_dim: int, n_out: int, hidden=(256, 256), dropout: float = 0.2, members: int = 1, advantage=False
+    ):
         super().__init__()
-        layers, d = [], in_dim
-        for h in hidden:
-            layers += [nn.Linear(d, int(h)), nn.ReLU(), nn.Dropout(float(dropout))]
-            d = int(h)
-        self.net = nn.Sequential(*layers, nn.Linear(d, n_out))
+
+        def mlp():
+            layers, d = [], in_dim
+            for h in hidden:
+                layers += [nn.Linear(d, int(h)), nn.ReLU(), nn.Dropout(float(dropout))]
+                d = int(h)
+            return nn.Sequential(*layers, nn.Linear(d, n_out))
+
+        self.nets = nn.ModuleList(mlp() for _ in range(int(members)))
+        self.advantage = bool(advantage)
         self.register_buffer("mean", torch.zeros(in_dim))
         self.register_buffer("std", torch.ones(in_dim))
 
+    def raw(self, x: torch.Tensor, member: int) -> torch.Tensor:
+        return self.nets[member]((x - self.mean) / self.std)
+
+    def to_costs(self, out: torch.Tensor) -> torch.Tensor:
+        return torch.cat([out[:, :1], out[:, :1] + out[:, 1:]], dim=1) if self.advantage else out
+
+    def targets(self, costs: torch.Tensor) -> torch.Tensor:
+        """What ``raw`` regresses: the costs, or braking's cost and the others' differences from it."""
+        return torch.cat([costs[:, :1], costs[:, 1:] - costs[:, :1]], dim=1) if self.advantage else costs
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net((x - self.mean) / self.std)
+        return torch.stack([self.to_costs(self.raw(x, m)) for m in range(len(self.nets))]).mean(0)
 
 
 def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarray:
@@ -152,18 +203,21 @@ def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarra
     return np.concatenate([encoded, (np.asarray(t, np.float32) / decide_steps)[:, None]], axis=1).astype(np.float32)
 
 
-def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float) -> np.ndarray:
+def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None):
     """Per labelled episode, the exact R2 cost of the chooser that acts on ``pred``: braking until the first step
-    where some candidate is predicted cheaper than braking by more than ``margin``, then that candidate."""
+    where some candidate is predicted cheaper than braking by more than ``margin``, then that candidate. With
+    ``t`` and ``steps``: a chooser whose window ends after ``steps`` decision steps."""
     out = []
     for e in np.unique(episode):
         rows = np.flatnonzero(episode == e)
+        if t is not None and steps is not None:
+            rows = rows[np.asarray(t)[rows] < steps]
         p, c = pred[rows], costs[rows]
         total = float(c[0, 0])
-        for t in range(len(rows)):
-            k = int(np.argmin(p[t]))
-            if p[t, 0] - p[t, k] > margin:
-                total = float(c[0, 0] - c[t, 0] + c[t, k])
+        for k_t in range(len(rows)):
+            k = int(np.argmin(p[k_t]))
+            if p[k_t, 0] - p[k_t, k] > margin:
+                total = float(c[0, 0] - c[k_t, 0] + c[k_t, k])
                 break
         out.append(total)
     return np.asarray(out)
@@ -181,6 +235,61 @@ def encode_labels(encoder, data: dict) -> np.ndarray:
     return out
 
 
+def held_out_split(episode: np.ndarray) -> np.ndarray:
+    """True for the rows of the last ``HELD_OUT`` share of labelled episodes."""
+    episodes = np.unique(episode)
+    held = episodes[int(round(len(episodes) * (1 - HELD_OUT))) :]
+    return np.isin(episode, held)
+
+
+def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, writer=None, stop=None):
+    """Fit a ``Scorer`` on the training split by least squares; keep the checkpoint whose chooser costs least
+    on the held-out split. Returns (scorer, history of (minibatch, held-out cost, held-out mse))."""
+    torch.manual_seed(int(seed))
+    is_held = held_out_split(episode)
+    xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
+    xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
+    members = int(c.ensemble)
+    scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target == "advantage")
+    scorer.mean.copy_(xt.mean(0))
+    scorer.std.copy_(xt.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
+    targets = scorer.targets(yt)
+    opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
+    rng = np.random.default_rng([int(seed), 77])
+
+    def held_out() -> tuple[float, float]:
+        scorer.eval()
+        with torch.no_grad():
+            pred = scorer(xv).numpy()
+        scorer.train()
+        return float(policy_cost(pred, yv, ev, float(c.margin)).mean()), float(((pred - yv) ** 2).mean())
+
+    best, best_state, history = math.inf, None, []
+    for k in tqdm(range(int(c.steps)), desc="chooser scorer", unit="batch", disable=writer is None):
+        loss = 0.0
+        for m in range(members):  # each member its own minibatches
+            idx = torch.from_numpy(rng.integers(0, len(xt), size=int(c.batch_size)))
+            loss = loss + ((scorer.raw(xt[idx], m) - targets[idx]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if writer is not None and k % 50 == 0:
+            writer.add_scalar("chooser/train_mse", loss.item() / members, k)
+        if (k + 1) % 250 == 0 or k + 1 == int(c.steps):
+            cost, mse = held_out()
+            if writer is not None:
+                writer.add_scalar("chooser/held_out_cost", cost, k)
+                writer.add_scalar("chooser/held_out_mse", mse, k)
+            history.append((k + 1, cost, mse))
+            if cost < best:
+                best, best_state = cost, {n: v.clone() for n, v in scorer.state_dict().items()}
+        if stop is not None and stop.requested:
+            break
+    if best_state is not None:
+        scorer.load_state_dict(best_state)
+    return scorer.eval(), history
+
+
 def train(cfg, run_, agent_id) -> dict:
     """Label (or reuse labels), encode, fit the scorer; saves the chooser's checkpoint through ``run_``."""
     from .action_map import ActionMap
@@ -194,54 +303,22 @@ def train(cfg, run_, agent_id) -> dict:
     encoder = artifacts.load_world_model(cfg)
     x = features(encode_labels(encoder, data), data["t"], steps)
     y = data["costs"].astype(np.float32)
-    episodes = np.unique(data["episode"])
-    held = set(episodes[int(round(len(episodes) * (1 - HELD_OUT))) :].tolist())
-    is_held = np.array([e in held for e in data["episode"]])
-    xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
-    xv, yv = torch.from_numpy(x[is_held]), y[is_held]
-
-    scorer = Scorer(x.shape[1], len(candidates), tuple(c.hidden), c.dropout)
-    scorer.mean.copy_(xt.mean(0))
-    scorer.std.copy_(xt.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
-    opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
-    rng = np.random.default_rng([int(cfg.seed), 77])
-    ev = data["episode"][is_held]
-
-    def held_out(margin: float) -> tuple[float, float]:
-        scorer.eval()
-        with torch.no_grad():
-            pred = scorer(xv).numpy()
-        scorer.train()
-        return float(policy_cost(pred, yv, ev, margin).mean()), float(((pred - yv) ** 2).mean())
-
-    best, best_state, history = math.inf, None, []
-    for k in tqdm(range(int(c.steps)), desc="chooser scorer", unit="batch"):
-        idx = torch.from_numpy(rng.integers(0, len(xt), size=int(c.batch_size)))
-        loss = ((scorer(xt[idx]) - yt[idx]) ** 2).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if k % 50 == 0:
-            run_.writer.add_scalar("chooser/train_mse", loss.item(), k)
-        if (k + 1) % 250 == 0 or k + 1 == int(c.steps):
-            cost, mse = held_out(float(c.margin))
-            run_.writer.add_scalar("chooser/held_out_cost", cost, k)
-            run_.writer.add_scalar("chooser/held_out_mse", mse, k)
-            history.append((k + 1, cost, mse))
-            if cost < best:
-                best, best_state = cost, {n: v.clone() for n, v in scorer.state_dict().items()}
-        if run_.stop.requested:
-            break
-    scorer.load_state_dict(best_state)
+    scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop)
+    is_held = held_out_split(data["episode"])
+    yv, ev = y[is_held], data["episode"][is_held]
+    with torch.no_grad():
+        pred = scorer(torch.from_numpy(x[is_held])).numpy()
     exact = policy_cost(yv, yv, ev, 0.0)
     braking = yv[np.r_[True, ev[1:] != ev[:-1]], 0]
-    margins = {m: held_out(m)[0] for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
+    margins = {m: float(policy_cost(pred, yv, ev, m).mean()) for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
     state = {
         "learner": "chooser",
         "scorer": scorer.state_dict(),
         "in_dim": int(x.shape[1]),
         "hidden": [int(h) for h in c.hidden],
         "dropout": float(c.dropout),
+        "members": int(c.ensemble),
+        "advantage": c.target == "advantage",
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
         "margin": float(c.margin),
@@ -256,13 +333,13 @@ def train(cfg, run_, agent_id) -> dict:
     return {
         "reward": agent_id.reward,
         "learner": "chooser",
-        "labelled_episodes": int(len(episodes)),
+        "labelled_episodes": int(len(np.unique(data["episode"]))),
         "labelled_states": int(len(y)),
-        "held_out_episodes": int(len(held)),
+        "held_out_episodes": int(len(np.unique(ev))),
         "held_out_cost": {
             "braking": round(float(braking.mean()), 5),
             "exact_chooser": round(float(exact.mean()), 5),
-            "learned": round(best, 5),
+            "learned": round(margins.get(float(c.margin), float(policy_cost(pred, yv, ev, c.margin).mean())), 5),
             "learned_by_margin": {str(m): round(v, 5) for m, v in margins.items()},
         },
         "checks": [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history],
@@ -291,7 +368,14 @@ class LearnedScorer:
 def build_policy(name: str, encoder, state: dict, margin: float | None = None) -> ManoeuvreChooser:
     """A chooser checkpoint as a scripted-policy (``reset``, ``act``)."""
     candidates = [Manoeuvre(**m) for m in state["candidates"]]
-    scorer = Scorer(int(state["in_dim"]), len(candidates), tuple(state["hidden"]), float(state["dropout"]))
+    scorer = Scorer(
+        int(state["in_dim"]),
+        len(candidates),
+        tuple(state["hidden"]),
+        float(state["dropout"]),
+        int(state.get("members", 1)),
+        bool(state.get("advantage", False)),
+    )
     scorer.load_state_dict(state["scorer"])
     if encoder.dim + 1 != int(state["in_dim"]):
         raise StageError(

@@ -228,6 +228,9 @@ class ChooserConfig(Checked):
     weight_decay: float = 1.0e-4
     batch_size: int = 256
     steps: int = 6000  # minibatches; the scorer kept is the best on the held-out labelled episodes
+    ensemble: int = 1  # the scorer is the mean of this many MLPs (each its own init and minibatches)
+    # "cost": regress every candidate's cost; "advantage": braking's cost and the others' differences from it
+    target: str = "cost"
 
     def problems(self):
         from envs.chooser import chooser_candidates
@@ -241,6 +244,10 @@ class ChooserConfig(Checked):
                 yield ConfigValueError(f"chooser.{key}", value, "it must be [low, high] with 0 < low <= high")
         if self.margin < 0 or not 0.0 <= self.dropout < 1.0 or self.weight_decay < 0:
             yield ConfigValueError("chooser.margin", self.margin, "margin and weight_decay >= 0, dropout in [0, 1)")
+        if self.ensemble < 1:
+            yield ConfigValueError("chooser.ensemble", self.ensemble, "it must be >= 1")
+        if self.target not in ("cost", "advantage"):
+            yield ConfigValueError("chooser.target", self.target, "it must be cost or advantage")
         if not self.hidden or any(int(h) < 1 for h in self.hidden):
             yield ConfigValueError("chooser.hidden", list(self.hidden), "use a non-empty list of layer sizes >= 1")
         try:

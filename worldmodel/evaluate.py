@@ -77,6 +77,22 @@ def make_oracle(cfg):
     return PrivilegedPlanner.from_settings(**oracle_settings(cfg))
 
 
+EXACT_CHOOSER = "exact_chooser"  # the chooser's decision rule on exact costs: the ceiling of agent.learner=chooser
+
+
+def make_exact_chooser(cfg):
+    """The chooser (``agent.chooser``'s candidates and window) acting on the true costs, read from the simulator."""
+    from envs.chooser import ExactCosts, ManoeuvreChooser, decide_steps_for
+
+    from .chooser import cfg_chooser
+
+    c = cfg_chooser(cfg)
+    candidates = c.candidates()
+    return ManoeuvreChooser(
+        candidates, ExactCosts(candidates), decide_steps_for(c.decide_s), float(c.margin), name=EXACT_CHOOSER
+    )
+
+
 def _policy_for(cfg, name: str):
     """(policy, training seed, model hashes) for a scripted policy's name or an agent's key."""
     from envs import StraightLineBraking
@@ -87,6 +103,8 @@ def _policy_for(cfg, name: str):
         return StraightLineBraking(), 0, NO_MODELS
     if name == "oracle":
         return make_oracle(cfg), 0, NO_MODELS
+    if name == EXACT_CHOOSER:
+        return make_exact_chooser(cfg), 0, NO_MODELS
     agent = AgentId.parse(name)
     actor, state = artifacts.load_actor(cfg, agent)
     # each agent acts as it was trained: its own input (speed or not) and its own action map
@@ -111,7 +129,8 @@ def _run_chunk(task) -> list[dict]:
     torch.set_num_threads(1)
     if name not in _WORKER:
         cfg = OmegaConf.create(cfg_dict)
-        _WORKER[name] = (make_env(cfg, camera=name not in SCRIPTED_POLICIES), *_policy_for(cfg, name))
+        camera = name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER)
+        _WORKER[name] = (make_env(cfg, camera=camera), *_policy_for(cfg, name))
     env, policy, seed, models = _WORKER[name]
     return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
 
