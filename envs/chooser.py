@@ -39,9 +39,10 @@ def chooser_candidates(
     lane_change_s: Sequence[float] = (0.3, 0.6),
     pedals: Sequence[float] = (-1.0,),
     sides: Sequence[float] = (1.0, -1.0),
+    swerve: bool = True,
 ) -> list[Manoeuvre]:
-    """Straight-line braking first, then every steer × shape (held swerve, lane changes) × pedal × side, started
-    now. No delayed starts: the chooser decides again at the next step, so waiting is already a choice."""
+    """Straight-line braking first, then every steer × shape (held swerve if ``swerve``, lane changes) × pedal ×
+    side, started now. No delayed starts: the chooser decides again at the next step, so waiting is a choice."""
     if not steers or any(not 0.0 < float(s) <= 1.0 for s in steers):
         raise ValueError(f"chooser steers={list(steers)} must lie in (0, 1]")
     if any(not -1.0 <= float(p) <= 1.0 for p in pedals) or not pedals:
@@ -50,7 +51,10 @@ def chooser_candidates(
         raise ValueError(f"chooser lane_change_s={list(lane_change_s)} must be > 0")
     if not sides or any(float(x) not in (1.0, -1.0) for x in sides) or len(set(sides)) != len(sides):
         raise ValueError(f"chooser sides={list(sides)} must be distinct values of 1.0 (right) and -1.0 (left)")
-    shapes = [("swerve", 0)] + [("lane_change", max(1, int(round(float(h) / DT)))) for h in lane_change_s]
+    if not swerve and not lane_change_s:
+        raise ValueError("the chooser needs a manoeuvre besides braking: lane_change_s or swerve")
+    shapes = [("swerve", 0)] if swerve else []
+    shapes += [("lane_change", max(1, int(round(float(h) / DT)))) for h in lane_change_s]
     out = [Manoeuvre(-1.0)]
     for steer in sorted({float(s) for s in steers}):
         for shape, hold in shapes:

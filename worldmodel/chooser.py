@@ -137,15 +137,17 @@ def labels(cfg, source: str = "train") -> dict:
         cfg_dict = OmegaConf.to_container(cfg, resolve=True)
         tasks = [(cfg_dict, k, str(paths[k]), source) for k in todo]
         t0 = time.perf_counter()
-        with tqdm(total=min(len(todo) * SHARD, n), desc=f"chooser labels ({source})", unit="episode") as bar:
+        with tqdm(
+            total=sum(min(SHARD, n - k * SHARD) for k in todo), desc=f"chooser labels ({source})", unit="episode"
+        ) as bar:
             if int(c.num_workers) <= 1:
                 for t in tasks:
-                    _label_shard(t)
-                    bar.update(SHARD)
+                    k = _label_shard(t)
+                    bar.update(min(SHARD, n - k * SHARD))
             else:
                 with mp.get_context("spawn").Pool(int(c.num_workers)) as pool:
-                    for _ in pool.imap_unordered(_label_shard, tasks):
-                        bar.update(SHARD)
+                    for k in pool.imap_unordered(_label_shard, tasks):
+                        bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)
     data: dict[str, list] = {k: [] for k in ("seg", "speed", "costs", "episode", "t")}
     for p in paths:
