@@ -97,6 +97,7 @@ OVERRIDES = [
     "agent.chooser.episodes=4",
     "agent.chooser.steers=[1.0]",
     "agent.chooser.lane_change_s=[0.3]",
+    "agent.chooser.swerve=true",
     "agent.chooser.decide_s=0.5",
     "agent.chooser.steps=250",
     "agent.chooser.batch_size=16",
