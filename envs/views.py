@@ -60,3 +60,38 @@ class HazardView:
         out = np.concatenate([current, self._previous])
         self._previous = current
         return out
+
+
+class MaskView:
+    """Where the hazard classes are in a band of the frame, as 2-D masks: for each class the rows ``rows`` of the
+    current and the previous frame (zeros before the first), flattened to ``(2 * len(classes) * band * W,)``.
+
+    The profiles of ``HazardView`` are marginals: with a hazard pedestrian on the road and others on the
+    sidewalks, which column goes with which row is lost. The band keeps it, around the horizon where road users
+    between ~4 m and the far end of the street appear (the camera looks 8° down from 1.6 m)."""
+
+    def __init__(self, rows: tuple[int, int] = (20, 44), image_size: int = 64, classes=HAZARD_CLASSES):
+        self.classes = tuple(classes)
+        unknown = [c for c in self.classes if c not in CLASS_NAMES]
+        if unknown:
+            raise ValueError(f"unknown class names {unknown}; known: {list(CLASS_NAMES)}")
+        r0, r1 = int(rows[0]), int(rows[1])
+        if not 0 <= r0 < r1 <= image_size:
+            raise ValueError(f"mask rows {rows} must satisfy 0 <= first < last <= {image_size}")
+        self.rows, self.image_size = (r0, r1), int(image_size)
+        self.shape = (2 * len(self.classes), r1 - r0, self.image_size)  # channels: classes now, then before
+        self.dim = int(np.prod(self.shape))
+        self.reset()
+
+    def reset(self) -> None:
+        self._previous = np.zeros((len(self.classes), *self.shape[1:]), np.float32)
+
+    def __call__(self, seg: np.ndarray) -> np.ndarray:
+        seg = np.asarray(seg)
+        if seg.shape != (self.image_size, self.image_size):
+            raise ValueError(f"expected a ({self.image_size}, {self.image_size}) class map, got {seg.shape}")
+        band = seg[self.rows[0] : self.rows[1]]
+        current = np.stack([band == CLASS_NAMES.index(c) for c in self.classes]).astype(np.float32)
+        out = np.concatenate([current, self._previous]).reshape(-1)
+        self._previous = current
+        return out

@@ -32,9 +32,12 @@ VARIANTS: dict[str, tuple[list[str], dict]] = {
     "adv": ([], {"target": "advantage"}),
     "ens5": ([], {"ensemble": 5}),
     "advens5": ([], {"target": "advantage", "ensemble": 5}),
-    "wm": (["agent.frame_view=false"], {}),
-    "view": (["agent.frame_view=true"], {}),
-    "advens5wd": ([], {"target": "advantage", "ensemble": 5, "weight_decay": 1e-2, "dropout": 0.5}),
+    "advens5wm": (["agent.frame_view=false"], {"target": "advantage", "ensemble": 5}),
+    "advens5half": (["agent.chooser.episodes=1500"], {"target": "advantage", "ensemble": 5}),
+    "advens5fifth": (["agent.chooser.episodes=600"], {"target": "advantage", "ensemble": 5}),
+    "mask": ([], {"target": "advantage", "mask_view": True, "steps": 3000}),
+    "maskcost": ([], {"mask_view": True, "steps": 3000}),
+    "maskens3": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "ensemble": 3}),
 }
 
 
@@ -54,7 +57,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", default="0", help="training seeds (each its own labels)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(2)
+    torch.set_num_threads(1)
     base = [*args.overrides, "reward=r2", "agent=chooser"]
     cfg = compose("train_agent", base)
     val = chooser.labels(cfg, "validation")
@@ -82,12 +85,12 @@ def main(argv=None) -> int:
             vcfg = compose("train_agent", [*base, *inputs, f"seed={seed}"])
             c = OmegaConf.to_object(OmegaConf.merge(chooser.cfg_chooser(vcfg), settings))
             steps = chooser.decide_steps_for(c.decide_s)
-            key = f"{inputs}-{seed}"
+            key = f"{inputs}-{seed}-{c.mask_view}"
             if key not in encoded:
                 train = chooser.labels(vcfg)
                 encoder = artifacts.load_world_model(vcfg)
-                x = chooser.features(chooser.encode_labels(encoder, train), train["t"], steps)
-                xv = chooser.features(chooser.encode_labels(encoder, val), val["t"], steps)
+                x = chooser.scorer_inputs(encoder, train, steps, bool(c.mask_view))
+                xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view))
                 encoded[key] = (x, train, xv)
             x, train, xv = encoded[key]
             scorer, _ = chooser.fit_scorer(x, train["costs"], train["episode"], c, seed)

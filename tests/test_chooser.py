@@ -98,6 +98,8 @@ OVERRIDES = [
     "agent.chooser.steers=[1.0]",
     "agent.chooser.lane_change_s=[0.3]",
     "agent.chooser.swerve=true",
+    "agent.chooser.mask_view=true",
+    "agent.chooser.target=advantage",
     "agent.chooser.decide_s=0.5",
     "agent.chooser.steps=250",
     "agent.chooser.batch_size=16",
@@ -134,7 +136,7 @@ def test_labels_are_reproducible_for_any_worker_count(trained, stage_cfg, tmp_pa
 
 def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     """Evaluation finds the chooser, and its live scores on a labelled episode equal the scorer applied offline to
-    the encoded labels (same world-model state, same normalisation)."""
+    the encoded labels (same world-model state, same frame band, same normalisation)."""
     _, base, cfg, _ = trained
     from worldmodel.config import compose
 
@@ -146,7 +148,7 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     data = chooser.labels(cfg)
     rows = np.flatnonzero(data["episode"] == 0)
     encoder = artifacts.load_world_model(cfg)
-    offline_x = chooser.features(chooser.encode_labels(encoder, data), data["t"], policy.decide_steps)[rows]
+    offline_x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True)[rows]
     with torch.no_grad():
         offline = policy.scores.scorer(torch.from_numpy(offline_x)).numpy()
     # the same episode live: the policy never commits (huge margin), so it brakes exactly as labelled

@@ -61,3 +61,28 @@ def test_bad_frames_and_classes_are_clear_errors():
         HazardView(64)(np.zeros((32, 32), np.uint8))
     with pytest.raises(ValueError, match=r"\(H, W\) class map"):
         profiles(np.zeros((1, 64, 64), np.uint8))
+
+
+def test_mask_view_keeps_where_each_class_is_in_the_band():
+    """The band holds each class's pixels at their own row and column (what the profiles' marginals lose), then
+    the previous frame's; rows outside the band are dropped; bad shapes are refused."""
+    from envs.views import MaskView
+
+    view = MaskView(rows=(20, 44))
+    seg = np.zeros((64, 64), np.uint8)
+    seg[30, 10] = PEDESTRIAN
+    seg[25, 50] = CLASS_NAMES.index("Vehicles")
+    seg[5, 5] = PEDESTRIAN  # above the band
+    first = view(seg).reshape(view.shape)
+    assert view.shape == (4, 24, 64)
+    assert first[0].sum() == 1 and first[0, 10, 10] == 1  # pedestrians, row 30 -> band row 10
+    assert first[1].sum() == 1 and first[1, 5, 50] == 1  # vehicles
+    assert first[2:].sum() == 0  # no previous frame yet
+    second = view(np.zeros((64, 64), np.uint8)).reshape(view.shape)
+    assert second[:2].sum() == 0 and second[2, 10, 10] == 1 and second[3, 5, 50] == 1
+    view.reset()
+    assert view(seg).reshape(view.shape)[2:].sum() == 0
+    with pytest.raises(ValueError, match="class map"):
+        view(np.zeros((32, 32), np.uint8))
+    with pytest.raises(ValueError, match="rows"):
+        MaskView(rows=(40, 20))

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from envs.chooser import BRAKE, ManoeuvreChooser, cost_labels, decide_steps_for
 from envs.planner import Manoeuvre
+from envs.views import MaskView
 
 from . import artifacts
 from .common import StageError, atomic_output, make_env, seed_everything, set_threads
@@ -170,24 +171,55 @@ class Scorer(nn.Module):
     outputs, each with its own error."""
 
     def __init__(
-        self, in_dim: int, n_out: int, hidden=(256, 256), dropout: float = 0.2, members: int = 1, advantage=False
+        self,
+        in_dim: int,
+        n_out: int,
+        hidden=(256, 256),
+        dropout: float = 0.2,
+        members: int = 1,
+        advantage=False,
+        mask_shape: tuple[int, int, int] | None = None,
     ):
         super().__init__()
+        self.mask_shape = tuple(mask_shape) if mask_shape else None
+        self.mask_dim = int(np.prod(self.mask_shape)) if self.mask_shape else 0
+        vec_dim = in_dim - self.mask_dim
 
-        def mlp():
-            layers, d = [], in_dim
-            for h in hidden:
-                layers += [nn.Linear(d, int(h)), nn.ReLU(), nn.Dropout(float(dropout))]
-                d = int(h)
-            return nn.Sequential(*layers, nn.Linear(d, n_out))
+        def member():
+            layers, d = [], vec_dim
+            parts = {}
+            if self.mask_shape:  # the frame band through a small CNN, beside the vector features
+                ch, h, w = self.mask_shape
+                parts["conv"] = nn.Sequential(
+                    nn.Conv2d(ch, 16, 3, padding=1),
+                    nn.ReLU(),
+                    nn.MaxPool2d(2),
+                    nn.Conv2d(16, 32, 3, padding=1),
+                    nn.ReLU(),
+                    nn.MaxPool2d(2),
+                    nn.Flatten(),
+                    nn.Linear(32 * (h // 4) * (w // 4), 128),
+                    nn.ReLU(),
+                )
+                d += 128
+            for h_ in hidden:
+                layers += [nn.Linear(d, int(h_)), nn.ReLU(), nn.Dropout(float(dropout))]
+                d = int(h_)
+            parts["head"] = nn.Sequential(*layers, nn.Linear(d, n_out))
+            return nn.ModuleDict(parts)
 
-        self.nets = nn.ModuleList(mlp() for _ in range(int(members)))
+        self.nets = nn.ModuleList(member() for _ in range(int(members)))
         self.advantage = bool(advantage)
-        self.register_buffer("mean", torch.zeros(in_dim))
-        self.register_buffer("std", torch.ones(in_dim))
+        self.register_buffer("mean", torch.zeros(vec_dim))
+        self.register_buffer("std", torch.ones(vec_dim))
 
     def raw(self, x: torch.Tensor, member: int) -> torch.Tensor:
-        return self.nets[member]((x - self.mean) / self.std)
+        net = self.nets[member]
+        vec = (x[:, : x.shape[1] - self.mask_dim] - self.mean) / self.std
+        if self.mask_shape:
+            band = x[:, x.shape[1] - self.mask_dim :].reshape(-1, *self.mask_shape)
+            vec = torch.cat([vec, net["conv"](band)], dim=1)
+        return net["head"](vec)
 
     def to_costs(self, out: torch.Tensor) -> torch.Tensor:
         return torch.cat([out[:, :1], out[:, :1] + out[:, 1:]], dim=1) if self.advantage else out
@@ -203,6 +235,24 @@ class Scorer(nn.Module):
 def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarray:
     """The scorer's input: the agent input of the world model, then the decision step as a share of the window."""
     return np.concatenate([encoded, (np.asarray(t, np.float32) / decide_steps)[:, None]], axis=1).astype(np.float32)
+
+
+def mask_features(seg: np.ndarray, episode: np.ndarray) -> np.ndarray:
+    """The frame band of ``envs.views.MaskView`` for every labelled frame, episode by episode as a live run sees
+    it (the previous frame is zeros at each episode's start)."""
+    view = MaskView()
+    out = np.empty((len(seg), view.dim), np.float32)
+    for e in np.unique(episode):
+        view.reset()
+        for r in np.flatnonzero(episode == e):
+            out[r] = view(seg[r])
+    return out
+
+
+def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool) -> np.ndarray:
+    """Everything the scorer reads for every labelled frame: world-model features, decision step, frame band."""
+    x = features(encode_labels(encoder, data), data["t"], steps)
+    return np.concatenate([x, mask_features(data["seg"], data["episode"])], axis=1) if mask_view else x
 
 
 def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None):
@@ -252,9 +302,11 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
     xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
     members = int(c.ensemble)
-    scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target == "advantage")
-    scorer.mean.copy_(xt.mean(0))
-    scorer.std.copy_(xt.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
+    mask_shape = MaskView().shape if c.mask_view else None
+    scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target == "advantage", mask_shape)
+    vec = xt[:, : xt.shape[1] - scorer.mask_dim]
+    scorer.mean.copy_(vec.mean(0))
+    scorer.std.copy_(vec.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
     targets = scorer.targets(yt)
     opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
     rng = np.random.default_rng([int(seed), 77])
@@ -303,7 +355,7 @@ def train(cfg, run_, agent_id) -> dict:
     candidates = c.candidates()
     data = labels(cfg)
     encoder = artifacts.load_world_model(cfg)
-    x = features(encode_labels(encoder, data), data["t"], steps)
+    x = scorer_inputs(encoder, data, steps, bool(c.mask_view))
     y = data["costs"].astype(np.float32)
     scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop)
     is_held = held_out_split(data["episode"])
@@ -321,6 +373,7 @@ def train(cfg, run_, agent_id) -> dict:
         "dropout": float(c.dropout),
         "members": int(c.ensemble),
         "advantage": c.target == "advantage",
+        "mask_view": bool(c.mask_view),
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
         "margin": float(c.margin),
@@ -354,15 +407,20 @@ class LearnedScorer:
 
     def __init__(self, encoder, scorer: Scorer, decide_steps: int):
         self.encoder, self.scorer, self.decide_steps = encoder, scorer.eval(), int(decide_steps)
+        self.mask = MaskView() if scorer.mask_shape else None
 
     def reset(self) -> None:
         self.encoder.reset()
+        if self.mask is not None:
+            self.mask.reset()
 
     def note_action(self, action) -> None:
         self.encoder.note_action(action)
 
     def __call__(self, obs, t: int) -> np.ndarray:
         x = features(self.encoder.encode(obs)[None], np.array([t]), self.decide_steps)
+        if self.mask is not None:
+            x = np.concatenate([x, self.mask(obs["seg"])[None]], axis=1)
         with torch.inference_mode():
             return self.scorer(torch.from_numpy(x))[0].numpy()
 
@@ -377,9 +435,10 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
         float(state["dropout"]),
         int(state.get("members", 1)),
         bool(state.get("advantage", False)),
+        MaskView().shape if state.get("mask_view") else None,
     )
     scorer.load_state_dict(state["scorer"])
-    if encoder.dim + 1 != int(state["in_dim"]):
+    if encoder.dim + 1 + scorer.mask_dim != int(state["in_dim"]):
         raise StageError(
             f"the chooser {name} expects {int(state['in_dim']) - 1} world-model features, the world model gives "
             f"{encoder.dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed): retrain it"

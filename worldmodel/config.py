@@ -236,6 +236,9 @@ class ChooserConfig(Checked):
     ensemble: int = 1  # the scorer is the mean of this many MLPs (each its own init and minibatches)
     # "cost": regress every candidate's cost; "advantage": braking's cost and the others' differences from it
     target: str = "cost"
+    # the scorer also reads a band of the raw frame around the horizon (envs.views.MaskView: pedestrians and
+    # vehicles, this frame and the last) through a small CNN: where the hazard is, not only in which rows and columns
+    mask_view: bool = False
 
     def problems(self):
         from envs.chooser import chooser_candidates
