@@ -141,16 +141,35 @@ class ManoeuvreChooser:
         return action
 
 
+HAZARD_STATE = ("pedestrian", "ped_dx", "ped_dy", "ped_vx", "ped_vy", "car", "car_dx", "car_dy", "car_vx", "car_vy")
+
+
+def hazard_state(env: UrbanCollisionEnv) -> np.ndarray:
+    """The privileged facts a camera student should perceive (``HAZARD_STATE``): whether the hazard pedestrian and
+    the hazard car are there, and their position relative to the ego (m) and velocity (m/s), zeros when absent.
+    Training targets only: the chooser never reads them when it acts."""
+    a, e = env.actors, env.ego
+    out = np.zeros(len(HAZARD_STATE), np.float32)
+    for k, (hazard, active, xy, vel) in enumerate(
+        ((a.ped_hazard, a.ped_active, a.ped_xy, a.ped_vel), (a.car_hazard, a.car_active, a.car_xy, a.car_vel))
+    ):
+        i = np.flatnonzero(hazard & active)
+        if len(i):
+            out[5 * k : 5 * k + 5] = [1.0, xy[i[0], 0] - e.x, xy[i[0], 1] - e.y, vel[i[0], 0], vel[i[0], 1]]
+    return out
+
+
 def cost_labels(
     env: UrbanCollisionEnv, spec, candidates: Sequence[Manoeuvre], decide_steps: int, twin: UrbanCollisionEnv
 ) -> dict:
     """Straight-line braking through scenario ``spec``, and at each of its first ``decide_steps`` steps the exact
     cost of starting every candidate there: what the chooser's scorer learns from. Returns ``seg`` (T, H, W) uint8,
-    ``speed`` (T,), ``costs`` (T, K) and the episode's ``outcome`` under braking."""
+    ``speed`` (T,), ``costs`` (T, K) and ``state`` (T, len(HAZARD_STATE)), the privileged facts of ``hazard_state``."""
     obs, _ = env.reset(options={"scenario": spec})
-    segs, speeds, costs = [], [], []
+    segs, speeds, costs, states = [], [], [], []
     for t in range(decide_steps):
         snap = env.snapshot()
+        states.append(hazard_state(env))
         costs.append([plan_cost(twin, snap, _Plan(m, t)) for m in candidates])
         segs.append(np.asarray(obs["seg"], np.uint8))
         speeds.append(float(np.asarray(obs["speed"]).reshape(-1)[0]))
@@ -161,4 +180,5 @@ def cost_labels(
         "seg": np.stack(segs),
         "speed": np.asarray(speeds, np.float32),
         "costs": np.asarray(costs, np.float32),
+        "state": np.stack(states),
     }

@@ -25,7 +25,7 @@ from worldmodel.config import compose
 from worldmodel.report import _mean, read_results_csv
 
 log = logging.getLogger("chooser_sweep")
-MARGINS = (0.0, 0.01, 0.02, 0.03, 0.05, 0.08, 0.12)
+MARGINS = (0.0, 0.01, 0.02, 0.03, 0.05, 0.08, 0.12, 0.5, 1.0, 2.0)  # the last ones for logits
 # name -> (world-model input overrides, agent.chooser overrides)
 VARIANTS: dict[str, tuple[list[str], dict]] = {
     "base": ([], {}),
@@ -37,6 +37,10 @@ VARIANTS: dict[str, tuple[list[str], dict]] = {
     "advens5fifth": (["agent.chooser.episodes=600"], {"target": "advantage", "ensemble": 5}),
     "mask": ([], {"target": "advantage", "mask_view": True, "steps": 3000}),
     "maskcost": ([], {"mask_view": True, "steps": 3000}),
+    "pol": ([], {"target": "policy"}),
+    "polmask": ([], {"target": "policy", "mask_view": True, "steps": 3000}),
+    "maskaux": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "aux_weight": 1.0}),
+    "aux": ([], {"target": "advantage", "aux_weight": 1.0}),
     "maskens3": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "ensemble": 3}),
 }
 
@@ -57,7 +61,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", default="0", help="training seeds (each its own labels)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(1)
+    torch.set_num_threads(2)
     base = [*args.overrides, "reward=r2", "agent=chooser"]
     cfg = compose("train_agent", base)
     val = chooser.labels(cfg, "validation")
@@ -93,7 +97,7 @@ def main(argv=None) -> int:
                 xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view))
                 encoded[key] = (x, train, xv)
             x, train, xv = encoded[key]
-            scorer, _ = chooser.fit_scorer(x, train["costs"], train["episode"], c, seed)
+            scorer, _ = chooser.fit_scorer(x, train["costs"], train["episode"], c, seed, state=train["state"])
             with torch.no_grad():
                 pred = scorer(torch.from_numpy(xv)).numpy()
             for m in MARGINS:

@@ -81,6 +81,25 @@ def test_exact_costs_never_lose_to_braking_and_offline_cost_equals_the_simulated
     assert better >= 1
 
 
+def test_hazard_state_is_where_the_scenario_put_the_hazard():
+    """The privileged target of the perception head: the hazard pedestrian's centre is where the ego's bumper is
+    at the TTC, walking towards the ego's lane; a scenario without hazards gives zeros."""
+    from envs import ScenarioSpec
+    from envs.chooser import HAZARD_STATE, hazard_state
+
+    env = UrbanCollisionEnv(camera=False)
+    spec = ScenarioSpec(seed=5, ttc=0.8, ego_speed=20.0, p_pedestrian=1.0, pedestrian_speed=3.0)
+    env.reset(options={"scenario": spec})
+    s = dict(zip(HAZARD_STATE, hazard_state(env)))
+    assert s["pedestrian"] == 1.0 and s["car"] == 0.0
+    # at the TTC the pedestrian touches the bumper: dx + vx * ttc = v_ego * ttc + L / 2 + r, within the lane
+    assert s["ped_dx"] + s["ped_vx"] * 0.8 == pytest.approx(20.0 * 0.8 + env.params.length / 2 + 0.3, abs=0.01)
+    assert abs(s["ped_dy"] + s["ped_vy"] * 0.8) < env.params.width / 2 and abs(s["ped_dy"]) > 1.0
+    assert np.hypot(s["ped_vx"], s["ped_vy"]) == pytest.approx(3.0, abs=1e-4)
+    env.reset(options={"scenario": ScenarioSpec(seed=5, ttc=0.8, ego_speed=20.0)})
+    assert not hazard_state(env).any()
+
+
 def test_policy_cost_by_hand():
     # episode 0: the prediction first favours candidate 1 at t = 1; braking's cost falls 0.9 -> 0.8 by then
     costs = np.array([[0.9, 0.7], [0.8, 0.1], [0.8, 0.8], [0.5, 0.2]], np.float32)
@@ -100,6 +119,7 @@ OVERRIDES = [
     "agent.chooser.swerve=true",
     "agent.chooser.mask_view=true",
     "agent.chooser.target=advantage",
+    "agent.chooser.aux_weight=1.0",
     "agent.chooser.decide_s=0.5",
     "agent.chooser.steps=250",
     "agent.chooser.batch_size=16",
@@ -124,7 +144,7 @@ def test_labels_are_reproducible_for_any_worker_count(trained, stage_cfg, tmp_pa
     assert metrics["learner"] == "chooser" and metrics["labelled_episodes"] == 4
     again = stage_cfg("train_agent", *OVERRIDES, "agent.chooser.num_workers=2", root=tmp_path)
     a, b = chooser.labels(cfg), chooser.labels(again)
-    for key in ("seg", "speed", "costs", "episode", "t"):
+    for key in chooser.LABEL_KEYS:
         np.testing.assert_array_equal(a[key], b[key])
     assert a["costs"].shape[1] == len(CANDIDATES) and a["t"].max() < decide_steps_for(0.5)
     # a corrupt shard is named, with what to do

@@ -34,7 +34,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from envs.chooser import BRAKE, ManoeuvreChooser, cost_labels, decide_steps_for
+from envs.chooser import BRAKE, HAZARD_STATE, ManoeuvreChooser, cost_labels, decide_steps_for
 from envs.planner import Manoeuvre
 from envs.views import MaskView
 
@@ -43,6 +43,8 @@ from .common import StageError, atomic_output, make_env, seed_everything, set_th
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
+TARGETS = ("cost", "advantage", "policy")
+LABEL_KEYS = ("seg", "speed", "costs", "state", "episode", "t")
 HELD_OUT = 0.15  # share of labelled episodes held out for selecting the scorer
 
 
@@ -111,7 +113,7 @@ def _label_shard(task) -> int:
         parts.append({**lab, "episode": np.full(n, e, np.int32), "t": np.arange(n, dtype=np.int16)})
     env.close()
     with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
-        for key in ("seg", "speed", "costs", "episode", "t"):
+        for key in LABEL_KEYS:
             f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
     return shard
 
@@ -150,7 +152,7 @@ def labels(cfg, source: str = "train") -> dict:
                     for k in pool.imap_unordered(_label_shard, tasks):
                         bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)
-    data: dict[str, list] = {k: [] for k in ("seg", "speed", "costs", "episode", "t")}
+    data: dict[str, list] = {k: [] for k in LABEL_KEYS}
     for p in paths:
         try:
             with h5py.File(p, "r") as f:
@@ -166,9 +168,12 @@ class Scorer(nn.Module):
     """Features -> predicted cost of every candidate: the mean of ``members`` MLPs, each on features normalised by
     fixed statistics of the training split (buffers, so they travel with the checkpoint).
 
-    ``advantage``: each MLP predicts braking's cost and every other candidate's cost *minus* braking's, so the
-    decision (is some candidate cheaper than braking?) is one output's sign rather than the difference of two
-    outputs, each with its own error."""
+    ``target``: ``cost`` regresses every candidate's cost. ``advantage`` regresses braking's cost and every other
+    candidate's cost *minus* braking's, so the decision (is some candidate cheaper than braking?) is one output's
+    sign rather than the difference of two outputs, each with its own error. ``policy`` learns logits whose
+    softmax minimises the expected cost relative to braking: the choice itself, with no cost estimated (and so no
+    optimistic bias from taking the lowest of several noisy estimates); its "costs" are the negated logits.
+    ``mask_shape``: the last features are the frame band of ``MaskView``, read by a small CNN per member."""
 
     def __init__(
         self,
@@ -177,7 +182,7 @@ class Scorer(nn.Module):
         hidden=(256, 256),
         dropout: float = 0.2,
         members: int = 1,
-        advantage=False,
+        target: str = "cost",
         mask_shape: tuple[int, int, int] | None = None,
     ):
         super().__init__()
@@ -205,28 +210,44 @@ class Scorer(nn.Module):
             for h_ in hidden:
                 layers += [nn.Linear(d, int(h_)), nn.ReLU(), nn.Dropout(float(dropout))]
                 d = int(h_)
-            parts["head"] = nn.Sequential(*layers, nn.Linear(d, n_out))
+            parts["body"] = nn.Sequential(*layers[:3])  # the first hidden layer, which the auxiliary head reads
+            parts["head"] = nn.Sequential(*layers[3:], nn.Linear(d, n_out))
+            parts["aux"] = nn.Linear(int(hidden[0]), len(HAZARD_STATE))
             return nn.ModuleDict(parts)
 
         self.nets = nn.ModuleList(member() for _ in range(int(members)))
-        self.advantage = bool(advantage)
+        if target not in TARGETS:
+            raise ValueError(f"chooser target {target!r}: use one of {TARGETS}")
+        self.target = target
         self.register_buffer("mean", torch.zeros(vec_dim))
         self.register_buffer("std", torch.ones(vec_dim))
 
-    def raw(self, x: torch.Tensor, member: int) -> torch.Tensor:
+    def raw(self, x: torch.Tensor, member: int, aux: bool = False):
+        """Member ``member``'s outputs (and with ``aux``, its guess of the scaled hazard state)."""
         net = self.nets[member]
         vec = (x[:, : x.shape[1] - self.mask_dim] - self.mean) / self.std
         if self.mask_shape:
             band = x[:, x.shape[1] - self.mask_dim :].reshape(-1, *self.mask_shape)
             vec = torch.cat([vec, net["conv"](band)], dim=1)
-        return net["head"](vec)
+        hidden = net["body"](vec)
+        out = net["head"](hidden)
+        return (out, net["aux"](hidden)) if aux else out
 
     def to_costs(self, out: torch.Tensor) -> torch.Tensor:
-        return torch.cat([out[:, :1], out[:, :1] + out[:, 1:]], dim=1) if self.advantage else out
+        if self.target == "policy":  # logits: the chooser switches when a logit beats braking's by the margin
+            return -out
+        return torch.cat([out[:, :1], out[:, :1] + out[:, 1:]], dim=1) if self.target == "advantage" else out
+
+    def loss(self, out: torch.Tensor, costs: torch.Tensor) -> torch.Tensor:
+        """Least squares on ``targets(costs)``; for ``policy``, the expected cost over the softmax of the logits
+        relative to braking's (cost-sensitive classification: no cost is estimated, the choice is learnt)."""
+        if self.target == "policy":
+            return (torch.softmax(out, dim=1) * (costs - costs[:, :1])).sum(1).mean()
+        return ((out - self.targets(costs)) ** 2).mean()
 
     def targets(self, costs: torch.Tensor) -> torch.Tensor:
         """What ``raw`` regresses: the costs, or braking's cost and the others' differences from it."""
-        return torch.cat([costs[:, :1], costs[:, 1:] - costs[:, :1]], dim=1) if self.advantage else costs
+        return torch.cat([costs[:, :1], costs[:, 1:] - costs[:, :1]], dim=1) if self.target == "advantage" else costs
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.stack([self.to_costs(self.raw(x, m)) for m in range(len(self.nets))]).mean(0)
@@ -294,20 +315,28 @@ def held_out_split(episode: np.ndarray) -> np.ndarray:
     return np.isin(episode, held)
 
 
-def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, writer=None, stop=None):
-    """Fit a ``Scorer`` on the training split by least squares; keep the checkpoint whose chooser costs least
-    on the held-out split. Returns (scorer, history of (minibatch, held-out cost, held-out mse))."""
+STATE_SCALE = np.array([1.0, 10.0, 5.0, 5.0, 5.0, 1.0, 10.0, 5.0, 5.0, 5.0], np.float32)  # ~unit targets
+
+
+def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, writer=None, stop=None, state=None):
+    """Fit a ``Scorer`` on the training split (its ``target`` loss, plus ``c.aux_weight`` times the squared error
+    of its guess of the privileged hazard ``state``, which shapes what its first layer perceives); keep the
+    checkpoint whose chooser costs least on the held-out split. Returns (scorer, history of (minibatch,
+    held-out cost, held-out mse))."""
     torch.manual_seed(int(seed))
     is_held = held_out_split(episode)
+    aux_weight = float(c.aux_weight)
+    if aux_weight > 0 and state is None:
+        raise StageError("chooser.aux_weight > 0 needs labels with the hazard state: relabel them")
+    st = torch.from_numpy(state[~is_held] / STATE_SCALE) if aux_weight > 0 else None
     xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
     xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
     members = int(c.ensemble)
     mask_shape = MaskView().shape if c.mask_view else None
-    scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target == "advantage", mask_shape)
+    scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target, mask_shape)
     vec = xt[:, : xt.shape[1] - scorer.mask_dim]
     scorer.mean.copy_(vec.mean(0))
     scorer.std.copy_(vec.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
-    targets = scorer.targets(yt)
     opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
     rng = np.random.default_rng([int(seed), 77])
 
@@ -323,12 +352,16 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
         loss = 0.0
         for m in range(members):  # each member its own minibatches
             idx = torch.from_numpy(rng.integers(0, len(xt), size=int(c.batch_size)))
-            loss = loss + ((scorer.raw(xt[idx], m) - targets[idx]) ** 2).mean()
+            if aux_weight > 0:
+                out, guess = scorer.raw(xt[idx], m, aux=True)
+                loss = loss + scorer.loss(out, yt[idx]) + aux_weight * ((guess - st[idx]) ** 2).mean()
+            else:
+                loss = loss + scorer.loss(scorer.raw(xt[idx], m), yt[idx])
         opt.zero_grad()
         loss.backward()
         opt.step()
         if writer is not None and k % 50 == 0:
-            writer.add_scalar("chooser/train_mse", loss.item() / members, k)
+            writer.add_scalar("chooser/train_loss", loss.item() / members, k)
         if (k + 1) % 250 == 0 or k + 1 == int(c.steps):
             cost, mse = held_out()
             if writer is not None:
@@ -357,7 +390,7 @@ def train(cfg, run_, agent_id) -> dict:
     encoder = artifacts.load_world_model(cfg)
     x = scorer_inputs(encoder, data, steps, bool(c.mask_view))
     y = data["costs"].astype(np.float32)
-    scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop)
+    scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
     is_held = held_out_split(data["episode"])
     yv, ev = y[is_held], data["episode"][is_held]
     with torch.no_grad():
@@ -372,7 +405,7 @@ def train(cfg, run_, agent_id) -> dict:
         "hidden": [int(h) for h in c.hidden],
         "dropout": float(c.dropout),
         "members": int(c.ensemble),
-        "advantage": c.target == "advantage",
+        "target": c.target,
         "mask_view": bool(c.mask_view),
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
@@ -434,7 +467,7 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
         tuple(state["hidden"]),
         float(state["dropout"]),
         int(state.get("members", 1)),
-        bool(state.get("advantage", False)),
+        str(state.get("target", "cost")),
         MaskView().shape if state.get("mask_view") else None,
     )
     scorer.load_state_dict(state["scorer"])

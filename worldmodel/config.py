@@ -94,6 +94,7 @@ class FocusConfig(Checked):
 
     def settings(self) -> dict:
         return {
+            "version": 2,  # 2: the hazard state is stored beside the costs
             "hazard_share": float(self.hazard_share),
             "speed_range": list(map(float, self.speed_range)),
             "ttc_range": list(map(float, self.ttc_range)),
@@ -234,11 +235,16 @@ class ChooserConfig(Checked):
     batch_size: int = 256
     steps: int = 6000  # minibatches; the scorer kept is the best on the held-out labelled episodes
     ensemble: int = 1  # the scorer is the mean of this many MLPs (each its own init and minibatches)
-    # "cost": regress every candidate's cost; "advantage": braking's cost and the others' differences from it
+    # "cost": regress every candidate's cost; "advantage": braking's cost and the others' differences from it;
+    # "policy": logits trained to minimise the expected cost of the softmax choice (cost-sensitive classification)
     target: str = "cost"
     # the scorer also reads a band of the raw frame around the horizon (envs.views.MaskView: pedestrians and
     # vehicles, this frame and the last) through a small CNN: where the hazard is, not only in which rows and columns
     mask_view: bool = False
+    # learning by cheating for perception: the scorer's first layer also feeds a head that guesses the privileged
+    # hazard state (envs.chooser.hazard_state: where the hazard pedestrian and car are, how they move), trained
+    # with this weight beside the cost loss; the guess is never used to act
+    aux_weight: float = 0.0
 
     def problems(self):
         from envs.chooser import chooser_candidates
@@ -252,10 +258,12 @@ class ChooserConfig(Checked):
                 yield ConfigValueError(f"chooser.{key}", value, "it must be [low, high] with 0 < low <= high")
         if self.margin < 0 or not 0.0 <= self.dropout < 1.0 or self.weight_decay < 0:
             yield ConfigValueError("chooser.margin", self.margin, "margin and weight_decay >= 0, dropout in [0, 1)")
+        if self.aux_weight < 0:
+            yield ConfigValueError("chooser.aux_weight", self.aux_weight, "it must be >= 0")
         if self.ensemble < 1:
             yield ConfigValueError("chooser.ensemble", self.ensemble, "it must be >= 1")
-        if self.target not in ("cost", "advantage"):
-            yield ConfigValueError("chooser.target", self.target, "it must be cost or advantage")
+        if self.target not in ("cost", "advantage", "policy"):
+            yield ConfigValueError("chooser.target", self.target, "it must be cost, advantage or policy")
         if not self.hidden or any(int(h) < 1 for h in self.hidden):
             yield ConfigValueError("chooser.hidden", list(self.hidden), "use a non-empty list of layer sizes >= 1")
         try:
@@ -277,6 +285,7 @@ class ChooserConfig(Checked):
     def label_settings(self) -> dict:
         """What the labels depend on (the store is rebuilt when any of it changes)."""
         return {
+            "version": 2,  # 2: the hazard state is stored beside the costs
             "hazard_share": float(self.hazard_share),
             "speed_range": [float(x) for x in self.speed_range],
             "ttc_range": [float(x) for x in self.ttc_range],
