@@ -41,6 +41,9 @@ VARIANTS: dict[str, tuple[list[str], dict]] = {
     "polmask": ([], {"target": "policy", "mask_view": True, "steps": 3000}),
     "maskaux": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "aux_weight": 1.0}),
     "aux": ([], {"target": "advantage", "aux_weight": 1.0}),
+    "aux5": ([], {"target": "advantage", "aux_weight": 5.0}),
+    "auxens5": ([], {"target": "advantage", "aux_weight": 1.0, "ensemble": 5}),
+    "auxcost": ([], {"aux_weight": 1.0}),
     "maskens3": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "ensemble": 3}),
 }
 

@@ -31,6 +31,8 @@ OUTPUTS = [
     "runs/t/agent_r1/seed0/metrics.json",
     "runs/t/agent_r2/seed0/last.pt",
     "runs/t/agent_r2/seed0/metrics.json",
+    "runs/t/agent_r2_chooser/seed0/last.pt",
+    "runs/t/agent_r2_chooser/seed0/metrics.json",
     "runs/t/eval/results.csv",
     "runs/t/eval/summary.json",
     "runs/t/eval/tables.md",
@@ -64,14 +66,15 @@ def test_pipeline_produces_every_output(experiment):
     for rel in OUTPUTS:
         assert (experiment / rel).exists(), rel
     rows = read_results_csv(experiment / "runs/t/eval/results.csv")
-    assert {r["policy"] for r in rows} == {"braking", "agent_r1", "agent_r2", "oracle"}
+    policies = {"braking", "agent_r1", "agent_r2", "agent_r2_chooser", "oracle"}
+    assert {r["policy"] for r in rows} == policies
     per_policy = len(evaluate.bank(smoke_cfg(experiment, "evaluate")))
-    assert len(rows) == 4 * per_policy
+    assert len(rows) == len(policies) * per_policy
     summary = json.loads((experiment / "runs/t/eval/summary.json").read_text())
-    assert set(summary["policies"]) == {"braking", "agent_r1", "agent_r2", "oracle"}
-    assert set(summary["achievable_share"]["policies"]) == {"agent_r1", "agent_r2", "oracle"}
+    assert set(summary["policies"]) == policies
+    assert set(summary["achievable_share"]["policies"]) == policies - {"braking"}
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
-    assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "eval"}
+    assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval"}
     assert all(t["wall_s"] > 0 and t["peak_rss_mb"] > 0 for t in timings.values())
     tables = (experiment / "runs/t/eval/tables.md").read_text()
     assert "Brake&Steer, reward 1" in tables and "Table III" in tables and "Table IV" in tables
@@ -81,7 +84,7 @@ def test_second_run_skips_finished_stages(experiment, caplog):
     stamps = {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(smoke_cfg(experiment))
-    assert caplog.text.count("skipped") == 6 and "running" not in caplog.text
+    assert caplog.text.count("skipped") == 7 and "running" not in caplog.text
     assert stamps == {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
 
 
@@ -137,12 +140,12 @@ def test_evaluation_rows_name_the_models_that_produced_them(experiment):
     vae, rnn = artifacts.short(artifacts.vae_id(cfg)), artifacts.short(artifacts.rnn_id(cfg))
     for row in rows:
         if row["policy"].startswith("agent_"):
-            agent = artifacts.AgentId(row["policy"].removeprefix("agent_"), row["policy_seed"])
+            agent = artifacts.AgentId.parse(f"{row['policy']}/seed{row['policy_seed']}")
             assert (row["vae_sha"], row["rnn_sha"]) == (vae, rnn) and len(vae) == 12
             assert row["actor_sha"] == artifacts.short(artifacts.actor_id(cfg, agent))
         else:
             assert row["vae_sha"] == row["rnn_sha"] == row["actor_sha"] == ""
-    assert len({r["actor_sha"] for r in rows if r["policy"].startswith("agent_")}) == 2
+    assert len({r["actor_sha"] for r in rows if r["policy"].startswith("agent_")}) == 3
 
 
 @pytest.fixture(scope="module")
@@ -175,7 +178,7 @@ def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
         pipeline.run(cfg)
     log = caplog.text
     assert "collect: complete" in log and "vae: complete" in log
-    for name in ("rnn", "agent_r1", "agent_r2", "eval"):
+    for name in ("rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval"):
         assert f"{name}: stale" in log, log
     assert kept == {rel: (new_vae / rel).stat().st_mtime_ns for rel in kept}
     vae = artifacts.vae_id(cfg)
@@ -190,12 +193,12 @@ def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
     rows = read_results_csv(new_vae / "runs/t/eval/results.csv")
     assert {r["vae_sha"] for r in rows if r["policy"].startswith("agent_")} == {artifacts.short(vae)}
     stale = sorted(p.name.rsplit("-", 2)[0] for p in (new_vae / "runs/t/stale").iterdir())
-    assert stale == ["agent_r1-seed0", "agent_r2-seed0", "eval", "rnn"]
+    assert stale == ["agent_r1-seed0", "agent_r2-seed0", "agent_r2_chooser-seed0", "eval", "rnn"]
     # Now everything is up to date again: a rerun does nothing.
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(cfg)
-    assert caplog.text.count("skipped") == 6
+    assert caplog.text.count("skipped") == 7
 
 
 def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, tmp_path):

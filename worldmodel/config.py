@@ -511,7 +511,8 @@ class ExperimentConfig(Checked):
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
     # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
-    agents: list[str] = field(default_factory=lambda: ["ddpg"])
+    # ddpg: the paper's agent (R1 and R2); chooser: issue 11's camera agent that beats braking (R2; docs/design.md §5)
+    agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     demos: DemosConfig = field(default_factory=DemosConfig)
