@@ -21,7 +21,7 @@ from pathlib import Path
 
 from worldmodel import artifacts, evaluate, train_agent
 from worldmodel.config import compose
-from worldmodel.report import _mean, overall_achievable_share, read_results_csv, write_results_csv
+from worldmodel.report import _mean, overall_achievable_share, paired_bootstrap, read_results_csv, write_results_csv
 
 log = logging.getLogger("ablation")
 
@@ -69,8 +69,9 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
     "rightview": ("right", "+ the raw frame's hazard profiles", ["agent.frame_view=true"]),
     "chooser": (
         None,
-        "the chooser: brakes, then switches once to the manoeuvre whose cost its scorer predicts lowest from "
-        "[z, zhat, speed, frame view] (costs labelled by the simulator on braking's states)",
+        "the chooser: brakes, then within 0.2 s switches once to the 0.3 s lane change whose cost its scorer predicts "
+        "lowest from [z, zhat, speed, frame view] (costs labelled by the simulator on braking's states; a perception "
+        "head learns the privileged hazard state beside)",
         ["agent=chooser"],
     ),
     "chooserwm": (
@@ -183,6 +184,8 @@ def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, plann
         "row",
         "what it adds",
         "share of achievable %",
+        "share 95 % CI",
+        "vs braking, pts (95 % CI)",
         "total risk %",
         "pedestrian coll. %",
         "vehicle coll. %",
@@ -207,7 +210,15 @@ def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, plann
             else (0.0 if policy == "braking" else 100.0)
         )
         total = 100 * _mean(prow, "total_injury")
-        cells = [label, what, "n/a" if math.isnan(share) else f"{share:.0f}", f"{total:.2f}"]
+        cells = [label, what, "n/a" if math.isnan(share) else f"{share:.0f}"]
+        if policy in ("braking", "oracle") or policy.startswith("oracle_"):
+            cells += ["", ""]
+        else:  # paired bootstrap over scenarios, the policy's seeds averaged per scenario
+            b = paired_bootstrap(rows, policy)
+            lo, hi = b["share_ci95"]
+            dlo, dhi = b["difference_ci95"]
+            cells += [f"[{lo:.0f}, {hi:.0f}]", f"{b['difference_pts']:+.2f} [{dlo:+.2f}, {dhi:+.2f}]"]
+        cells.append(f"{total:.2f}")
         cells += [
             f"{100 * _mean(prow, c):.1f}"
             for c in ("pedestrian_collision", "vehicle_collision", "static_collision", "lane_departure")

@@ -444,3 +444,26 @@ def test_seed_sweep_reports_mean_and_spread(tmp_path):
     assert [r["policy_seed"] for r in report.read_results_csv(report.write_results_csv(rows, tmp_path / "r.csv"))][
         :5
     ] == [0] * 4 + [1]
+
+
+def test_paired_bootstrap_by_hand():
+    """Share and difference against braking with intervals: a policy equal to braking has share 0 and difference
+    0 in every resample; one that halves braking's risk on every scenario has share 50 and a negative difference
+    whose interval excludes 0; seeds are averaged per scenario first."""
+    from worldmodel.report import paired_bootstrap
+
+    def rows(policy, risks, seed=0):
+        return [
+            {"policy": policy, "scenario_id": i, "pedestrian_injury": r, "occupant_injury": 0.0, "policy_seed": seed}
+            for i, r in enumerate(risks)
+        ]
+
+    braking = [0.2, 0.4, 0.0, 0.6]
+    base = rows("braking", braking) + rows("oracle", [0.0] * 4)
+    same = paired_bootstrap(base + rows("agent", braking), "agent", n=200)
+    assert same["share"] == 0.0 and same["share_ci95"] == [0.0, 0.0] and same["difference_ci95"] == [0.0, 0.0]
+    # two seeds that average to half of braking's risk
+    half = base + rows("agent", [0.0, 0.4, 0.0, 0.6], 0) + rows("agent", [0.2, 0.0, 0.0, 0.0], 1)
+    out = paired_bootstrap(half, "agent", n=500)
+    assert out["share"] == pytest.approx(50.0) and out["difference_pts"] == pytest.approx(-15.0)
+    assert out["difference_ci95"][1] < 0 and out["scenarios"] == 4
