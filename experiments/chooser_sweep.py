@@ -44,6 +44,7 @@ VARIANTS: dict[str, tuple[list[str], dict]] = {
     "aux5": ([], {"target": "advantage", "aux_weight": 5.0}),
     "auxens5": ([], {"target": "advantage", "aux_weight": 1.0, "ensemble": 5}),
     "auxcost": ([], {"aux_weight": 1.0}),
+    "privileged": ([], {"target": "advantage"}),
     "maskens3": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "ensemble": 3}),
 }
 
@@ -92,12 +93,18 @@ def main(argv=None) -> int:
             vcfg = compose("train_agent", [*base, *inputs, f"seed={seed}"])
             c = OmegaConf.to_object(OmegaConf.merge(chooser.cfg_chooser(vcfg), settings))
             steps = chooser.decide_steps_for(c.decide_s)
-            key = f"{inputs}-{seed}-{c.mask_view}"
+            key = f"{inputs}-{seed}-{c.mask_view}-{name == 'privileged'}"
             if key not in encoded:
                 train = chooser.labels(vcfg)
-                encoder = artifacts.load_world_model(vcfg)
-                x = chooser.scorer_inputs(encoder, train, steps, bool(c.mask_view))
-                xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view))
+                if name == "privileged":  # the true hazard state instead of the camera: the learner's own bound
+                    x, xv = (
+                        np.concatenate([d["state"], d["speed"][:, None], d["t"][:, None] / steps], 1).astype(np.float32)
+                        for d in (train, val)
+                    )
+                else:
+                    encoder = artifacts.load_world_model(vcfg)
+                    x = chooser.scorer_inputs(encoder, train, steps, bool(c.mask_view))
+                    xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view))
                 encoded[key] = (x, train, xv)
             x, train, xv = encoded[key]
             scorer, _ = chooser.fit_scorer(x, train["costs"], train["episode"], c, seed, state=train["state"])
