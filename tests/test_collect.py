@@ -40,9 +40,25 @@ def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
     root = artifacts.rollouts_dir(cfg)
     assert summary["episodes"] == cfg.collect.episodes == 4
     store = RolloutStore(root)
-    assert sorted(store.location) == [0, 1, 2, 3]
     split = store.split
     assert sorted(split["train"] + split["validation"]) == [0, 1, 2, 3] and split["validation"]
+    # branched continuations (collect.branch): ids after the recorded ones, in their parent's split, starting
+    # with the parent's own frames up to the branch point and then going their own way
+    b = cfg.collect.branch
+    assert store.branch_of and sorted(store.location) == [0, 1, 2, 3, *sorted(store.branch_of)]
+    assert summary["branched_episodes"] == len(store.branch_of)
+    for i, parent in store.branch_of.items():
+        assert i == 4 + parent * b.actions + (i - 4) % b.actions
+        attrs = store.attrs(i)
+        assert attrs["branch_of"] == parent and 1 <= attrs["branch_step"] <= b.latest_step
+        step, context = int(attrs["branch_step"]), min(int(attrs["branch_step"]), b.context)
+        own, theirs = store.read(i, "seg"), store.read(parent, "seg")
+        assert np.array_equal(own[: context + 1], theirs[step - context : step + 1])
+        assert np.array_equal(store.read(i, "action")[:context], store.read(parent, "action")[step - context : step])
+        held = store.read(i, "action")[context:-1]
+        assert len(held) >= 1 and np.all(held == held[0])
+        assert (i in store.episodes("train")) == (parent in split["train"])
+        assert i not in store.episodes("train", branches=False) + store.episodes("validation", branches=False)
     for i in range(4):
         seg = store.read(i, "seg")
         n = len(seg)
@@ -55,7 +71,7 @@ def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
         assert json.loads(attrs["scenario"])["seed"] == attrs["seed"]
         assert n <= cfg.collect.max_episode_s * 15 + 1
     with h5py.File(root / "shard_00000.h5", "r") as f:
-        assert f.attrs["schema_version"] == 1
+        assert f.attrs["schema_version"] == 2
 
     again = stage_cfg("collect", root=tmp_path / "second")
     collect.run(again)
@@ -97,7 +113,8 @@ def test_sigkill_then_resume_gives_exactly_the_uninterrupted_data(tmp_path, stag
     reference = stage_cfg("collect", *overrides, root=tmp_path / "clean")
     collect.run(reference)
     assert dataset_content(rollouts) == dataset_content(artifacts.rollouts_dir(reference))
-    assert sorted(RolloutStore(rollouts).location) == list(range(6))
+    store = RolloutStore(rollouts)
+    assert sorted(set(store.location) - set(store.branch_of)) == list(range(6))
 
 
 def test_truncated_shard_is_named_in_the_error(stage_cfg, experiment_copy):
@@ -127,3 +144,49 @@ def test_changed_settings_refuse_to_mix_with_existing_data(stage_cfg, experiment
 def test_impossible_config_is_rejected_before_work(stage_cfg):
     with pytest.raises(StageError, match="collect.episodes"):
         collect.run(stage_cfg("collect", "collect.episodes=0"))
+
+
+def test_a_branch_under_the_parents_own_action_replays_the_parent(stage_cfg):
+    """The snapshot a branch starts from is the recorded state itself: continuing it with the action the autopilot
+    took reproduces the recorded next frame bit for bit."""
+    from omegaconf import OmegaConf
+
+    from worldmodel.collect import _collection_settings, autopilot_of, spec_of
+    from worldmodel.recording import _worker_env, branch_episodes, record_episode
+
+    settings = _collection_settings(stage_cfg("collect", "collect.max_episode_s=2.0"))
+    env = _worker_env(settings)
+    spec = spec_of(settings, 2)
+    parent = record_episode(env, autopilot_of(settings, spec), spec, 2, snapshot_at=3)
+    assert parent["_snapshot"] is not None and OmegaConf.create(settings["branch"]).context == 3
+    (branch,) = branch_episodes(env, parent, 3, parent["action"][3:4], settings)
+    assert np.array_equal(branch["seg"][:5], parent["seg"][:5])
+    assert branch["branch_of"] == 2 and branch["index"] == 4 + 2 * settings["branch"]["actions"]
+
+
+def test_old_and_unknown_schema_versions(stage_cfg, experiment_copy):
+    """A schema-1 store (before branches) still reads, as one without branches; collecting into it is refused with
+    the reason; an unknown version is named with what to do."""
+    experiment_copy("rollouts")
+    cfg = stage_cfg("collect")
+    root = artifacts.rollouts_dir(cfg)
+    config = json.loads((root / "collect_config.json").read_text())
+    (root / "collect_config.json").write_text(json.dumps({**config, "schema_version": 1}))
+    with pytest.raises(StageError, match="schema version 1"):
+        collect.run(stage_cfg("collect", "resume=true"))
+    manifest = json.loads((root / "manifest.json").read_text())
+    manifest.pop("branches")
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    for path in root.glob("shard_*.h5"):
+        with h5py.File(path, "r+") as f:
+            f.attrs["schema_version"] = 1
+            keep = [i for i in f.attrs["episodes"] if i < 4]
+            for key in [k for k in f if int(k.split("_")[1]) >= 4]:
+                del f[key]
+            f.attrs["episodes"] = np.array(keep, np.int64)
+    store = RolloutStore(root)
+    assert store.branch_of == {} and sorted(store.location) == [0, 1, 2, 3]
+    with h5py.File(root / "shard_00000.h5", "r+") as f:
+        f.attrs["schema_version"] = 99
+    with pytest.raises(CorruptDataError, match="schema_version 99.*worldmodel.collect"):
+        RolloutStore(root)

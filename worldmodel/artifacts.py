@@ -204,12 +204,20 @@ def _config(cfg, *keys: str) -> dict:
     return {key: _section(cfg, key) for key in keys}
 
 
+RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
+
+
 def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
     """The current inputs of ``stage`` (``vae``, ``rnn``, ``agent``, ``eval``) and the hash of its config keys."""
     if stage == "vae":
         inputs, settings = {"rollouts": rollouts_id(cfg)}, _config(cfg, "seed", "vae")
     elif stage == "rnn":
         inputs, settings = {"rollouts": rollouts_id(cfg), "vae": vae_id(cfg)}, _config(cfg, "seed", "rnn")
+        for key in RNN_MEASUREMENT_KEYS:  # what the stage measures after training, not what it trains
+            settings["rnn"].pop(key, None)
+        if not int(settings["rnn"].get("open_loop_steps", 0)):  # off: the model is trained as before the option
+            settings["rnn"].pop("open_loop_steps", None)
+            settings["rnn"].pop("open_loop_weight", None)
     elif stage == "agent":
         agent = agent or AgentId.of(cfg)
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)}

@@ -3,7 +3,9 @@
     python -m worldmodel.collect experiment=NAME scale=smoke|quick|paper [resume=true]
 
 Episode i always uses the scenario drawn from ``(seed, i)`` and the autopilot seeded the same way, whatever
-the worker count, so two runs with the same config write identical data. Shards appear only when complete;
+the worker count, so two runs with the same config write identical data. With ``collect.branch.share`` > 0, a
+share of the episodes also branch: counterfactual continuations under held actions from a snapshot of one of
+their states (``worldmodel.recording``, data/README.md). Shards appear only when complete;
 after a kill (even SIGKILL) ``resume=true`` writes exactly the missing shards, and the result is identical
 to an uninterrupted run.
 """
@@ -27,7 +29,9 @@ def episode_spec(seed: int, index: int):
 
 def _collection_settings(cfg) -> dict:
     c = cfg.collect
+    branch = OmegaConf.to_object(c.branch).settings()
     return {
+        **({"branch": branch} if branch else {}),
         "schema_version": SCHEMA_VERSION,
         "seed": int(cfg.seed),
         "episodes": int(c.episodes),

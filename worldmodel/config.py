@@ -59,6 +59,40 @@ class AutopilotConfig(Checked):
 
 
 @dataclass
+class BranchConfig(Checked):
+    """Counterfactual continuations in the collection (``worldmodel.recording``; data/README.md): in a share of the
+    episodes, the simulator is snapshotted at a random step and replayed from there under several constant actions.
+    The autopilot alone rarely shows the same moment under different actions; these branches do."""
+
+    share: float = 0.25  # share of recorded episodes that branch (each once); 0 records none
+    actions: int = 4  # continuations per branch point, each one constant action drawn uniformly from [-1, 1]^2
+    steps: int = 10  # steps per continuation (0.67 s), the horizon the dreams are judged at
+    context: int = 8  # frames of the parent copied before the branch point, for the LSTM's warm-up
+    latest_step: int = 20  # the branch point is drawn from steps 1 .. latest_step (the hazard is early)
+
+    def problems(self):
+        if not 0.0 <= self.share <= 1.0:
+            yield ConfigValueError("branch.share", self.share, "it must be in [0, 1]")
+        for key in ("actions", "steps", "latest_step"):
+            if getattr(self, key) < 1:
+                yield ConfigValueError(f"branch.{key}", getattr(self, key), "it must be >= 1")
+        if self.context < 0:
+            yield ConfigValueError("branch.context", self.context, "it must be >= 0")
+
+    def settings(self) -> dict | None:
+        """What the recorded data depends on; None when nothing branches."""
+        if self.share <= 0:
+            return None
+        return {
+            "share": float(self.share),
+            "actions": int(self.actions),
+            "steps": int(self.steps),
+            "context": int(self.context),
+            "latest_step": int(self.latest_step),
+        }
+
+
+@dataclass
 class CollectConfig(Checked):
     """Phase 0 (``worldmodel.collect``)."""
 
@@ -68,6 +102,7 @@ class CollectConfig(Checked):
     max_episode_s: float = 15.0  # the paper's 15 s sequences at 15 FPS
     validation_fraction: float = 0.1  # share of episodes held out, stored in split.json
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
+    branch: BranchConfig = field(default_factory=BranchConfig)
 
     def problems(self):
         yield from _positive(self, "episodes", "num_workers", "episodes_per_shard", "max_episode_s")
@@ -197,9 +232,29 @@ class RNNConfig(Checked):
     # false: inputs are mu, as the agent feeds them (latent MSE 0.030 vs 0.034 with sampled inputs at quick
     # scale); true: resampled like the targets (World Models). Validation uses the same inputs as training.
     sample_inputs: bool = False
+    # multi-step loss: in every window, from a random step on, the LSTM also runs this many steps on its own
+    # predictions (the way it dreams), and the targets' NLL there is added with open_loop_weight. 0 = one-step
+    # teacher forcing only (World Models)
+    open_loop_steps: int = 0
+    open_loop_weight: float = 1.0
+    # what the stage measures after training (worldmodel/dreams.py): the action effect on this many branch points
+    # of held-out scenarios, over effect_horizon steps, and open-loop quality against horizon on this many
+    # held-out episodes
+    effect_points: int = 40
+    effect_horizon: int = 10
+    horizon_episodes: int = 40
 
     def problems(self):
-        yield from _positive(self, "hidden", "batch_size", "epochs", "lr", "seq_len", "gaussians")
+        yield from _positive(self, "hidden", "batch_size", "epochs", "lr", "seq_len", "gaussians", "effect_horizon")
+        if self.open_loop_steps < 0 or self.open_loop_steps >= self.seq_len:
+            yield ConfigValueError(
+                "open_loop_steps", self.open_loop_steps, f"it must be in [0, seq_len) = [0, {self.seq_len})"
+            )
+        if self.open_loop_weight < 0:
+            yield ConfigValueError("open_loop_weight", self.open_loop_weight, "it must be >= 0")
+        for key in ("effect_points", "horizon_episodes"):
+            if getattr(self, key) < 0:
+                yield ConfigValueError(key, getattr(self, key), "it must be >= 0 (0 skips the measurement)")
         if self.head not in RNN_HEADS:
             yield ConfigValueError("head", self.head, f"it must be one of {', '.join(RNN_HEADS)}")
 

@@ -1,6 +1,6 @@
 """The HDF5 rollout store: schema, atomic shard writing, validation and streaming readers.
 
-Layout of ``data/NAME/rollouts/`` (schema version 1; documented in ``data/README.md``)::
+Layout of ``data/NAME/rollouts/`` (schema version 2; documented in ``data/README.md``)::
 
     collect_config.json     what produced the shards (checked on resume)
     split.json              {"train": [episode ids], "validation": [episode ids]}, a seeded draw
@@ -18,7 +18,15 @@ Each shard holds one group per episode, ``episode_000123``, with
 * ``done (T,) uint8``          1 where the episode ended after ``action[t]`` (row T-2), and on the padding row,
 
 and attributes ``index``, ``seed``, ``scenario`` (JSON of ``envs.ScenarioSpec``), ``outcome`` (JSON), ``n_steps``,
-``terminated``. File attributes: ``schema_version``, ``episodes`` (ids), ``class_names``, ``dt``.
+``terminated``, ``branch_of`` and ``branch_step``. File attributes: ``schema_version``, ``episodes`` (ids),
+``class_names``, ``dt``.
+
+**Branched episodes** (schema 2, ``collect.branch``): a counterfactual continuation of episode ``p`` from its step
+``t0``, recorded by restoring the simulator's snapshot and holding one action. It is an episode of its own, id
+``episodes + p * branch.actions + j``, with ``branch_of = p`` and ``branch_step = t0`` (-1 for the recorded
+episodes); its first ``context + 1`` frames and ``context`` actions are copied from ``p`` so that the LSTM has a
+warm-up. It belongs to its parent's split. ``manifest.json`` maps each branch id to its parent. Schema 1 stores
+(before branches) are still read; they hold no branches.
 """
 
 from __future__ import annotations
@@ -35,7 +43,8 @@ import numpy as np
 
 from .common import atomic_output
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)  # 1: before branched episodes (no branch attributes); read as a store without branches
 EPISODE_KEYS = ("seg", "speed", "action", "reward_r1", "reward_r2", "done")
 SHARD_GLOB = "shard_*.h5"
 
@@ -76,6 +85,8 @@ def write_shard(path: Path, episodes: list[dict], meta: dict) -> None:
                 g.create_dataset(key, data=ep[key], track_times=False)
             for key in ("index", "seed", "n_steps", "terminated"):
                 g.attrs[key] = ep[key]
+            g.attrs["branch_of"] = int(ep.get("branch_of", -1))
+            g.attrs["branch_step"] = int(ep.get("branch_step", -1))
             g.attrs["scenario"] = ep["scenario"]
             g.attrs["outcome"] = ep["outcome"]
 
@@ -96,9 +107,13 @@ def check_shard(path: Path, full: bool = True) -> list[int]:
     f = _open(path)
     try:
         with f:
-            if f.attrs.get("schema_version") != SCHEMA_VERSION:
+            version = f.attrs.get("schema_version")
+            version = int(version) if version is not None else None
+            if version not in READABLE_VERSIONS:
                 raise CorruptDataError(
-                    f"{path}: schema_version {f.attrs.get('schema_version')!r}, expected {SCHEMA_VERSION}"
+                    f"{path} has schema_version {version!r}; this code reads versions "
+                    f"{', '.join(map(str, READABLE_VERSIONS))} (data/README.md). Recollect it with this version: "
+                    "delete the rollouts folder and run `python -m worldmodel.collect experiment=NAME`."
                 )
             ids = [int(i) for i in f.attrs["episodes"]]
             for i in ids:
@@ -135,7 +150,9 @@ class RolloutStore:
         self.manifest = json.loads(manifest.read_text())
         self.split = json.loads((self.root / "split.json").read_text())
         self.shards = sorted(self.root.glob(SHARD_GLOB))
-        expected = set(range(self.manifest["episodes"]))
+        # branched episode id -> the recorded episode it continues (none in a schema-1 store)
+        self.branch_of = {int(k): int(v) for k, v in self.manifest.get("branches", {}).items()}
+        expected = set(range(self.manifest["episodes"])) | set(self.branch_of)
         self.location: dict[int, Path] = {}
         for path in self.shards:
             ids = check_shard(path, full=False) if check else [int(i) for i in _open(path).attrs["episodes"]]
@@ -173,8 +190,13 @@ class RolloutStore:
         g = self._file(self.location[i])[episode_key(i)]
         return {k: g.attrs[k] for k in g.attrs}
 
-    def episodes(self, split: str) -> list[int]:
-        return list(self.split[split])
+    def episodes(self, split: str, branches: bool = True) -> list[int]:
+        """The split's recorded episodes and, with ``branches``, the branched continuations of them."""
+        main = list(self.split[split])
+        if not branches or not self.branch_of:
+            return main
+        members = set(main)
+        return main + sorted(i for i, p in self.branch_of.items() if p in members)
 
     def frames(self, split: str) -> int:
         return sum(self.lengths[i] for i in self.episodes(split))

@@ -53,11 +53,31 @@ def _worker_env(settings: dict):
     return _ENV
 
 
-def record_episode(env, policy, spec, index: int) -> dict:
-    """Drive ``policy`` through ``spec`` and return the episode in the store's layout (``data.write_shard``)."""
+def _episode_arrays(seg, speed, action, r1, r2) -> dict:
+    """Recorded lists -> the store's arrays: ``action[t]`` follows ``seg[t]``, the last row is padding."""
+    n = len(seg)
+    done = np.zeros(n, np.uint8)
+    done[-2:] = 1
+    pad = np.zeros((1, 2), np.float32)
+    return {
+        "n_steps": n - 1,
+        "seg": np.stack(seg).astype(np.uint8),
+        "speed": np.asarray(speed, np.float32),
+        "action": np.concatenate([np.asarray(action, np.float32).reshape(-1, 2), pad]),
+        "reward_r1": np.asarray(list(r1) + [0.0], np.float32),
+        "reward_r2": np.asarray(list(r2) + [0.0], np.float32),
+        "done": done,
+    }
+
+
+def record_episode(env, policy, spec, index: int, snapshot_at: int | None = None) -> dict:
+    """Drive ``policy`` through ``spec`` and return the episode in the store's layout (``data.write_shard``).
+    With ``snapshot_at`` = t, the env's state after step t (when the episode is still running) is kept in
+    ``_snapshot`` for branching."""
     from envs.rollout import rollout
 
     seg, speed, action, r1, r2 = [], [], [], [], []
+    kept = {}
 
     def first(obs, info):
         seg.append(obs["seg"])
@@ -69,47 +89,94 @@ def record_episode(env, policy, spec, index: int) -> dict:
         r2.append(info["reward_r2"])
         seg.append(obs["seg"])
         speed.append(obs["speed"][0])
+        if len(action) == snapshot_at and "outcome" not in info:
+            kept["snapshot"] = env.snapshot()
 
     episode = rollout(env, policy, spec, on_step=record, on_reset=first)
-    n = len(seg)
-    done = np.zeros(n, np.uint8)
-    done[-2:] = 1
-    pad = np.zeros((1, 2), np.float32)
     return {
         "index": index,
         "seed": spec.seed,
-        "n_steps": n - 1,
         "terminated": episode.terminated,
         "scenario": spec.to_json(),
         "outcome": json.dumps(episode.outcome, sort_keys=True),
-        "seg": np.stack(seg).astype(np.uint8),
-        "speed": np.asarray(speed, np.float32),
-        "action": np.concatenate([np.asarray(action, np.float32), pad]),
-        "reward_r1": np.asarray(r1 + [0.0], np.float32),
-        "reward_r2": np.asarray(r2 + [0.0], np.float32),
-        "done": done,
+        **_episode_arrays(seg, speed, action, r1, r2),
         "_outcome": episode.outcome,
         "_hazard": spec.hazard,
+        "_snapshot": kept.get("snapshot"),
     }
+
+
+def branch_plan(settings: dict, index: int) -> tuple[int, np.ndarray] | None:
+    """Whether episode ``index`` branches, and if so (its branch step, the constant actions ``(actions, 2)``):
+    a function of the settings and the index only, like everything else in a dataset."""
+    b = settings.get("branch")
+    if not b:
+        return None
+    rng = np.random.default_rng([int(settings["seed"]), int(index), 3571])
+    if rng.random() >= float(b["share"]):
+        return None
+    step = int(rng.integers(1, int(b["latest_step"]) + 1))
+    return step, rng.uniform(-1.0, 1.0, (int(b["actions"]), 2)).astype(np.float32)
+
+
+def branch_episodes(env, parent: dict, step: int, actions: np.ndarray, settings: dict) -> list[dict]:
+    """The continuations of ``parent`` from the snapshot after its ``step``, one per constant action: each is
+    the parent's last ``context`` frames up to the branch point, then up to ``branch.steps`` new steps."""
+    b = settings["branch"]
+    lo = max(0, step - int(b["context"]))
+    out = []
+    for j, a in enumerate(actions):
+        env.restore(parent["_snapshot"])
+        seg, speed = list(parent["seg"][lo : step + 1]), list(parent["speed"][lo : step + 1])
+        action = list(parent["action"][lo:step])
+        r1, r2 = list(parent["reward_r1"][lo:step]), list(parent["reward_r2"][lo:step])
+        terminated = False
+        for _ in range(int(b["steps"])):
+            obs, _, terminated, truncated, info = env.step(a)
+            action.append(a)
+            r1.append(info["reward_r1"])
+            r2.append(info["reward_r2"])
+            seg.append(obs["seg"])
+            speed.append(obs["speed"][0])
+            if terminated or truncated:
+                break
+        out.append(
+            {
+                "index": int(settings["episodes"]) + int(parent["index"]) * int(b["actions"]) + j,
+                "seed": parent["seed"],
+                "terminated": bool(terminated),
+                "scenario": parent["scenario"],
+                "outcome": json.dumps(env.outcome(), sort_keys=True),
+                **_episode_arrays(seg, speed, action, r1, r2),
+                "branch_of": int(parent["index"]),
+                "branch_step": int(step),
+            }
+        )
+    return out
 
 
 def record_shard(task: tuple) -> dict:
     """Record the episodes of one shard and write it atomically; returns its statistics."""
     settings, root, k, indices, spec_of, policy_of = task
     env = _worker_env(settings)
-    episodes = []
+    episodes, branches = [], []
     for i in indices:
         spec = spec_of(settings, i)
-        episodes.append(record_episode(env, policy_of(settings, spec), spec, i))
+        plan = branch_plan(settings, i)
+        episode = record_episode(env, policy_of(settings, spec), spec, i, snapshot_at=plan[0] if plan else None)
+        episodes.append(episode)
+        if episode["_snapshot"] is not None:
+            branches += branch_episodes(env, episode, plan[0], plan[1], settings)
     meta = {
         "class_names": json.dumps(__import__("envs").CLASS_NAMES),
         "dt": 1.0 / 15.0,
         "settings": json.dumps(settings, sort_keys=True),
     }
-    write_shard(Path(root) / shard_name(k), episodes, meta)
+    write_shard(Path(root) / shard_name(k), episodes + branches, meta)
     return {
         "shard": k,
-        "lengths": {e["index"]: len(e["seg"]) for e in episodes},
+        "lengths": {e["index"]: len(e["seg"]) for e in episodes + branches},
+        "branches": {e["index"]: e["branch_of"] for e in branches},
         "hazards": [e["_hazard"] for e in episodes],
         "outcomes": [e["_outcome"] for e in episodes],
     }
@@ -137,6 +204,13 @@ def record_dataset(
     config_path = root / "collect_config.json"
     if config_path.exists():
         previous = json.loads(config_path.read_text())
+        if previous.get("schema_version") != settings.get("schema_version"):
+            raise StageError(
+                f"{root} was recorded with data schema version {previous.get('schema_version')}, and this code "
+                f"writes version {settings.get('schema_version')} (data/README.md says what changed). The stages "
+                f"still read it, but it cannot be extended: use another experiment=NAME, or delete {root} to "
+                "recollect it."
+            )
         if previous != settings:
             raise StageError(
                 f"{root} was recorded with different settings ({config_path}). Use another "
@@ -168,7 +242,7 @@ def record_dataset(
     t0 = time.perf_counter()
     workers = min(int(num_workers), max(1, len(todo)))
     new_stats = []
-    done_episodes = sum(len(s["lengths"]) for s in done_stats)
+    done_episodes = sum(len(s["lengths"]) - len(s["branches"]) for s in done_stats)
     with tqdm(total=settings["episodes"], initial=done_episodes, unit="episode", desc=label) as bar:
         if workers == 1:
             for task in todo:
@@ -178,17 +252,19 @@ def record_dataset(
             with mp.get_context("spawn").Pool(workers) as pool:
                 for stats in pool.imap_unordered(record_shard, todo):
                     new_stats.append(stats)
-                    bar.update(len(stats["lengths"]))
+                    bar.update(len(stats["lengths"]) - len(stats["branches"]))
     wall = time.perf_counter() - t0
 
     all_stats = done_stats + new_stats
     summary = _summarise(all_stats, wall, sum(sum(s["lengths"].values()) for s in new_stats))
     lengths = {str(i): n for s in all_stats for i, n in s["lengths"].items()}
+    branches = {str(i): p for s in all_stats for i, p in sorted(s["branches"].items())}
     manifest = {
         "schema_version": SCHEMA_VERSION,
         "episodes": settings["episodes"],
         "shards": [shard_name(k) for k, _ in shards],
         "lengths": lengths,
+        "branches": branches,
         "summary": summary,
     }
     atomic_write_text(manifest_path, json.dumps(manifest, indent=1, sort_keys=True))
@@ -219,11 +295,14 @@ def _stats_of_existing(root: Path, ks: list[int]) -> list[dict]:
         path = root / shard_name(k)
         ids = check_shard(path, full=False)
         with h5py.File(path, "r") as f:
-            eps = [f[episode_key(i)] for i in ids]
+            groups = [f[episode_key(i)] for i in ids]
+            branches = {i: int(g.attrs["branch_of"]) for i, g in zip(ids, groups) if g.attrs.get("branch_of", -1) >= 0}
+            eps = [g for i, g in zip(ids, groups) if i not in branches]
             stats.append(
                 {
                     "shard": k,
-                    "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, eps)},
+                    "lengths": {i: g["seg"].shape[0] for i, g in zip(ids, groups)},
+                    "branches": branches,
                     # scenario JSON -> hazard name, as a fresh run reports it
                     "hazards": [ScenarioSpec.from_dict(json.loads(g.attrs["scenario"])).hazard for g in eps],
                     "outcomes": [json.loads(g.attrs["outcome"]) for g in eps],
@@ -236,9 +315,13 @@ def _summarise(stats: list[dict], wall: float, new_frames: int) -> dict:
     outcomes = [o for s in stats for o in s["outcomes"]]
     hazards = [h for s in stats for h in s["hazards"]]
     frames = sum(sum(s["lengths"].values()) for s in stats)
+    branched = [i for s in stats for i in s["branches"]]
+    branch_frames = sum(s["lengths"][i] for s in stats for i in s["branches"])
     return {
         "episodes": len(outcomes),
         "frames": frames,
+        "branched_episodes": len(branched),
+        "branch_frames": branch_frames,
         "hazards": {k: hazards.count(k) for k in ("pedestrian", "car", "both", "none")},
         "collisions": {k: int(sum(o[f"{k}_collision"] for o in outcomes)) for k in ("pedestrian", "vehicle", "static")},
         "ended_by": {k: sum(o["end"] == k for o in outcomes) for k in ("crash", "left_scene", "horizon")},

@@ -78,8 +78,27 @@ def make_batch(lat: Latents, units, seq_len: int, latent_dim: int, gen: torch.Ge
 
 def masked_loss(model, out: dict, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """The head's loss over the valid (unpadded) steps only."""
+    if not bool(mask.any()):
+        return target.new_zeros(())
     picked = {k: v[mask].unsqueeze(0) for k, v in out.items()}
     return model.loss(picked, target[mask].unsqueeze(0))
+
+
+def open_loop_loss(model, z, a, z_next, mask, start: int, steps: int) -> torch.Tensor:
+    """The loss of ``steps`` predictions made the way the LSTM dreams: teacher-forced on the real ``z`` up to
+    ``start``, then fed its own point predictions (gradients flow through them). An action's effect on the frame
+    is small in one step and adds up over several, so this is where the loss sees what the action does."""
+    if start > 0:
+        _, state = model(z[:, :start], a[:, :start])
+    else:
+        state = model.initial_state(z.shape[0])
+    z_in, outs = z[:, start], []
+    for j in range(steps):
+        out, state = model.step(z_in, a[:, start + j], state)
+        outs.append(out)
+        z_in = model.predict(out)
+    out = {k: torch.stack([o[k] for o in outs], 1) for k in outs[0]}
+    return masked_loss(model, out, z_next[:, start : start + steps], mask[:, start : start + steps])
 
 
 @torch.inference_mode()
@@ -175,6 +194,7 @@ def run(cfg) -> dict:
     train_units = windows(store.lengths, train_eps, L)
     val_units = windows(store.lengths, val_eps, L)
     epochs = int(cfg.rnn.epochs)
+    open_loop = int(cfg.rnn.open_loop_steps)
 
     with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
         # after the run's checks: a refused resume must not cost an encoding
@@ -218,6 +238,10 @@ def run(cfg) -> dict:
                     continue
                 out, _ = model(z, a)
                 loss = masked_loss(model, out, z_next, mask)
+                if open_loop:
+                    start = int(np.random.default_rng([int(cfg.seed), epoch, b, 77]).integers(0, L - open_loop + 1))
+                    dream_loss = open_loop_loss(model, z, a, z_next, mask, start, open_loop)
+                    loss = loss + float(cfg.rnn.open_loop_weight) * dream_loss
                 check_finite(loss.item(), "LSTM loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -228,6 +252,8 @@ def run(cfg) -> dict:
                 bar.update(1)
                 if step % LOG_EVERY == 0:
                     writer.add_scalar("loss/train", loss.item(), step)
+                    if open_loop:
+                        writer.add_scalar("loss/train_open_loop", dream_loss.item(), step)
                     writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
                 if run_.stop.requested:
                     break
@@ -255,6 +281,7 @@ def run(cfg) -> dict:
 
         model, best_path = artifacts.load_rnn(cfg, "best")
         scores = prediction_iou(model, vae, store, lat, val_eps)
+        scores.update(measure_dreams(cfg, vae, model, store, lat, store.episodes("validation", branches=False), writer))
         lat.close()
         metrics = {
             "checkpoint": str(best_path),
@@ -279,6 +306,49 @@ def run(cfg) -> dict:
             run_.marker,
         )
         return run_.finish(metrics)
+
+
+def measure_dreams(cfg, vae, rnn, store, lat, episodes: list[int], writer=None, step: int = 0) -> dict:
+    """``action_effect`` and ``horizon`` (worldmodel/dreams.py) as ``rnn.effect_*`` and ``rnn.horizon_episodes``
+    ask, logged to TensorBoard when ``writer`` is given."""
+    from . import dreams
+
+    out: dict = {}
+    t0 = time.perf_counter()
+    if int(cfg.rnn.effect_points) > 0:
+        effect, bank, dreamt = dreams.measure_action_effect(
+            cfg, vae, rnn, int(cfg.rnn.effect_points), int(cfg.rnn.effect_horizon)
+        )
+        out["action_effect"] = effect
+        at5 = dreams.effect_at(effect, min(5, int(cfg.rnn.effect_horizon)))
+        log.info("[rnn] action effect, dreamt / real at +5 steps: %s", {k: _round(v) for k, v in at5.items()})
+        if writer is not None:
+            for name, entry in effect["actions"].items():
+                for h, ratio in zip(effect["horizons"], entry["ratio"]["all"]):
+                    if ratio is not None:
+                        writer.add_scalar(f"action_effect/{name}_dreamt_over_real", ratio, h)
+            writer.add_image(
+                "action effect: per action, real branch over dreamt",
+                dreams.dream_figure(bank, dreamt),
+                step,
+                dataformats="HWC",
+            )
+    if int(cfg.rnn.horizon_episodes) > 0 and episodes:
+        quality = dreams.horizon_quality(
+            vae, rnn, store, lat, episodes[: int(cfg.rnn.horizon_episodes)], int(cfg.rnn.effect_horizon)
+        )
+        quality["lstm_beats_decoded_persistence"] = dreams.beats_decoded_persistence(quality)
+        out["horizon"] = quality
+        if writer is not None:
+            for key in dreams.HORIZON_KEYS:
+                for h, acc in zip(quality["horizons"], quality[key]["pixel_accuracy"]):
+                    writer.add_scalar(f"horizon_pixel_accuracy/{key}", acc, h)
+    out["dreams_wall_s"] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def _round(x):
+    return None if x is None else round(x, 3)
 
 
 @torch.inference_mode()

@@ -1,0 +1,350 @@
+"""What the world model dreams: does the LSTM's imagined future depend on the action, and how far ahead is it right?
+
+Two measurements (docs/design.md §4), written by the LSTM stage into ``runs/NAME/rnn/metrics.json`` and TensorBoard,
+and drawn by the notebook:
+
+* ``action_effect``. The simulator's snapshots are the ground truth. In held-out scenarios (their own seed
+  stream, never collected), the autopilot drives ``warmup`` steps; the env is snapshotted and rolled ``horizon``
+  real steps under each of :data:`ACTIONS` from the same state. The *real* effect of an action at +k is the share
+  of pixels where its branch differs from the "keep going" branch (overall, and per class: pixels where exactly
+  one of the two frames shows the class). The *dreamt* effect is the same between the decoded open-loop dreams
+  of the LSTM, warmed up on the real context and started from the branch point's latent. Their ratio, dreamt
+  over real, is how much of what the car's action does the world model knows.
+* ``horizon``. Open-loop prediction under the real actions from start points of held-out episodes, scored
+  against the real frames k steps ahead, beside persistence, persistence through the VAE and the VAE ceiling.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from envs import CLASS_NAMES, NUM_CLASSES, PALETTE
+
+# [steer, throttle/brake]: steer -1 is full left, pedal -1 full braking. "keep" is the reference branch.
+ACTIONS: dict[str, tuple[float, float]] = {
+    "keep": (0.0, 0.0),
+    "brake": (0.0, -1.0),
+    "left": (-1.0, 0.0),
+    "right": (1.0, 0.0),
+    "brake_left": (-1.0, -1.0),
+}
+EFFECT_CLASSES = {"vehicles": "Vehicles", "pedestrians": "Pedestrians", "roads": "Roads"}
+HORIZON_KEYS = ("lstm", "persistence", "persistence_vae", "ceiling")
+VEHICLES, PEDESTRIANS = CLASS_NAMES.index("Vehicles"), CLASS_NAMES.index("Pedestrians")
+
+
+# ----------------------------------------------------------------------------- real branches
+def branch_bank(
+    env,
+    points: int,
+    horizon: int = 10,
+    warmup: int = 8,
+    seed: int = 0,
+    speeds: tuple[float, ...] = (10.0, 20.0),
+    autopilot: dict | None = None,
+) -> dict:
+    """Real branches from ``points`` held-out branch points; ``env`` must have a camera.
+
+    Scenario k is drawn from the paper's distribution with the seed stream ``[seed, 6007, k]`` (disjoint from the
+    collection's ``[seed, index]``), at speed ``speeds[k % len(speeds)]``; an episode that ends during the warm-up
+    is replaced by the next draw. Returns ``context_seg (N, warmup + 1, H, W)`` (the last is the branch point),
+    ``context_action (N, warmup, 2)``, ``seg (N, A, horizon, H, W)`` with ``[:, a, k]`` the frame k + 1 steps
+    after the branch point under action ``a`` (in :data:`ACTIONS` order), ``valid (N, A, horizon)`` (false after
+    that branch's episode ended) and ``speed (N,)``.
+    """
+    from envs import NoisyAutopilot, sample_scenario
+
+    ap = dict(autopilot or {})
+    if "excursion_s" in ap:
+        ap["excursion_s"] = tuple(ap["excursion_s"])
+    actions = np.asarray(list(ACTIONS.values()), np.float32)
+    out = {k: [] for k in ("context_seg", "context_action", "seg", "valid", "speed")}
+    k = 0
+    while len(out["speed"]) < points:
+        rng = np.random.default_rng([int(seed), 6007, k])
+        spec = dataclasses.replace(sample_scenario(rng), ego_speed=float(speeds[k % len(speeds)]))
+        k += 1
+        frames, acts, ended = _drive(env, NoisyAutopilot(**ap), spec, warmup)
+        if len(acts) < warmup or any(ended):
+            continue
+        snap = env.snapshot()
+        seg = np.zeros((len(actions), horizon, *frames[0].shape), np.uint8)
+        valid = np.zeros((len(actions), horizon), bool)
+        for a, action in enumerate(actions):
+            env.restore(snap)
+            last = frames[-1]
+            for h in range(horizon):
+                if h == 0 or valid[a, h - 1]:
+                    obs, _, terminated, truncated, _ = env.step(action)
+                    last, valid[a, h] = obs["seg"], True
+                    if terminated or truncated:
+                        seg[a, h] = last
+                        seg[a, h + 1 :] = last
+                        break
+                seg[a, h] = last
+        out["context_seg"].append(np.stack(frames))
+        out["context_action"].append(np.asarray(acts, np.float32))
+        out["seg"].append(seg)
+        out["valid"].append(valid)
+        out["speed"].append(spec.ego_speed)
+    return {key: np.stack(v) for key, v in out.items()}
+
+
+def _drive(env, policy, spec, steps: int) -> tuple[list, list, list]:
+    """The first ``steps`` steps of ``spec`` under ``policy``: frames (one more than actions), actions, and
+    whether the episode had ended after each step."""
+    from envs import rollout
+
+    frames, acts, ended = [], [], []
+
+    def on_step(obs, a, reward, info):
+        frames.append(obs["seg"])
+        acts.append(a)
+        ended.append("outcome" in info)
+
+    rollout(env, policy, spec, max_steps=steps, on_reset=lambda obs, info: frames.append(obs["seg"]), on_step=on_step)
+    return frames, acts, ended
+
+
+# ----------------------------------------------------------------------------- dreams
+@torch.inference_mode()
+def decode_classes(vae, z: torch.Tensor, chunk: int = 64) -> np.ndarray:
+    """Latents ``(..., D)`` -> class maps ``(..., H, W)`` uint8, in zero-padded chunks of one size (oneDNN keeps
+    primitives per input shape)."""
+    flat = z.reshape(-1, z.shape[-1]).float()
+    n = len(flat)
+    padded = torch.zeros((-(-n // chunk) * chunk, flat.shape[1]), dtype=flat.dtype)
+    padded[:n] = flat
+    maps = torch.cat([vae.decode(part).argmax(1).to(torch.uint8) for part in padded.split(chunk)])[:n]
+    return maps.reshape(*z.shape[:-1], *maps.shape[1:]).numpy()
+
+
+@torch.inference_mode()
+def imagine(rnn, z0: torch.Tensor, state, actions: torch.Tensor) -> torch.Tensor:
+    """Open loop from ``z0 (B, D)`` and ``state``, feeding the LSTM its own point predictions: ``actions (B, K, 2)``
+    -> latents ``(B, K, D)``, where ``[:, k]`` predicts the latent k + 1 steps after ``z0``."""
+    z, dreamt = z0, []
+    for k in range(actions.shape[1]):
+        out, state = rnn.step(z, actions[:, k], state)
+        z = rnn.predict(out)
+        dreamt.append(z)
+    return torch.stack(dreamt, 1)
+
+
+@torch.inference_mode()
+def dream_branches(vae, rnn, bank: dict) -> np.ndarray:
+    """Decoded dreams ``(N, A, horizon, H, W)`` under :data:`ACTIONS`, from each branch point of ``bank``: the
+    LSTM reads the real context (z, a) and then dreams from the branch point's latent."""
+    ctx = torch.from_numpy(bank["context_seg"])
+    N, C1 = ctx.shape[:2]
+    mu, _ = vae.encode(ctx.reshape(N * C1, *ctx.shape[2:]))
+    mu = mu.reshape(N, C1, -1)
+    _, state = rnn(mu[:, :-1], torch.from_numpy(bank["context_action"]))
+    A, K = bank["seg"].shape[1:3]
+    state = tuple(s.repeat_interleave(A, 0) for s in state)
+    plans = torch.tensor(list(ACTIONS.values()), dtype=torch.float32)[None, :, None].expand(N, A, K, 2)
+    z = imagine(rnn, mu[:, -1].repeat_interleave(A, 0), state, plans.reshape(N * A, K, 2))
+    return decode_classes(vae, z).reshape(N, A, K, *bank["seg"].shape[3:])
+
+
+def branch_differences(seg: np.ndarray) -> dict[str, np.ndarray]:
+    """Per branch against branch 0 ("keep"): ``seg (N, A, K, H, W)`` -> share of differing pixels ``(N, A, K)``,
+    overall (``"all"``) and per class in :data:`EFFECT_CLASSES` (pixels where exactly one of the two shows it)."""
+    ref = seg[:, :1]
+    out = {"all": (seg != ref).mean(axis=(-1, -2))}
+    for key, name in EFFECT_CLASSES.items():
+        c = CLASS_NAMES.index(name)
+        out[key] = ((seg == c) != (ref == c)).mean(axis=(-1, -2))
+    return out
+
+
+def action_effect(real_seg: np.ndarray, dreamt_seg: np.ndarray, valid: np.ndarray) -> dict:
+    """Real and dreamt action effects per action, horizon and class, and their ratio (dreamt over real, of the
+    means over the branch points where both the branch and "keep" are still running)."""
+    real, dreamt = branch_differences(real_seg), branch_differences(dreamt_seg)
+    both = valid & valid[:, :1]
+    result: dict = {"points": int(len(real_seg)), "horizons": list(range(1, real_seg.shape[2] + 1)), "actions": {}}
+    for a, name in enumerate(ACTIONS):
+        if a == 0:
+            continue
+        entry: dict = {"real": {}, "dreamt": {}, "ratio": {}}
+        ok = both[:, a]
+        n = ok.sum(0).clip(min=1)
+        for key in real:
+            r = (real[key][:, a] * ok).sum(0) / n
+            d = (dreamt[key][:, a] * ok).sum(0) / n
+            entry["real"][key] = [float(x) for x in r]
+            entry["dreamt"][key] = [float(x) for x in d]
+            entry["ratio"][key] = [float(x) if np.isfinite(x) else None for x in d / np.where(r > 0, r, np.nan)]
+        entry["points"] = [int(x) for x in ok.sum(0)]
+        result["actions"][name] = entry
+    return result
+
+
+def effect_at(result: dict, horizon: int = 5, key: str = "all") -> dict[str, float | None]:
+    """The ratio dreamt/real at ``horizon`` for every action: the headline numbers."""
+    i = result["horizons"].index(horizon) if horizon in result["horizons"] else -1
+    return {name: e["ratio"][key][i] for name, e in result["actions"].items()}
+
+
+def measure_action_effect(
+    cfg, vae, rnn, points: int, horizon: int = 10, warmup: int = 8
+) -> tuple[dict, dict, np.ndarray]:
+    """The branch bank for ``cfg`` (camera env, the collection's autopilot), the LSTM's dreams, and the metric."""
+    from omegaconf import OmegaConf
+
+    from .common import make_env
+
+    env = make_env(cfg, camera=True)
+    try:
+        bank = branch_bank(
+            env,
+            points,
+            horizon,
+            warmup,
+            seed=int(cfg.seed),
+            autopilot=OmegaConf.to_container(cfg.collect.autopilot, resolve=True),
+        )
+    finally:
+        env.close()
+    dreams = dream_branches(vae, rnn, bank)
+    return action_effect(bank["seg"], dreams, bank["valid"]), bank, dreams
+
+
+def dream_figure(bank: dict, dreams: np.ndarray, point: int = 0) -> np.ndarray:
+    """An RGB strip for TensorBoard: per action, the real branch row above the dreamt one (branch point first)."""
+    rows = []
+    start = PALETTE[bank["context_seg"][point, -1]]
+    for a in range(dreams.shape[1]):
+        for frames in (bank["seg"][point, a], dreams[point, a]):
+            rows.append(np.concatenate([start, *PALETTE[frames]], axis=1))
+        rows.append(np.full((2, rows[-1].shape[1], 3), 255, np.uint8))
+    return np.concatenate(rows, axis=0)
+
+
+# ----------------------------------------------------------------------------- quality against horizon
+def _scores(conf: np.ndarray) -> dict[str, float | None]:
+    from .models.vae import iou_from_confusion
+
+    iou = iou_from_confusion(conf)
+    v, p = iou[VEHICLES], iou[PEDESTRIANS]
+    both = [x for x in (v, p) if not np.isnan(x)]
+
+    def num(x):
+        return None if x is None or np.isnan(x) else float(x)
+
+    return {
+        "pixel_accuracy": float(np.trace(conf) / max(conf.sum(), 1)),
+        "vehicles_iou": num(v),
+        "pedestrians_iou": num(p),
+        "hazard_iou": num(float(np.mean(both)) if both else np.nan),
+    }
+
+
+@torch.inference_mode()
+def horizon_quality(vae, rnn, store, lat, episodes: list[int], horizon: int = 10, every: int = 5) -> dict:
+    """Open-loop prediction under the real actions, k = 1..horizon steps ahead, against the real frames, beside
+    ``persistence`` (the real frame t0 held), ``persistence_vae`` (decode(z_t0) held: the untrained residual
+    LSTM) and ``ceiling`` (decode(mu_{t0+k})). A start point counts for the horizons it has frames for."""
+    from .models.vae import confusion
+
+    conf = {key: np.zeros((horizon, NUM_CLASSES, NUM_CLASSES), np.int64) for key in HORIZON_KEYS}
+    starts_per_k = np.zeros(horizon, int)
+    for i in episodes:
+        mu_np, _, act_np = lat.episode(i)
+        seg = store.read(i, "seg")
+        T = len(seg)
+        starts = np.arange(0, T - 1, every)
+        K = min(horizon, T - 1)
+        if len(starts) == 0 or K < 1:
+            continue
+        mu, act = torch.from_numpy(mu_np), torch.from_numpy(act_np)
+        # the LSTM state after reading (z_s, a_s) for s < t, at every t
+        h, c = rnn.initial_state(1)
+        hs, cs = [h], [c]
+        for t in range(T - 1):
+            _, (h, c) = rnn.step(mu[t : t + 1], act[t : t + 1], (h, c))
+            hs.append(h)
+            cs.append(c)
+        hs, cs = torch.cat(hs), torch.cat(cs)
+        steps = np.minimum(starts[:, None] + np.arange(K)[None], T - 1)
+        z = imagine(rnn, mu[starts], (hs[starts], cs[starts]), act[steps])
+        dreamt = decode_classes(vae, z)
+        recon = decode_classes(vae, mu)
+        for k in range(1, K + 1):
+            ok = starts + k <= T - 1
+            if not ok.any():
+                break
+            s = starts[ok]
+            target = seg[s + k]
+            for key, frames in (
+                ("lstm", dreamt[ok, k - 1]),
+                ("persistence", seg[s]),
+                ("persistence_vae", recon[s]),
+                ("ceiling", recon[s + k]),
+            ):
+                conf[key][k - 1] += confusion(torch.from_numpy(frames), torch.from_numpy(target), NUM_CLASSES)
+            starts_per_k[k - 1] += len(s)
+    result: dict = {"horizons": list(range(1, horizon + 1)), "starts": [int(x) for x in starts_per_k]}
+    for key in HORIZON_KEYS:
+        per_k = [_scores(conf[key][k]) for k in range(horizon)]
+        result[key] = {m: [row[m] for row in per_k] for m in per_k[0]}
+    return result
+
+
+def beats_decoded_persistence(result: dict) -> dict[str, bool]:
+    """Whether the LSTM is above persistence through the VAE at every horizon, in pixel accuracy and in the mean
+    IoU of Vehicles and Pedestrians (issue 12's bar)."""
+    out = {}
+    for metric in ("pixel_accuracy", "hazard_iou"):
+        m, p = result["lstm"][metric], result["persistence_vae"][metric]
+        out[metric] = all(a is not None and b is not None and a > b for a, b in zip(m, p))
+    return out
+
+
+# ----------------------------------------------------------------------------- command line
+def run(cfg) -> dict:
+    """Measure the trained world model of ``experiment=NAME`` again, without training: ``action_effect`` and
+    ``horizon`` into ``runs/NAME/rnn/dreams.json`` (the LSTM stage writes the same into its ``metrics.json``).
+
+        python -m worldmodel.dreams experiment=NAME scale=smoke|quick|paper [rnn.effect_points=100]
+    """
+    import json
+
+    from . import artifacts
+    from .common import atomic_write_text, set_threads
+    from .config import validate
+    from .latents import Latents
+    from .train_rnn import measure_dreams
+
+    validate(cfg)
+    set_threads(cfg.threads)
+    vae, _ = artifacts.load_vae(cfg, "best")
+    rnn, rnn_path = artifacts.load_rnn(cfg, "best")
+    store = artifacts.open_rollouts(cfg)
+    lat = Latents(artifacts.latents_path(cfg))
+    try:
+        result = {
+            "checkpoint": str(rnn_path),
+            **measure_dreams(cfg, vae, rnn, store, lat, store.episodes("validation", branches=False)),
+        }
+    finally:
+        lat.close()
+        store.close()
+    out = artifacts.rnn_dir(cfg) / "dreams.json"
+    atomic_write_text(out, json.dumps(result, indent=1))
+    print(f"wrote {out}")
+    return result
+
+
+def _main():
+    from .config import hydra_main
+
+    return hydra_main("train_rnn")(run)()
+
+
+if __name__ == "__main__":
+    _main()
