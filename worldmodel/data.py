@@ -242,19 +242,19 @@ def iter_frame_batches(
 
 # ----------------------------------------------------------------------------- CLI
 def validate(root: Path) -> tuple[int, int]:
-    """Check every shard of a rollout directory; raises CorruptDataError naming the first bad file."""
+    """Check every shard of a rollout directory; raises CorruptDataError naming the first bad file. Returns the
+    number of recorded episodes (branched ones not counted) and of frames (all)."""
     root = Path(root)
     if not root.is_dir():
         raise CorruptDataError(f"{root} is not a directory")
-    episodes = frames = 0
+    frames = 0
     for path in sorted(root.glob(SHARD_GLOB)):
         ids = check_shard(path, full=True)
         with h5py.File(path, "r") as f:
             frames += sum(f[episode_key(i)]["seg"].shape[0] for i in ids)
-        episodes += len(ids)
     store = RolloutStore(root, check=False)  # manifest and episode coverage
     store.close()
-    return episodes, frames
+    return len(store.location) - len(store.branch_of), frames
 
 
 def main(argv=None) -> int:

@@ -17,6 +17,8 @@ and drawn by the notebook:
 from __future__ import annotations
 
 import dataclasses
+import logging
+import time
 
 import numpy as np
 import torch
@@ -34,6 +36,7 @@ ACTIONS: dict[str, tuple[float, float]] = {
 EFFECT_CLASSES = {"vehicles": "Vehicles", "pedestrians": "Pedestrians", "roads": "Roads"}
 HORIZON_KEYS = ("lstm", "persistence", "persistence_vae", "ceiling")
 VEHICLES, PEDESTRIANS = CLASS_NAMES.index("Vehicles"), CLASS_NAMES.index("Pedestrians")
+log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------- real branches
@@ -305,6 +308,48 @@ def beats_decoded_persistence(result: dict) -> dict[str, bool]:
     return out
 
 
+# ----------------------------------------------------------------------------- both, as the stage runs them
+def measure(cfg, vae, rnn, store, lat, episodes: list[int], writer=None, step: int = 0) -> dict:
+    """``action_effect`` and ``horizon`` (worldmodel/dreams.py) as ``rnn.effect_*`` and ``rnn.horizon_episodes``
+    ask, logged to TensorBoard when ``writer`` is given."""
+    out: dict = {}
+    t0 = time.perf_counter()
+    if int(cfg.rnn.effect_points) > 0:
+        effect, bank, dreamt = measure_action_effect(
+            cfg, vae, rnn, int(cfg.rnn.effect_points), int(cfg.rnn.effect_horizon)
+        )
+        out["action_effect"] = effect
+        at5 = effect_at(effect, min(5, int(cfg.rnn.effect_horizon)))
+        log.info("[dreams] action effect, dreamt / real at +5 steps: %s", {k: _round(v) for k, v in at5.items()})
+        if writer is not None:
+            for name, entry in effect["actions"].items():
+                for h, ratio in zip(effect["horizons"], entry["ratio"]["all"]):
+                    if ratio is not None:
+                        writer.add_scalar(f"action_effect/{name}_dreamt_over_real", ratio, h)
+            writer.add_image(
+                "action effect: per action, real branch over dreamt",
+                dream_figure(bank, dreamt),
+                step,
+                dataformats="HWC",
+            )
+    if int(cfg.rnn.horizon_episodes) > 0 and episodes:
+        quality = horizon_quality(
+            vae, rnn, store, lat, episodes[: int(cfg.rnn.horizon_episodes)], int(cfg.rnn.effect_horizon)
+        )
+        quality["lstm_beats_decoded_persistence"] = beats_decoded_persistence(quality)
+        out["horizon"] = quality
+        if writer is not None:
+            for key in HORIZON_KEYS:
+                for h, acc in zip(quality["horizons"], quality[key]["pixel_accuracy"]):
+                    writer.add_scalar(f"horizon_pixel_accuracy/{key}", acc, h)
+    out["dreams_wall_s"] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def _round(x):
+    return None if x is None else round(x, 3)
+
+
 # ----------------------------------------------------------------------------- command line
 def run(cfg) -> dict:
     """Measure the trained world model of ``experiment=NAME`` again, without training: ``action_effect`` and
@@ -318,7 +363,6 @@ def run(cfg) -> dict:
     from .common import atomic_write_text, set_threads
     from .config import validate
     from .latents import Latents
-    from .train_rnn import measure_dreams
 
     validate(cfg)
     set_threads(cfg.threads)
@@ -329,7 +373,7 @@ def run(cfg) -> dict:
     try:
         result = {
             "checkpoint": str(rnn_path),
-            **measure_dreams(cfg, vae, rnn, store, lat, store.episodes("validation", branches=False)),
+            **measure(cfg, vae, rnn, store, lat, store.episodes("validation", branches=False)),
         }
     finally:
         lat.close()

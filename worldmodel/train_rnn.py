@@ -24,7 +24,7 @@ import torch
 
 from envs import CLASS_NAMES, NUM_CLASSES
 
-from . import artifacts
+from . import artifacts, dreams
 from .common import StageError, check_finite, seed_everything, set_threads
 from .config import hydra_main, validate
 from .latents import Latents, encode_dataset, is_current
@@ -281,7 +281,7 @@ def run(cfg) -> dict:
 
         model, best_path = artifacts.load_rnn(cfg, "best")
         scores = prediction_iou(model, vae, store, lat, val_eps)
-        scores.update(measure_dreams(cfg, vae, model, store, lat, store.episodes("validation", branches=False), writer))
+        scores.update(dreams.measure(cfg, vae, model, store, lat, store.episodes("validation", branches=False), writer))
         lat.close()
         metrics = {
             "checkpoint": str(best_path),
@@ -306,49 +306,6 @@ def run(cfg) -> dict:
             run_.marker,
         )
         return run_.finish(metrics)
-
-
-def measure_dreams(cfg, vae, rnn, store, lat, episodes: list[int], writer=None, step: int = 0) -> dict:
-    """``action_effect`` and ``horizon`` (worldmodel/dreams.py) as ``rnn.effect_*`` and ``rnn.horizon_episodes``
-    ask, logged to TensorBoard when ``writer`` is given."""
-    from . import dreams
-
-    out: dict = {}
-    t0 = time.perf_counter()
-    if int(cfg.rnn.effect_points) > 0:
-        effect, bank, dreamt = dreams.measure_action_effect(
-            cfg, vae, rnn, int(cfg.rnn.effect_points), int(cfg.rnn.effect_horizon)
-        )
-        out["action_effect"] = effect
-        at5 = dreams.effect_at(effect, min(5, int(cfg.rnn.effect_horizon)))
-        log.info("[rnn] action effect, dreamt / real at +5 steps: %s", {k: _round(v) for k, v in at5.items()})
-        if writer is not None:
-            for name, entry in effect["actions"].items():
-                for h, ratio in zip(effect["horizons"], entry["ratio"]["all"]):
-                    if ratio is not None:
-                        writer.add_scalar(f"action_effect/{name}_dreamt_over_real", ratio, h)
-            writer.add_image(
-                "action effect: per action, real branch over dreamt",
-                dreams.dream_figure(bank, dreamt),
-                step,
-                dataformats="HWC",
-            )
-    if int(cfg.rnn.horizon_episodes) > 0 and episodes:
-        quality = dreams.horizon_quality(
-            vae, rnn, store, lat, episodes[: int(cfg.rnn.horizon_episodes)], int(cfg.rnn.effect_horizon)
-        )
-        quality["lstm_beats_decoded_persistence"] = dreams.beats_decoded_persistence(quality)
-        out["horizon"] = quality
-        if writer is not None:
-            for key in dreams.HORIZON_KEYS:
-                for h, acc in zip(quality["horizons"], quality[key]["pixel_accuracy"]):
-                    writer.add_scalar(f"horizon_pixel_accuracy/{key}", acc, h)
-    out["dreams_wall_s"] = round(time.perf_counter() - t0, 1)
-    return out
-
-
-def _round(x):
-    return None if x is None else round(x, 3)
 
 
 @torch.inference_mode()
