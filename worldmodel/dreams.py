@@ -350,10 +350,94 @@ def _round(x):
     return None if x is None else round(x, 3)
 
 
+# ----------------------------------------------------------------------------- reports
+def markdown(result: dict, horizons=(1, 3, 5, 10)) -> str:
+    """The action effect (real, dreamt, ratio per action and class) and quality against horizon as tables."""
+    lines = []
+    effect = result.get("action_effect")
+    if effect:
+        ks = [k for k in horizons if k in effect["horizons"]]
+        lines += [
+            f"Action effect over {effect['points']} held-out branch points: share of pixels that differ from the "
+            "'keep' branch, real (simulator) and dreamt (LSTM), and their ratio.",
+            "",
+            "| action | class | " + " | ".join(f"real +{k} | dreamt +{k} | ratio +{k}" for k in ks) + " |",
+            "|---|---|" + "---:|---:|---:|" * len(ks),
+        ]
+        for name, entry in effect["actions"].items():
+            for key in entry["real"]:
+                cells = []
+                for k in ks:
+                    i = effect["horizons"].index(k)
+                    ratio = entry["ratio"][key][i]
+                    cells.append(
+                        f"{entry['real'][key][i]:.3f} | {entry['dreamt'][key][i]:.3f} | "
+                        + ("–" if ratio is None else f"{ratio:.2f}")
+                    )
+                lines.append(f"| {name} | {key} | " + " | ".join(cells) + " |")
+        lines.append("")
+    quality = result.get("horizon")
+    if quality:
+        lines += [
+            f"Open-loop quality against horizon under the real actions ({quality['starts'][0]} start points at +1): "
+            "pixel accuracy / mean IoU of Vehicles and Pedestrians.",
+            "",
+            "| k | " + " | ".join(HORIZON_KEYS) + " |",
+            "|---:|" + "---:|" * len(HORIZON_KEYS),
+        ]
+        for i, k in enumerate(quality["horizons"]):
+            cells = []
+            for key in HORIZON_KEYS:
+                acc, iou = quality[key]["pixel_accuracy"][i], quality[key]["hazard_iou"][i]
+                cells.append(f"{acc:.3f} / " + ("–" if iou is None else f"{iou:.3f}"))
+            lines.append(f"| {k} | " + " | ".join(cells) + " |")
+        beats = quality.get("lstm_beats_decoded_persistence") or beats_decoded_persistence(quality)
+        lines += ["", f"LSTM above persistence through the VAE at every horizon: {beats}.", ""]
+    return "\n".join(lines)
+
+
+def plot(result: dict, path) -> None:
+    """Two panels: the ratio dreamt / real per action against horizon, and pixel accuracy against horizon."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    effect, quality = result.get("action_effect"), result.get("horizon")
+    if effect:
+        for name, entry in effect["actions"].items():
+            ratio = [np.nan if r is None else r for r in entry["ratio"]["all"]]
+            axes[0].plot(effect["horizons"], ratio, marker="o", label=name)
+        axes[0].axhline(1.0, color="0.5", ls=":")
+        axes[0].axhline(0.5, color="C3", ls="--", lw=0.8)
+        axes[0].set_ylim(0, 2)
+        axes[0].set_title(f"action effect, dreamt / real ({effect['points']} branch points)", fontsize=10)
+        axes[0].set_xlabel("steps after the branch point (1/15 s)")
+        axes[0].legend(fontsize=8)
+    if quality:
+        for ax, metric, label in (
+            (axes[1], "pixel_accuracy", "pixel accuracy"),
+            (axes[2], "hazard_iou", "mean IoU, Vehicles + Pedestrians"),
+        ):
+            for key, style in zip(HORIZON_KEYS, ("o-", "s-", "--", ":")):
+                values = [np.nan if v is None else v for v in quality[key][metric]]
+                ax.plot(quality["horizons"], values, style, label=key)
+            ax.set_title(f"open loop, real actions: {label}", fontsize=10)
+            ax.set_xlabel("horizon k (steps of 1/15 s)")
+        axes[1].legend(fontsize=8)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 # ----------------------------------------------------------------------------- command line
 def run(cfg) -> dict:
     """Measure the trained world model of ``experiment=NAME`` again, without training: ``action_effect`` and
-    ``horizon`` into ``runs/NAME/rnn/dreams.json`` (the LSTM stage writes the same into its ``metrics.json``).
+    ``horizon`` into ``runs/NAME/rnn/dreams.json`` (the LSTM stage writes the same into its ``metrics.json``), with
+    their tables in ``dreams.md`` and a figure in ``dreams.png``.
 
         python -m worldmodel.dreams experiment=NAME scale=smoke|quick|paper [rnn.effect_points=100]
     """
@@ -380,7 +464,10 @@ def run(cfg) -> dict:
         store.close()
     out = artifacts.rnn_dir(cfg) / "dreams.json"
     atomic_write_text(out, json.dumps(result, indent=1))
-    print(f"wrote {out}")
+    atomic_write_text(out.with_suffix(".md"), markdown(result))
+    plot(result, out.with_suffix(".png"))
+    print(markdown(result))
+    print(f"wrote {out} and beside it dreams.md, dreams.png")
     return result
 
 
