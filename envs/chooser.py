@@ -40,6 +40,7 @@ def chooser_candidates(
     pedals: Sequence[float] = (-1.0,),
     sides: Sequence[float] = (1.0, -1.0),
     swerve: bool = True,
+    step_s: float = DT,
 ) -> list[Manoeuvre]:
     """Straight-line braking first, then every steer × shape (held swerve if ``swerve``, lane changes) × pedal ×
     side, started now. No delayed starts: the chooser decides again at the next step, so waiting is a choice."""
@@ -54,7 +55,7 @@ def chooser_candidates(
     if not swerve and not lane_change_s:
         raise ValueError("the chooser needs a manoeuvre besides braking: lane_change_s or swerve")
     shapes = [("swerve", 0)] if swerve else []
-    shapes += [("lane_change", max(1, int(round(float(h) / DT)))) for h in lane_change_s]
+    shapes += [("lane_change", max(1, int(round(float(h) / step_s)))) for h in lane_change_s]
     out = [Manoeuvre(-1.0)]
     for steer in sorted({float(s) for s in steers}):
         for shape, hold in shapes:
@@ -64,10 +65,10 @@ def chooser_candidates(
     return out
 
 
-def decide_steps_for(decide_s: float) -> int:
+def decide_steps_for(decide_s: float, step_s: float = DT) -> int:
     if not decide_s > 0:
         raise ValueError(f"chooser decide_s={decide_s} must be > 0")
-    return max(1, int(math.ceil(float(decide_s) / DT - 1e-9)))
+    return max(1, int(math.ceil(float(decide_s) / step_s - 1e-9)))
 
 
 class ExactCosts:

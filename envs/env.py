@@ -2,7 +2,8 @@
 
 Spaces and timing (docs/design.md §3):
 
-* step 1/15 s (the paper's 15 FPS), dynamics and collisions sub-stepped ``substeps`` times per step;
+* step ``step_s`` (default 1/15 s, the paper's 15 FPS; the peers' 0.1 s is a setting), dynamics and collisions
+  sub-stepped ``substeps`` times per step;
 * action ``Box(-1, 1, (2,))`` = [steer, throttle/brake]: steer -1..1 is maximum left..maximum right;
   throttle/brake -1..0 asks for 9.8..0 m/s^2 of deceleration, 0..1 for up to ``VehicleParams.max_accel``.
   [0, 0] holds the current speed, the constant-velocity motion TTC is defined by;
@@ -58,7 +59,8 @@ class UrbanCollisionEnv(gym.Env):
     camera: render the segmentation frame (False: zeros, for scripted evaluation and planners).
     image_size, fov_deg: the camera. reward: 'r1' or 'r2'. horizon_after_ttc_s: agent-episode length
     after the TTC (None: ``max_episode_s``). mu: tyre-road friction. occupants_per_car: people per car.
-    ego_mass, car_mass: kg, for delta-v. substeps: collision/dynamics sub-steps per 1/15 s step.
+    ego_mass, car_mass: kg, for delta-v. substeps: collision/dynamics sub-steps per step.
+    step_s: seconds per step (``DT`` = 1/15 by default); planners and evaluation read it from the env.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 15}
@@ -77,6 +79,7 @@ class UrbanCollisionEnv(gym.Env):
         car_mass: float = 1500.0,
         substeps: int = 8,
         render_mode: str | None = None,
+        step_s: float = DT,
     ):
         checks = {
             "image_size": image_size >= 8,
@@ -87,6 +90,7 @@ class UrbanCollisionEnv(gym.Env):
             "ego_mass": ego_mass > 0.0,
             "car_mass": car_mass > 0.0,
             "substeps": substeps >= 1,
+            "step_s": 0.0 < step_s <= 0.5,
             "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
             "reward": reward in REWARDS,
             "render_mode": render_mode in (None, "rgb_array"),
@@ -103,6 +107,7 @@ class UrbanCollisionEnv(gym.Env):
         self.occupants_per_car = int(occupants_per_car)
         self.ego_mass, self.car_mass = float(ego_mass), float(car_mass)
         self.substeps = int(substeps)
+        self.step_s = float(step_s)
         self.render_mode = render_mode
         self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
 
@@ -180,7 +185,7 @@ class UrbanCollisionEnv(gym.Env):
         self.t_step = 0
         after = self.horizon_after_ttc_s
         horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
-        self.horizon_steps = max(1, int(math.ceil(horizon_s / DT - 1e-9)))
+        self.horizon_steps = max(1, int(math.ceil(horizon_s / self.step_s - 1e-9)))
         self.collisions: list[dict] = []
         self.returns = {"r1": 0.0, "r2": 0.0}
         self.ever_departed = False
@@ -206,14 +211,14 @@ class UrbanCollisionEnv(gym.Env):
             raise ValueError(f"action must be 2 finite numbers [steer, throttle/brake], got {action!r}")
         steer, pedal = float(min(1.0, max(-1.0, a[0]))), float(min(1.0, max(-1.0, a[1])))
 
-        ego, act, p = self.ego, self.actors, self.params
-        sub_dt = DT / self.substeps
-        reach = self._car_radius + (ego.v + 3.0) * DT + 1.0
+        ego, act, p, dt = self.ego, self.actors, self.params, self.step_s
+        sub_dt = dt / self.substeps
+        reach = self._car_radius + (ego.v + 3.0) * dt + 1.0
         lo = np.array([ego.x - reach, ego.y - reach])
         hi = np.array([ego.x + reach, ego.y + reach])
-        car_idx = geometry.near(act.car_xy, self._car_radius + np.abs(act.car_vel).sum(1) * DT, lo, hi)
+        car_idx = geometry.near(act.car_xy, self._car_radius + np.abs(act.car_vel).sum(1) * dt, lo, hi)
         car_idx = [i for i in car_idx if act.car_active[i]]
-        ped_idx = geometry.near(act.ped_xy, PEDESTRIAN_RADIUS + np.abs(act.ped_vel).sum(1) * DT, lo, hi)
+        ped_idx = geometry.near(act.ped_xy, PEDESTRIAN_RADIUS + np.abs(act.ped_vel).sum(1) * dt, lo, hi)
         ped_idx = [i for i in ped_idx if act.ped_active[i]]
         rect_idx = geometry.near(self._rect_centres, self._rect_radius, lo, hi)
         circ_idx = geometry.near(self._circle_centres, self._circle_radius, lo, hi)
@@ -221,7 +226,7 @@ class UrbanCollisionEnv(gym.Env):
         hits: list[dict] = []
         crashed = False
         done_sub = self.substeps
-        t0 = self.t_step * DT
+        t0 = self.t_step * dt
         for k in range(1, self.substeps + 1):
             integrate(ego, steer, pedal, sub_dt, p)
             c, s = math.cos(ego.psi), math.sin(ego.psi)
@@ -328,6 +333,7 @@ class UrbanCollisionEnv(gym.Env):
             ego_mass=self.ego_mass,
             car_mass=self.car_mass,
             substeps=self.substeps,
+            step_s=self.step_s,
         )
 
     # ------------------------------------------------------------------ collisions
@@ -416,7 +422,7 @@ class UrbanCollisionEnv(gym.Env):
     def _info(self, hits: list[dict], r1: float, r2: float) -> dict:
         e = self.ego
         return {
-            "t": self.t_step * DT,
+            "t": self.t_step * self.step_s,
             "step": self.t_step,
             "collisions": hits,
             "reward_r1": r1,

@@ -56,10 +56,12 @@ def candidate_manoeuvres(
     delays_s: Sequence[float] = (0.0, 0.2, 0.4),
     lane_change_s: Sequence[float] = (0.3, 0.6),
     sides: Sequence[float] = (1.0, -1.0),
+    step_s: float = DT,
 ) -> list[Manoeuvre]:
     """Every combination, gentlest first: straight-line braking, the other straight pedals, then steering
     manoeuvres by increasing steer, later starts before earlier ones. ``sides``: the steering directions tried, in
-    order (1 right, -1 left); one side only makes a teacher whose choices a camera student can tell apart."""
+    order (1 right, -1 left); one side only makes a teacher whose choices a camera student can tell apart.
+    Durations are in seconds, turned into steps of ``step_s`` (the env's ``step_s``)."""
     if not pedals or -1.0 not in [float(p) for p in pedals]:
         raise ValueError("planner pedals must include -1.0 (full brake): straight-line braking is its floor")
     for name, values, lo, hi in (("pedals", pedals, -1.0, 1.0), ("steers", steers, 0.0, 1.0)):
@@ -71,7 +73,7 @@ def candidate_manoeuvres(
         raise ValueError(f"planner sides={list(sides)} must be distinct values of 1.0 (right) and -1.0 (left)")
     pedals = sorted({float(p) for p in pedals}, key=lambda p: (p != -1.0, abs(p + 1.0)))
     out = [Manoeuvre(p) for p in pedals]
-    steps = lambda s: int(round(float(s) / DT))  # noqa: E731
+    steps = lambda s: int(round(float(s) / step_s))  # noqa: E731
     shapes = [("swerve", 0)] + [("lane_change", max(1, steps(h))) for h in lane_change_s]
     for steer in sorted({float(s) for s in steers if float(s) > 0}):
         for delay in sorted({steps(d) for d in delays_s}, reverse=True):
@@ -113,27 +115,37 @@ class PrivilegedPlanner:
 
     name = "oracle"
 
-    def __init__(self, replan_every: int = 3, brake_first: int = 0, **candidates):
+    def __init__(self, replan_every: int = 3, brake_first: int = 0, step_s: float = DT, **candidates):
         if int(replan_every) < 1:
             raise ValueError(f"planner replan_every={replan_every} must be >= 1 step")
         if int(brake_first) < 0:
             raise ValueError(f"planner brake_first={brake_first} must be >= 0 steps")
         self.replan_every, self.brake_first = int(replan_every), int(brake_first)
-        self.candidates = candidate_manoeuvres(**candidates)
+        self.step_s = float(step_s)
+        self.candidates = candidate_manoeuvres(step_s=self.step_s, **candidates)
         self.env: UrbanCollisionEnv | None = None
         self._twin: UrbanCollisionEnv | None = None
         self.plan: _Plan | None = None
         self.rollouts = 0
 
     @classmethod
-    def from_settings(cls, replan_every_s: float, brake_first: int = 0, **candidates) -> PrivilegedPlanner:
-        """From the config's units: ``replan_every_s`` in seconds, the rest as ``candidate_manoeuvres``."""
-        return cls(replan_every=max(1, round(float(replan_every_s) / DT)), brake_first=brake_first, **candidates)
+    def from_settings(
+        cls, replan_every_s: float, brake_first: int = 0, step_s: float = DT, **candidates
+    ) -> PrivilegedPlanner:
+        """From the config's units: ``replan_every_s`` in seconds, ``step_s`` the env's step (``env.step_s``), the
+        rest as ``candidate_manoeuvres``."""
+        replan = max(1, round(float(replan_every_s) / float(step_s)))
+        return cls(replan_every=replan, brake_first=brake_first, step_s=step_s, **candidates)
 
     def reset(self, seed: int | None = None) -> None:
         self.plan = None
 
     def bind(self, env: UrbanCollisionEnv) -> None:
+        if env.step_s != self.step_s:
+            raise ValueError(
+                f"the planner's manoeuvres are in steps of {self.step_s} s but the env steps {env.step_s} s; "
+                "build it with step_s=env.step_s"
+            )
         self.env = env
         if self._twin is None:
             self._twin = env.planning_twin()

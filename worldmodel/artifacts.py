@@ -205,6 +205,19 @@ def _config(cfg, *keys: str) -> dict:
 
 
 RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
+# Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
+# they are left out of the hash and older runs stay current.
+ADDED_DEFAULTS = {"env": {"step_s": 1.0 / 15.0}}
+
+
+def _drop_added_defaults(settings: dict) -> dict:
+    for section, defaults in ADDED_DEFAULTS.items():
+        values = settings.get(section)
+        if isinstance(values, dict):
+            for key, default in defaults.items():
+                if key in values and values[key] == default:
+                    values.pop(key)
+    return settings
 
 
 def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
@@ -232,7 +245,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
     else:
         raise ValueError(f"no provenance for stage {stage!r}")
-    return {"inputs": inputs, "config": config_sha256(settings)}
+    return {"inputs": inputs, "config": config_sha256(_drop_added_defaults(settings))}
 
 
 def read_provenance(directory: Path) -> dict | None:

@@ -100,7 +100,8 @@ def _label_shard(task) -> int:
 
     cfg = OmegaConf.create(cfg_dict)
     c = cfg_chooser(cfg)
-    candidates, steps = c.candidates(), decide_steps_for(c.decide_s)
+    step_s = float(cfg.env.step_s)
+    candidates, steps = c.candidates(step_s), decide_steps_for(c.decide_s, step_s)
     env = make_env(cfg, camera=True)
     twin = env.planning_twin()
     parts = []
@@ -384,8 +385,8 @@ def train(cfg, run_, agent_id) -> dict:
     c = cfg_chooser(cfg)
     set_threads(cfg.threads)
     seed_everything(int(cfg.seed))
-    steps = decide_steps_for(c.decide_s)
-    candidates = c.candidates()
+    steps = decide_steps_for(c.decide_s, float(cfg.env.step_s))
+    candidates = c.candidates(float(cfg.env.step_s))
     data = labels(cfg)
     encoder = artifacts.load_world_model(cfg)
     x = scorer_inputs(encoder, data, steps, bool(c.mask_view))

@@ -177,6 +177,7 @@ class EnvConfig(Checked):
     horizon_after_ttc_s: float | None = 3.0  # agent episodes: truncated this long after the sampled TTC
     mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
+    step_s: float = 1.0 / 15.0  # seconds per step: the paper's 15 FPS (Chae, Kim and Merola step 0.1 s)
 
     def problems(self):
         if self.image_size != 64:
@@ -184,6 +185,8 @@ class EnvConfig(Checked):
         yield from _positive(self, "mu", "occupants_per_car")
         if not 10.0 <= self.fov_deg <= 170.0:
             yield ConfigValueError("fov_deg", self.fov_deg, "the camera's field of view must be in [10, 170] degrees")
+        if not 0.0 < self.step_s <= 0.5:
+            yield ConfigValueError("step_s", self.step_s, "it must be in (0, 0.5] seconds")
         if self.horizon_after_ttc_s is not None and self.horizon_after_ttc_s <= 0:
             yield ConfigValueError("horizon_after_ttc_s", self.horizon_after_ttc_s, "it must be > 0 (or null)")
 
@@ -326,7 +329,7 @@ class ChooserConfig(Checked):
         except ValueError as err:
             yield ConfigValueError("chooser", "...", str(err))
 
-    def candidates(self):
+    def candidates(self, step_s: float = 1.0 / 15.0):
         from envs.chooser import chooser_candidates
 
         return chooser_candidates(
@@ -335,6 +338,7 @@ class ChooserConfig(Checked):
             [float(x) for x in self.pedals],
             [float(x) for x in self.sides],
             bool(self.swerve),
+            step_s=float(step_s),
         )
 
     def label_settings(self) -> dict:
@@ -496,6 +500,9 @@ def oracle_settings(cfg) -> dict:
     sides = [float(x) for x in o.sides]
     if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
         settings["sides"] = sides
+    step_s = float(cfg.env.step_s)
+    if step_s != 1.0 / 15.0:  # absent = the default step, for the same reason
+        settings["step_s"] = step_s
     return settings
 
 
