@@ -15,7 +15,8 @@ They are truncated at ``min(max_episode_s, ttc + horizon_after_ttc_s)``; pass ``
 for data collection (15 s). Stopping does not end an episode: a stopped car can still be hit.
 
 ``info`` on every step: ``collisions`` registered this step (kind, participant id, impact speed, delta-v of
-each car, injury probability per participant, people involved), ``reward_r1``, ``reward_r2``, the ego state
+each car, injury probability per participant, people involved), ``reward_<name>`` for every registered reward
+(``envs.rewards``: ``reward_r1``, ``reward_r2``, ...), the ego state
 (``x``, ``y``, ``heading``, ``speed``, ``steer_angle``, ``lane_offset``) and ``lane_departure``. On the last step
 ``info["outcome"]`` holds the paper's section IV-C metrics for the episode.
 """
@@ -32,7 +33,7 @@ from gymnasium import spaces
 from . import geometry
 from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
 from .injury import occupant_injury, pedestrian_injury, plastic_delta_v
-from .rewards import REWARDS, collision_rewards
+from .rewards import REGISTRY, StepContext, step_rewards
 from .scenario import ScenarioSpec, sample_scenario
 from .scene import CLASS_NAMES, EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
 from .vehicle import VehicleParams, VehicleState, integrate
@@ -92,7 +93,7 @@ class UrbanCollisionEnv(gym.Env):
             "substeps": substeps >= 1,
             "step_s": 0.0 < step_s <= 0.5,
             "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
-            "reward": reward in REWARDS,
+            "reward": reward in REGISTRY,
             "render_mode": render_mode in (None, "rgb_array"),
         }
         for key, ok in checks.items():
@@ -187,14 +188,14 @@ class UrbanCollisionEnv(gym.Env):
         horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
         self.horizon_steps = max(1, int(math.ceil(horizon_s / self.step_s - 1e-9)))
         self.collisions: list[dict] = []
-        self.returns = {"r1": 0.0, "r2": 0.0}
+        self.returns = dict.fromkeys(REGISTRY, 0.0)
         self.ever_departed = False
         self.min_speed = self.ego.v
         self._last_end = None
 
         if self._pool is not None:
             self._apply_layout()
-        return self._observe(), self._info([], 0.0, 0.0)
+        return self._observe(), self._info([], dict.fromkeys(REGISTRY, 0.0))
 
     def _prepare_static(self) -> None:
         rects, circles = self.layout.rects, self.layout.circles
@@ -212,6 +213,7 @@ class UrbanCollisionEnv(gym.Env):
         steer, pedal = float(min(1.0, max(-1.0, a[0]))), float(min(1.0, max(-1.0, a[1])))
 
         ego, act, p, dt = self.ego, self.actors, self.params, self.step_s
+        speed_before = ego.v
         sub_dt = dt / self.substeps
         reach = self._car_radius + (ego.v + 3.0) * dt + 1.0
         lo = np.array([ego.x - reach, ego.y - reach])
@@ -265,9 +267,9 @@ class UrbanCollisionEnv(gym.Env):
         self.t_step += 1
 
         self.collisions.extend(hits)
-        r1, r2 = collision_rewards(hits)
-        self.returns["r1"] += r1
-        self.returns["r2"] += r2
+        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt))
+        for name, value in rewards.items():
+            self.returns[name] += value
         self.min_speed = min(self.min_speed, ego.v)
         departed = abs(ego.y - EGO_LANE_Y) > LANE_WIDTH / 2
         self.ever_departed |= departed
@@ -281,8 +283,8 @@ class UrbanCollisionEnv(gym.Env):
             self._last_end = "left_scene"
         elif truncated:
             self._last_end = "horizon"
-        reward = r1 if self.reward_name == "r1" else r2
-        info = self._info(hits, r1, r2)
+        reward = rewards[self.reward_name]
+        info = self._info(hits, rewards)
         if terminated or truncated:
             info["outcome"] = self.outcome()
         return self._observe(), reward, terminated, truncated, info
@@ -419,14 +421,13 @@ class UrbanCollisionEnv(gym.Env):
         a = self.actors
         self._pool.place_actors(a.car_xy, a.car_heading, a.car_active, a.ped_xy, a.ped_active)
 
-    def _info(self, hits: list[dict], r1: float, r2: float) -> dict:
+    def _info(self, hits: list[dict], rewards: dict[str, float]) -> dict:
         e = self.ego
         return {
             "t": self.t_step * self.step_s,
             "step": self.t_step,
             "collisions": hits,
-            "reward_r1": r1,
-            "reward_r2": r2,
+            **{f"reward_{name}": value for name, value in rewards.items()},
             "x": e.x,
             "y": e.y,
             "heading": e.psi,
@@ -461,8 +462,7 @@ class UrbanCollisionEnv(gym.Env):
             "min_speed": float(self.min_speed),
             "final_speed": float(self.ego.v),
             "steps": self.t_step,
-            "return_r1": self.returns["r1"],
-            "return_r2": self.returns["r2"],
+            **{f"return_{name}": value for name, value in self.returns.items()},
             "end": self._last_end or "running",
         }
 

@@ -1,16 +1,77 @@
-"""Rewards R1 and R2 (Porav & Newman 2018, Eq. 7 and 8), given on the step a collision happens.
+"""The reward registry: every reward the simulator knows, in one place (docs/design.md §3).
 
-R1 = -(n_ped + n_occ) counts the people involved; R2 = -(sum P_ped + sum P_occ) weights them by the
-empirical injury risks of ``envs.injury``. Otherwise the reward is 0, exactly as in the paper.
+A reward is a function of one step: the collisions registered in it, the ego's state before and after, the action,
+and what the scenario's family adds (``StepContext.family``: e.g. the distance to a crossing pedestrian). The env
+computes every registered reward on every step, reports each in ``info["reward_<name>"]`` and its sum in
+``outcome["return_<name>"]``, and hands the one its ``reward=`` setting names to the learner. A new reward is one
+decorated function here; configs, the env's checks and the agents' run names read :data:`REWARDS`.
+
+R1 and R2 are Porav & Newman 2018's Eq. 7 and 8, given on the step a collision happens: R1 = -(n_ped + n_occ)
+counts the people involved; R2 = -(sum P_ped + sum P_occ) weights them by the empirical injury risks of
+``envs.injury``. Otherwise they are 0, exactly as in the paper.
 """
 
 from __future__ import annotations
 
-REWARDS = ("r1", "r2")
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StepContext:
+    """What a reward may read about one step. Speeds in m/s, ``step_s`` in s; ``action`` = [steer, pedal]."""
+
+    hits: list[dict]
+    speed_before: float
+    speed_after: float
+    action: np.ndarray
+    step_s: float
+    family: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Reward:
+    name: str
+    fn: Callable[[StepContext], float]
+    doc: str
+
+
+REGISTRY: dict[str, Reward] = {}
+
+
+def register(name: str, doc: str) -> Callable:
+    """Add ``fn(ctx: StepContext) -> float`` to the registry under ``name``."""
+
+    def add(fn: Callable[[StepContext], float]) -> Callable[[StepContext], float]:
+        if name in REGISTRY:
+            raise ValueError(f"reward {name!r} is registered twice")
+        REGISTRY[name] = Reward(name, fn, doc)
+        return fn
+
+    return add
+
+
+@register("r1", "Porav & Newman Eq. 7: minus the number of people involved in this step's collisions")
+def r1(ctx: StepContext) -> float:
+    return -float(sum(c["n_involved"] for c in ctx.hits))
+
+
+@register("r2", "Porav & Newman Eq. 8: minus the summed injury probabilities of this step's collisions")
+def r2(ctx: StepContext) -> float:
+    return -float(sum(c["injury_sum"] for c in ctx.hits))
+
+
+REWARDS = tuple(REGISTRY)
+
+
+def step_rewards(ctx: StepContext) -> dict[str, float]:
+    """Every registered reward of one step, by name."""
+    return {name: float(r.fn(ctx)) for name, r in REGISTRY.items()}
 
 
 def collision_rewards(collisions: list[dict]) -> tuple[float, float]:
     """(R1, R2) of the collisions registered in one step."""
-    r1 = -float(sum(c["n_involved"] for c in collisions))
-    r2 = -float(sum(c["injury_sum"] for c in collisions))
-    return r1, r2
+    ctx = StepContext(collisions, 0.0, 0.0, np.zeros(2), 0.0)
+    return r1(ctx), r2(ctx)

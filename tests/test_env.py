@@ -443,3 +443,34 @@ def test_step_length_is_a_setting():
     lane_change = [m for m in planner.candidates if m.shape == "lane_change"]
     assert {m.hold for m in lane_change} == {3, 6}  # 0.3 s and 0.6 s in 0.1 s steps
     assert DT == 1.0 / 15.0
+
+
+def test_every_registered_reward_is_reported_in_info_and_outcome():
+    """A reward added to the registry is computed on every step, reported as info["reward_<name>"], summed into
+    outcome["return_<name>"], and can be the one the env hands the learner."""
+    from envs import rewards
+
+    @rewards.register("speed_lost", "test only: the speed lost in the step")
+    def speed_lost(ctx):
+        return ctx.speed_before - ctx.speed_after
+
+    try:
+        env = UrbanCollisionEnv(camera=False, reward="speed_lost")
+        spec = ScenarioSpec(seed=4, ttc=1.0, ego_speed=12.0)
+        total, learner = 0.0, 0.0
+        obs, info = env.reset(options={"scenario": spec})
+        assert info["reward_speed_lost"] == 0.0 and info["reward_r1"] == 0.0
+        done = False
+        while not done:
+            _, reward, terminated, truncated, info = env.step([0.0, -1.0])
+            total += info["reward_speed_lost"]
+            learner += reward
+            done = terminated or truncated
+        assert set(f"reward_{r}" for r in rewards.REGISTRY) <= set(info)
+        assert info["outcome"]["return_speed_lost"] == pytest.approx(total) == pytest.approx(learner)
+        assert total == pytest.approx(12.0 - info["outcome"]["final_speed"])
+        assert info["outcome"]["return_r2"] == 0.0  # nothing hit on an empty street
+    finally:
+        del rewards.REGISTRY["speed_lost"]
+    with pytest.raises(ValueError, match="reward"):
+        UrbanCollisionEnv(camera=False, reward="speed_lost")

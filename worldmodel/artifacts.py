@@ -32,12 +32,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from envs.rewards import REWARDS
+
 from .common import StageError, atomic_write_text, load_checkpoint, stage_command
 
 log = logging.getLogger(__name__)
 
 PROVENANCE = "provenance.json"
-AGENT_REWARDS = ("r1", "r2")
+AGENT_REWARDS = REWARDS  # run names are agent_<reward>...: any registered reward (envs/rewards.py)
 
 
 # ----------------------------------------------------------------------------- paths
