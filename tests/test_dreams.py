@@ -132,3 +132,11 @@ def artifacts_free_rnn():
     from worldmodel.models.rnn import WorldRNN
 
     return WorldRNN(latent_dim=8, hidden=16, head="mdn", gaussians=3)
+
+
+def test_a_perfect_dream_matches_every_branch_and_a_blind_one_only_keep(bank):
+    _, real, _ = bank
+    effect = dreams.action_effect(real["seg"], real["seg"], real["valid"])
+    for name, entry in effect["actions"].items():
+        assert entry["match"] == pytest.approx([1.0] * 6), name
+        assert entry["blind_match"][-1] < 1.0, name  # keep's future is not the swerve's or the brake's

@@ -182,6 +182,13 @@ def action_effect(real_seg: np.ndarray, dreamt_seg: np.ndarray, valid: np.ndarra
             entry["real"][key] = [float(x) for x in r]
             entry["dreamt"][key] = [float(x) for x in d]
             entry["ratio"][key] = [float(x) if np.isfinite(x) else None for x in d / np.where(r > 0, r, np.nan)]
+        # does the dream under this action look like the real future under it, and more so than the dream under
+        # "keep" does (what an action-blind model would show)?
+        okn = ok[..., None, None]
+        entry["match"] = [float(x) for x in ((dreamt_seg[:, a] == real_seg[:, a]) * okn).mean((-1, -2)).sum(0) / n]
+        entry["blind_match"] = [
+            float(x) for x in ((dreamt_seg[:, 0] == real_seg[:, a]) * okn).mean((-1, -2)).sum(0) / n
+        ]
         entry["points"] = [int(x) for x in ok.sum(0)]
         result["actions"][name] = entry
     return result
@@ -375,6 +382,23 @@ def markdown(result: dict, horizons=(1, 3, 5, 10)) -> str:
                         + ("–" if ratio is None else f"{ratio:.2f}")
                     )
                 lines.append(f"| {name} | {key} | " + " | ".join(cells) + " |")
+        lines += [
+            "",
+            "Does the dream under an action look like the real future under it? Pixel accuracy of the decoded dream "
+            "against the real branch frame, beside the dream under 'keep' against the same real frame (an "
+            "action-blind model's score):",
+            "",
+            "| action | " + " | ".join(f"dream +{k} | blind +{k}" for k in ks) + " |",
+            "|---|" + "---:|---:|" * len(ks),
+        ]
+        for name, entry in effect["actions"].items():
+            if "match" in entry:
+                cells = [
+                    f"{entry['match'][effect['horizons'].index(k)]:.3f} | "
+                    f"{entry['blind_match'][effect['horizons'].index(k)]:.3f}"
+                    for k in ks
+                ]
+                lines.append(f"| {name} | " + " | ".join(cells) + " |")
         lines.append("")
     quality = result.get("horizon")
     if quality:
