@@ -30,13 +30,27 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from . import geometry
+from . import chae, geometry
 from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
 from .injury import occupant_injury, pedestrian_injury, plastic_delta_v
 from .rewards import REGISTRY, StepContext, step_rewards
 from .scenario import ScenarioSpec, sample_scenario
 from .scene import CLASS_NAMES, EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
 from .vehicle import VehicleParams, VehicleState, integrate
+
+SPEC_TYPES = (ScenarioSpec, chae.ChaeSpec)
+FAMILIES = ("porav", chae.FAMILY)  # env.reset() without a scenario samples from ``family``
+
+
+def spec_from_dict(d: dict):
+    """A scenario spec of any family from its dict (``"family"`` absent: the paper's, ``porav``)."""
+    family = d.get("family", "porav")
+    if family == "porav":
+        return ScenarioSpec.from_dict(d)
+    if family == chae.FAMILY:
+        return chae.ChaeSpec.from_dict(d)
+    raise ValueError(f"unknown scenario family {family!r}: known are porav, {chae.FAMILY}")
+
 
 DT = 1.0 / 15.0
 MAX_SPEED_OBS = 40.0
@@ -62,6 +76,8 @@ class UrbanCollisionEnv(gym.Env):
     after the TTC (None: ``max_episode_s``). mu: tyre-road friction. occupants_per_car: people per car.
     ego_mass, car_mass: kg, for delta-v. substeps: collision/dynamics sub-steps per step.
     step_s: seconds per step (``DT`` = 1/15 by default); planners and evaluation read it from the env.
+    family: the scenario family ``reset()`` samples when no scenario is given (``porav``, the paper's; ``chae``,
+    ``envs/chae.py``); ``reset(options={"scenario": spec})`` takes a spec of any family.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 15}
@@ -81,6 +97,7 @@ class UrbanCollisionEnv(gym.Env):
         substeps: int = 8,
         render_mode: str | None = None,
         step_s: float = DT,
+        family: str = "porav",
     ):
         checks = {
             "image_size": image_size >= 8,
@@ -92,6 +109,7 @@ class UrbanCollisionEnv(gym.Env):
             "car_mass": car_mass > 0.0,
             "substeps": substeps >= 1,
             "step_s": 0.0 < step_s <= 0.5,
+            "family": family in FAMILIES,
             "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
             "reward": reward in REGISTRY,
             "render_mode": render_mode in (None, "rgb_array"),
@@ -109,6 +127,7 @@ class UrbanCollisionEnv(gym.Env):
         self.ego_mass, self.car_mass = float(ego_mass), float(car_mass)
         self.substeps = int(substeps)
         self.step_s = float(step_s)
+        self.family = family
         self.render_mode = render_mode
         self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
 
@@ -170,22 +189,33 @@ class UrbanCollisionEnv(gym.Env):
         super().reset(seed=seed)
         spec = (options or {}).get("scenario")
         if spec is None:
-            spec = sample_scenario(self.np_random)
+            spec = chae.sample_chae(self.np_random) if self.family == chae.FAMILY else sample_scenario(self.np_random)
         elif isinstance(spec, dict):
-            spec = ScenarioSpec.from_dict(spec)
-        elif not isinstance(spec, ScenarioSpec):
-            raise TypeError(f"options['scenario'] must be a ScenarioSpec or dict, not {type(spec).__name__}")
+            spec = spec_from_dict(spec)
+        elif not isinstance(spec, SPEC_TYPES):
+            raise TypeError(
+                f"options['scenario'] must be a scenario spec ({', '.join(t.__name__ for t in SPEC_TYPES)}) or its "
+                f"dict, not {type(spec).__name__}"
+            )
         self.scenario = spec
 
         rng = np.random.default_rng(spec.seed)
         self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, float(spec.ego_speed))
-        self.actors, junction_x = build_actors(spec, rng, 0.0, self._hl, self.params.length, self.params.width)
+        self._chae = None
+        if isinstance(spec, chae.ChaeSpec):
+            self.actors, self._chae = chae.build(spec, self._hl)
+            junction_x = float(rng.uniform(200.0, 300.0))  # the junction well beyond where the episode ends
+        else:
+            self.actors, junction_x = build_actors(spec, rng, 0.0, self._hl, self.params.length, self.params.width)
         self.layout: StaticLayout = sample_layout(rng, junction_x)
         self._prepare_static()
 
         self.t_step = 0
         after = self.horizon_after_ttc_s
-        horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
+        if self._chae is not None:
+            horizon_s = chae.MAX_EPISODE_S
+        else:
+            horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
         self.horizon_steps = max(1, int(math.ceil(horizon_s / self.step_s - 1e-9)))
         self.collisions: list[dict] = []
         self.returns = dict.fromkeys(REGISTRY, 0.0)
@@ -230,9 +260,13 @@ class UrbanCollisionEnv(gym.Env):
         done_sub = self.substeps
         t0 = self.t_step * dt
         for k in range(1, self.substeps + 1):
+            bumper_before = ego.x + self._hl
             integrate(ego, steer, pedal, sub_dt, p)
             c, s = math.cos(ego.psi), math.sin(ego.psi)
             tau = k * sub_dt
+            if self._chae is not None:
+                chae.trigger(self._chae, act, bumper_before, ego.x + self._hl, tau, sub_dt)
+                ped_idx = [0]
             for i in ped_idx:
                 if not act.ped_active[i]:
                     continue
@@ -267,7 +301,8 @@ class UrbanCollisionEnv(gym.Env):
         self.t_step += 1
 
         self.collisions.extend(hits)
-        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt))
+        family = chae.step_context(self._chae, act, ego.x + self._hl) if self._chae is not None else {}
+        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family))
         for name, value in rewards.items():
             self.returns[name] += value
         self.min_speed = min(self.min_speed, ego.v)
@@ -275,9 +310,12 @@ class UrbanCollisionEnv(gym.Env):
         self.ever_departed |= departed
 
         left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > 25.0
-        terminated = crashed or left_scene
+        family_end = chae.end_of(self._chae, act, ego.x + self._hl, ego.v, family) if self._chae is not None else None
+        terminated = crashed or left_scene or family_end is not None
         truncated = not terminated and self.t_step >= self.horizon_steps
-        if crashed:
+        if family_end is not None and not crashed:
+            self._last_end = family_end
+        elif crashed:
             self._last_end = "crash"
         elif left_scene:
             self._last_end = "left_scene"
@@ -307,6 +345,7 @@ class UrbanCollisionEnv(gym.Env):
             "min_speed": self.min_speed,
             "last_end": self._last_end,
             "actors": _copy_actors(self.actors),
+            "chae": dataclasses.replace(self._chae) if self._chae is not None else None,
         }
 
     def restore(self, snap: dict) -> None:
@@ -317,6 +356,7 @@ class UrbanCollisionEnv(gym.Env):
             if self._pool is not None:
                 self._apply_layout()
         self.actors = _copy_actors(snap["actors"])
+        self._chae = dataclasses.replace(snap["chae"]) if snap.get("chae") is not None else None
         self.ego = snap["ego"].copy()
         self.t_step, self.collisions, self.returns = snap["t_step"], list(snap["collisions"]), dict(snap["returns"])
         self.ever_departed, self.min_speed, self._last_end = snap["ever_departed"], snap["min_speed"], snap["last_end"]
@@ -336,6 +376,7 @@ class UrbanCollisionEnv(gym.Env):
             car_mass=self.car_mass,
             substeps=self.substeps,
             step_s=self.step_s,
+            family=self.family,
         )
 
     # ------------------------------------------------------------------ collisions
@@ -445,7 +486,15 @@ class UrbanCollisionEnv(gym.Env):
         kinds = {c["kind"] for c in cols}
         first = cols[0]["impact_speed"] if cols else float("nan")
         spec = self.scenario
+        extra = {}
+        if self._chae is not None:
+            extra = {
+                "family": chae.FAMILY,
+                "crosses": int(spec.crosses),
+                "gap_to_pedestrian": float(self._chae.ped_x - (self.ego.x + self._hl)),
+            }
         return {
+            **extra,
             "hazard": spec.hazard,
             "ttc": spec.ttc,
             "ego_speed": spec.ego_speed,

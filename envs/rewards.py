@@ -63,6 +63,13 @@ def r2(ctx: StepContext) -> float:
     return -float(sum(c["injury_sum"] for c in ctx.hits))
 
 
+@register("chae", "Chae et al. 2017 Eq. 8: braking costs more the farther the pedestrian; a bump costs 100 + 0.01 v^2")
+def chae(ctx: StepContext) -> float:
+    from .chae import reward
+
+    return reward(ctx)
+
+
 REWARDS = tuple(REGISTRY)
 
 

@@ -417,7 +417,10 @@ def test_the_porav_bank_under_braking_is_bit_identical():
     env = UrbanCollisionEnv(camera=False)
     h = hashlib.sha256()
     for entry in test_bank(per_cell=1, seed=2018):
-        h.update(json.dumps(rollout(env, StraightLineBraking(), entry.spec).outcome, sort_keys=True).encode())
+        outcome = rollout(env, StraightLineBraking(), entry.spec).outcome
+        # rewards registered later add their own returns (0 here); the hash is of what existed when it was taken
+        outcome = {k: v for k, v in outcome.items() if not k.startswith("return_") or k in ("return_r1", "return_r2")}
+        h.update(json.dumps(outcome, sort_keys=True).encode())
     assert h.hexdigest() == PORAV_BRAKING_HASH
 
 

@@ -1,0 +1,140 @@
+"""Scenario family ``chae`` (envs/chae.py) on the real simulator: replay, trigger, termination, reward, state and
+the physics band of PEERS' calculation."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from envs import UrbanCollisionEnv, rollout
+from envs.chae import (
+    ALPHA,
+    BETA,
+    ETA,
+    LAMBDA,
+    V_INIT_RANGE,
+    ChaeSpec,
+    LatestSafeBraking,
+    PedestrianHistory,
+    brake_action,
+    sample_chae,
+)
+from envs.env import spec_from_dict
+
+
+class Hold:
+    name = "hold"
+
+    def __init__(self, action):
+        self.action = np.asarray(action, np.float32)
+
+    def reset(self, seed=None):
+        pass
+
+    def act(self, obs, info):
+        return self.action
+
+
+@pytest.fixture(scope="module")
+def env():
+    return UrbanCollisionEnv(camera=False, step_s=0.1, reward="chae")
+
+
+def test_specs_validate_and_round_trip():
+    spec = sample_chae(np.random.default_rng(0))
+    assert spec_from_dict(spec.to_dict()) == spec and spec.to_dict()["family"] == "chae"
+    with pytest.raises(ValueError, match="v_init"):
+        ChaeSpec(seed=1, ttc=2.0, v_init=-1.0)
+    with pytest.raises(ValueError, match="family"):
+        spec_from_dict({**spec.to_dict(), "family": "nope"})
+    with pytest.raises(ValueError, match="unknown chae scenario fields"):
+        spec_from_dict({**spec.to_dict(), "speed": 3.0})
+
+
+def test_replays_bit_identically(env):
+    spec = ChaeSpec(seed=7, ttc=1.2, v_init=12.0, v_ped=2.5, far_side=True)
+    first, again = (json.dumps(rollout(env, LatestSafeBraking(), spec).outcome) for _ in range(2))
+    assert first == again
+
+
+def test_the_pedestrian_starts_when_the_bumper_passes_the_trigger(env):
+    """At constant speed the bumper passes p_trig = (5 - TTC) v after 5 - TTC seconds, mid-step here; from then the
+    pedestrian is exactly where a walk begun at that instant puts it, and the bumper reaches its x TTC later."""
+    spec = ChaeSpec(seed=1, ttc=2.03, v_init=10.0, v_ped=3.0)
+    env.reset(options={"scenario": spec})
+    start_y, t_trig = env.actors.ped_xy[0, 1], 5.0 - spec.ttc
+    for k in range(1, 40):
+        env.step([0.0, 0.0])
+        t = k * 0.1
+        expected = start_y + spec.v_ped * max(0.0, t - t_trig)  # near side: walks towards +y
+        assert env.actors.ped_xy[0, 1] == pytest.approx(expected, abs=1e-9), t
+    front = env.ego.x + env.params.length / 2
+    assert (env._chae.ped_x - front) / spec.v_init == pytest.approx(5.0 - 3.9)
+
+
+def test_termination_cases(env):
+    keep, brake = Hold([0.0, 0.0]), Hold(brake_action(0))
+    # no braking: the bumper passes the safety line while the pedestrian crosses, 3 m short of it
+    o = rollout(env, keep, ChaeSpec(seed=1, ttc=1.5, v_init=10.0)).outcome
+    assert o["end"] == "bump" and o["gap_to_pedestrian"] == pytest.approx(3.0, abs=1.0)
+    # Scenario 2: braking is an unnecessary stop, keeping on passes
+    stays = ChaeSpec(seed=1, ttc=2.0, v_init=10.0, crosses=False)
+    assert rollout(env, brake, stays).outcome["end"] == "stop"
+    assert rollout(env, keep, stays).outcome["end"] == "pass"
+    # slow car, early trigger, fast pedestrian: it is across before the car arrives
+    assert rollout(env, keep, ChaeSpec(seed=1, ttc=4.0, v_init=3.0, v_ped=4.0)).outcome["end"] == "cross"
+
+
+def test_chae_reward_matches_eq_8_by_hand(env):
+    spec = ChaeSpec(seed=1, ttc=1.6, v_init=15.0)  # still crossing when the car arrives
+    env.reset(options={"scenario": spec})
+    dx = env._chae.ped_x - (env.ego.x + env.params.length / 2)
+    v0 = env.ego.v
+    _, reward, _, _, info = env.step(brake_action(1))
+    # the bumper moved during the step: dx is read after it
+    dx = env._chae.ped_x - (env.ego.x + env.params.length / 2)
+    assert reward == pytest.approx(-(ALPHA * dx**2 + BETA) * (v0 - env.ego.v))
+    assert v0 - env.ego.v == pytest.approx(5.9 * 0.1)
+    assert info["reward_r2"] == 0.0 and info["reward_chae"] == reward
+    env.reset(options={"scenario": spec})
+    total = 0.0
+    while True:
+        _, reward, terminated, truncated, info = env.step([0.0, 0.0])
+        total += reward
+        if terminated or truncated:
+            break
+    assert info["outcome"]["end"] == "bump"
+    assert reward == pytest.approx(-(ETA * 15.0**2 + LAMBDA)) and total == pytest.approx(reward)
+
+
+def test_pedestrian_history_is_15_values_oldest_first(env):
+    view = PedestrianHistory(noise_m=0.0)
+    env.reset(options={"scenario": ChaeSpec(seed=1, ttc=2.0, v_init=10.0)})
+    view.reset(0)
+    first = view(env)
+    assert first.shape == (15,) and np.allclose(first.reshape(5, 3), first[:3])  # the first state, repeated
+    for _ in range(6):
+        env.step([0.0, 0.0])
+        state = view(env).reshape(5, 3)
+    assert np.allclose(np.diff(state[:, 0]), -1.0)  # the gap shrinks by v * 0.1 s per step
+    assert np.allclose(state[:, 2], 10.0)
+
+
+def test_braking_at_the_trigger_lands_in_the_physics_band(env):
+    """PEERS §1: full braking exactly at the trigger bumps in 37.3 / 3.1 / 0 / 0 % at TTC 0.9 / 1.1 / 1.3 / 1.5 s
+    (v ~ U(10, 60) km/h), and in 76.5 / 12.1 / 0.46 / 0 % a step of 0.1 s later. Deciding once per step, the
+    privileged policies react 0-0.1 s late, so they must land inside that band."""
+    band = {0.9: (37.3, 76.5), 1.1: (3.1, 12.1), 1.3: (0.0, 0.46), 1.5: (0.0, 0.0)}
+    for policy in (LatestSafeBraking(),):
+        for ttc, (lo, hi) in band.items():
+            rng = np.random.default_rng(int(ttc * 10))
+            n, bumps = 150, 0
+            for i in range(n):
+                v = float(rng.uniform(*V_INIT_RANGE))
+                spec = ChaeSpec(seed=i, ttc=ttc, v_init=v, v_ped=float(rng.uniform(2, 4)), far_side=i % 2 == 1)
+                bumps += rollout(env, policy, spec).outcome["end"] == "bump"
+            rate = 100 * bumps / n
+            slack = 100 * 2.5 * np.sqrt(max(lo, 1) / 100 * (1 - max(lo, 1) / 100) / n)  # sampling noise
+            assert lo - slack <= rate <= hi + slack, (policy.name, ttc, rate)
