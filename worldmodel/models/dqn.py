@@ -1,0 +1,360 @@
+"""DQN with a trauma memory (Chae et al. 2017, "Autonomous braking system via deep reinforcement learning") and
+Double DQN (van Hasselt et al. 2016, "Deep reinforcement learning with double Q-learning"; Merola et al. 2022).
+
+One network Q(s, .) gives a value for each of ``n_actions`` discrete actions (Chae: no, weak, mid and strong
+braking); the agent acts epsilon-greedily on it. A minibatch regresses Q(s, a) onto
+
+    DQN:         y = r + gamma * (1 - terminated) * max_a' Q'(s', a')
+    Double DQN:  y = r + gamma * (1 - terminated) * Q'(s', argmax_a' Q(s', a'))
+
+where Q' is a target copy of Q refreshed every ``target_every`` updates. Taking the max of one noisy estimate
+overestimates it; Double DQN lets the online network choose a' and the target network value it, so an action
+whose value one network happens to overrate is not also valued by that same error.
+
+**Trauma memory.** Collisions are rare, and they are terminal: the one transition that carries the collision
+penalty is one among thousands in the replay memory, so uniform sampling replays it seldom, and one-step TD
+needs it replayed many times before the penalty reaches the states that led to it. Chae keep a second, small
+memory holding only collision transitions and draw ``trauma_batch`` of them into every minibatch; without it
+their agent did not converge in over 2,000 episodes (their Fig. 5). Which transition is a trauma is the caller's
+decision (``remember(..., trauma=True)``); every transition goes into the replay memory as well. With
+``loss="sum"`` the loss is Chae's Eq. 9: the sum of squared TD errors over the replay batch plus the same sum
+over the trauma batch.
+
+Written in the spirit of CleanRL's ``dqn.py`` but as an importable module; unlike ``ddpg.DDPG`` the agent owns
+its memories, because the trauma memory is part of the algorithm. A typical loop::
+
+    agent = DQN(obs_dim, n_actions, DQNConfig(), seed=0)
+    obs, _ = env.reset(seed=0)
+    for step in range(total_steps):
+        action = agent.act(obs, step)                      # epsilon-greedy, epsilon from the step
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        agent.remember(obs, action, reward, next_obs, terminated, trauma=info["collision"])
+        agent.update()                                     # None until warm-up is over
+        obs = env.reset()[0] if terminated or truncated else next_obs
+
+Store ``terminated`` (a true end: a crash, the hazard passed), not ``terminated or truncated``: a transition cut
+by a time limit must still bootstrap from ``next_obs``.
+
+Everything random after construction (exploration, minibatch indices) comes from one ``np.random.Generator``
+whose state is part of ``state_dict()``, together with the memories, so a resumed run continues exactly where it
+stopped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from ..common import Checked, ConfigValueError, positive_fields
+
+OPTIMIZERS = ("rmsprop", "adam")
+LOSSES = ("sum", "mse", "huber")
+
+
+@dataclass
+class DQNConfig(Checked):
+    """The hyperparameters of DQN and Double DQN with Chae's trauma memory."""
+
+    hidden: list[int] = field(default_factory=lambda: [100, 70, 50, 70, 100])
+    """widths of the hidden layers (Chae: 100, 70, 50, 70, 100 between 15 inputs and 4 actions)"""
+    leaky_slope: float = 0.01
+    """negative slope of the leaky ReLU after every hidden layer (0 = plain ReLU)"""
+    optimizer: str = "rmsprop"
+    """the optimiser: rmsprop or adam"""
+    lr: float = 5e-4
+    """learning rate (the initial one when ``lr_final`` is set)"""
+    lr_final: float | None = None
+    """if set, the learning rate decays exponentially from ``lr`` to this over ``total_steps`` updates, then stays
+    there (Merola et al.: 1e-4 to 1e-6). None = constant ``lr``"""
+    total_steps: int = 100_000
+    """updates over which ``lr`` decays to ``lr_final``. With one update per environment step after warm-up, set it
+    to the run's length in steps"""
+    gamma: float = 0.99
+    """discount factor"""
+    batch_size: int = 32
+    """transitions drawn from the replay memory per update"""
+    buffer_size: int = 10_000
+    """replay memory capacity in transitions; the oldest is overwritten when it is full"""
+    trauma_size: int = 1_000
+    """trauma memory capacity in transitions"""
+    trauma_batch: int = 10
+    """trauma transitions added to every update's batch (fewer while the trauma memory holds fewer). 0 turns the
+    trauma memory off: plain DQN"""
+    target_every: int = 500
+    """updates between hard copies of the online network into the target network"""
+    double: bool = False
+    """Double DQN target: the online network chooses the next action, the target network values it"""
+    eps_start: float = 1.0
+    """exploration probability at step 0"""
+    eps_end: float = 0.05
+    """exploration probability from ``eps_decay_steps`` on"""
+    eps_decay_steps: int = 10_000
+    """environment steps over which epsilon falls linearly from ``eps_start`` to ``eps_end``"""
+    warmup_steps: int = 1000
+    """transitions remembered before the first update, so early batches are not drawn from a few transitions"""
+    loss: str = "sum"
+    """how TD errors make the loss. "sum": Chae's Eq. 9, the sum of squared TD errors over the replay and the
+    trauma batch; "mse": their mean; "huber": the mean Huber loss (delta 1), as in Mnih et al. 2015"""
+    grad_clip: float | None = 10.0
+    """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
+    gradient grows with the batch, and one collision penalty can be large"""
+
+    def problems(self):
+        yield from positive_fields(self, "lr", "total_steps", "batch_size", "buffer_size", "target_every")
+        yield from positive_fields(self, "eps_decay_steps")
+        if self.lr_final is not None and not 0 < self.lr_final <= self.lr:
+            yield ConfigValueError("lr_final", self.lr_final, f"it must be in (0, lr={self.lr}] or null")
+        if self.grad_clip is not None and not self.grad_clip > 0:
+            yield ConfigValueError("grad_clip", self.grad_clip, "it must be positive or null")
+        if not 0 <= self.gamma <= 1:
+            yield ConfigValueError("gamma", self.gamma, "it must be in [0, 1]")
+        for key in ("eps_start", "eps_end"):
+            if not 0 <= getattr(self, key) <= 1:
+                yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
+        if self.eps_end > self.eps_start:
+            yield ConfigValueError("eps_end", self.eps_end, f"it must be at most eps_start={self.eps_start}")
+        for key in ("trauma_size", "trauma_batch", "warmup_steps", "leaky_slope"):
+            if getattr(self, key) < 0:
+                yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
+        if self.trauma_batch > self.trauma_size:
+            yield ConfigValueError(
+                "trauma_batch", self.trauma_batch, f"it must be at most trauma_size={self.trauma_size}"
+            )
+        if self.batch_size > self.buffer_size:
+            yield ConfigValueError("batch_size", self.batch_size, f"it must be at most buffer_size={self.buffer_size}")
+        if self.optimizer not in OPTIMIZERS:
+            yield ConfigValueError("optimizer", self.optimizer, f"it must be one of {', '.join(OPTIMIZERS)}")
+        if self.loss not in LOSSES:
+            yield ConfigValueError("loss", self.loss, f"it must be one of {', '.join(LOSSES)}")
+        if not all(isinstance(w, int) and w > 0 for w in self.hidden):
+            yield ConfigValueError("hidden", list(self.hidden), "layer widths must be positive integers")
+
+
+class QNetwork(nn.Module):
+    """Q(s, .): an MLP from the observation to one value per action, leaky ReLU between layers."""
+
+    def __init__(
+        self, obs_dim: int, n_actions: int, hidden: Sequence[int] = (100, 70, 50, 70, 100), leaky_slope: float = 0.01
+    ):
+        super().__init__()
+        layers: list[nn.Module] = []
+        in_dim = obs_dim
+        for width in hidden:
+            layers += [nn.Linear(in_dim, width), nn.LeakyReLU(leaky_slope)]
+            in_dim = width
+        layers.append(nn.Linear(in_dim, n_actions))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Returns Q with shape (batch, n_actions)."""
+        return self.net(obs)
+
+
+class TransitionBuffer:
+    """Fixed-capacity circular store of discrete-action transitions in preallocated numpy arrays.
+
+    Used for both the replay and the trauma memory. Once full, each ``add`` overwrites the oldest transition.
+    """
+
+    FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
+
+    def __init__(self, capacity: int, obs_dim: int):
+        self.capacity = int(capacity)
+        self.obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
+        self.actions = np.zeros(self.capacity, dtype=np.int64)  # int64: what torch's gather indexes with
+        self.rewards = np.zeros(self.capacity, dtype=np.float32)
+        self.next_obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
+        self.terminated = np.zeros(self.capacity, dtype=np.float32)
+        self.pos = 0  # where the next transition goes; once full, also the oldest one
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs, action: int, reward: float, next_obs, terminated: bool) -> None:
+        i = self.pos
+        self.obs[i] = obs
+        self.actions[i] = action
+        self.rewards[i] = reward
+        self.next_obs[i] = next_obs
+        self.terminated[i] = float(terminated)
+        self.pos = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, n: int, rng: np.random.Generator, replace: bool = True) -> dict[str, torch.Tensor]:
+        """``n`` transitions drawn uniformly, with replacement unless ``replace`` is False (then n <= len).
+        Keys: obs, actions (int64), rewards, next_obs, terminated."""
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty transition buffer")
+        if replace:
+            idx = rng.integers(0, self.size, size=n)
+        else:
+            idx = rng.choice(self.size, size=n, replace=False)
+        # Fancy indexing copies, so the tensors never alias slots that later adds overwrite.
+        return {name: torch.from_numpy(getattr(self, name)[idx]) for name in self.FIELDS}
+
+    def state_dict(self) -> dict[str, Any]:
+        # Only the filled part, at unchanged positions, so that sampling after a restore draws what it would have.
+        state = {name: getattr(self, name)[: self.size].copy() for name in self.FIELDS}
+        state.update(capacity=self.capacity, pos=self.pos, size=self.size)
+        return state
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(
+                f"transition buffer was saved with capacity {state['capacity']} but this one has {self.capacity}; "
+                "resume with the same buffer_size and trauma_size"
+            )
+        size = int(state["size"])
+        for name in self.FIELDS:
+            getattr(self, name)[:size] = state[name]
+        self.pos, self.size = int(state["pos"]), size
+
+
+class DQN:
+    """Online and target Q-networks, their optimiser and learning-rate schedule, the replay and trauma memories,
+    and the agent's own random generator."""
+
+    def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, seed: int):
+        self.obs_dim, self.n_actions, self.cfg = int(obs_dim), int(n_actions), cfg
+        self.rng = np.random.default_rng(seed)
+        self.steps = 0  # transitions remembered: the clock of epsilon and of warm-up
+        self.updates = 0
+        # Initialise from `seed` without consuming or resetting the global torch RNG, which the caller may use.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.q_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope)
+            self.target_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope)
+        self.target_network.load_state_dict(self.q_network.state_dict())
+        self.target_network.requires_grad_(False)  # moved only by hard copies
+
+        optimizer = {"rmsprop": torch.optim.RMSprop, "adam": torch.optim.Adam}[cfg.optimizer]
+        self.optimizer = optimizer(self.q_network.parameters(), lr=cfg.lr)
+        ratio = 1.0 if cfg.lr_final is None else cfg.lr_final / cfg.lr
+        total = cfg.total_steps
+        # lr * ratio^(u / total): exactly lr_final after `total` updates, held there after.
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda u: ratio ** (min(u, total) / total))
+
+        self.replay = TransitionBuffer(cfg.buffer_size, obs_dim)
+        self.trauma = TransitionBuffer(cfg.trauma_size, obs_dim) if cfg.trauma_batch > 0 else None
+
+    # ------------------------------------------------------------------ acting
+    def epsilon(self, step: int | None = None) -> float:
+        """Exploration probability at environment step ``step`` (default: transitions remembered so far)."""
+        step = self.steps if step is None else step
+        frac = min(max(step, 0) / self.cfg.eps_decay_steps, 1.0)
+        return self.cfg.eps_start + frac * (self.cfg.eps_end - self.cfg.eps_start)
+
+    @torch.no_grad()
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        """Q(obs, .) from the online network, for one observation (n_actions,) or a batch (n, n_actions)."""
+        return self.q_network(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+
+    def act(self, obs: np.ndarray, step: int | None = None, explore: bool = True) -> int:
+        """A uniformly random action with probability ``epsilon(step)`` if ``explore``, else the greedy one."""
+        if explore and self.rng.random() < self.epsilon(step):
+            return int(self.rng.integers(self.n_actions))
+        return int(np.argmax(self.q_values(obs)))
+
+    def remember(self, obs, action: int, reward: float, next_obs, terminated: bool, trauma: bool = False) -> None:
+        """Store a transition in the replay memory and, if ``trauma`` and the trauma memory is on, in that too."""
+        self.replay.add(obs, action, reward, next_obs, terminated)
+        if trauma and self.trauma is not None:
+            self.trauma.add(obs, action, reward, next_obs, terminated)
+        self.steps += 1
+
+    # ------------------------------------------------------------------ learning
+    @torch.no_grad()
+    def td_targets(self, reward: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
+        """y = r + gamma (1 - terminated) Q'(s', a'), a' = argmax Q'(s', .) (DQN) or argmax Q(s', .) (Double DQN)."""
+        reward = torch.as_tensor(reward, dtype=torch.float32)
+        next_obs = torch.as_tensor(next_obs, dtype=torch.float32)
+        terminated = torch.as_tensor(terminated, dtype=torch.float32)
+        next_q = self.target_network(next_obs)
+        if self.cfg.double:
+            next_action = self.q_network(next_obs).argmax(dim=1, keepdim=True)
+            next_value = next_q.gather(1, next_action).squeeze(1)
+        else:
+            next_value = next_q.max(dim=1).values
+        return reward + self.cfg.gamma * (1.0 - terminated) * next_value
+
+    def update(self) -> dict[str, float] | None:
+        """One gradient step on a replay batch plus a trauma batch; every ``target_every``-th also copies the
+        online network into the target. None (and nothing changes) while warming up.
+
+        Returns loss, q_mean (mean Q(s, a) over the batch), target_mean, trauma_in_batch and lr (the rate this step
+        used)."""
+        cfg = self.cfg
+        if self.steps < cfg.warmup_steps or len(self.replay) < cfg.batch_size:
+            return None
+        batch = self.replay.sample(cfg.batch_size, self.rng)
+        n_trauma = 0
+        if self.trauma is not None and len(self.trauma) > 0:
+            # Without replacement: while few collisions are stored, one of them is not replayed several times over.
+            n_trauma = min(cfg.trauma_batch, len(self.trauma))
+            trauma = self.trauma.sample(n_trauma, self.rng, replace=False)
+            batch = {name: torch.cat([batch[name], trauma[name]]) for name in batch}
+
+        target = self.td_targets(batch["rewards"], batch["next_obs"], batch["terminated"])
+        q = self.q_network(batch["obs"]).gather(1, batch["actions"].unsqueeze(1)).squeeze(1)
+        if cfg.loss == "sum":
+            loss = ((q - target) ** 2).sum()
+        elif cfg.loss == "mse":
+            loss = F.mse_loss(q, target)
+        else:
+            loss = F.smooth_l1_loss(q, target)
+
+        lr = self.optimizer.param_groups[0]["lr"]
+        self.optimizer.zero_grad()
+        loss.backward()
+        if cfg.grad_clip is not None:
+            nn.utils.clip_grad_norm_(self.q_network.parameters(), cfg.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        self.updates += 1
+        if self.updates % cfg.target_every == 0:
+            self.sync_target()
+        return {
+            "loss": loss.item(),
+            "q_mean": q.mean().item(),
+            "target_mean": target.mean().item(),
+            "trauma_in_batch": float(n_trauma),
+            "lr": float(lr),
+        }
+
+    def sync_target(self) -> None:
+        """Target := online network."""
+        self.target_network.load_state_dict(self.q_network.state_dict())
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "q_network": self.q_network.state_dict(),
+            "target_network": self.target_network.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "steps": self.steps,
+            "updates": self.updates,
+            "replay": self.replay.state_dict(),
+            "trauma": None if self.trauma is None else self.trauma.state_dict(),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        if (state["trauma"] is None) != (self.trauma is None):
+            raise ValueError("the checkpoint and this agent disagree on whether the trauma memory is on (trauma_batch)")
+        self.q_network.load_state_dict(state["q_network"])
+        self.target_network.load_state_dict(state["target_network"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.rng.bit_generator.state = state["rng"]
+        self.steps, self.updates = int(state["steps"]), int(state["updates"])
+        self.replay.load_state_dict(state["replay"])
+        if self.trauma is not None:
+            self.trauma.load_state_dict(state["trauma"])
