@@ -787,7 +787,10 @@ def table_iii_markdown(rows: Sequence[dict]) -> str:
     lines.append(_count_note(counts, "all speeds; hazard: pedestrian or both"))
     lines.append(
         "_Reference rows: Porav & Newman's R2 policy (CARLA) and Chae et al.'s DRL braking system as published; "
-        f"NA = not available in the paper, {MISSING} = no published value at this TTC._"
+        f"NA = not available in the paper, {MISSING} = no published value at this TTC. Chae et al.'s row compares "
+        "unlike things: their TTC is the time to the pedestrian's x when it starts to cross, and their collision "
+        "is the car passing a 3 m safety line while the pedestrian crosses (a 'bump'), on a straight road with "
+        "braking only; the like-for-like comparison is family `chae` (docs/results/chae/)._"
     )
     return "\n".join(lines)
 
