@@ -61,7 +61,7 @@ def train(episodes: int, seed: int, trauma: bool, steps_per_episode: int = 40) -
     agent = DQN(PedestrianHistory.dim, len(BRAKE_LEVELS), cfg, seed)
     rng = np.random.default_rng([seed, 1717])
     curve = {"return": [], "end": []}
-    for episode in tqdm(range(episodes), desc=f"dqn_chae seed {seed} trauma {trauma}", unit="episode"):
+    for _ in tqdm(range(episodes), desc=f"dqn_chae seed {seed} trauma {trauma}", unit="episode"):
         spec = sample_chae(rng)
         env.reset(options={"scenario": spec})
         view.reset(int(rng.integers(2**31)))
