@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .chae import reward as chae_reward
+
 
 @dataclass(frozen=True)
 class StepContext:
@@ -65,9 +67,7 @@ def r2(ctx: StepContext) -> float:
 
 @register("chae", "Chae et al. 2017 Eq. 8: braking costs more the farther the pedestrian; a bump costs 100 + 0.01 v^2")
 def chae(ctx: StepContext) -> float:
-    from .chae import reward
-
-    return reward(ctx)
+    return chae_reward(ctx)
 
 
 REWARDS = tuple(REGISTRY)
