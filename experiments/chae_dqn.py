@@ -48,16 +48,15 @@ def make_env() -> UrbanCollisionEnv:
     return UrbanCollisionEnv(camera=False, step_s=STEP_S, reward="chae", family="chae")
 
 
-def train(episodes: int, seed: int, trauma: bool, steps_per_episode: int = 40) -> tuple[DQN, dict]:
+def train(
+    episodes: int, seed: int, trauma: bool, steps_per_episode: int = 40, overrides: dict | None = None
+) -> tuple[DQN, dict]:
     env, view = make_env(), PedestrianHistory()
     total = episodes * steps_per_episode
-    cfg = DQNConfig(
-        total_steps=total,
-        eps_decay_steps=total // 2,
-        trauma_batch=10 if trauma else 0,
-        target_every=500,
-        warmup_steps=1000,
-    )
+    settings = dict(total_steps=total, eps_decay_steps=total // 2, target_every=500, warmup_steps=1000)
+    settings.update(overrides or {})
+    trauma_batch = settings.pop("trauma_batch", 10)
+    cfg = DQNConfig(**settings, trauma_batch=trauma_batch if trauma else 0)
     agent = DQN(PedestrianHistory.dim, len(BRAKE_LEVELS), cfg, seed)
     rng = np.random.default_rng([seed, 1717])
     curve = {"return": [], "end": []}
@@ -141,15 +140,18 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", default="0")
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--out", type=Path, default=Path("runs/chae_dqn"))
+    parser.add_argument("--set", nargs="*", default=[], help="DQNConfig overrides, e.g. double=true lr=1e-4")
+    parser.add_argument("--no-ablation", action="store_true", help="train with trauma memory only")
     args = parser.parse_args(argv)
+    overrides = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {"episodes": args.episodes, "trials": args.trials, "runs": {}}
     t0 = time.perf_counter()
     results["latest_safe_braking"] = score(LatestSafeBraking(), args.trials)
     for seed in [int(s) for s in args.seeds.split(",")]:
-        for trauma in (True, False):
-            agent, curve = train(args.episodes, seed, trauma)
+        for trauma in (True,) if args.no_ablation else (True, False):
+            agent, curve = train(args.episodes, seed, trauma, overrides=overrides)
             key = f"seed{seed}_{'trauma' if trauma else 'no_trauma'}"
             results["runs"][key] = {"curve": curve, "score": score(Greedy(agent), args.trials)}
             torch.save(agent.state_dict(), args.out / f"{key}.pt")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
 import shutil
@@ -215,3 +216,37 @@ def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, t
     assert (policy.action_map.anchor, policy.action_map.steer) == ("brake", "grip") and seed == 0
     rows = evaluate.evaluate_policy(cfg, "agent_r1/seed0", evaluate.bank(cfg)[:3], workers=1)
     assert len(rows) == 3 and all(r["actor_sha"] == models["actor_sha"] for r in rows)
+
+
+def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, caplog):
+    """pipeline peers=[chae]: Chae's DQN on its privileged state, and (found on disk) the same learner on our world
+    model's view; then evaluate.family=chae runs the scripted baselines and both agents on the same trials."""
+    root = tmp_path / "copy"
+    shutil.copytree(experiment, root)
+    train_agent.run(smoke_cfg(root, "train_agent", "agent=dqn_chae", "obs=worldmodel"))
+    pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
+    runs = root / "runs/t"
+    for rel in ("agent_chae_dqn_chae/seed0", "agent_chae_dqn_chae-worldmodel/seed0"):
+        metrics = json.loads((runs / rel / "metrics.json").read_text())
+        assert metrics["episodes"] == 12 and len(metrics["curve"]["end"]) == 12
+    rows = [r for r in csv.DictReader(open(runs / "eval_chae/results.csv"))]
+    policies = [
+        "braking",
+        "ttc_braking",
+        "latest_safe_braking",
+        "agent_chae_dqn_chae",
+        "agent_chae_dqn_chae-worldmodel",
+    ]
+    assert list(dict.fromkeys(r["policy"] for r in rows)) == policies
+    per_policy = len(rows) // len(policies)
+    assert per_policy == 3 * (3 + 1)  # 3 trials at each of 3 TTCs, and 3 in Scenario 2
+    by_policy = {p: [(r["ttc"], r["v_init"], r["scenario"]) for r in rows if r["policy"] == p] for p in policies}
+    assert all(v == by_policy["braking"] for v in by_policy.values())  # every policy on the same trials
+    summary = json.loads((runs / "eval_chae/summary.json").read_text())
+    assert set(summary["policies"]) == set(policies)
+    assert (runs / "eval_chae/stopping_distance.png").exists() and (runs / "eval_chae/bump_rate.png").exists()
+    assert "Chae et al. (paper" in (runs / "eval_chae/tables.md").read_text()
+    assert not (runs / "eval/results.csv").read_text().count("chae")  # the paper's bank is left alone
+    with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
+        pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
+    assert "running" not in caplog.text and "stale" not in caplog.text

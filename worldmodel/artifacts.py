@@ -40,6 +40,7 @@ log = logging.getLogger(__name__)
 
 PROVENANCE = "provenance.json"
 AGENT_REWARDS = REWARDS  # run names are agent_<reward>...: any registered reward (envs/rewards.py)
+REWARD_FAMILIES = {"chae": "chae"}  # rewards defined for one scenario family only; the rest are the paper's
 
 
 # ----------------------------------------------------------------------------- paths
@@ -86,7 +87,11 @@ def rnn_dir(cfg) -> Path:
 
 
 def eval_dir(cfg) -> Path:
-    """``runs/NAME/eval`` for the test bank, ``runs/NAME/eval_validation`` for the validation bank."""
+    """``runs/NAME/eval`` for the test bank, ``runs/NAME/eval_validation`` for the validation bank, and
+    ``runs/NAME/eval_<family>`` for another scenario family's evaluation."""
+    family = str(cfg.evaluate.get("family", "porav"))
+    if family != "porav":
+        return runs_root(cfg) / f"eval_{family}"
     return runs_root(cfg) / ("eval_validation" if cfg.evaluate.bank == "validation" else "eval")
 
 
@@ -100,23 +105,30 @@ PAPER_VARIANT = "ddpg"  # conf/agent/ddpg.yaml, the paper's agent: its runs keep
 
 @dataclass(frozen=True, order=True)
 class AgentId:
-    """One trained agent: its reward, training seed and variant (the ``conf/agent/<variant>.yaml`` preset it was
-    trained with). ``key`` (``agent_r1/seed0``, ``agent_r2_fd/seed1``) names it in evaluation rows, on disk under
-    ``runs/NAME/`` and in the pipeline; ``policy`` (``agent_r1``, ``agent_r2_fd``) pools its seeds in the reports.
-    The paper's variant has no suffix."""
+    """One trained agent: its reward, training seed, variant (the ``conf/agent/<variant>.yaml`` preset it was
+    trained with) and observation. ``key`` (``agent_r1/seed0``, ``agent_r2_fd/seed1``,
+    ``agent_chae_dqn_chae-worldmodel/seed0``) names it in evaluation rows, on disk under ``runs/NAME/`` and in the
+    pipeline; ``policy`` (``agent_r1``, ``agent_r2_fd``) pools its seeds in the reports. The paper's variant has no
+    suffix, and ``obs`` is empty (no suffix) when the agent sees what its preset's paper gives it."""
 
     reward: str
     seed: int
     variant: str = PAPER_VARIANT
+    obs: str = ""
 
     @property
     def policy(self) -> str:
         suffix = "" if self.variant == PAPER_VARIANT else f"_{self.variant}"
-        return f"agent_{self.reward}{suffix}"
+        return f"agent_{self.reward}{suffix}" + (f"-{self.obs}" if self.obs else "")
 
     @property
     def key(self) -> str:
         return f"{self.policy}/seed{self.seed}"
+
+    @property
+    def family(self) -> str:
+        """The scenario family the agent was trained and is evaluated on (its reward's)."""
+        return REWARD_FAMILIES.get(self.reward, "porav")
 
     def dir(self, cfg) -> Path:
         return runs_root(cfg) / self.key
@@ -124,29 +136,38 @@ class AgentId:
     @classmethod
     def parse(cls, key: str) -> AgentId:
         policy, _, seed = key.partition("/seed")
-        reward, _, variant = policy.removeprefix("agent_").partition("_")
-        if not policy.startswith("agent_") or reward not in AGENT_REWARDS or not seed.isdigit():
+        policy, _, obs = policy.partition("-")
+        name = policy.removeprefix("agent_")
+        # reward names may hold underscores: the longest registered one that the name starts with
+        rewards = [r for r in AGENT_REWARDS if name == r or name.startswith(f"{r}_")]
+        if not policy.startswith("agent_") or not rewards or not seed.isdigit():
             raise ValueError(f"{key!r} does not name an agent (expected e.g. 'agent_r1/seed0' or 'agent_r2_fd/seed0')")
-        return cls(reward, int(seed), variant or PAPER_VARIANT)
+        reward = max(rewards, key=len)
+        return cls(reward, int(seed), name[len(reward) + 1 :] or PAPER_VARIANT, obs)
 
     @classmethod
     def of(cls, cfg) -> AgentId:
         """The agent that ``train_agent`` with this config trains."""
-        return cls(str(cfg.reward.name), int(cfg.seed), str(cfg.agent.variant))
+        a = cfg.agent
+        obs = str(a.get("obs", "worldmodel"))
+        return cls(str(cfg.reward.name), int(cfg.seed), str(a.variant), "" if obs == a.get("paper_obs", obs) else obs)
 
 
 def agent_dir(cfg) -> Path:
     return AgentId.of(cfg).dir(cfg)
 
 
-def trained_agents(cfg) -> list[AgentId]:
-    """Every agent of the experiment that has a checkpoint, sorted (reward, then seed)."""
+def trained_agents(cfg, family: str = "porav") -> list[AgentId]:
+    """Every agent of the experiment with a checkpoint that belongs to scenario ``family``, sorted (reward, then
+    seed)."""
     found = []
     for path in runs_root(cfg).glob("agent_*/seed*/last.pt"):
         try:
-            found.append(AgentId.parse(f"{path.parent.parent.name}/{path.parent.name}"))
+            agent = AgentId.parse(f"{path.parent.parent.name}/{path.parent.name}")
         except ValueError:
             continue
+        if agent.family == family:
+            found.append(agent)
     return sorted(found)
 
 
@@ -209,10 +230,20 @@ def _config(cfg, *keys: str) -> dict:
 RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
 # Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
 # they are left out of the hash and older runs stay current.
-ADDED_DEFAULTS = {"env": {"step_s": 1.0 / 15.0}}
+ADDED_DEFAULTS = {
+    "env": {"step_s": 1.0 / 15.0, "family": "porav"},
+    "agent": {"obs": "worldmodel", "paper_obs": "worldmodel", "episodes": 3000},
+}
 
 
 def _drop_added_defaults(settings: dict) -> dict:
+    agent = settings.get("agent")
+    if isinstance(agent, dict) and agent.get("learner") != "dqn":
+        agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners
+    evaluate = settings.get("evaluate")
+    if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
+        evaluate.pop("family", None)  # the paper's bank, as before the families existed
+        evaluate.pop("chae", None)
     for section, defaults in ADDED_DEFAULTS.items():
         values = settings.get(section)
         if isinstance(values, dict):
@@ -235,14 +266,16 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
             settings["rnn"].pop("open_loop_weight", None)
     elif stage == "agent":
         agent = agent or AgentId.of(cfg)
-        inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)}
+        uses_world_model = str(cfg.agent.get("obs", "worldmodel")) == "worldmodel"
+        inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
         if uses_demos(cfg):
             inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")
         if uses_demos(cfg) or float(cfg.agent.focus_share) > 0:  # the focus mix's ranges shape the training
             settings["focus"] = _config(cfg, "demos")["demos"]["focus"]
     elif stage == "eval":
-        inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg)}
+        family = str(cfg.evaluate.get("family", "porav"))
+        inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family)}
         settings = _config(cfg, "evaluate", "env")
         settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
     else:
@@ -461,14 +494,10 @@ def load_agent_state(cfg, agent: AgentId, which: str = "last") -> dict:
     path = agent.dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
     rebuild = f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} seed={agent.seed}"
-    check_inputs(
-        cfg,
-        f"The agent {agent.key}",
-        path,
-        state,
-        {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"},
-        rebuild,
-    )
+    # an agent on a privileged observation (Chae's pedestrian history) is built on no world model
+    uses_world_model = state.get("obs", "worldmodel") == "worldmodel"
+    inputs = {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"} if uses_world_model else {}
+    check_inputs(cfg, f"The agent {agent.key}", path, state, inputs, rebuild)
     return state
 
 

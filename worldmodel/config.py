@@ -24,6 +24,7 @@ from envs.scene import NUM_CLASSES
 from .common import CONF_DIR, Checked, ConfigValueError, StageError, return_freed_memory
 from .common import positive_fields as _positive
 from .models.ddpg import DDPGConfig
+from .models.dqn import DQNConfig
 
 
 # ----------------------------------------------------------------------------- sections
@@ -178,6 +179,7 @@ class EnvConfig(Checked):
     mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
     step_s: float = 1.0 / 15.0  # seconds per step: the paper's 15 FPS (Chae, Kim and Merola step 0.1 s)
+    family: str = "porav"  # the scenarios reset() samples: porav (the paper's) or chae (envs/chae.py)
 
     def problems(self):
         if self.image_size != 64:
@@ -187,6 +189,10 @@ class EnvConfig(Checked):
             yield ConfigValueError("fov_deg", self.fov_deg, "the camera's field of view must be in [10, 170] degrees")
         if not 0.0 < self.step_s <= 0.5:
             yield ConfigValueError("step_s", self.step_s, "it must be in (0, 0.5] seconds")
+        from envs.env import FAMILIES
+
+        if self.family not in FAMILIES:
+            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(FAMILIES)}")
         if self.horizon_after_ttc_s is not None and self.horizon_after_ttc_s <= 0:
             yield ConfigValueError("horizon_after_ttc_s", self.horizon_after_ttc_s, "it must be > 0 (or null)")
 
@@ -353,7 +359,10 @@ class ChooserConfig(Checked):
         }
 
 
-LEARNERS = ("ddpg", "chooser")
+LEARNERS = ("ddpg", "chooser", "dqn")
+# what an agent sees: the world model's [z, zhat(, speed)] from the camera, or Chae's privileged 15-value
+# pedestrian history (envs/chae.py); a DDPG or chooser agent always sees the world model
+OBSERVATIONS = ("worldmodel", "pedestrian_history")
 
 
 @dataclass
@@ -390,6 +399,13 @@ class AgentConfig(DDPGConfig):
     # from the simulator's labels; R2 only, and none of the DDPG keys apply)
     learner: str = "ddpg"
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
+    # learner "dqn" (worldmodel/peers/chae.py): DQN / Double DQN with a trauma memory over discrete brake levels
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+    episodes: int = 3000  # the dqn learner's training episodes (family chae: ~40 steps each)
+    # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
+    # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
+    obs: str = "worldmodel"
+    paper_obs: str = "worldmodel"
 
     def problems(self):
         from .action_map import ANCHORS, STEERS
@@ -398,11 +414,16 @@ class AgentConfig(DDPGConfig):
             yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
 
         yield from super().problems()
-        yield from _positive(self, "checkpoint_every", "reward_scale")
+        yield from _positive(self, "checkpoint_every", "reward_scale", "episodes")
         if self.learner == "ddpg" and (self.total_steps < 0 or (self.total_steps == 0 and self.bc_pretrain_steps == 0)):
             yield ConfigValueError("total_steps", self.total_steps, "it must be > 0 (or 0 with bc_pretrain_steps > 0)")
-        if not self.variant.isalnum() or not self.variant.islower():
-            yield ConfigValueError("variant", self.variant, "it must be a lower-case alphanumeric name (the preset's)")
+        if not self.variant.replace("_", "").isalnum() or not self.variant.islower():
+            yield ConfigValueError("variant", self.variant, "it must be a lower-case name of letters, digits and _")
+        for key in ("obs", "paper_obs"):
+            if getattr(self, key) not in OBSERVATIONS:
+                yield ConfigValueError(key, getattr(self, key), f"it must be one of {', '.join(OBSERVATIONS)}")
+        if self.learner != "dqn" and self.obs != "worldmodel":
+            yield ConfigValueError("obs", self.obs, f"the {self.learner} learner sees the world model: obs=worldmodel")
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
@@ -480,10 +501,26 @@ def agent_preset(cfg, name: str):
         raise StageError(f"agent variant {name!r} has no preset {path}: restore it, or move its runs aside")
     preset = OmegaConf.load(path)
     preset.pop("defaults", None)
+    if _global_preset(path):
+        preset = preset.get("agent", OmegaConf.create())
     scale = OmegaConf.create()
     if cfg.get("scale_name"):
         scale = OmegaConf.load(CONF_DIR / "scale" / f"{cfg.scale_name}.yaml").get("agent", OmegaConf.create())
     return OmegaConf.merge(OmegaConf.structured(AgentConfig), scale, preset)
+
+
+def _global_preset(path) -> bool:
+    return path.read_text().lstrip().startswith("# @package _global_")
+
+
+def preset_globals(name: str) -> dict:
+    """What an agent preset sets outside ``agent`` (a peer's preset, ``# @package _global_``, also picks its
+    scenario family, step and reward: conf/agent/dqn_chae.yaml)."""
+    path = CONF_DIR / "agent" / f"{name}.yaml"
+    if not path.exists() or not _global_preset(path):
+        return {}
+    preset = OmegaConf.to_container(OmegaConf.load(path))
+    return {k: v for k, v in preset.items() if k not in ("agent", "defaults")}
 
 
 def oracle_settings(cfg) -> dict:
@@ -521,6 +558,21 @@ BANKS = ("test", "validation")
 
 
 @dataclass
+class ChaeEvalConfig(Checked):
+    """Chae et al.'s evaluation on family chae (worldmodel/peers/chae.py): Table I's bump rate per TTC, Scenario 2's
+    unnecessary stops, stopping distances, and contact, impact speed and injury."""
+
+    trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
+    ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
+    seed: int = 99
+
+    def problems(self):
+        yield from _positive(self, "trials")
+        if not self.ttcs or any(t <= 0 for t in self.ttcs):
+            yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
+
+
+@dataclass
 class EvaluateConfig(Checked):
     """The seeded test bank (docs/design.md §6) and the scripted policies evaluated beside the agents."""
 
@@ -537,6 +589,9 @@ class EvaluateConfig(Checked):
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
     oracle: OracleConfig = field(default_factory=OracleConfig)
+    # which scenario family to evaluate: porav (the test bank above) or chae (evaluate.chae)
+    family: str = "porav"
+    chae: ChaeEvalConfig = field(default_factory=ChaeEvalConfig)
 
     def problems(self):
         yield from _positive(self, "per_cell", "num_workers")
@@ -548,6 +603,10 @@ class EvaluateConfig(Checked):
                 yield ConfigValueError(key, list(getattr(self, key)), "every value must be positive")
         if self.bank not in BANKS:
             yield ConfigValueError("bank", self.bank, f"it must be one of {', '.join(BANKS)}")
+        from envs.env import FAMILIES
+
+        if self.family not in FAMILIES:
+            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(FAMILIES)}")
         if self.validation_seed == self.bank_seed:
             yield ConfigValueError("validation_seed", self.validation_seed, "it must differ from bank_seed")
         unknown = [h for h in self.hazards if h not in ("pedestrian", "car", "both")]
@@ -559,6 +618,9 @@ class EvaluateConfig(Checked):
                 list(self.policies),
                 "it must include 'braking' (the baseline) and may add 'oracle'; trained agents are found by themselves",
             )
+
+
+PEERS = {"chae": "dqn_chae"}  # peer system -> its agent preset (conf/agent/), trained on its own family
 
 
 @dataclass
@@ -575,6 +637,8 @@ class ExperimentConfig(Checked):
     # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
     # ddpg: the paper's agent (R1 and R2); chooser: issue 11's camera agent that beats braking (R2; docs/design.md §5)
     agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
+    # peer systems the pipeline also trains and evaluates on their own scenario family (pipeline peers=[chae])
+    peers: list[str] = field(default_factory=list)
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     demos: DemosConfig = field(default_factory=DemosConfig)
@@ -597,6 +661,9 @@ class ExperimentConfig(Checked):
             if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
                 known = sorted(p.stem for p in (CONF_DIR / "agent").glob("*.yaml"))
                 yield ConfigValueError("agents", list(self.agents), f"{name!r} is not a preset: use {', '.join(known)}")
+        unknown = [p for p in self.peers if p not in PEERS]
+        if unknown:
+            yield ConfigValueError("peers", list(self.peers), f"known peer systems: {', '.join(PEERS)}")
         if a.bc_weight > 0 and a.demo_share == 0:
             yield ConfigValueError(
                 "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"

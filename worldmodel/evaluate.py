@@ -164,6 +164,10 @@ def run(cfg) -> dict:
 
     validate(cfg)
     set_threads(1)  # one decision at a time: a single thread is fastest for batch-1 inference
+    if cfg.evaluate.family == "chae":
+        from .peers import chae
+
+        return chae.evaluate(cfg)
     entries = bank(cfg)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()

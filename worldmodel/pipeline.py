@@ -11,10 +11,12 @@ be built from now:
 * stale (an input or the config changed since): the old outputs are moved to ``runs/NAME/stale/`` and the stage
   runs afresh, and so, through their changed inputs, does every stage downstream of it.
 
-Agents are the pipeline's two (reward R1 and R2 at ``seed``) plus any other trained seed found on disk, so a seed
-sweep is rebuilt too when the world model changes. The collection is the root: its own settings check stops a
-run whose collection settings differ. Each stage's wall time and peak memory (this process and its workers,
-sampled every 0.2 s) are written to ``runs/NAME/pipeline.json``.
+Agents are the presets of ``agents`` (each with its rewards, at ``seed``) plus any other trained seed found on disk,
+so a seed sweep is rebuilt too when the world model changes. ``peers=[chae]`` adds a peer system (docs/design.md
+§10): its agent on its own scenario family, and that family's evaluation (``runs/NAME/eval_chae/``).
+
+The collection is the root: its own settings check stops a run whose collection settings differ. Each stage's wall
+time and peak memory (this process and its workers, sampled every 0.2 s) are written to ``runs/NAME/pipeline.json``.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from omegaconf import OmegaConf
 from . import artifacts
 from .artifacts import AgentId
 from .common import StageError, atomic_write_text
-from .config import agent_preset, hydra_main, validate
+from .config import PEERS, agent_preset, hydra_main, preset_globals, validate
 
 log = logging.getLogger(__name__)
 
@@ -89,16 +91,30 @@ def steps(cfg) -> list[Step]:
 
     agents = {AgentId(r, int(cfg.seed), v) for v in cfg.agents for r in agent_preset(cfg, v).rewards}
     agents |= set(artifacts.trained_agents(cfg))
-    agent_steps = [
-        Step(
-            a.key if a.seed != int(cfg.seed) else a.policy,
+    peers = [PEERS[p] for p in cfg.peers]
+    peer_agents = {AgentId(r, int(cfg.seed), v) for v in peers for r in agent_preset(cfg, v).rewards}
+    for family in {a.family for a in peer_agents}:
+        peer_agents |= set(artifacts.trained_agents(cfg, family))
+
+    def agent_step(a: AgentId) -> Step:
+        changes = {**preset_globals(a.variant), "reward": {"name": a.reward}, "seed": a.seed}
+        preset = agent_preset(cfg, a.variant)
+        if a.obs:  # another observation than its paper's (obs=NAME when it was trained)
+            preset = OmegaConf.merge(preset, {"obs": a.obs})
+        return Step(
+            a.key if a.seed != int(cfg.seed) or a.obs else a.policy,
             "agent",
             train_agent.run,
-            {"reward": {"name": a.reward}, "seed": a.seed, "agent": agent_preset(cfg, a.variant)},
+            {**changes, "agent": preset},
             a,
         )
-        for a in sorted(agents)
-    ]
+
+    agent_steps = [agent_step(a) for a in sorted(agents)]
+    peer_steps = [agent_step(a) for a in sorted(peer_agents)]
+    for v in dict.fromkeys(peers):  # one evaluation per peer family, after its agents
+        globals_ = preset_globals(v)
+        family = globals_.get("env", {}).get("family", "porav")
+        peer_steps.append(Step(f"eval_{family}", "eval", evaluate.run, {**globals_, "evaluate": {"family": family}}))
     needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes)) for s in agent_steps)
     if needs_demos and int(cfg.demos.episodes) < 1:
         users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes))]
@@ -110,6 +126,7 @@ def steps(cfg) -> list[Step]:
         *([Step("demos", "demos", demonstrate.run)] if needs_demos else []),
         *agent_steps,
         Step("eval", "eval", evaluate.run),
+        *peer_steps,
     ]
 
 

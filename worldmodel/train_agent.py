@@ -72,6 +72,8 @@ def run(cfg) -> dict:
     name = agent_id.policy
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
+    if typed.agent.learner == "dqn":
+        return run_dqn(cfg, agent_id)
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
     action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
@@ -243,6 +245,25 @@ def run_chooser(cfg, agent_id) -> dict:
         if run_.stop.requested:
             return run_.stopped(0)
         log.info("[%s] held-out R2 cost per episode: %s; wrote %s", agent_id.policy, metrics["held_out_cost"], run_.dir)
+        return run_.finish(metrics)
+
+
+def run_dqn(cfg, agent_id) -> dict:
+    """``agent.learner=dqn``: Chae et al.'s braking DQN on its own scenario family (worldmodel/peers/chae.py)."""
+    from .peers import chae
+
+    record = artifacts.provenance(cfg, "agent")
+    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+        metrics = chae.train(cfg, run_, agent_id)
+        if metrics.get("stopped"):
+            return metrics
+        log.info(
+            "[%s] %d episodes; bumps in the last 100: %s; wrote %s",
+            agent_id.policy,
+            metrics["episodes"],
+            metrics["recent_bump_rate"],
+            run_.dir,
+        )
         return run_.finish(metrics)
 
 

@@ -1,0 +1,521 @@
+"""Chae et al. 2017 on our simulator: DQN braking with a trauma memory, trained and evaluated on family ``chae``.
+
+    python -m worldmodel.train_agent experiment=NAME agent=dqn_chae [seed=K] [obs=worldmodel]
+    python -m worldmodel.evaluate experiment=NAME evaluate.family=chae
+
+Training (``train_agent`` with ``agent.learner=dqn``): ``agent.episodes`` episodes drawn from the paper's distribution
+(``envs.chae.sample_chae``: Scenario 1 or 2, TTC ~ U(1.5, 4) s, 10-60 km/h), 0.1 s steps, Chae's four brake levels
+and reward Eq. 8; ``worldmodel/models/dqn.py`` learns from one update per step. A transition into a bump is a
+trauma. The observation is Chae's 15-value pedestrian history (``agent.obs=pedestrian_history``, the paper's,
+privileged: it reads the simulator as their perception module would deliver it) or our world model's
+[z, zhat, speed] from the camera (``obs=worldmodel``). Runs: ``runs/NAME/agent_chae_dqn_chae[-worldmodel]/seedK/``
+with ``last.pt`` (network, optimiser, both memories, RNG, episode) every ``checkpoint_every_episodes``, TensorBoard
+(return, bump rate, ends, loss, epsilon) and ``metrics.json`` with the learning curve.
+
+Evaluation (``evaluate.family=chae``): Table I's layout, Scenario-1 bump rate at each TTC of ``evaluate.chae.ttcs``
+over ``evaluate.chae.trials`` seeded trials (the same scenarios for every policy), Scenario 2's unnecessary stops,
+the stopping distance to the pedestrian (their Fig. 7), and, since "bump" is only Chae's proxy, footprint contact,
+impact speed and Rosen pedestrian injury. Policies: straight-line braking from the pedestrian's start, TTC-threshold
+braking, the privileged latest-safe braking, and every dqn agent of the experiment. Writes ``runs/NAME/eval_chae/``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import time
+from collections import deque
+
+import numpy as np
+
+from envs.chae import (
+    BRAKE_LEVELS,
+    SAFETY_LINE_M,
+    V_INIT_RANGE,
+    V_PED_RANGE,
+    BrakeAtTrigger,
+    ChaeSpec,
+    LatestSafeBraking,
+    PedestrianHistory,
+    brake_action,
+    sample_chae,
+)
+
+from .. import artifacts
+from ..artifacts import AgentId
+from ..common import StageError, make_env
+
+log = logging.getLogger(__name__)
+# Chae's state to roughly unit scale: dx up to ~85 m, dy up to ~6 m, speed up to ~17 m/s
+HISTORY_SCALE = np.tile(np.array([1 / 50.0, 1 / 4.0, 1 / 20.0], np.float32), PedestrianHistory.steps)
+PAPER_TABLE_I = {0.9: 61.29, 1.1: 18.85, 1.3: 0.74}  # bump rate, %; 0 from 1.5 s on (10,000 trials per TTC)
+PHYSICS_BAND = {
+    0.9: (37.3, 76.5),
+    1.1: (3.1, 12.1),
+    1.3: (0.0, 0.46),
+    1.5: (0.0, 0.0),
+}  # brake at the trigger .. 0.1 s late
+ROLLING = 100
+CHECKPOINT_EPISODES = 100
+
+
+# ----------------------------------------------------------------------------- what the agent sees
+class HistoryObserver:
+    """Chae's 15-value pedestrian history, scaled (privileged; no camera)."""
+
+    camera = False
+    dim = PedestrianHistory.dim
+
+    def __init__(self, noise_m: float = 0.1):
+        self.view = PedestrianHistory(noise_m)
+
+    def reset(self, seed: int | None) -> None:
+        self.view.reset(seed)
+
+    def __call__(self, env, obs) -> np.ndarray:
+        return self.view(env) * HISTORY_SCALE
+
+    def note_action(self, action) -> None:
+        pass
+
+
+class WorldModelObserver:
+    """The world model's agent input from the camera frame (``agent_obs.WorldModelEncoder``)."""
+
+    camera = True
+
+    def __init__(self, encoder):
+        self.encoder, self.dim = encoder, encoder.dim
+
+    def reset(self, seed: int | None) -> None:
+        self.encoder.reset()
+
+    def __call__(self, env, obs) -> np.ndarray:
+        return self.encoder.encode(obs)
+
+    def note_action(self, action) -> None:
+        self.encoder.note_action(action)
+
+
+def observer(cfg, obs: str):
+    if obs == "pedestrian_history":
+        return HistoryObserver()
+    return WorldModelObserver(artifacts.load_world_model(cfg, use_speed=True, frame_view=False))
+
+
+def family_env(cfg, camera: bool):
+    return make_env(cfg, camera=camera, family="chae", reward="chae")
+
+
+def dqn_config(cfg):
+    from omegaconf import OmegaConf
+
+    from ..models.dqn import DQNConfig
+
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DQNConfig), cfg.agent.dqn))
+
+
+# ----------------------------------------------------------------------------- training
+def episode_scenario(seed: int, episode: int) -> tuple[ChaeSpec, int]:
+    """Training episode ``episode``'s scenario and observation-noise seed: a function of (seed, episode) only, so a
+    resumed run draws what an uninterrupted one would."""
+    rng = np.random.default_rng([int(seed), 1717, int(episode)])
+    return sample_chae(rng), int(rng.integers(2**31))
+
+
+def train(cfg, run_, agent_id: AgentId) -> dict:
+    """``train_agent`` for ``agent.learner=dqn``: ``agent.episodes`` episodes of family chae."""
+    from tqdm import tqdm
+
+    from ..models.dqn import DQN
+
+    if agent_id.reward != "chae":
+        raise StageError(
+            f"agent.learner=dqn learns Chae's braking with reward chae, not {agent_id.reward}: use agent=dqn_chae"
+        )
+    episodes = int(cfg.agent.episodes)
+    see = observer(cfg, str(cfg.agent.obs))
+    env = family_env(cfg, see.camera)
+    hp = dqn_config(cfg)
+    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
+    episode, curve = 0, {"return": [], "end": []}
+    if run_.state is not None:
+        if run_.state["obs_dim"] != see.dim:
+            raise StageError(
+                f"{run_.last} expects inputs of size {run_.state['obs_dim']}, the observation gives {see.dim}; "
+                f"delete {run_.dir} to retrain"
+            )
+        agent.load_state_dict(run_.state["agent"])
+        episode, curve = int(run_.state["episode"]), run_.state["curve"]
+        run_.resumed(f"episode {episode}")
+
+    def snapshot():
+        run_.save(
+            {
+                "agent": agent.state_dict(),
+                "episode": episode,
+                "step": agent.steps,
+                "curve": curve,
+                "obs": str(cfg.agent.obs),
+                "obs_dim": see.dim,
+                "learner": "dqn",
+                "reward": agent_id.reward,
+            }
+        )
+
+    writer = run_.writer
+    recent: deque = deque(maxlen=ROLLING)
+    recent.extend(e == "bump" for e in curve["end"][-ROLLING:])
+    loss = None
+    with tqdm(total=episodes, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
+        while episode < episodes and not run_.stop.requested:
+            spec, view_seed = episode_scenario(int(cfg.seed), episode)
+            obs, _ = env.reset(options={"scenario": spec})
+            see.reset(view_seed)
+            x, ret = see(env, obs), 0.0
+            while True:
+                a = agent.act(x)
+                action = brake_action(a)
+                obs, reward, terminated, truncated, info = env.step(action)
+                see.note_action(action)
+                x_next = see(env, obs)
+                bump = terminated and info["outcome"]["end"] == "bump"
+                agent.remember(x, a, reward, x_next, terminated, trauma=bump)
+                stats = agent.update()
+                loss = stats["loss"] if stats else loss
+                x, ret = x_next, ret + reward
+                if terminated or truncated:
+                    break
+            end = info["outcome"]["end"]
+            curve["return"].append(float(ret))
+            curve["end"].append(end)
+            recent.append(end == "bump")
+            episode += 1
+            bar.update(1)
+            writer.add_scalar("episode/return", ret, episode)
+            writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
+            writer.add_scalar("train/epsilon", agent.epsilon(), episode)
+            if loss is not None:
+                writer.add_scalar("train/loss", loss, episode)
+            if episode % CHECKPOINT_EPISODES == 0:
+                snapshot()
+    snapshot()
+    env.close()
+    if run_.stop.requested:
+        return run_.stopped(agent.steps)
+    last = curve["end"][-ROLLING:]
+    return {
+        "reward": agent_id.reward,
+        "obs": str(cfg.agent.obs),
+        "episodes": episode,
+        "steps": agent.steps,
+        "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
+        "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
+        "curve": curve,
+    }
+
+
+# ----------------------------------------------------------------------------- policies
+class DQNPolicy:
+    """A trained DQN, greedy, behind the scripted-policy interface."""
+
+    def __init__(self, name: str, agent, see, policy_seed: int):
+        self.name, self.agent, self.see, self.policy_seed = name, agent, see, policy_seed
+
+    def reset(self, seed=None) -> None:
+        self.see.reset(seed)
+
+    def bind(self, env) -> None:
+        self.env = env
+
+    def act(self, obs, info) -> np.ndarray:
+        action = brake_action(self.agent.act(self.see(self.env, obs), explore=False))
+        self.see.note_action(action)
+        return action
+
+
+class TTCBraking:
+    """Brake fully once the time to reach the safety line at the current speed falls below ``threshold_s``, while
+    the pedestrian is crossing (privileged, as an AEB with a perfect sensor)."""
+
+    name = "ttc_braking"
+
+    def __init__(self, threshold_s: float = 1.0):
+        self.threshold_s = float(threshold_s)
+
+    def reset(self, seed=None) -> None:
+        self.braking = False
+
+    def bind(self, env) -> None:
+        self.env = env
+
+    def act(self, obs, info) -> np.ndarray:
+        env, state = self.env, self.env._chae
+        if not self.braking and state is not None and state.started:
+            gap = state.ped_x - SAFETY_LINE_M - (env.ego.x + env.params.length / 2)
+            self.braking = gap <= self.threshold_s * max(env.ego.v, 1e-6)
+        return brake_action(0 if self.braking else 3)
+
+
+class StraightBraking(BrakeAtTrigger):
+    """Straight-line braking from the hazard's onset, as on the paper's bank: full braking from the step after
+    the pedestrian starts to cross (the physics check's policy)."""
+
+    name = "braking"
+
+
+SCRIPTED = {"braking": StraightBraking, "ttc_braking": TTCBraking, "latest_safe_braking": LatestSafeBraking}
+
+
+def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
+    from ..models.dqn import DQN
+
+    state = artifacts.load_agent_state(cfg, agent_id, "last")
+    if state.get("learner") != "dqn":
+        raise StageError(
+            f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
+        )
+    see = observer(cfg, state["obs"])
+    if see.dim != state["obs_dim"]:
+        raise StageError(
+            f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the observation "
+            f"{state['obs']} gives {see.dim} (the world model changed?); retrain it with "
+            f"`python -m worldmodel.train_agent experiment={cfg.experiment} agent=dqn_chae seed={agent_id.seed}`"
+        )
+    agent = DQN(see.dim, len(BRAKE_LEVELS), dqn_config(cfg), agent_id.seed)
+    agent.load_state_dict(state["agent"])
+    return DQNPolicy(agent_id.policy, agent, see, agent_id.seed)
+
+
+# ----------------------------------------------------------------------------- evaluation
+def bank(c) -> list[tuple[int, ChaeSpec]]:
+    """(scenario, spec): Scenario 1 at every TTC of ``c.ttcs`` and Scenario 2, ``c.trials`` each, seeded."""
+    out = []
+    for ttc in c.ttcs:
+        rng = np.random.default_rng([int(c.seed), int(round(float(ttc) * 100))])
+        for i in range(int(c.trials)):
+            spec = ChaeSpec(
+                seed=i,
+                ttc=float(ttc),
+                v_init=float(rng.uniform(*V_INIT_RANGE)),
+                v_ped=float(rng.uniform(*V_PED_RANGE)),
+                far_side=bool(rng.random() < 0.5),
+            )
+            out.append((1, spec))
+    rng = np.random.default_rng([int(c.seed), 2])
+    for i in range(int(c.trials)):
+        spec = ChaeSpec(
+            seed=i,
+            ttc=float(rng.uniform(1.5, 4.0)),
+            v_init=float(rng.uniform(*V_INIT_RANGE)),
+            v_ped=float(rng.uniform(*V_PED_RANGE)),
+            far_side=bool(rng.random() < 0.5),
+            crosses=False,
+        )
+        out.append((2, spec))
+    return out
+
+
+COLUMNS = (
+    "policy",
+    "policy_seed",
+    "scenario",
+    "ttc",
+    "v_init",
+    "v_ped",
+    "far_side",
+    "end",
+    "bump",
+    "contact",
+    "impact_speed",
+    "pedestrian_injury",
+    "stop_gap",
+)
+
+
+def run_policy(env, policy, entries, policy_seed: int = 0) -> list[dict]:
+    from tqdm import tqdm
+
+    from envs.rollout import rollout
+
+    rows = []
+    for scenario, spec in tqdm(entries, desc=policy.name, unit="trial"):
+        o = rollout(env, policy, spec).outcome
+        rows.append(
+            {
+                "policy": policy.name,
+                "policy_seed": policy_seed,
+                "scenario": scenario,
+                "ttc": spec.ttc,
+                "v_init": spec.v_init,
+                "v_ped": spec.v_ped,
+                "far_side": int(spec.far_side),
+                "end": o["end"],
+                "bump": int(o["end"] == "bump"),
+                "contact": int(o["pedestrian_collision"]),
+                "impact_speed": o["speed_at_collision"] if o["pedestrian_collision"] else float("nan"),
+                "pedestrian_injury": o["pedestrian_injury"],
+                "stop_gap": o["gap_to_pedestrian"] if o["end"] == "stop" else float("nan"),
+            }
+        )
+    return rows
+
+
+def evaluate(cfg) -> dict:
+    """``evaluate.family=chae``: every scripted policy and dqn agent on the same seeded trials."""
+    from ..training import tensorboard
+
+    c = cfg.evaluate.chae
+    out = artifacts.eval_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    entries = bank(c)
+    agents = artifacts.trained_agents(cfg, family="chae")
+    record = artifacts.provenance(cfg, "eval")
+    learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
+    rows = []
+    plain = family_env(cfg, camera=False)
+    for name in SCRIPTED:
+        rows += run_policy(plain, SCRIPTED[name](), entries)
+    plain.close()
+    for policy in learned:
+        env = family_env(cfg, camera=policy.see.camera)
+        rows += run_policy(env, policy, entries, policy.policy_seed)
+        env.close()
+    if not agents:
+        log.info(
+            "[eval chae] no dqn agents under %s: scripted policies only. Train one with "
+            "`python -m worldmodel.train_agent experiment=%s agent=dqn_chae`.",
+            artifacts.runs_root(cfg),
+            cfg.experiment,
+        )
+    with open(out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    summary = summarise(rows, [float(t) for t in c.ttcs])
+    (out / "tables.md").write_text(tables(summary, int(c.trials)))
+    figures(rows, summary, out)
+    writer = tensorboard(out)
+    for policy, s in summary["policies"].items():
+        for ttc, rate in s["bump_rate"].items():
+            writer.add_scalar(f"chae/{policy}/bump_rate", rate, int(round(float(ttc) * 10)))
+    writer.close()
+    artifacts.write_provenance(out, record)
+    summary["wall_s"] = round(time.perf_counter() - t0, 1)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))  # last: it marks the evaluation complete
+    log.info(
+        "[eval chae] %d trials x %d policies in %.0f s: %s",
+        len(entries),
+        len(SCRIPTED) + len(agents),
+        summary["wall_s"],
+        out / "tables.md",
+    )
+    return summary
+
+
+def _mean(values) -> float | None:
+    values = [v for v in values if v == v]
+    return float(np.mean(values)) if values else None
+
+
+def summarise(rows: list[dict], ttcs: list[float]) -> dict:
+    """Per policy (seeds pooled): bump, contact, impact speed and injury per TTC, and Scenario 2's stops."""
+    out = {"ttcs": ttcs, "policies": {}}
+    for policy in dict.fromkeys(r["policy"] for r in rows):
+        mine = [r for r in rows if r["policy"] == policy]
+        s1 = [r for r in mine if r["scenario"] == 1]
+        s2 = [r for r in mine if r["scenario"] == 2]
+        s: dict = {"seeds": sorted({r["policy_seed"] for r in mine}), "bump_rate": {}, "contact_rate": {}}
+        s["impact_kmh"], s["injury"] = {}, {}
+        for ttc in ttcs:
+            at = [r for r in s1 if abs(r["ttc"] - ttc) < 1e-9]
+            s["bump_rate"][ttc] = 100 * float(np.mean([r["bump"] for r in at]))
+            s["contact_rate"][ttc] = 100 * float(np.mean([r["contact"] for r in at]))
+            impact = _mean(r["impact_speed"] for r in at)
+            s["impact_kmh"][ttc] = None if impact is None else 3.6 * impact
+            s["injury"][ttc] = 100 * float(np.mean([r["pedestrian_injury"] for r in at]))
+        s["unnecessary_stop_rate"] = 100 * float(np.mean([r["end"] == "stop" for r in s2])) if s2 else None
+        s["stop_gaps"] = [r["stop_gap"] for r in s1 if r["stop_gap"] == r["stop_gap"]]
+        out["policies"][policy] = s
+    return out
+
+
+def tables(summary: dict, trials: int) -> str:
+    ttcs = summary["ttcs"]
+    head = "| policy | " + " | ".join(f"{t:g}" for t in ttcs) + " |"
+    rule = "|---|" + "---:|" * len(ttcs)
+
+    def line(name, values, fmt="{:.1f}"):
+        return f"| {name} | " + " | ".join("–" if v is None else fmt.format(v) for v in values) + " |"
+
+    pol = summary["policies"]
+    lines = [
+        f"# Chae et al. on family chae ({trials} seeded trials per TTC and in Scenario 2; seeds pooled)",
+        "",
+        "## Table I layout: Scenario 1 bump rate, % (the bumper past the 3 m safety line while the pedestrian crosses)",
+        "",
+        head,
+        rule,
+        line("Chae et al. (paper, 10,000 trials)", [PAPER_TABLE_I.get(t, 0.0) for t in ttcs], "{:.2f}"),
+        "| physics band (full braking at the trigger .. 0.1 s later) | "
+        + " | ".join(f"{PHYSICS_BAND[t][0]:g}–{PHYSICS_BAND[t][1]:g}" if t in PHYSICS_BAND else "0" for t in ttcs)
+        + " |",
+    ]
+    lines += [line(p, [s["bump_rate"][t] for t in ttcs]) for p, s in pol.items()]
+    lines += [
+        "",
+        "## Scenario 2 (the pedestrian stays): unnecessary stops, %",
+        "",
+        "| policy | stops % |",
+        "|---|---:|",
+    ]
+    lines += [f"| {p} | {s['unnecessary_stop_rate']:.1f} |" for p, s in pol.items()]
+    for key, title in (
+        ("contact_rate", "footprint contact with the pedestrian, %"),
+        ("impact_kmh", "mean impact speed of the contacts, km/h"),
+        ("injury", "mean Rosén pedestrian severe-injury risk per trial, %"),
+    ):
+        lines += ["", f"## Scenario 1: {title}", "", head, rule]
+        lines += [line(p, [s[key][t] for t in ttcs]) for p, s in pol.items()]
+    lines += [
+        "",
+        "Stopping distance (Fig. 7 layout): `stopping_distance.png`, the gap from the front bumper to the "
+        "pedestrian's line when the car stood still in Scenario 1.",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def figures(rows: list[dict], summary: dict, out) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ttcs = summary["ttcs"]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(ttcs, [PAPER_TABLE_I.get(t, 0.0) for t in ttcs], "k--", label="Chae et al. (paper)")
+    for p, s in summary["policies"].items():
+        ax.plot(ttcs, [s["bump_rate"][t] for t in ttcs], marker="o", ms=3, label=p)
+    ax.set_xlabel("TTC at the pedestrian's start, s")
+    ax.set_ylabel("bump rate, %")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "bump_rate.png", dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    bins = np.arange(0.0, 30.5, 1.0)
+    for p, s in summary["policies"].items():
+        if s["stop_gaps"]:
+            ax.hist(s["stop_gaps"], bins=bins, histtype="step", label=f"{p} ({len(s['stop_gaps'])} stops)")
+    ax.axvline(SAFETY_LINE_M, color="r", ls=":", label="safety line (3 m)")
+    ax.set_xlabel("gap from the bumper to the pedestrian's line at standstill, m")
+    ax.set_ylabel("Scenario-1 trials")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "stopping_distance.png", dpi=110)
+    plt.close(fig)
