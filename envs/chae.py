@@ -105,15 +105,33 @@ def sample_chae(rng: np.random.Generator, crossing_share: float = 0.5) -> ChaeSp
     )
 
 
+SPEC = ChaeSpec
+sample = sample_chae
+
+
 @dataclass
 class ChaeState:
-    """Where the episode's pedestrian and trigger are (x of the front bumper's line)."""
+    """Where the episode's pedestrian and trigger are (x of the front bumper's line). The env calls its hooks
+    (``substep``, ``context``, ``end``, ``outcome``; see ``envs.env``) as it does for every non-porav family."""
 
     ped_x: float
     trigger_x: float | None  # None: Scenario 2, the pedestrian never starts
     velocity: tuple[float, float]
     start_y: float
     started: bool = False
+    horizon_s: float = MAX_EPISODE_S
+
+    def substep(self, actors: Actors, bumper_before: float, bumper_after: float, t0: float, tau: float, sub_dt: float):
+        trigger(self, actors, bumper_before, bumper_after, tau, sub_dt)
+
+    def context(self, actors: Actors, bumper_x: float) -> dict:
+        return step_context(self, actors, bumper_x)
+
+    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict) -> str | None:
+        return end_of(self, actors, bumper_x, speed, ctx)
+
+    def outcome(self, spec: ChaeSpec, bumper_x: float) -> dict:
+        return {"family": FAMILY, "crosses": int(spec.crosses), "gap_to_pedestrian": float(self.ped_x - bumper_x)}
 
 
 def build(spec: ChaeSpec, ego_front: float) -> tuple[Actors, ChaeState]:
@@ -252,7 +270,7 @@ class LatestSafeBraking:
 
     def act(self, obs, info) -> np.ndarray:
         env = self.env
-        state = env._chae
+        state = env.family_state
         if not self.braking and state is not None and state.started:
             v, dt = env.ego.v, env.step_s
             gap = state.ped_x - SAFETY_LINE_M - (env.ego.x + env.params.length / 2)
@@ -272,4 +290,5 @@ class BrakeAtTrigger:
         self.env = env
 
     def act(self, obs, info) -> np.ndarray:
-        return brake_action(0 if self.env._chae is not None and self.env._chae.started else 3)
+        state = self.env.family_state
+        return brake_action(0 if state is not None and state.started else 3)

@@ -30,7 +30,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from . import chae, geometry
+from . import chae, geometry, ncap
 from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
 from .injury import occupant_injury, pedestrian_injury, plastic_delta_v
 from .rewards import REGISTRY, StepContext, step_rewards
@@ -38,8 +38,11 @@ from .scenario import ScenarioSpec, sample_scenario
 from .scene import CLASS_NAMES, EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
 from .vehicle import VehicleParams, VehicleState, integrate
 
-SPEC_TYPES = (ScenarioSpec, chae.ChaeSpec)
-FAMILIES = ("porav", chae.FAMILY)  # env.reset() without a scenario samples from ``family``
+# Every family but the paper's is a module with FAMILY, a frozen spec class, sample(rng) and build(spec, ego_front)
+# -> (actors, state); the state's hooks (substep, context, end, outcome, horizon_s) drive its episodes.
+FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap}
+SPEC_TYPES = (ScenarioSpec, *(m.SPEC for m in FAMILY_MODULES.values()))
+FAMILIES = ("porav", *FAMILY_MODULES)  # env.reset() without a scenario samples from ``family``
 
 
 def spec_from_dict(d: dict):
@@ -47,9 +50,9 @@ def spec_from_dict(d: dict):
     family = d.get("family", "porav")
     if family == "porav":
         return ScenarioSpec.from_dict(d)
-    if family == chae.FAMILY:
-        return chae.ChaeSpec.from_dict(d)
-    raise ValueError(f"unknown scenario family {family!r}: known are porav, {chae.FAMILY}")
+    if family in FAMILY_MODULES:
+        return FAMILY_MODULES[family].SPEC.from_dict(d)
+    raise ValueError(f"unknown scenario family {family!r}: known are {', '.join(FAMILIES)}")
 
 
 DT = 1.0 / 15.0
@@ -189,7 +192,8 @@ class UrbanCollisionEnv(gym.Env):
         super().reset(seed=seed)
         spec = (options or {}).get("scenario")
         if spec is None:
-            spec = chae.sample_chae(self.np_random) if self.family == chae.FAMILY else sample_scenario(self.np_random)
+            module = FAMILY_MODULES.get(self.family)
+            spec = module.sample(self.np_random) if module is not None else sample_scenario(self.np_random)
         elif isinstance(spec, dict):
             spec = spec_from_dict(spec)
         elif not isinstance(spec, SPEC_TYPES):
@@ -201,9 +205,9 @@ class UrbanCollisionEnv(gym.Env):
 
         rng = np.random.default_rng(spec.seed)
         self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, float(spec.ego_speed))
-        self._chae = None
-        if isinstance(spec, chae.ChaeSpec):
-            self.actors, self._chae = chae.build(spec, self._hl)
+        self.family_state = None
+        if not isinstance(spec, ScenarioSpec):
+            self.actors, self.family_state = FAMILY_MODULES[spec.family].build(spec, self._hl)
             junction_x = float(rng.uniform(200.0, 300.0))  # the junction well beyond where the episode ends
         else:
             self.actors, junction_x = build_actors(spec, rng, 0.0, self._hl, self.params.length, self.params.width)
@@ -212,8 +216,8 @@ class UrbanCollisionEnv(gym.Env):
 
         self.t_step = 0
         after = self.horizon_after_ttc_s
-        if self._chae is not None:
-            horizon_s = chae.MAX_EPISODE_S
+        if self.family_state is not None:
+            horizon_s = self.family_state.horizon_s
         else:
             horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
         self.horizon_steps = max(1, int(math.ceil(horizon_s / self.step_s - 1e-9)))
@@ -264,9 +268,9 @@ class UrbanCollisionEnv(gym.Env):
             integrate(ego, steer, pedal, sub_dt, p)
             c, s = math.cos(ego.psi), math.sin(ego.psi)
             tau = k * sub_dt
-            if self._chae is not None:
-                chae.trigger(self._chae, act, bumper_before, ego.x + self._hl, tau, sub_dt)
-                ped_idx = [0]
+            if self.family_state is not None:  # scripted road users may start moving within the step
+                self.family_state.substep(act, bumper_before, ego.x + self._hl, t0, tau, sub_dt)
+                ped_idx = range(len(act.ped_active))
             for i in ped_idx:
                 if not act.ped_active[i]:
                     continue
@@ -301,7 +305,8 @@ class UrbanCollisionEnv(gym.Env):
         self.t_step += 1
 
         self.collisions.extend(hits)
-        family = chae.step_context(self._chae, act, ego.x + self._hl) if self._chae is not None else {}
+        state = self.family_state
+        family = state.context(act, ego.x + self._hl) if state is not None else {}
         rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family))
         for name, value in rewards.items():
             self.returns[name] += value
@@ -310,7 +315,7 @@ class UrbanCollisionEnv(gym.Env):
         self.ever_departed |= departed
 
         left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > 25.0
-        family_end = chae.end_of(self._chae, act, ego.x + self._hl, ego.v, family) if self._chae is not None else None
+        family_end = state.end(act, ego.x + self._hl, ego.v, family) if state is not None else None
         terminated = crashed or left_scene or family_end is not None
         truncated = not terminated and self.t_step >= self.horizon_steps
         if family_end is not None and not crashed:
@@ -345,7 +350,7 @@ class UrbanCollisionEnv(gym.Env):
             "min_speed": self.min_speed,
             "last_end": self._last_end,
             "actors": _copy_actors(self.actors),
-            "chae": dataclasses.replace(self._chae) if self._chae is not None else None,
+            "family_state": dataclasses.replace(self.family_state) if self.family_state is not None else None,
         }
 
     def restore(self, snap: dict) -> None:
@@ -356,7 +361,8 @@ class UrbanCollisionEnv(gym.Env):
             if self._pool is not None:
                 self._apply_layout()
         self.actors = _copy_actors(snap["actors"])
-        self._chae = dataclasses.replace(snap["chae"]) if snap.get("chae") is not None else None
+        state = snap.get("family_state")
+        self.family_state = dataclasses.replace(state) if state is not None else None
         self.ego = snap["ego"].copy()
         self.t_step, self.collisions, self.returns = snap["t_step"], list(snap["collisions"]), dict(snap["returns"])
         self.ever_departed, self.min_speed, self._last_end = snap["ever_departed"], snap["min_speed"], snap["last_end"]
@@ -486,13 +492,7 @@ class UrbanCollisionEnv(gym.Env):
         kinds = {c["kind"] for c in cols}
         first = cols[0]["impact_speed"] if cols else float("nan")
         spec = self.scenario
-        extra = {}
-        if self._chae is not None:
-            extra = {
-                "family": chae.FAMILY,
-                "crosses": int(spec.crosses),
-                "gap_to_pedestrian": float(self._chae.ped_x - (self.ego.x + self._hl)),
-            }
+        extra = self.family_state.outcome(spec, self.ego.x + self._hl) if self.family_state is not None else {}
         return {
             **extra,
             "hazard": spec.hazard,

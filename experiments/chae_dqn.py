@@ -70,7 +70,7 @@ def train(
             _, reward, terminated, truncated, info = env.step(brake_action(a))
             next_obs = view(env) * SCALE
             bump = terminated and info["outcome"]["end"] == "bump"
-            agent.remember(obs, a, reward, next_obs, terminated, trauma=bump)
+            agent.remember(obs, a, reward, next_obs, terminated, trauma=bump, episode_end=terminated or truncated)
             agent.update()
             obs, ret = next_obs, ret + reward
             if terminated or truncated:

@@ -319,3 +319,23 @@ def test_relations_between_fields_are_checked():
         DQNConfig(trauma_size=5, trauma_batch=10)
     assert err.value.key == "trauma_batch"
     assert DQNConfig(trauma_size=0, trauma_batch=0).trauma_batch == 0  # trauma memory off is fine
+
+
+def test_trauma_lead_stores_the_steps_before_a_trauma_within_its_episode():
+    agent = DQN(1, 2, DQNConfig(trauma_lead=2, trauma_batch=1, batch_size=1), seed=0)
+
+    def step(value, trauma=False, end=False):
+        agent.remember(np.array([value]), 0, -value, np.array([value + 0.5]), end, trauma=trauma, episode_end=end)
+
+    step(1.0)
+    step(2.0, end=True)  # an episode cut here: its transitions must not lead the next episode's trauma
+    step(3.0)
+    step(4.0)
+    step(5.0)
+    step(6.0, trauma=True, end=True)
+    assert len(agent.trauma) == 3
+    assert sorted(agent.trauma.obs[:3, 0].tolist()) == [4.0, 5.0, 6.0]  # two steps of lead, then the trauma
+    step(7.0)
+    step(8.0, trauma=True, end=True)
+    assert sorted(agent.trauma.obs[:5, 0].tolist()) == [4.0, 5.0, 6.0, 7.0, 8.0]  # nothing from the last episode
+    assert len(agent.replay) == 8

@@ -620,6 +620,20 @@ class EvaluateConfig(Checked):
             )
 
 
+@dataclass
+class NcapConfig(Checked):
+    """The Euro NCAP pedestrian bank (worldmodel/ncap.py)."""
+
+    # the paper's agents (and braking, the planner) act from this TTC on; before it the car holds its speed
+    takeover_ttc_s: float = 1.5
+
+    def problems(self):
+        if not 0.0 < self.takeover_ttc_s <= 4.0:
+            yield ConfigValueError(
+                "takeover_ttc_s", self.takeover_ttc_s, "it must be in (0, 4] s (the tests start at 4 s)"
+            )
+
+
 PEERS = {"chae": "dqn_chae"}  # peer system -> its agent preset (conf/agent/), trained on its own family
 
 
@@ -643,6 +657,7 @@ class ExperimentConfig(Checked):
     collect: CollectConfig = field(default_factory=CollectConfig)
     demos: DemosConfig = field(default_factory=DemosConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
+    ncap: NcapConfig = field(default_factory=NcapConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
     vae: VAEConfig = field(default_factory=VAEConfig)
     rnn: RNNConfig = field(default_factory=RNNConfig)

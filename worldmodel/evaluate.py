@@ -168,6 +168,10 @@ def run(cfg) -> dict:
         from .peers import chae
 
         return chae.evaluate(cfg)
+    if cfg.evaluate.family == "ncap":
+        from . import ncap
+
+        return ncap.run(cfg)
     entries = bank(cfg)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()

@@ -42,6 +42,7 @@ stopped.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -86,6 +87,10 @@ class DQNConfig(Checked):
     trauma_batch: int = 10
     """trauma transitions added to every update's batch (fewer while the trauma memory holds fewer). 0 turns the
     trauma memory off: plain DQN"""
+    trauma_lead: int = 0
+    """the transitions up to this many steps before a trauma, in the same episode, enter the trauma memory with it
+    (0: the trauma alone, as Chae et al.). The braking decision that would have prevented a bump comes a second or
+    more before it; replaying those states with the trauma shortens the way the penalty travels back by TD"""
     target_every: int = 500
     """updates between hard copies of the online network into the target network"""
     double: bool = False
@@ -119,7 +124,7 @@ class DQNConfig(Checked):
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
         if self.eps_end > self.eps_start:
             yield ConfigValueError("eps_end", self.eps_end, f"it must be at most eps_start={self.eps_start}")
-        for key in ("trauma_size", "trauma_batch", "warmup_steps", "leaky_slope"):
+        for key in ("trauma_size", "trauma_batch", "trauma_lead", "warmup_steps", "leaky_slope"):
             if getattr(self, key) < 0:
                 yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
         if self.trauma_batch > self.trauma_size:
@@ -243,6 +248,7 @@ class DQN:
 
         self.replay = TransitionBuffer(cfg.buffer_size, obs_dim)
         self.trauma = TransitionBuffer(cfg.trauma_size, obs_dim) if cfg.trauma_batch > 0 else None
+        self._lead: deque = deque(maxlen=cfg.trauma_lead)  # this episode's latest transitions, for trauma_lead
 
     # ------------------------------------------------------------------ acting
     def epsilon(self, step: int | None = None) -> float:
@@ -262,11 +268,23 @@ class DQN:
             return int(self.rng.integers(self.n_actions))
         return int(np.argmax(self.q_values(obs)))
 
-    def remember(self, obs, action: int, reward: float, next_obs, terminated: bool, trauma: bool = False) -> None:
-        """Store a transition in the replay memory and, if ``trauma`` and the trauma memory is on, in that too."""
-        self.replay.add(obs, action, reward, next_obs, terminated)
+    def remember(
+        self, obs, action: int, reward: float, next_obs, terminated: bool, trauma: bool = False, episode_end=None
+    ) -> None:
+        """Store a transition in the replay memory and, if ``trauma`` and the trauma memory is on, in that too
+        (after the ``trauma_lead`` transitions before it). ``episode_end`` (default: ``terminated``) tells where an
+        episode ends, so that a lead never reaches into the previous episode: pass ``terminated or truncated``."""
+        transition = (obs, action, reward, next_obs, terminated)
+        self.replay.add(*transition)
         if trauma and self.trauma is not None:
-            self.trauma.add(obs, action, reward, next_obs, terminated)
+            for earlier in self._lead:
+                self.trauma.add(*earlier)
+            self.trauma.add(*transition)
+            self._lead.clear()
+        elif self.cfg.trauma_lead:
+            self._lead.append(transition)
+        if terminated if episode_end is None else episode_end:
+            self._lead.clear()
         self.steps += 1
 
     # ------------------------------------------------------------------ learning

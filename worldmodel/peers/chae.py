@@ -181,7 +181,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 see.note_action(action)
                 x_next = see(env, obs)
                 bump = terminated and info["outcome"]["end"] == "bump"
-                agent.remember(x, a, reward, x_next, terminated, trauma=bump)
+                agent.remember(x, a, reward, x_next, terminated, trauma=bump, episode_end=terminated or truncated)
                 stats = agent.update()
                 loss = stats["loss"] if stats else loss
                 x, ret = x_next, ret + reward
@@ -251,7 +251,7 @@ class TTCBraking:
         self.env = env
 
     def act(self, obs, info) -> np.ndarray:
-        env, state = self.env, self.env._chae
+        env, state = self.env, self.env.family_state
         if not self.braking and state is not None and state.started:
             gap = state.ped_x - SAFETY_LINE_M - (env.ego.x + env.params.length / 2)
             self.braking = gap <= self.threshold_s * max(env.ego.v, 1e-6)

@@ -1,0 +1,197 @@
+"""Scenario family ``ncap``: the Euro NCAP AEB pedestrian tests, as one fixed bank for every policy.
+
+| test | pedestrian | walks from | impact point on the car's front |
+|---|---|---|---|
+| CPFA-50 | adult, 8 km/h | the far side | 50 % of the car's width |
+| CPNA-25 / -75 | adult, 5 km/h | the near side (the kerb of the ego's lane) | 25 % / 75 % of the width |
+| CPNC-50 | child, 5 km/h, hidden behind two parked cars | the near side | 50 % |
+
+The car drives straight at the test speed (20-60 km/h in 5 km/h steps); the pedestrian starts at rest and would
+reach the impact point, measured across the car's width from the side it comes from, exactly when the front bumper
+does at constant car speed, 4 s after the start (TTC 4 s). The episode ends on contact with the pedestrian
+(``impact``), when the car stands still (``stop``) or when its front bumper has passed the pedestrian's path
+(``pass``); at the latest 7 s after the start.
+
+Our choices where the protocol is not at hand (PEERS.md marks them unverified; every result is labelled
+approximate): the pedestrian accelerates over its first 1 m; we model that as standing still for 1/v_p s and then
+walking at v_p, which reaches the impact point at the same instant (positions differ by at most 0.25 m, while the
+pedestrian is still outside the carriageway). Our pedestrian has one body size, so the child is an adult-sized
+footprint; CPNC-50's two parked 4.5 x 1.8 m cars stand at the kerb, just upstream of the child's path, 1 m apart,
+clear of a car that keeps its lane. The street's static layout (poles, walls) is drawn from the spec's seed as
+elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
+from .scene import EGO_LANE_Y, ROAD_HALF_WIDTH
+
+FAMILY = "ncap"
+# test -> (starts on the far side, walking speed km/h, impact point as a share of the car's width, parked cars)
+TESTS = {
+    "CPFA-50": (True, 8.0, 0.50, False),
+    "CPNA-25": (False, 5.0, 0.25, False),
+    "CPNA-75": (False, 5.0, 0.75, False),
+    "CPNC-50": (False, 5.0, 0.50, True),
+}
+SPEEDS_KMH = tuple(float(v) for v in range(20, 65, 5))
+START_TTC_S = 4.0
+ACCELERATION_M = 1.0
+AFTER_TTC_S = 3.0
+CAR_WIDTH, PARKED_LENGTH, PARKED_WIDTH = 1.8, 4.5, 1.8
+ENDS = ("impact", "stop", "pass")
+STOPPED_MS = 1e-3
+# Euro NCAP's 2015 pedestrian aim: avoid up to 40 km/h; from 40 to 60 km/h, impact below 40 km/h
+AVOID_UP_TO_KMH, IMPACT_BELOW_KMH = 40.0, 40.0
+
+
+@dataclass(frozen=True)
+class NcapSpec:
+    """One Euro NCAP pedestrian test run: ``test`` (a key of :data:`TESTS`) at ``speed_kmh``; seed: the street
+    layout."""
+
+    test: str
+    speed_kmh: float
+    seed: int = 0
+    family: str = FAMILY
+
+    def __post_init__(self):
+        if self.family != FAMILY:
+            raise ValueError(f"scenario field family={self.family!r}: an NcapSpec is family {FAMILY!r}")
+        if self.test not in TESTS:
+            raise ValueError(f"scenario field test={self.test!r}: use one of {', '.join(TESTS)}")
+        if not 0.0 < self.speed_kmh <= 150.0 or self.speed_kmh != self.speed_kmh:
+            raise ValueError(f"scenario field speed_kmh={self.speed_kmh!r} is out of range: it must be in (0, 150]")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise ValueError(f"scenario field seed={self.seed!r} must be a non-negative integer")
+
+    @property
+    def ego_speed(self) -> float:
+        return self.speed_kmh / 3.6
+
+    @property
+    def hazard(self) -> str:
+        return "pedestrian"
+
+    @property
+    def ttc(self) -> float:
+        return START_TTC_S
+
+    @property
+    def walking_speed(self) -> float:
+        return TESTS[self.test][1] / 3.6
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> NcapSpec:
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown {FAMILY} scenario fields: {sorted(unknown)}")
+        return cls(**d)
+
+
+SPEC = NcapSpec
+
+
+def bank(tests=tuple(TESTS), speeds_kmh=SPEEDS_KMH, seed: int = 0) -> list[NcapSpec]:
+    """The fixed bank: every test at every speed, on one street layout."""
+    return [NcapSpec(t, float(v), seed) for t in tests for v in speeds_kmh]
+
+
+def sample(rng: np.random.Generator) -> NcapSpec:
+    return NcapSpec(str(rng.choice(list(TESTS))), float(rng.choice(SPEEDS_KMH)), int(rng.integers(0, 2**31 - 1)))
+
+
+@dataclass
+class NcapState:
+    """The test's pedestrian: where its path crosses the car's (``ped_x``), when it starts to walk, and whether it
+    has. Hooks as in ``envs.chae.ChaeState``."""
+
+    ped_x: float
+    start_t: float
+    velocity: tuple[float, float]
+    started: bool = False
+    horizon_s: float = START_TTC_S + AFTER_TTC_S
+
+    def substep(self, actors: Actors, bumper_before: float, bumper_after: float, t0: float, tau: float, sub_dt: float):
+        """Start walking at ``start_t``, exactly: positions inside a step are ``xy + vel * tau`` from the step's
+        start ``t0``, so the start point is moved back by the walk's would-be distance from ``t0`` to ``start_t``."""
+        if self.started or t0 + tau < self.start_t:
+            return
+        self.started = True
+        vel = np.asarray(self.velocity)
+        actors.ped_vel[0] = vel
+        actors.ped_xy[0] -= vel * (self.start_t - t0)
+
+    def context(self, actors: Actors, bumper_x: float) -> dict:
+        return {}
+
+    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict) -> str | None:
+        if not actors.ped_active[0]:
+            return "impact"
+        if speed <= STOPPED_MS:
+            return "stop"
+        if bumper_x > self.ped_x + PARKED_LENGTH:  # the whole car is past the path
+            return "pass"
+        return None
+
+    def outcome(self, spec: NcapSpec, bumper_x: float) -> dict:
+        return {"family": FAMILY, "test": spec.test, "gap_to_pedestrian": float(self.ped_x - bumper_x)}
+
+
+def build(spec: NcapSpec, ego_front: float) -> tuple[Actors, NcapState]:
+    far, walk_kmh, share, parked = TESTS[spec.test]
+    v, v_p = spec.ego_speed, walk_kmh / 3.6
+    ped_x = ego_front + v * START_TTC_S
+    direction = -1.0 if far else 1.0  # near side: the ego's kerb, y < 0, walking towards +y
+    impact_y = EGO_LANE_Y - direction * CAR_WIDTH / 2 + direction * share * CAR_WIDTH
+    walk = v_p * START_TTC_S - ACCELERATION_M  # covered in 4 s when the first 1 m is an acceleration from rest
+    start_y = impact_y - direction * walk
+    ped_xy = np.zeros((PEDESTRIAN_POOL, 2))
+    ped_xy[0] = (ped_x, start_y)
+    ped_active = np.zeros(PEDESTRIAN_POOL, dtype=bool)
+    ped_active[0] = True
+    ped_stop_y = np.full(PEDESTRIAN_POOL, np.nan)
+    ped_stop_y[0] = direction * (ROAD_HALF_WIDTH + 1.0)  # walks on to the far pavement
+    car_xy = np.zeros((CAR_POOL, 2))
+    car_active = np.zeros(CAR_POOL, dtype=bool)
+    if parked:
+        kerb_y = -(ROAD_HALF_WIDTH + 0.2)  # straddling the kerb, 0.15 m clear of a car in its lane
+        first = ped_x - 1.0 - PARKED_LENGTH / 2
+        car_xy[0] = (first, kerb_y)
+        car_xy[1] = (first - PARKED_LENGTH - 1.0, kerb_y)
+        car_active[:2] = True
+    actors = Actors(
+        car_xy=car_xy,
+        car_vel=np.zeros((CAR_POOL, 2)),
+        car_heading=np.zeros(CAR_POOL),
+        car_active=car_active,
+        car_hazard=np.zeros(CAR_POOL, dtype=bool),
+        ped_xy=ped_xy,
+        ped_vel=np.zeros((PEDESTRIAN_POOL, 2)),
+        ped_active=ped_active,
+        ped_hazard=ped_active.copy(),
+        ped_stop_y=ped_stop_y,
+        collision_point=(ped_x, impact_y),
+    )
+    state = NcapState(ped_x=ped_x, start_t=1.0 / v_p * ACCELERATION_M, velocity=(0.0, direction * v_p))
+    return actors, state
+
+
+def verdict(speed_kmh: float, impact_kmh: float | None) -> str:
+    """Euro NCAP's 2015 pedestrian aim for one run: ``pass`` or ``fail`` (approximate: not the scoring table)."""
+    if impact_kmh is None:
+        return "pass"
+    if speed_kmh <= AVOID_UP_TO_KMH:
+        return "fail"
+    return "pass" if impact_kmh < IMPACT_BELOW_KMH else "fail"
