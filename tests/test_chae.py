@@ -71,7 +71,7 @@ def test_the_pedestrian_starts_when_the_bumper_passes_the_trigger(env):
         expected = start_y + spec.v_ped * max(0.0, t - t_trig)  # near side: walks towards +y
         assert env.actors.ped_xy[0, 1] == pytest.approx(expected, abs=1e-9), t
     front = env.ego.x + env.params.length / 2
-    assert (env._chae.ped_x - front) / spec.v_init == pytest.approx(5.0 - 3.9)
+    assert (env.family_state.ped_x - front) / spec.v_init == pytest.approx(5.0 - 3.9)
 
 
 def test_termination_cases(env):
@@ -90,11 +90,11 @@ def test_termination_cases(env):
 def test_chae_reward_matches_eq_8_by_hand(env):
     spec = ChaeSpec(seed=1, ttc=1.6, v_init=15.0)  # still crossing when the car arrives
     env.reset(options={"scenario": spec})
-    dx = env._chae.ped_x - (env.ego.x + env.params.length / 2)
+    dx = env.family_state.ped_x - (env.ego.x + env.params.length / 2)
     v0 = env.ego.v
     _, reward, _, _, info = env.step(brake_action(1))
     # the bumper moved during the step: dx is read after it
-    dx = env._chae.ped_x - (env.ego.x + env.params.length / 2)
+    dx = env.family_state.ped_x - (env.ego.x + env.params.length / 2)
     assert reward == pytest.approx(-(ALPHA * dx**2 + BETA) * (v0 - env.ego.v))
     assert v0 - env.ego.v == pytest.approx(5.9 * 0.1)
     assert info["reward_r2"] == 0.0 and info["reward_chae"] == reward

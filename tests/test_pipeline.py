@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, evaluate, pipeline, train_agent, train_vae
+from worldmodel import artifacts, evaluate, ncap, pipeline, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv
@@ -250,3 +250,13 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
     assert "running" not in caplog.text and "stale" not in caplog.text
+
+    # the Euro NCAP pedestrian bank runs every policy of the experiment, from one command
+    ncap.run(smoke_cfg(root, "ncap"))
+    summary = json.loads((runs / "eval_ncap/summary.json").read_text())
+    expected = {"braking", "oracle", "ttc_braking", "latest_safe_braking"}
+    expected |= {f"{p}/seed0" for p in ("agent_r1", "agent_r2", "agent_r2_chooser", *policies[3:])}
+    assert set(summary["policies"]) == expected
+    assert all(s["runs"] == 4 * 2 for s in summary["policies"].values())  # smoke: 20 and 60 km/h
+    assert summary["policies"]["braking"]["avoided_pct"] == 100.0  # braking from TTC 1.5 s stops in time
+    assert (runs / "eval_ncap/ncap.png").exists() and "CPNC-50" in (runs / "eval_ncap/tables.md").read_text()

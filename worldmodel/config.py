@@ -626,8 +626,16 @@ class NcapConfig(Checked):
 
     # the paper's agents (and braking, the planner) act from this TTC on; before it the car holds its speed
     takeover_ttc_s: float = 1.5
+    tests: list[str] = field(default_factory=lambda: ["CPFA-50", "CPNA-25", "CPNA-75", "CPNC-50"])
+    speeds_kmh: list[float] = field(default_factory=lambda: [float(v) for v in range(20, 65, 5)])
 
     def problems(self):
+        from envs.ncap import TESTS
+
+        if not self.tests or any(t not in TESTS for t in self.tests):
+            yield ConfigValueError("tests", list(self.tests), f"use a non-empty list of {', '.join(TESTS)}")
+        if not self.speeds_kmh or any(not 0 < v <= 150 for v in self.speeds_kmh):
+            yield ConfigValueError("speeds_kmh", list(self.speeds_kmh), "use speeds in (0, 150] km/h")
         if not 0.0 < self.takeover_ttc_s <= 4.0:
             yield ConfigValueError(
                 "takeover_ttc_s", self.takeover_ttc_s, "it must be in (0, 4] s (the tests start at 4 s)"

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from envs.ncap import SPEEDS_KMH, START_TTC_S, TESTS, bank, verdict
+from envs.ncap import START_TTC_S, bank, verdict
 
 from . import artifacts
 from .common import make_env, set_threads
@@ -145,7 +145,7 @@ def run(cfg) -> dict:
     out = artifacts.runs_root(cfg) / "eval_ncap"
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    specs = bank()
+    specs = bank(tuple(cfg.ncap.tests), tuple(float(v) for v in cfg.ncap.speeds_kmh))
     porav_step = float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0
     groups = [
         ("porav", porav_step, porav_policies(cfg), "r2", takeover_step(float(cfg.ncap.takeover_ttc_s), porav_step)),
@@ -169,8 +169,9 @@ def run(cfg) -> dict:
         w.writerows(rows)
     summary = summarise(rows)
     summary["takeover_ttc_s"] = float(cfg.ncap.takeover_ttc_s)
-    (out / "tables.md").write_text(tables(rows, summary))
-    figure(rows, out / "ncap.png")
+    tests, speeds = list(cfg.ncap.tests), [float(v) for v in cfg.ncap.speeds_kmh]
+    (out / "tables.md").write_text(tables(rows, summary, tests, speeds))
+    figure(rows, out / "ncap.png", tests, speeds)
     summary["wall_s"] = round(time.perf_counter() - t0, 1)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     log.info("[ncap] %d runs in %.0f s: %s", len(rows), summary["wall_s"], out / "tables.md")
@@ -197,7 +198,7 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
-def tables(rows: list[dict], summary: dict) -> str:
+def tables(rows: list[dict], summary: dict, tests: list[str], speeds: list[float]) -> str:
     lines = [
         "# Euro NCAP AEB pedestrian tests (approximate: our reading of the protocol, envs/ncap.py)",
         "",
@@ -216,11 +217,11 @@ def tables(rows: list[dict], summary: dict) -> str:
         )
     lines += ["", "## Per test and speed: ✓ avoided, else the impact speed in km/h (✗: the aim is missed)", ""]
     for key in summary["policies"]:
-        lines += [f"### {key}", "", "| test | " + " | ".join(f"{v:g}" for v in SPEEDS_KMH) + " |"]
-        lines.append("|---|" + "---:|" * len(SPEEDS_KMH))
-        for test in TESTS:
+        lines += [f"### {key}", "", "| test | " + " | ".join(f"{v:g}" for v in speeds) + " |"]
+        lines.append("|---|" + "---:|" * len(speeds))
+        for test in tests:
             cells = []
-            for v in SPEEDS_KMH:
+            for v in speeds:
                 r = next(r for r in rows if _key(r) == key and r["test"] == test and r["speed_kmh"] == v)
                 cell = "✓" if r["avoided"] else f"{r['impact_kmh']:.0f}"
                 cells.append(cell + (" ✗" if r["verdict"] == "fail" else ""))
@@ -229,7 +230,7 @@ def tables(rows: list[dict], summary: dict) -> str:
     return "\n".join(lines)
 
 
-def figure(rows: list[dict], path) -> None:
+def figure(rows: list[dict], path, tests: list[str], speeds: list[float]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -249,15 +250,15 @@ def figure(rows: list[dict], path) -> None:
                         for r in rows
                         if _key(r) == key and r["test"] == t and r["speed_kmh"] == v
                     )
-                    for v in SPEEDS_KMH
+                    for v in speeds
                 ]
-                for t in TESTS
+                for t in tests
             ]
         )
         image = ax.imshow(grid, cmap="RdYlGn_r", vmin=0, vmax=60, aspect="auto")
         ax.set_title(key, fontsize=8)
-        ax.set_xticks(range(len(SPEEDS_KMH)), [f"{v:g}" for v in SPEEDS_KMH], fontsize=7)
-        ax.set_yticks(range(len(TESTS)), list(TESTS), fontsize=7)
+        ax.set_xticks(range(len(speeds)), [f"{v:g}" for v in speeds], fontsize=7)
+        ax.set_yticks(range(len(tests)), tests, fontsize=7)
         for i in range(grid.shape[0]):
             for j in range(grid.shape[1]):
                 ax.text(j, i, "✓" if grid[i, j] == 0 else f"{grid[i, j]:.0f}", ha="center", va="center", fontsize=6)
