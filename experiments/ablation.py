@@ -19,7 +19,7 @@ import logging
 import math
 from pathlib import Path
 
-from worldmodel import artifacts, evaluate, train_agent
+from worldmodel import artifacts, evaluate, policies, train_agent
 from worldmodel.config import compose
 from worldmodel.report import _mean, overall_achievable_share, paired_bootstrap, read_results_csv, write_results_csv
 
@@ -151,7 +151,7 @@ def main(argv=None) -> int:
         variant = compose("evaluate", [*base, *PLANNERS[p][1]])
 
         def make(c=variant, p=p):
-            source = evaluate.EXACT_CHOOSER if p == "chooser" else "oracle"
+            source = policies.EXACT_CHOOSER if p == "chooser" else "oracle"
             return [r | {"policy": f"oracle_{p}"} for r in evaluate.evaluate_policy(c, source, entries, workers)]
 
         rows += cached_rows(out / f"rows_oracle_{p}.csv", None, make)

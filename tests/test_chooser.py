@@ -14,7 +14,7 @@ import torch
 from envs import StraightLineBraking, UrbanCollisionEnv, rollout, sample_focus_scenario
 from envs.chooser import ExactCosts, ManoeuvreChooser, chooser_candidates, cost_labels, decide_steps_for
 from envs.planner import Manoeuvre
-from worldmodel import artifacts, chooser, evaluate, train_agent
+from worldmodel import artifacts, chooser, evaluate, policies, train_agent
 from worldmodel.common import StageError
 
 CANDIDATES = chooser_candidates(steers=(1.0,), lane_change_s=(0.3,))  # braking + 4 manoeuvres: cheap to label
@@ -163,7 +163,7 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     agent = artifacts.AgentId.of(cfg)
     assert agent.key == "agent_r2_chooser/seed0"
     ecfg = compose("evaluate", base)
-    policy, _, models = evaluate._policy_for(ecfg, agent.key)
+    policy, _, models = policies.policy_for(ecfg, agent.key)
     assert isinstance(policy, ManoeuvreChooser) and models["actor_sha"]
     data = chooser.labels(cfg)
     rows = np.flatnonzero(data["episode"] == 0)

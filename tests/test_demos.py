@@ -114,9 +114,9 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
         assert actor(torch.from_numpy(first)).abs().max() > 0.01
     # evaluation rebuilds the agent's own input from its checkpoint, whatever the current config says
     from worldmodel.config import compose as compose_eval
-    from worldmodel.evaluate import _policy_for
+    from worldmodel.policies import policy_for
 
-    policy, _, _ = _policy_for(compose_eval("evaluate", base), artifacts.AgentId.of(cfg).key)
+    policy, _, _ = policy_for(compose_eval("evaluate", base), artifacts.AgentId.of(cfg).key)
     assert policy.encoder.dim == encoder.dim
     policy.reset(0)
     obs = {"seg": store.read(0, "seg")[0], "speed": speed[:1]}

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-STAGES = ("collect", "train_vae", "train_rnn", "demonstrate", "train_agent", "evaluate")
+STAGES = ("collect", "train_vae", "train_rnn", "demonstrate", "train_agent", "evaluate", "ncap")
 
 
 def imported_modules(path: Path, package: str) -> set[str]:

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, evaluate, ncap, pipeline, train_agent, train_vae
+from worldmodel import artifacts, evaluate, ncap, pipeline, policies, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv
@@ -211,7 +211,7 @@ def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, t
     options = ("agent.use_speed=true", "agent.anchor=brake", "agent.steer=grip")
     train_agent.run(smoke_cfg(root, "train_agent", "reward=r1", "agent.total_steps=150", *options))
     cfg = smoke_cfg(root, "evaluate")  # agent.use_speed=false, anchor=none: the defaults
-    policy, seed, models = evaluate._policy_for(cfg, "agent_r1/seed0")
+    policy, seed, models = policies.policy_for(cfg, "agent_r1/seed0")
     assert policy.encoder.use_speed and policy.encoder.dim == 2 * cfg.vae.latent_dim + 1
     assert (policy.action_map.anchor, policy.action_map.steer) == ("brake", "grip") and seed == 0
     rows = evaluate.evaluate_policy(cfg, "agent_r1/seed0", evaluate.bank(cfg)[:3], workers=1)

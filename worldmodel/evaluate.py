@@ -22,14 +22,12 @@ import logging
 import time
 
 from . import artifacts
-from .action_map import ActionMap
-from .artifacts import AgentId
-from .common import make_env, set_threads
-from .config import SCRIPTED_POLICIES, hydra_main, oracle_settings, validate
-from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
+from .common import StageError, make_env, set_threads
+from .config import SCRIPTED_POLICIES, hydra_main, validate
+from .policies import EXACT_CHOOSER, NO_MODELS, policy_for
+from .report import OUTCOME_COLUMNS, write_report, write_results_csv
 
 log = logging.getLogger(__name__)
-NO_MODELS = dict.fromkeys(MODEL_COLUMNS, "")
 
 
 def bank(cfg):
@@ -71,52 +69,6 @@ def run_policy(
     return rows
 
 
-def make_oracle(cfg):
-    from envs.planner import PrivilegedPlanner
-
-    return PrivilegedPlanner.from_settings(**oracle_settings(cfg))
-
-
-EXACT_CHOOSER = "exact_chooser"  # the chooser's decision rule on exact costs: the ceiling of agent.learner=chooser
-
-
-def make_exact_chooser(cfg):
-    """The chooser (``agent.chooser``'s candidates and window) acting on the true costs, read from the simulator."""
-    from envs.chooser import ExactCosts, ManoeuvreChooser, decide_steps_for
-
-    from .chooser import cfg_chooser
-
-    c, step_s = cfg_chooser(cfg), float(cfg.env.step_s)
-    candidates = c.candidates(step_s)
-    return ManoeuvreChooser(
-        candidates, ExactCosts(candidates), decide_steps_for(c.decide_s, step_s), float(c.margin), name=EXACT_CHOOSER
-    )
-
-
-def _policy_for(cfg, name: str):
-    """(policy, training seed, model hashes) for a scripted policy's name or an agent's key."""
-    from envs import StraightLineBraking
-
-    from .agent_obs import LearnedPolicy
-
-    if name == "braking":
-        return StraightLineBraking(), 0, NO_MODELS
-    if name == "oracle":
-        return make_oracle(cfg), 0, NO_MODELS
-    if name == EXACT_CHOOSER:
-        return make_exact_chooser(cfg), 0, NO_MODELS
-    agent = AgentId.parse(name)
-    actor, state = artifacts.load_actor(cfg, agent)
-    # each agent acts as it was trained: its own input (speed or not) and its own action map
-    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
-    if actor is None:  # a chooser (agent.learner=chooser)
-        from .chooser import build_policy
-
-        return build_policy(agent.policy, encoder, state), agent.seed, artifacts.models_of(cfg, agent)
-    policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
-    return policy, agent.seed, artifacts.models_of(cfg, agent)
-
-
 _WORKER: dict = {}
 
 
@@ -130,7 +82,7 @@ def _run_chunk(task) -> list[dict]:
     if name not in _WORKER:
         cfg = OmegaConf.create(cfg_dict)
         camera = name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER)
-        _WORKER[name] = (make_env(cfg, camera=camera), *_policy_for(cfg, name))
+        _WORKER[name] = (make_env(cfg, camera=camera), *policy_for(cfg, name))
     env, policy, seed, models = _WORKER[name]
     return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
 
@@ -169,9 +121,9 @@ def run(cfg) -> dict:
 
         return chae.evaluate(cfg)
     if cfg.evaluate.family == "ncap":
-        from . import ncap
-
-        return ncap.run(cfg)
+        raise StageError(
+            f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={cfg.experiment}"
+        )
     entries = bank(cfg)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()
@@ -180,7 +132,7 @@ def run(cfg) -> dict:
     agents = [a.key for a in artifacts.trained_agents(cfg)]
     record = artifacts.provenance(cfg, "eval")
     for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs
-        _policy_for(cfg, key)
+        policy_for(cfg, key)
     rows = []
     for key in [p for p in SCRIPTED_POLICIES if p in cfg.evaluate.policies] + agents:
         rows += evaluate_policy(cfg, key, entries, workers)

@@ -1,7 +1,6 @@
 """The Euro NCAP AEB pedestrian bank (``envs/ncap.py``) for every policy of an experiment: one yardstick.
 
-    python -m worldmodel.ncap experiment=NAME
-    python -m worldmodel.evaluate experiment=NAME evaluate.family=ncap      # the same
+    python -m worldmodel.ncap experiment=NAME [ncap.takeover_ttc_s=1.5]
 
 Runs CPFA-50, CPNA-25, CPNA-75 and CPNC-50 at 20-60 km/h (36 runs, one street layout, deterministic) under every
 policy that exists for the experiment:
@@ -13,10 +12,10 @@ policy that exists for the experiment:
 * Chae's family (0.1 s steps, from the test's start at TTC 4 s, since deciding when to brake is their job):
   TTC-threshold braking, the privileged latest-safe braking and every ``dqn_chae`` agent.
 
-Writes ``runs/NAME/eval_ncap/``: ``results.csv`` (one row per run), ``tables.md`` (per policy, per test and speed:
-avoided, or the impact speed; and Euro NCAP's 2015 aim, avoid up to 40 km/h and hit below 40 km/h above it, as
-pass or fail: approximate, not the protocol's scoring table), ``ncap.png`` (one panel per policy) and
-``summary.json`` (last: it marks the run complete).
+Writes ``runs/NAME/eval_ncap/`` (``eval_ncap_takeover<T>/`` for another takeover TTC): ``results.csv`` (one row
+per run), ``tables.md`` (per policy, per test and speed: avoided, or the impact speed; and Euro NCAP's 2015 aim,
+avoid up to 40 km/h and hit below 40 km/h above it, as pass or fail: approximate, not the protocol's scoring
+table), ``ncap.png`` (one panel per policy) and ``summary.json`` (last: it marks the run complete).
 """
 
 from __future__ import annotations
@@ -87,13 +86,13 @@ def takeover_step(takeover_ttc_s: float, step_s: float) -> int:
 
 def porav_policies(cfg):
     """(policy, seed, needs the camera) for the paper's family: braking, the planner, every trained agent."""
-    from .evaluate import _policy_for
+    from .policies import policy_for
 
     names = [p for p in ("braking", "oracle") if p in cfg.evaluate.policies]
     names += [a.key for a in artifacts.trained_agents(cfg)]
     out = []
     for name in names:
-        policy, seed, _ = _policy_for(cfg, name)
+        policy, seed, _ = policy_for(cfg, name)
         out.append((policy, seed, name not in ("braking", "oracle")))
     return out
 
@@ -142,7 +141,8 @@ def run(cfg) -> dict:
 
     validate(cfg)
     set_threads(1)
-    out = artifacts.runs_root(cfg) / "eval_ncap"
+    takeover = float(cfg.ncap.takeover_ttc_s)
+    out = artifacts.runs_root(cfg) / ("eval_ncap" if takeover == 1.5 else f"eval_ncap_takeover{takeover:g}")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     specs = bank(tuple(cfg.ncap.tests), tuple(float(v) for v in cfg.ncap.speeds_kmh))

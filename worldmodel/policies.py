@@ -1,0 +1,58 @@
+"""Which policy a name denotes, for every bank that runs them (``evaluate``, ``ncap``): the scripted ones
+(``braking``, ``oracle``, ``exact_chooser``) and every trained agent's key, each acting as it was trained."""
+
+from __future__ import annotations
+
+from . import artifacts
+from .action_map import ActionMap
+from .artifacts import AgentId
+from .config import oracle_settings
+from .report import MODEL_COLUMNS
+
+NO_MODELS = dict.fromkeys(MODEL_COLUMNS, "")
+
+
+def make_oracle(cfg):
+    from envs.planner import PrivilegedPlanner
+
+    return PrivilegedPlanner.from_settings(**oracle_settings(cfg))
+
+
+EXACT_CHOOSER = "exact_chooser"  # the chooser's decision rule on exact costs: the ceiling of agent.learner=chooser
+
+
+def make_exact_chooser(cfg):
+    """The chooser (``agent.chooser``'s candidates and window) acting on the true costs, read from the simulator."""
+    from envs.chooser import ExactCosts, ManoeuvreChooser, decide_steps_for
+
+    from .chooser import cfg_chooser
+
+    c, step_s = cfg_chooser(cfg), float(cfg.env.step_s)
+    candidates = c.candidates(step_s)
+    return ManoeuvreChooser(
+        candidates, ExactCosts(candidates), decide_steps_for(c.decide_s, step_s), float(c.margin), name=EXACT_CHOOSER
+    )
+
+
+def policy_for(cfg, name: str):
+    """(policy, training seed, model hashes) for a scripted policy's name or an agent's key."""
+    from envs import StraightLineBraking
+
+    from .agent_obs import LearnedPolicy
+
+    if name == "braking":
+        return StraightLineBraking(), 0, NO_MODELS
+    if name == "oracle":
+        return make_oracle(cfg), 0, NO_MODELS
+    if name == EXACT_CHOOSER:
+        return make_exact_chooser(cfg), 0, NO_MODELS
+    agent = AgentId.parse(name)
+    actor, state = artifacts.load_actor(cfg, agent)
+    # each agent acts as it was trained: its own input (speed or not) and its own action map
+    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
+    if actor is None:  # a chooser (agent.learner=chooser)
+        from .chooser import build_policy
+
+        return build_policy(agent.policy, encoder, state), agent.seed, artifacts.models_of(cfg, agent)
+    policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
+    return policy, agent.seed, artifacts.models_of(cfg, agent)
