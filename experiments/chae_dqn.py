@@ -1,6 +1,7 @@
-"""Chae et al. 2017 on our simulator: DQN braking on the paper's 15-value state, with and without trauma memory.
+"""Chae et al. 2017: choosing the DQN's settings, and the trauma-memory ablation, on a validation draw.
 
     python -m experiments.chae_dqn [--episodes 3000] [--seeds 0] [--trials 200] [--out runs/chae_dqn]
+        [--set double=true loss='"huber"' ...] [--no-ablation]
 
 Trains ``DQN`` (worldmodel/models/dqn.py; Chae's FC [15, 100, 70, 50, 70, 100, 4], leaky ReLU, RMSProp 5e-4, replay
 10,000 / batch 32, trauma memory 1,000 / batch 10, the sum loss of Eq. 9) on family ``chae`` (envs/chae.py: 0.1 s
@@ -10,7 +11,9 @@ whose next state is a bump). Then it scores the greedy policy the way Table I do
 0.9-3.9 s in steps of 0.2 (``--trials`` per TTC), and Scenario 2's rate of unnecessary stops, beside the privileged
 latest-safe braking policy. Writes ``results.json``, ``table.md`` and ``learning_curves.png`` to ``--out``.
 
-Not yet a stage: issue 13 wants it behind ``train_agent agent=dqn_chae`` and ``evaluate family=chae``.
+The trials here are drawn from seed 99 (the validation draw); the stage's evaluation (``python -m worldmodel.evaluate
+evaluate.family=chae``, worldmodel/peers/chae.py) draws its own from ``evaluate.chae.seed`` (2017), so settings
+chosen here are not chosen on the reported numbers. Training itself is ``train_agent agent=dqn_chae``.
 """
 
 from __future__ import annotations

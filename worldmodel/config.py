@@ -564,7 +564,7 @@ class ChaeEvalConfig(Checked):
 
     trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
     ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
-    seed: int = 99
+    seed: int = 2017  # the test draw; experiments/chae_dqn.py chooses settings on another draw (seed 99)
 
     def problems(self):
         yield from _positive(self, "trials")
