@@ -35,6 +35,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..common import Checked, ConfigValueError, positive_fields
+from .replay import CircularStore
 
 
 @dataclass
@@ -196,68 +197,31 @@ class NStepWindow:
         return out
 
 
-class ReplayBuffer:
-    """Fixed-capacity circular store of transitions in preallocated float32 arrays.
-
-    ``terminated`` is 1.0 only for true terminal states (a crash with a car or a static object, or leaving
-    the scene; stopping does not end an episode). A transition cut by a time limit
-    is stored with terminated=0 so its value is bootstrapped from ``next_obs``.
-    """
+class ReplayBuffer(CircularStore):
+    """The DDPG replay memory: continuous actions, and ``steps``, the k of an n-step transition (the target
+    discounts its bootstrap by gamma^k). ``terminated`` is 1.0 only for true terminal states (a crash with a car or a
+    static object, or leaving the scene; stopping does not end an episode)."""
 
     FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated", "steps")
+    KIND = "replay buffer"
+    RESUME_HINT = "resume with the same agent.buffer_size"
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int):
-        self.capacity = int(capacity)
-        self.obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
-        self.actions = np.zeros((self.capacity, act_dim), dtype=np.float32)
-        self.rewards = np.zeros(self.capacity, dtype=np.float32)
-        self.next_obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
-        self.terminated = np.zeros(self.capacity, dtype=np.float32)
-        self.steps = np.ones(self.capacity, dtype=np.float32)  # k of an n-step transition: the target uses g^k
-        self.pos = 0  # where the next transition goes; once full, also the oldest one
-        self.size = 0
-
-    def __len__(self) -> int:
-        return self.size
+        n = int(capacity)
+        super().__init__(
+            n,
+            {
+                "obs": np.zeros((n, obs_dim), dtype=np.float32),
+                "actions": np.zeros((n, act_dim), dtype=np.float32),
+                "rewards": np.zeros(n, dtype=np.float32),
+                "next_obs": np.zeros((n, obs_dim), dtype=np.float32),
+                "terminated": np.zeros(n, dtype=np.float32),
+                "steps": np.ones(n, dtype=np.float32),  # checkpoints from before n-step returns: all one-step
+            },
+        )
 
     def add(self, obs, action, reward: float, next_obs, terminated: bool, steps: int = 1) -> None:
-        i = self.pos
-        self.steps[i] = steps
-        self.obs[i] = obs
-        self.actions[i] = action
-        self.rewards[i] = reward
-        self.next_obs[i] = next_obs
-        self.terminated[i] = float(terminated)
-        self.pos = (i + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
-
-    def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
-        """Uniform sample with replacement. Keys: obs, actions, rewards, next_obs, terminated, steps."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty replay buffer")
-        idx = rng.integers(0, self.size, size=batch_size)
-        # Fancy indexing copies, so the tensors never alias the buffer that later adds overwrite.
-        return {name: torch.from_numpy(getattr(self, name)[idx]) for name in self.FIELDS}
-
-    def state_dict(self) -> dict[str, Any]:
-        # Only the filled part: a checkpoint early in a run stays small. Slots keep their positions, so
-        # sampling after a restore draws exactly the transitions it would have drawn before.
-        state = {name: getattr(self, name)[: self.size].copy() for name in self.FIELDS}
-        state.update(capacity=self.capacity, pos=self.pos, size=self.size)
-        return state
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        if int(state["capacity"]) != self.capacity:
-            raise ValueError(
-                f"replay buffer was saved with capacity {state['capacity']} but this one has {self.capacity}; "
-                "resume with the same agent.buffer_size"
-            )
-        size = int(state["size"])
-        for name in self.FIELDS:
-            if name in state:  # checkpoints from before n-step returns have no `steps`: all were one-step
-                getattr(self, name)[:size] = state[name]
-        self.pos = int(state["pos"])
-        self.size = size
+        self.put(obs=obs, actions=action, rewards=reward, next_obs=next_obs, terminated=float(terminated), steps=steps)
 
 
 class DDPG:

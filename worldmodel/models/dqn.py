@@ -53,6 +53,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..common import Checked, ConfigValueError, positive_fields
+from .replay import CircularStore
 
 OPTIMIZERS = ("rmsprop", "adam")
 LOSSES = ("sum", "mse", "huber")
@@ -161,65 +162,27 @@ class QNetwork(nn.Module):
         return self.net(obs)
 
 
-class TransitionBuffer:
-    """Fixed-capacity circular store of discrete-action transitions in preallocated numpy arrays.
-
-    Used for both the replay and the trauma memory. Once full, each ``add`` overwrites the oldest transition.
-    """
+class TransitionBuffer(CircularStore):
+    """The replay or the trauma memory of discrete-action transitions."""
 
     FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
+    RESUME_HINT = "resume with the same buffer_size and trauma_size"
 
     def __init__(self, capacity: int, obs_dim: int):
-        self.capacity = int(capacity)
-        self.obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
-        self.actions = np.zeros(self.capacity, dtype=np.int64)  # int64: what torch's gather indexes with
-        self.rewards = np.zeros(self.capacity, dtype=np.float32)
-        self.next_obs = np.zeros((self.capacity, obs_dim), dtype=np.float32)
-        self.terminated = np.zeros(self.capacity, dtype=np.float32)
-        self.pos = 0  # where the next transition goes; once full, also the oldest one
-        self.size = 0
-
-    def __len__(self) -> int:
-        return self.size
+        n = int(capacity)
+        super().__init__(
+            n,
+            {
+                "obs": np.zeros((n, obs_dim), dtype=np.float32),
+                "actions": np.zeros(n, dtype=np.int64),  # int64: what torch's gather indexes with
+                "rewards": np.zeros(n, dtype=np.float32),
+                "next_obs": np.zeros((n, obs_dim), dtype=np.float32),
+                "terminated": np.zeros(n, dtype=np.float32),
+            },
+        )
 
     def add(self, obs, action: int, reward: float, next_obs, terminated: bool) -> None:
-        i = self.pos
-        self.obs[i] = obs
-        self.actions[i] = action
-        self.rewards[i] = reward
-        self.next_obs[i] = next_obs
-        self.terminated[i] = float(terminated)
-        self.pos = (i + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
-
-    def sample(self, n: int, rng: np.random.Generator, replace: bool = True) -> dict[str, torch.Tensor]:
-        """``n`` transitions drawn uniformly, with replacement unless ``replace`` is False (then n <= len).
-        Keys: obs, actions (int64), rewards, next_obs, terminated."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty transition buffer")
-        if replace:
-            idx = rng.integers(0, self.size, size=n)
-        else:
-            idx = rng.choice(self.size, size=n, replace=False)
-        # Fancy indexing copies, so the tensors never alias slots that later adds overwrite.
-        return {name: torch.from_numpy(getattr(self, name)[idx]) for name in self.FIELDS}
-
-    def state_dict(self) -> dict[str, Any]:
-        # Only the filled part, at unchanged positions, so that sampling after a restore draws what it would have.
-        state = {name: getattr(self, name)[: self.size].copy() for name in self.FIELDS}
-        state.update(capacity=self.capacity, pos=self.pos, size=self.size)
-        return state
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        if int(state["capacity"]) != self.capacity:
-            raise ValueError(
-                f"transition buffer was saved with capacity {state['capacity']} but this one has {self.capacity}; "
-                "resume with the same buffer_size and trauma_size"
-            )
-        size = int(state["size"])
-        for name in self.FIELDS:
-            getattr(self, name)[:size] = state[name]
-        self.pos, self.size = int(state["pos"]), size
+        self.put(obs=obs, actions=action, rewards=reward, next_obs=next_obs, terminated=float(terminated))
 
 
 class DQN:
