@@ -93,11 +93,14 @@ class ChaeSpec:
         return cls(**d)
 
 
-def sample_chae(rng: np.random.Generator, crossing_share: float = 0.5) -> ChaeSpec:
-    """The paper's training distribution (§IV-A): Scenario 1 or 2 and near or far side with p = 0.5 each."""
+def sample_chae(
+    rng: np.random.Generator, crossing_share: float = 0.5, ttc_range: tuple[float, float] = TTC_RANGE
+) -> ChaeSpec:
+    """The paper's training distribution (§IV-A): Scenario 1 or 2 and near or far side with p = 0.5 each, TTC
+    uniform in ``ttc_range`` (the paper's: 1.5-4 s)."""
     return ChaeSpec(
         seed=int(rng.integers(0, 2**31 - 1)),
-        ttc=float(rng.uniform(*TTC_RANGE)),
+        ttc=float(rng.uniform(*ttc_range)),
         v_init=float(rng.uniform(*V_INIT_RANGE)),
         v_ped=float(rng.uniform(*V_PED_RANGE)),
         far_side=bool(rng.random() < 0.5),

@@ -31,6 +31,7 @@ from envs import UrbanCollisionEnv
 from envs.chae import (
     BRAKE_LEVELS,
     STEP_S,
+    TTC_RANGE,
     V_INIT_RANGE,
     V_PED_RANGE,
     ChaeSpec,
@@ -52,9 +53,15 @@ def make_env() -> UrbanCollisionEnv:
 
 
 def train(
-    episodes: int, seed: int, trauma: bool, steps_per_episode: int = 40, overrides: dict | None = None
+    episodes: int,
+    seed: int,
+    trauma: bool,
+    steps_per_episode: int = 40,
+    overrides: dict | None = None,
+    ttc_range: tuple[float, float] = TTC_RANGE,
+    noise_m: float = 0.1,
 ) -> tuple[DQN, dict]:
-    env, view = make_env(), PedestrianHistory()
+    env, view = make_env(), PedestrianHistory(noise_m)
     total = episodes * steps_per_episode
     settings = dict(total_steps=total, eps_decay_steps=total // 2, target_every=500, warmup_steps=1000)
     settings.update(overrides or {})
@@ -64,7 +71,7 @@ def train(
     rng = np.random.default_rng([seed, 1717])
     curve = {"return": [], "end": []}
     for _ in tqdm(range(episodes), desc=f"dqn_chae seed {seed} trauma {trauma}", unit="episode"):
-        spec = sample_chae(rng)
+        spec = sample_chae(rng, ttc_range=ttc_range)
         env.reset(options={"scenario": spec})
         view.reset(int(rng.integers(2**31)))
         obs, ret = view(env) * SCALE, 0.0
@@ -86,8 +93,8 @@ def train(
 class Greedy:
     name = "dqn_chae"
 
-    def __init__(self, agent: DQN):
-        self.agent, self.view = agent, PedestrianHistory()
+    def __init__(self, agent: DQN, noise_m: float = 0.1):
+        self.agent, self.view = agent, PedestrianHistory(noise_m)
 
     def reset(self, seed=None):
         self.view.reset(seed)
@@ -145,6 +152,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("runs/chae_dqn"))
     parser.add_argument("--set", nargs="*", default=[], help="DQNConfig overrides, e.g. double=true lr=1e-4")
     parser.add_argument("--no-ablation", action="store_true", help="train with trauma memory only")
+    parser.add_argument("--ttc-range", default="1.5,4.0", help="training TTC range, s (the paper's: 1.5,4.0)")
+    parser.add_argument("--noise-m", type=float, default=0.1, help="position noise of the state, m")
     args = parser.parse_args(argv)
     overrides = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     torch.set_num_threads(1)
@@ -154,9 +163,12 @@ def main(argv=None) -> int:
     results["latest_safe_braking"] = score(LatestSafeBraking(), args.trials)
     for seed in [int(s) for s in args.seeds.split(",")]:
         for trauma in (True,) if args.no_ablation else (True, False):
-            agent, curve = train(args.episodes, seed, trauma, overrides=overrides)
+            ttc_range = tuple(float(x) for x in args.ttc_range.split(","))
+            agent, curve = train(
+                args.episodes, seed, trauma, overrides=overrides, ttc_range=ttc_range, noise_m=args.noise_m
+            )
             key = f"seed{seed}_{'trauma' if trauma else 'no_trauma'}"
-            results["runs"][key] = {"curve": curve, "score": score(Greedy(agent), args.trials)}
+            results["runs"][key] = {"curve": curve, "score": score(Greedy(agent, args.noise_m), args.trials)}
             torch.save(agent.state_dict(), args.out / f"{key}.pt")
     results["wall_s"] = round(time.perf_counter() - t0, 1)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
