@@ -240,6 +240,7 @@ def _drop_added_defaults(settings: dict) -> dict:
     agent = settings.get("agent")
     if isinstance(agent, dict) and agent.get("learner") != "dqn":
         agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners
+        agent.pop("episodes", None)
     evaluate = settings.get("evaluate")
     if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
         evaluate.pop("family", None)  # the paper's bank, as before the families existed

@@ -401,7 +401,7 @@ class AgentConfig(DDPGConfig):
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
     # learner "dqn" (worldmodel/peers/chae.py): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
-    episodes: int = 3000  # the dqn learner's training episodes (family chae: ~40 steps each)
+    episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
