@@ -244,7 +244,8 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
     assert all(v == by_policy["braking"] for v in by_policy.values())  # every policy on the same trials
     summary = json.loads((runs / "eval_chae/summary.json").read_text())
     assert set(summary["policies"]) == set(policies)
-    assert (runs / "eval_chae/stopping_distance.png").exists() and (runs / "eval_chae/bump_rate.png").exists()
+    for figure in ("stopping_distance", "bump_rate", "learning_curves"):
+        assert (runs / f"eval_chae/{figure}.png").exists(), figure
     assert "Chae et al. (paper" in (runs / "eval_chae/tables.md").read_text()
     assert not (runs / "eval/results.csv").read_text().count("chae")  # the paper's bank is left alone
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):

@@ -499,8 +499,7 @@ def agent_preset(cfg, name: str):
     path = CONF_DIR / "agent" / f"{name}.yaml"
     if not path.exists():
         raise StageError(f"agent variant {name!r} has no preset {path}: restore it, or move its runs aside")
-    preset = OmegaConf.load(path)
-    preset.pop("defaults", None)
+    preset = _load_preset(name)
     if _global_preset(path):
         preset = preset.get("agent", OmegaConf.create())
     scale = OmegaConf.create()
@@ -513,13 +512,20 @@ def _global_preset(path) -> bool:
     return path.read_text().lstrip().startswith("# @package _global_")
 
 
+def _load_preset(name: str):
+    """A preset file with the presets its ``defaults`` list names (same group, same package) merged under it."""
+    preset = OmegaConf.load(CONF_DIR / "agent" / f"{name}.yaml")
+    parents = [d for d in preset.pop("defaults", []) if isinstance(d, str) and d != "_self_"]
+    return OmegaConf.merge(*[_load_preset(p) for p in parents], preset) if parents else preset
+
+
 def preset_globals(name: str) -> dict:
     """What an agent preset sets outside ``agent`` (a peer's preset, ``# @package _global_``, also picks its
     scenario family, step and reward: conf/agent/dqn_chae.yaml)."""
     path = CONF_DIR / "agent" / f"{name}.yaml"
     if not path.exists() or not _global_preset(path):
         return {}
-    preset = OmegaConf.to_container(OmegaConf.load(path))
+    preset = OmegaConf.to_container(_load_preset(name))
     return {k: v for k, v in preset.items() if k not in ("agent", "defaults")}
 
 

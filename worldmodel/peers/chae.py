@@ -397,6 +397,7 @@ def evaluate(cfg) -> dict:
     summary = summarise(rows, [float(t) for t in c.ttcs])
     (out / "tables.md").write_text(tables(summary, int(c.trials)))
     figures(rows, summary, out)
+    learning_curves(cfg, agents, out / "learning_curves.png")
     writer = tensorboard(out)
     for policy, s in summary["policies"].items():
         for ttc, rate in s["bump_rate"].items():
@@ -518,4 +519,39 @@ def figures(rows: list[dict], summary: dict, out) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "stopping_distance.png", dpi=110)
+    plt.close(fig)
+
+
+def learning_curves(cfg, agents: list[AgentId], path) -> None:
+    """Each finished agent's training curve (rolling 100 episodes): bump rate and return, the paper's Fig. 5
+    comparison when agents with and without the trauma memory are both there."""
+    curves = {}
+    for agent in agents:
+        metrics = agent.dir(cfg) / "metrics.json"
+        if metrics.exists():
+            curves[agent.key] = json.loads(metrics.read_text()).get("curve")
+    curves = {k: v for k, v in curves.items() if v}
+    if not curves:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def rolling(x):
+        x = np.asarray(x, float)
+        return np.convolve(x, np.ones(ROLLING) / ROLLING, mode="valid") if len(x) >= ROLLING else x
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    for key, curve in curves.items():
+        axes[0].plot(100 * rolling([e == "bump" for e in curve["end"]]), label=key, lw=1)
+        axes[1].plot(rolling(curve["return"]), label=key, lw=1)
+    axes[0].set_title(f"bumps, % of the last {ROLLING} training episodes")
+    axes[1].set_title(f"return (Eq. 8), rolling {ROLLING} episodes")
+    for ax in axes:
+        ax.set_xlabel("episode")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
