@@ -215,7 +215,12 @@ def tables(rows: list[dict], summary: dict, tests: list[str], speeds: list[float
             f"| {key} | {s['family']} | {s['avoided_pct']:.0f} | {s['aim_met_pct']:.0f} | {impact} | "
             f"{s['other_collisions']} |"
         )
-    lines += ["", "## Per test and speed: ✓ avoided, else the impact speed in km/h (✗: the aim is missed)", ""]
+    lines += [
+        "",
+        "## Per test and speed: ✓ avoided, else the impact speed in km/h (✗: the aim is missed; *: the car also hit a "
+        "parked car or the street)",
+        "",
+    ]
     for key in summary["policies"]:
         lines += [f"### {key}", "", "| test | " + " | ".join(f"{v:g}" for v in speeds) + " |"]
         lines.append("|---|" + "---:|" * len(speeds))
@@ -224,6 +229,7 @@ def tables(rows: list[dict], summary: dict, tests: list[str], speeds: list[float
             for v in speeds:
                 r = next(r for r in rows if _key(r) == key and r["test"] == test and r["speed_kmh"] == v)
                 cell = "✓" if r["avoided"] else f"{r['impact_kmh']:.0f}"
+                cell += "*" if r["vehicle_collision"] or r["static_collision"] else ""
                 cells.append(cell + (" ✗" if r["verdict"] == "fail" else ""))
             lines.append(f"| {test} | " + " | ".join(cells) + " |")
         lines.append("")
@@ -239,34 +245,32 @@ def figure(rows: list[dict], path, tests: list[str], speeds: list[float]) -> Non
     keys = list(dict.fromkeys(_key(r) for r in rows))
     cols = min(3, len(keys))
     n_rows = math.ceil(len(keys) / cols)
-    fig, axes = plt.subplots(n_rows, cols, figsize=(4.2 * cols, 2.2 * n_rows + 0.6), squeeze=False)
+    fig, axes = plt.subplots(n_rows, cols, figsize=(4.6 * cols + 1.2, 2.3 * n_rows + 0.8), squeeze=False)
+    fig.subplots_adjust(left=0.08, right=0.86, wspace=0.45, hspace=0.55, top=0.88)
     image = None
     for ax, key in zip(axes.flat, keys):
-        grid = np.array(
-            [
-                [
-                    next(
-                        0.0 if r["avoided"] else r["impact_kmh"]
-                        for r in rows
-                        if _key(r) == key and r["test"] == t and r["speed_kmh"] == v
-                    )
-                    for v in speeds
-                ]
-                for t in tests
-            ]
-        )
+        mine = {(r["test"], r["speed_kmh"]): r for r in rows if _key(r) == key}
+        grid = np.array([[0.0 if mine[t, v]["avoided"] else mine[t, v]["impact_kmh"] for v in speeds] for t in tests])
         image = ax.imshow(grid, cmap="RdYlGn_r", vmin=0, vmax=60, aspect="auto")
         ax.set_title(key, fontsize=8)
         ax.set_xticks(range(len(speeds)), [f"{v:g}" for v in speeds], fontsize=7)
         ax.set_yticks(range(len(tests)), tests, fontsize=7)
-        for i in range(grid.shape[0]):
-            for j in range(grid.shape[1]):
-                ax.text(j, i, "✓" if grid[i, j] == 0 else f"{grid[i, j]:.0f}", ha="center", va="center", fontsize=6)
+        for i, t in enumerate(tests):
+            for j, v in enumerate(speeds):
+                r = mine[t, v]
+                label = "✓" if r["avoided"] else f"{grid[i, j]:.0f}"
+                if r["vehicle_collision"] or r["static_collision"]:
+                    label += "*"
+                ax.text(j, i, label, ha="center", va="center", fontsize=6)
     for ax in list(axes.flat)[len(keys) :]:
         ax.axis("off")
-    fig.suptitle("Euro NCAP pedestrian tests: impact speed, km/h (✓ avoided); test speed, km/h, across", fontsize=9)
+    fig.suptitle(
+        "Euro NCAP pedestrian tests (approximate): impact speed, km/h; ✓ avoided; * hit a parked car or the street; "
+        "test speed, km/h, across",
+        fontsize=9,
+    )
     if image is not None:
-        fig.colorbar(image, ax=axes, shrink=0.6, label="impact speed, km/h")
+        fig.colorbar(image, cax=fig.add_axes([0.89, 0.2, 0.015, 0.6]), label="impact speed, km/h")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
