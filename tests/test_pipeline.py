@@ -224,9 +224,14 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
     root = tmp_path / "copy"
     shutil.copytree(experiment, root)
     train_agent.run(smoke_cfg(root, "train_agent", "agent=dqn_chae", "obs=worldmodel"))
+    train_agent.run(smoke_cfg(root, "train_agent", "agent=dqn_chae_notrauma"))  # other hyperparameters: must load
     pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
     runs = root / "runs/t"
-    for rel in ("agent_chae_dqn_chae/seed0", "agent_chae_dqn_chae-worldmodel/seed0"):
+    for rel in (
+        "agent_chae_dqn_chae/seed0",
+        "agent_chae_dqn_chae-worldmodel/seed0",
+        "agent_chae_dqn_chae_notrauma/seed0",
+    ):
         metrics = json.loads((runs / rel / "metrics.json").read_text())
         assert metrics["episodes"] == 12 and len(metrics["curve"]["end"]) == 12
     rows = [r for r in csv.DictReader(open(runs / "eval_chae/results.csv"))]

@@ -22,6 +22,7 @@ braking, the privileged latest-safe braking, and every dqn agent of the experime
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import logging
 import time
@@ -160,6 +161,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 "obs": str(cfg.agent.obs),
                 "obs_dim": see.dim,
                 "learner": "dqn",
+                "dqn_config": dataclasses.asdict(hp),
                 "reward": agent_id.reward,
             }
         )
@@ -269,7 +271,11 @@ SCRIPTED = {"braking": StraightBraking, "ttc_braking": TTCBraking, "latest_safe_
 
 
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
-    from ..models.dqn import DQN
+    """A trained dqn agent, built with the hyperparameters it was trained with."""
+    from omegaconf import OmegaConf
+
+    from ..config import agent_preset
+    from ..models.dqn import DQN, DQNConfig
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
     if state.get("learner") != "dqn":
@@ -283,7 +289,13 @@ def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
             f"{state['obs']} gives {see.dim} (the world model changed?); retrain it with "
             f"`python -m worldmodel.train_agent experiment={cfg.experiment} agent=dqn_chae seed={agent_id.seed}`"
         )
-    agent = DQN(see.dim, len(BRAKE_LEVELS), dqn_config(cfg), agent_id.seed)
+    if "dqn_config" in state:
+        hp = DQNConfig(**state["dqn_config"])
+    else:  # an early checkpoint: the preset it was trained with
+        hp = OmegaConf.to_object(
+            OmegaConf.merge(OmegaConf.structured(DQNConfig), agent_preset(cfg, agent_id.variant).dqn)
+        )
+    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, agent_id.seed)
     agent.load_state_dict(state["agent"])
     return DQNPolicy(agent_id.policy, agent, see, agent_id.seed)
 
