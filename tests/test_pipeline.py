@@ -241,6 +241,7 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
         "latest_safe_braking",
         "agent_chae_dqn_chae",
         "agent_chae_dqn_chae-worldmodel",
+        "agent_chae_dqn_chae_notrauma",
     ]
     assert list(dict.fromkeys(r["policy"] for r in rows)) == policies
     per_policy = len(rows) // len(policies)
