@@ -123,6 +123,10 @@ class ChaeState:
     start_y: float
     started: bool = False
     horizon_s: float = MAX_EPISODE_S
+    # Chae's episodes end at a bump; an evaluation that measures contact and impact speed (bump is only their proxy)
+    # sets this False: the bump is recorded and the episode runs on to stop, pass or cross
+    end_on_bump: bool = True
+    bumped: bool = False
 
     def substep(self, actors: Actors, bumper_before: float, bumper_after: float, t0: float, tau: float, sub_dt: float):
         trigger(self, actors, bumper_before, bumper_after, tau, sub_dt)
@@ -131,13 +135,17 @@ class ChaeState:
         return step_context(self, actors, bumper_x)
 
     def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict) -> str | None:
+        self.bumped |= ctx["bump"]
+        if ctx["bump"] and not self.end_on_bump:
+            ctx = {**ctx, "bump": False}
         return end_of(self, actors, bumper_x, speed, ctx)
 
     def outcome(self, spec: ChaeSpec, bumper_x: float) -> dict:
-        return {"family": FAMILY, "crosses": int(spec.crosses), "gap_to_pedestrian": float(self.ped_x - bumper_x)}
+        gap = float(self.ped_x - bumper_x)
+        return {"family": FAMILY, "crosses": int(spec.crosses), "gap_to_pedestrian": gap, "bumped": int(self.bumped)}
 
 
-def build(spec: ChaeSpec, ego_front: float) -> tuple[Actors, ChaeState]:
+def build(spec: ChaeSpec, ego_front: float, end_on_bump: bool = True) -> tuple[Actors, ChaeState]:
     """The pedestrian standing at its start, and the trigger that sets it walking."""
     side = 1.0 if spec.far_side else -1.0  # the ego's lane is at y < 0
     start_y = side * (ROAD_HALF_WIDTH + START_BEYOND_KERB_M)
@@ -163,7 +171,7 @@ def build(spec: ChaeSpec, ego_front: float) -> tuple[Actors, ChaeState]:
         collision_point=(ped_x, EGO_LANE_Y),
     )
     trigger = ego_front + (5.0 - spec.ttc) * spec.v_init if spec.crosses else None
-    state = ChaeState(ped_x, trigger, (0.0, -side * spec.v_ped), start_y)
+    state = ChaeState(ped_x, trigger, (0.0, -side * spec.v_ped), start_y, end_on_bump=end_on_bump)
     return actors, state
 
 

@@ -101,6 +101,7 @@ class UrbanCollisionEnv(gym.Env):
         render_mode: str | None = None,
         step_s: float = DT,
         family: str = "porav",
+        family_options: dict | None = None,
     ):
         checks = {
             "image_size": image_size >= 8,
@@ -131,6 +132,7 @@ class UrbanCollisionEnv(gym.Env):
         self.substeps = int(substeps)
         self.step_s = float(step_s)
         self.family = family
+        self.family_options = dict(family_options or {})  # keyword arguments of the family module's build()
         self.render_mode = render_mode
         self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
 
@@ -207,7 +209,7 @@ class UrbanCollisionEnv(gym.Env):
         self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, float(spec.ego_speed))
         self.family_state = None
         if not isinstance(spec, ScenarioSpec):
-            self.actors, self.family_state = FAMILY_MODULES[spec.family].build(spec, self._hl)
+            self.actors, self.family_state = FAMILY_MODULES[spec.family].build(spec, self._hl, **self.family_options)
             junction_x = float(rng.uniform(200.0, 300.0))  # the junction well beyond where the episode ends
         else:
             self.actors, junction_x = build_actors(spec, rng, 0.0, self._hl, self.params.length, self.params.width)
@@ -383,6 +385,7 @@ class UrbanCollisionEnv(gym.Env):
             substeps=self.substeps,
             step_s=self.step_s,
             family=self.family,
+            family_options=self.family_options,
         )
 
     # ------------------------------------------------------------------ collisions

@@ -149,7 +149,7 @@ class NcapState:
         return {"family": FAMILY, "test": spec.test, "gap_to_pedestrian": float(self.ped_x - bumper_x)}
 
 
-def build(spec: NcapSpec, ego_front: float) -> tuple[Actors, NcapState]:
+def build(spec: NcapSpec, ego_front: float, **options) -> tuple[Actors, NcapState]:
     far, walk_kmh, share, parked = TESTS[spec.test]
     v, v_p = spec.ego_speed, walk_kmh / 3.6
     ped_x = ego_front + v * START_TTC_S

@@ -138,3 +138,26 @@ def test_braking_at_the_trigger_lands_in_the_physics_band(env):
             rate = 100 * bumps / n
             slack = 100 * 2.5 * np.sqrt(max(lo, 1) / 100 * (1 - max(lo, 1) / 100) / n)  # sampling noise
             assert lo - slack <= rate <= hi + slack, (policy.name, ttc, rate)
+
+
+def test_evaluation_records_the_bump_and_runs_on_to_measure_contact():
+    """end_on_bump=False (the evaluation's env) flags the same bump and lets the episode run on, so that contact and
+    impact speed are measured; Chae's training env ends at it."""
+    hold = np.zeros(2, dtype=np.float32)
+    spec = ChaeSpec(seed=0, ttc=1.0, v_init=12.0, v_ped=3.0)
+    ends = {}
+    for end_on_bump in (True, False):
+        env = UrbanCollisionEnv(camera=False, family="chae", step_s=0.1, family_options={"end_on_bump": end_on_bump})
+        env.reset(options={"scenario": spec})
+        steps = 0
+        while True:
+            _, _, terminated, truncated, info = env.step(hold)
+            steps += 1
+            if terminated or truncated:
+                break
+        ends[end_on_bump] = (info["outcome"], steps)
+        env.close()
+    (trained, n_trained), (evaluated, n_evaluated) = ends[True], ends[False]
+    assert trained["end"] == "bump" and trained["bumped"] == 1 and trained["pedestrian_collision"] == 0
+    assert evaluated["bumped"] == 1 and evaluated["end"] != "bump" and n_evaluated > n_trained
+    assert evaluated["pedestrian_collision"] == 1 and evaluated["speed_at_collision"] == pytest.approx(12.0)

@@ -105,8 +105,10 @@ def observer(cfg, obs: str):
     return WorldModelObserver(artifacts.load_world_model(cfg, use_speed=True, frame_view=False))
 
 
-def family_env(cfg, camera: bool):
-    return make_env(cfg, camera=camera, family="chae", reward="chae")
+def family_env(cfg, camera: bool, end_on_bump: bool = True):
+    """Family chae's env; ``end_on_bump=False`` (evaluation) records the bump and runs on, to measure contact."""
+    options = {} if end_on_bump else {"family_options": {"end_on_bump": False}}
+    return make_env(cfg, camera=camera, family="chae", reward="chae", **options)
 
 
 def dqn_config(cfg):
@@ -364,7 +366,7 @@ def run_policy(env, policy, entries, policy_seed: int = 0) -> list[dict]:
                 "v_ped": spec.v_ped,
                 "far_side": int(spec.far_side),
                 "end": o["end"],
-                "bump": int(o["end"] == "bump"),
+                "bump": o["bumped"],
                 "contact": int(o["pedestrian_collision"]),
                 "impact_speed": o["speed_at_collision"] if o["pedestrian_collision"] else float("nan"),
                 "pedestrian_injury": o["pedestrian_injury"],
@@ -387,12 +389,12 @@ def evaluate(cfg) -> dict:
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
     rows = []
-    plain = family_env(cfg, camera=False)
+    plain = family_env(cfg, camera=False, end_on_bump=False)
     for name in SCRIPTED:
         rows += run_policy(plain, SCRIPTED[name](), entries)
     plain.close()
     for policy in learned:
-        env = family_env(cfg, camera=policy.see.camera)
+        env = family_env(cfg, camera=policy.see.camera, end_on_bump=False)
         rows += run_policy(env, policy, entries, policy.policy_seed)
         env.close()
     if not agents:
