@@ -130,7 +130,7 @@ def test_braking_at_the_trigger_lands_in_the_physics_band(env):
     for policy in (LatestSafeBraking(),):
         for ttc, (lo, hi) in band.items():
             rng = np.random.default_rng(int(ttc * 10))
-            n, bumps = 150, 0
+            n, bumps = 100, 0
             for i in range(n):
                 v = float(rng.uniform(*V_INIT_RANGE))
                 spec = ChaeSpec(seed=i, ttc=ttc, v_init=v, v_ped=float(rng.uniform(2, 4)), far_side=i % 2 == 1)
