@@ -132,7 +132,11 @@ def score(policy, trials: int, seed: int = 99) -> dict:
     stops = 0
     for i in range(trials):
         spec = ChaeSpec(
-            seed=i, ttc=float(rng.uniform(1.5, 4.0)), v_init=float(rng.uniform(*V_INIT_RANGE)), crosses=False
+            seed=i,
+            ttc=float(rng.uniform(1.5, 4.0)),
+            v_init=float(rng.uniform(*V_INIT_RANGE)),
+            far_side=bool(rng.random() < 0.5),  # both sides: a near-side-only draw hid most unnecessary stops
+            crosses=False,
         )
         stops += rollout(env, policy, spec).outcome["end"] == "stop"
     out["unnecessary_stop_rate"] = 100 * stops / trials
