@@ -221,7 +221,9 @@ class ReplayBuffer(CircularStore):
         )
 
     def add(self, obs, action, reward: float, next_obs, terminated: bool, steps: int = 1) -> None:
-        self.put(obs=obs, actions=action, rewards=reward, next_obs=next_obs, terminated=float(terminated), steps=steps)
+        i = self.advance()
+        self.obs[i], self.actions[i], self.rewards[i] = obs, action, reward
+        self.next_obs[i], self.terminated[i], self.steps[i] = next_obs, float(terminated), steps
 
 
 class DDPG:

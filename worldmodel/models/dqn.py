@@ -182,7 +182,9 @@ class TransitionBuffer(CircularStore):
         )
 
     def add(self, obs, action: int, reward: float, next_obs, terminated: bool) -> None:
-        self.put(obs=obs, actions=action, rewards=reward, next_obs=next_obs, terminated=float(terminated))
+        i = self.advance()
+        self.obs[i], self.actions[i], self.rewards[i] = obs, action, reward
+        self.next_obs[i], self.terminated[i] = next_obs, float(terminated)
 
 
 class DQN:

@@ -12,7 +12,7 @@ import torch
 class CircularStore:
     """Fixed-capacity circular store of transitions, one preallocated numpy array per name in ``FIELDS``.
 
-    Once full, each ``put`` overwrites the oldest transition. Subclasses allocate the arrays (shape and dtype per
+    Once full, each ``add`` overwrites the oldest transition. Subclasses allocate the arrays (shape and dtype per
     field) and give ``add`` its signature. ``terminated`` is 1.0 only for true terminal states; a transition cut by
     a time limit is stored with terminated=0 so that its value is bootstrapped from ``next_obs``.
     """
@@ -31,12 +31,13 @@ class CircularStore:
     def __len__(self) -> int:
         return self.size
 
-    def put(self, **values) -> None:
+    def advance(self) -> int:
+        """The slot the next transition goes to; a subclass's ``add`` writes its fields there (direct array writes:
+        ``add`` runs once per environment step)."""
         i = self.pos
-        for name, value in values.items():
-            getattr(self, name)[i] = value
         self.pos = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+        return i
 
     def sample(self, n: int, rng: np.random.Generator, replace: bool = True) -> dict[str, torch.Tensor]:
         """``n`` transitions drawn uniformly, with replacement unless ``replace`` is False (then n <= len), as

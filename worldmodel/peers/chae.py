@@ -513,13 +513,7 @@ def figures(rows: list[dict], summary: dict, out) -> None:
     ax.plot(ttcs, [PAPER_TABLE_I.get(t, 0.0) for t in ttcs], "k--", label="Chae et al. (paper)")
     for p, s in summary["policies"].items():
         ax.plot(ttcs, [s["bump_rate"][t] for t in ttcs], marker="o", ms=3, label=p)
-    ax.set_xlabel("TTC at the pedestrian's start, s")
-    ax.set_ylabel("bump rate, %")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "bump_rate.png", dpi=110)
-    plt.close(fig)
+    _finish(fig, ax, "TTC at the pedestrian's start, s", "bump rate, %", out / "bump_rate.png")
 
     fig, ax = plt.subplots(figsize=(7, 4))
     bins = np.arange(0.0, 30.5, 1.0)
@@ -527,12 +521,24 @@ def figures(rows: list[dict], summary: dict, out) -> None:
         if s["stop_gaps"]:
             ax.hist(s["stop_gaps"], bins=bins, histtype="step", label=f"{p} ({len(s['stop_gaps'])} stops)")
     ax.axvline(SAFETY_LINE_M, color="r", ls=":", label="safety line (3 m)")
-    ax.set_xlabel("gap from the bumper to the pedestrian's line at standstill, m")
-    ax.set_ylabel("Scenario-1 trials")
+    _finish(
+        fig,
+        ax,
+        "gap from the bumper to the pedestrian's line at standstill, m",
+        "Scenario-1 trials",
+        out / "stopping_distance.png",
+    )
+
+
+def _finish(fig, ax, xlabel: str, ylabel: str, path) -> None:
+    import matplotlib.pyplot as plt
+
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "stopping_distance.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
