@@ -61,6 +61,21 @@ def test_td_targets_match_hand_computation(double, expected_first):
     assert y.tolist() == pytest.approx([expected_first, -1.0], abs=1e-6)
 
 
+def test_advantage_learning_lowers_the_target_of_non_greedy_actions_only():
+    """The same target net at s = (1, 2): Q'(s, .) = (1, 2.5), so V'(s) = 2.5. With alpha 0.4 the target of action 0
+    drops by 0.4 * (2.5 - 1) = 0.6 and that of the greedy action 1 not at all (Bellemare et al. 2016)."""
+    cfg = DQNConfig(hidden=[2], leaky_slope=0.01, gamma=0.9, advantage_alpha=0.4, batch_size=2, buffer_size=2)
+    agent = DQN(obs_dim=2, n_actions=2, cfg=cfg, seed=0)
+    set_weights(agent.target_network, [[1, 0], [0, -1]], [0, 0], [[1, 0], [0, -100]], [0, 0.5])
+    s = torch.tensor([[1.0, 2.0], [1.0, 2.0]])
+    y = agent.td_targets(torch.tensor([0.5, 0.5]), s, torch.tensor([1.0, 1.0]), s, torch.tensor([0, 1]))
+    assert y.tolist() == pytest.approx([0.5 - 0.6, 0.5], abs=1e-6)
+    with pytest.raises(ValueError, match="needs the batch's obs and action"):
+        agent.td_targets(torch.tensor([0.5, 0.5]), s, torch.tensor([1.0, 1.0]))
+    with pytest.raises(ConfigValueError, match="advantage_alpha"):
+        DQNConfig(advantage_alpha=1.0)
+
+
 # ----------------------------------------------------------------------------- trauma memory
 TRAUMA_CFG = dict(
     hidden=[8], batch_size=4, buffer_size=8, trauma_size=5, trauma_batch=3, warmup_steps=0, grad_clip=None, gamma=0.9
