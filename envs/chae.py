@@ -131,10 +131,10 @@ class ChaeState:
     def substep(self, actors: Actors, bumper_before: float, bumper_after: float, t0: float, tau: float, sub_dt: float):
         trigger(self, actors, bumper_before, bumper_after, tau, sub_dt)
 
-    def context(self, actors: Actors, bumper_x: float) -> dict:
+    def context(self, actors: Actors, bumper_x: float, ego=None) -> dict:
         return step_context(self, actors, bumper_x)
 
-    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict) -> str | None:
+    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict, ego=None) -> str | None:
         self.bumped |= ctx["bump"]
         if ctx["bump"] and not self.end_on_bump:
             ctx = {**ctx, "bump": False}

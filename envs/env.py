@@ -30,17 +30,19 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from . import chae, geometry, ncap
+from . import chae, geometry, kim, ncap
 from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
-from .injury import occupant_injury, pedestrian_injury, plastic_delta_v
+from .injury import damaged_side, occupant_injury, pedestrian_injury, plastic_delta_v
 from .rewards import REGISTRY, StepContext, step_rewards
 from .scenario import ScenarioSpec, sample_scenario
 from .scene import CLASS_NAMES, EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
 from .vehicle import VehicleParams, VehicleState, integrate
 
 # Every family but the paper's is a module with FAMILY, a frozen spec class, sample(rng) and build(spec, ego_front)
-# -> (actors, state); the state's hooks (substep, context, end, outcome, horizon_s) drive its episodes.
-FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap}
+# -> (actors, state); the state's hooks (substep, context, end, outcome, horizon_s) drive its episodes. A spec may
+# say where the ego starts across the road (``ego_y``); a module may bring its own obstacles (``layout(spec,
+# state, rng)``) instead of the street's, and may not be drawable (``CAMERA = False``).
+FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap, kim.FAMILY: kim}
 SPEC_TYPES = (ScenarioSpec, *(m.SPEC for m in FAMILY_MODULES.values()))
 FAMILIES = ("porav", *FAMILY_MODULES)  # env.reset() without a scenario samples from ``family``
 
@@ -121,6 +123,8 @@ class UrbanCollisionEnv(gym.Env):
         for key, ok in checks.items():
             if not ok:
                 raise ValueError(f"env config {key}={locals()[key]!r} is invalid")
+        if camera and not getattr(FAMILY_MODULES.get(family), "CAMERA", True):
+            raise ValueError(f"env config family={family!r} is not rendered for the camera yet: use camera=False")
         self.camera = bool(camera)
         self.image_size = int(image_size)
         self.fov_deg = float(fov_deg)
@@ -152,6 +156,7 @@ class UrbanCollisionEnv(gym.Env):
             self._connect()
         self.scenario: ScenarioSpec | None = None
         self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, 0.0)
+        self.lane_y = EGO_LANE_Y  # the lane the ego starts in; departures are measured from it
         self._hl = self.params.length / 2
         self._hw = self.params.width / 2
         self._car_radius = math.hypot(self._hl, self._hw)
@@ -206,14 +211,23 @@ class UrbanCollisionEnv(gym.Env):
         self.scenario = spec
 
         rng = np.random.default_rng(spec.seed)
-        self.ego = VehicleState(0.0, EGO_LANE_Y, 0.0, float(spec.ego_speed))
+        self.lane_y = float(getattr(spec, "ego_y", EGO_LANE_Y))
+        self.ego = VehicleState(0.0, self.lane_y, 0.0, float(spec.ego_speed))
         self.family_state = None
+        own_layout = None
         if not isinstance(spec, ScenarioSpec):
-            self.actors, self.family_state = FAMILY_MODULES[spec.family].build(spec, self._hl, **self.family_options)
+            module = FAMILY_MODULES[spec.family]
+            if self.camera and not getattr(module, "CAMERA", True):
+                raise ValueError(f"scenario family {spec.family!r} is not drawn for the camera yet: use camera=False")
+            self.actors, self.family_state = module.build(spec, self._hl, **self.family_options)
+            own_layout = getattr(module, "layout", None)
             junction_x = float(rng.uniform(200.0, 300.0))  # the junction well beyond where the episode ends
         else:
             self.actors, junction_x = build_actors(spec, rng, 0.0, self._hl, self.params.length, self.params.width)
-        self.layout: StaticLayout = sample_layout(rng, junction_x)
+        if own_layout is not None:
+            self.layout: StaticLayout = own_layout(spec, self.family_state, rng)
+        else:
+            self.layout = sample_layout(rng, junction_x)
         self._prepare_static()
 
         self.t_step = 0
@@ -270,9 +284,10 @@ class UrbanCollisionEnv(gym.Env):
             integrate(ego, steer, pedal, sub_dt, p)
             c, s = math.cos(ego.psi), math.sin(ego.psi)
             tau = k * sub_dt
-            if self.family_state is not None:  # scripted road users may start moving within the step
+            if self.family_state is not None:  # scripted road users may start moving or turn within the step
                 self.family_state.substep(act, bumper_before, ego.x + self._hl, t0, tau, sub_dt)
                 ped_idx = range(len(act.ped_active))
+                car_idx = np.flatnonzero(act.car_active)
             for i in ped_idx:
                 if not act.ped_active[i]:
                     continue
@@ -288,17 +303,19 @@ class UrbanCollisionEnv(gym.Env):
                 if geometry.rect_rect(
                     ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, math.cos(h), math.sin(h), self._hl, self._hw
                 ):
-                    hits.append(self._vehicle_crash(i, t0 + tau, c, s))
+                    point = geometry.closest_point(ego.x, ego.y, cx, cy, math.cos(h), math.sin(h), self._hl, self._hw)
+                    hits.append(self._vehicle_crash(i, t0 + tau, c, s, point))
                     crashed = True
             for i in rect_idx:
                 cx, cy, hx, hy, cls = self.layout.rects[i]
                 if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, 1.0, 0.0, hx, hy):
-                    hits.append(self._static_crash(int(i), int(cls), t0 + tau))
+                    point = geometry.closest_point(ego.x, ego.y, cx, cy, 1.0, 0.0, hx, hy)
+                    hits.append(self._static_crash(int(i), int(cls), t0 + tau, point))
                     crashed = True
             for i in circ_idx:
                 cx, cy, r, cls = self.layout.circles[i]
                 if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, r):
-                    hits.append(self._static_crash(int(i), int(cls), t0 + tau))
+                    hits.append(self._static_crash(int(i), int(cls), t0 + tau, (cx, cy)))
                     crashed = True
             if crashed:
                 done_sub = k
@@ -308,16 +325,16 @@ class UrbanCollisionEnv(gym.Env):
 
         self.collisions.extend(hits)
         state = self.family_state
-        family = state.context(act, ego.x + self._hl) if state is not None else {}
+        family = state.context(act, ego.x + self._hl, ego) if state is not None else {}
         rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family))
         for name, value in rewards.items():
             self.returns[name] += value
         self.min_speed = min(self.min_speed, ego.v)
-        departed = abs(ego.y - EGO_LANE_Y) > LANE_WIDTH / 2
+        departed = abs(ego.y - self.lane_y) > LANE_WIDTH / 2
         self.ever_departed |= departed
 
         left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > 25.0
-        family_end = state.end(act, ego.x + self._hl, ego.v, family) if state is not None else None
+        family_end = state.end(act, ego.x + self._hl, ego.v, family, ego) if state is not None else None
         terminated = crashed or left_scene or family_end is not None
         truncated = not terminated and self.t_step >= self.horizon_steps
         if family_end is not None and not crashed:
@@ -358,6 +375,7 @@ class UrbanCollisionEnv(gym.Env):
     def restore(self, snap: dict) -> None:
         new_layout = getattr(self, "layout", None) is not snap["layout"]
         self.scenario, self.layout, self.horizon_steps = snap["scenario"], snap["layout"], snap["horizon_steps"]
+        self.lane_y = float(getattr(self.scenario, "ego_y", EGO_LANE_Y))
         if new_layout:
             self._prepare_static()
             if self._pool is not None:
@@ -389,6 +407,13 @@ class UrbanCollisionEnv(gym.Env):
         )
 
     # ------------------------------------------------------------------ collisions
+    def _ego_side(self, point: tuple[float, float]) -> str:
+        """Which side of the ego a contact at world ``point`` damages (front, rear, near = left, far = right)."""
+        e = self.ego
+        dx, dy = point[0] - e.x, point[1] - e.y
+        c, s = math.cos(e.psi), math.sin(e.psi)
+        return damaged_side(dx * c + dy * s, -dx * s + dy * c, self._hl, self._hw)
+
     def _pedestrian_hit(self, i: int, t: float) -> dict:
         risk = pedestrian_injury(self.ego.v)
         return {
@@ -407,9 +432,10 @@ class UrbanCollisionEnv(gym.Env):
             "pedestrian_injury": risk,
             "occupant_injury": 0.0,
             "ego_occupant_injury": 0.0,
+            "ego_side": "front",
         }
 
-    def _vehicle_crash(self, i: int, t: float, c: float, s: float) -> dict:
+    def _vehicle_crash(self, i: int, t: float, c: float, s: float, point: tuple[float, float]) -> dict:
         ego = self.ego
         vx, vy = self.actors.car_vel[i]
         rel = math.hypot(ego.v * c - vx, ego.v * s - vy)
@@ -433,9 +459,10 @@ class UrbanCollisionEnv(gym.Env):
             "pedestrian_injury": 0.0,
             "occupant_injury": float(sum(injury)),
             "ego_occupant_injury": n * p_ego,
+            "ego_side": self._ego_side(point),
         }
 
-    def _static_crash(self, i: int, cls: int, t: float) -> dict:
+    def _static_crash(self, i: int, cls: int, t: float, point: tuple[float, float]) -> dict:
         # A static object is rigid: the ego stops dead, so its delta-v is its whole speed.
         dv = self.ego.v
         n = self.occupants_per_car
@@ -456,6 +483,7 @@ class UrbanCollisionEnv(gym.Env):
             "pedestrian_injury": 0.0,
             "occupant_injury": n * risk,
             "ego_occupant_injury": n * risk,
+            "ego_side": self._ego_side(point),
         }
 
     # ------------------------------------------------------------------ observation / info
@@ -483,8 +511,8 @@ class UrbanCollisionEnv(gym.Env):
             "heading": e.psi,
             "speed": e.v,
             "steer_angle": e.delta,
-            "lane_offset": e.y - EGO_LANE_Y,
-            "lane_departure": abs(e.y - EGO_LANE_Y) > LANE_WIDTH / 2,
+            "lane_offset": e.y - self.lane_y,
+            "lane_departure": abs(e.y - self.lane_y) > LANE_WIDTH / 2,
             "hazard": self.scenario.hazard,
             "ttc": self.scenario.ttc,
         }

@@ -48,6 +48,16 @@ def rect_rect(
     return True
 
 
+def closest_point(
+    px: float, py: float, cx: float, cy: float, c: float, s: float, hl: float, hw: float
+) -> tuple[float, float]:
+    """The point of an oriented rectangle (centre, cos/sin heading, half length/width) nearest to (px, py)."""
+    dx, dy = px - cx, py - cy
+    lx = min(hl, max(-hl, dx * c + dy * s))
+    ly = min(hw, max(-hw, -dx * s + dy * c))
+    return cx + lx * c - ly * s, cy + lx * s + ly * c
+
+
 def near(centres: np.ndarray, radii: np.ndarray | float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Indices of footprints (bounding circles) that touch the box [lo, hi]."""
     if len(centres) == 0:

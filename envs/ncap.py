@@ -133,10 +133,10 @@ class NcapState:
         actors.ped_vel[0] = vel
         actors.ped_xy[0] -= vel * (self.start_t - t0)
 
-    def context(self, actors: Actors, bumper_x: float) -> dict:
+    def context(self, actors: Actors, bumper_x: float, ego=None) -> dict:
         return {}
 
-    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict) -> str | None:
+    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict, ego=None) -> str | None:
         if not actors.ped_active[0]:
             return "impact"
         if speed <= STOPPED_MS:

@@ -94,14 +94,15 @@ class _Plan:
         return self.manoeuvre.action(t_step - self.start)
 
 
-def plan_cost(twin: UrbanCollisionEnv, snap: dict, plan: _Plan, bound: float = math.inf) -> float:
-    """R2 cost (the sum of injury probabilities) of the rest of the episode from ``snap`` under ``plan``,
-    simulated on the camera-less ``twin``; stops early once it reaches ``bound``."""
+def plan_cost(twin: UrbanCollisionEnv, snap: dict, plan: _Plan, bound: float = math.inf, reward: str = "r2") -> float:
+    """The cost (minus the registered ``reward``; R2: the sum of injury probabilities) of the rest of the episode
+    from ``snap`` under ``plan``, simulated on the camera-less ``twin``; stops early once it reaches ``bound``."""
     twin.restore(snap)
     cost = 0.0
+    key = f"reward_{reward}"
     while True:
         _, _, terminated, truncated, info = twin.step(plan.action(twin.t_step))
-        cost -= info["reward_r2"]
+        cost -= info[key]
         if cost >= bound or terminated or truncated:
             return cost
 
@@ -110,18 +111,22 @@ class PrivilegedPlanner:
     """Scripted-policy interface (``reset``, ``act``) plus ``bind(env)``, which evaluation calls after each reset
     so the planner can read the true state. ``replan_every``: steps between decisions (1 = every step).
     ``brake_first``: steps of straight-line braking before the planner takes over, the perception ceiling of a
-    camera policy that needs that many frames to see the hazard (0 = plan from the first frame). Other arguments:
-    ``candidate_manoeuvres``."""
+    camera policy that needs that many frames to see the hazard (0 = plan from the first frame). ``reward``: the
+    registered reward whose negative it minimises (R2, or e.g. Kim's ISS, under which every crash costs at least
+    e^alpha, so avoiding comes first). Other arguments: ``candidate_manoeuvres``."""
 
     name = "oracle"
 
-    def __init__(self, replan_every: int = 3, brake_first: int = 0, step_s: float = DT, **candidates):
+    def __init__(
+        self, replan_every: int = 3, brake_first: int = 0, step_s: float = DT, reward: str = "r2", **candidates
+    ):
         if int(replan_every) < 1:
             raise ValueError(f"planner replan_every={replan_every} must be >= 1 step")
         if int(brake_first) < 0:
             raise ValueError(f"planner brake_first={brake_first} must be >= 0 steps")
         self.replan_every, self.brake_first = int(replan_every), int(brake_first)
         self.step_s = float(step_s)
+        self.reward = reward
         self.candidates = candidate_manoeuvres(step_s=self.step_s, **candidates)
         self.env: UrbanCollisionEnv | None = None
         self._twin: UrbanCollisionEnv | None = None
@@ -130,12 +135,12 @@ class PrivilegedPlanner:
 
     @classmethod
     def from_settings(
-        cls, replan_every_s: float, brake_first: int = 0, step_s: float = DT, **candidates
+        cls, replan_every_s: float, brake_first: int = 0, step_s: float = DT, reward: str = "r2", **candidates
     ) -> PrivilegedPlanner:
         """From the config's units: ``replan_every_s`` in seconds, ``step_s`` the env's step (``env.step_s``), the
         rest as ``candidate_manoeuvres``."""
         replan = max(1, round(float(replan_every_s) / float(step_s)))
-        return cls(replan_every=replan, brake_first=brake_first, step_s=step_s, **candidates)
+        return cls(replan_every=replan, brake_first=brake_first, step_s=step_s, reward=reward, **candidates)
 
     def reset(self, seed: int | None = None) -> None:
         self.plan = None
@@ -162,7 +167,7 @@ class PrivilegedPlanner:
 
     def _cost(self, snap: dict, plan: _Plan, bound: float) -> float:
         self.rollouts += 1
-        return plan_cost(self._twin, snap, plan, bound)
+        return plan_cost(self._twin, snap, plan, bound, self.reward)
 
     def _replan(self, t: int) -> None:
         snap = self.env.snapshot()

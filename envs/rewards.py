@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .chae import reward as chae_reward
+from .injury import injury_severity_score
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,25 @@ def r2(ctx: StepContext) -> float:
 @register("chae", "Chae et al. 2017 Eq. 8: braking costs more the farther the pedestrian; a bump costs 100 + 0.01 v^2")
 def chae(ctx: StepContext) -> float:
     return chae_reward(ctx)
+
+
+def crash_iss(hits: list[dict], units: str = "kmh") -> float:
+    """The summed Sobhani ISS of the ego's occupant over these crashes with cars and obstacles (Kim et al. Eq. 11;
+    ΔV in ``units``, envs/injury.py). Pedestrian contacts do not count: they barely change the ego's velocity."""
+    crashes = [h for h in hits if h["kind"] != "pedestrian"]
+    return float(sum(injury_severity_score(h["delta_v_ego"], h["ego_side"], units=units) for h in crashes))
+
+
+@register("kim_unaware", "Kim et al. 2020 Eq. 9: minus the Sobhani ISS of this step's crashes (ΔV in km/h), else 0")
+def kim_unaware(ctx: StepContext) -> float:
+    return -crash_iss(ctx.hits)
+
+
+@register("kim_aware", "Kim et al. 2020 Eq. 10: the progress to the goal (d_{t-1} - d_t) without a crash, else -ISS")
+def kim_aware(ctx: StepContext) -> float:
+    if any(h["kind"] != "pedestrian" for h in ctx.hits):
+        return -crash_iss(ctx.hits)
+    return float(ctx.family.get("goal_progress", 0.0))
 
 
 REWARDS = tuple(REGISTRY)
