@@ -460,3 +460,28 @@ def test_cloning_fits_a_known_state_to_action_map():
     with torch.no_grad():
         after = ((agent.actor(obs) - target) ** 2).sum(-1).mean().item()
     assert after < 0.05 * before
+
+
+def test_lidar_front_end_reads_scans_through_circular_convolutions():
+    """Kim et al.'s encoder: 4 scans x 36 rays -> 32 x 17 features, plus the observation's other numbers untouched.
+    The angle wraps: an obstacle on the last ray reaches the first output position, as one on the second ray does."""
+    from worldmodel.models.ddpg import LidarEncoder
+
+    torch.manual_seed(0)
+    enc = LidarEncoder(4 * 36 + 2, 4, 36)
+    obs = torch.ones(3, 4 * 36 + 2)
+    obs[:, -2:] = torch.tensor([0.25, -0.5])
+    out = enc(obs)
+    assert out.shape == (3, 32 * 17 + 2) and enc.out_dim == 32 * 17 + 2
+    assert torch.equal(out[:, -2:], obs[:, -2:])
+    first = enc.conv[0]
+    base = first(torch.ones(1, 4, 36))
+    for ray in (1, 35):
+        poked = torch.ones(1, 4, 36)
+        poked[0, :, ray] = 0.0
+        assert not torch.allclose(first(poked)[0, :, 0], base[0, :, 0]), ray
+    cfg = DDPGConfig(lidar_scans=4, actor_hidden=[16], critic_hidden=[16])
+    agent = DDPG(4 * 36 + 2, 2, cfg, seed=0)
+    assert agent.act(np.ones((5, 146), np.float32), explore=False).shape == (5, 2)
+    with pytest.raises(ValueError, match="lidar_scans"):
+        DDPGConfig(lidar_scans=-1)

@@ -96,6 +96,12 @@ class DDPGConfig(Checked):
     q_filter: bool = True
     """apply the cloning term only where the critic rates the demonstrated action above the actor's own (Nair et
     al.'s Q-filter), so that a demonstrator that swerves left here and right there does not teach a half-swerve"""
+    lidar_scans: int = 0
+    """0: the observation goes straight into the networks. k > 0: its first k x ``lidar_rays`` numbers are k LIDAR
+    scans (oldest first), which actor and critic each read through Kim et al.'s 1-D convolutions over the angle
+    (``LidarEncoder``); the rest (previous action, goal) joins the convolutions' output"""
+    lidar_rays: int = 36
+    """rays per LIDAR scan (``lidar_scans`` > 0)"""
 
     def problems(self):
         yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr", "bc_lr")
@@ -112,6 +118,10 @@ class DDPGConfig(Checked):
         for key in ("actor_hidden", "critic_hidden"):
             if not all(isinstance(w, int) and w > 0 for w in getattr(self, key)):
                 yield ConfigValueError(key, list(getattr(self, key)), "layer widths must be positive integers")
+        if self.lidar_scans < 0:
+            yield ConfigValueError("lidar_scans", self.lidar_scans, "it must be >= 0 (0: no LIDAR encoder)")
+        if self.lidar_scans and self.lidar_rays < 8:
+            yield ConfigValueError("lidar_rays", self.lidar_rays, "a scan needs at least 8 rays for the convolutions")
 
 
 def mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:
@@ -131,25 +141,78 @@ def init_final_layer(layer: nn.Linear, bound: float = 3e-3) -> None:
     nn.init.uniform_(layer.bias, -bound, bound)
 
 
+class LidarEncoder(nn.Module):
+    """Kim et al. 2020's LIDAR front end: ``scans`` scans of ``rays`` ranges (the observation's first scans x rays
+    numbers) through Conv1d(scans -> 16, k5, circular padding, as the angle wraps around) and Conv1d(16 -> 32, k3,
+    stride 2), ReLU after each, flattened and joined by the observation's remaining numbers."""
+
+    def __init__(self, obs_dim: int, scans: int, rays: int):
+        super().__init__()
+        self.scans, self.rays = int(scans), int(rays)
+        self.extra = int(obs_dim) - self.scans * self.rays
+        if self.extra < 0:
+            raise ValueError(f"an observation of {obs_dim} numbers cannot hold {scans} scans of {rays} rays")
+        self.conv = nn.Sequential(
+            nn.Conv1d(self.scans, 16, 5, padding=2, padding_mode="circular"),
+            nn.ReLU(),
+            nn.Conv1d(16, 32, 3, stride=2),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        self.out_dim = 32 * ((self.rays - 3) // 2 + 1) + self.extra
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        n = self.scans * self.rays
+        scans = obs[..., :n].reshape(-1, self.scans, self.rays)
+        features = self.conv(scans).reshape(*obs.shape[:-1], -1)
+        return torch.cat([features, obs[..., n:]], dim=-1)
+
+
+def front_end(obs_dim: int, lidar_scans: int = 0, lidar_rays: int = 36) -> tuple[nn.Module, int]:
+    """(module, its output width): the LIDAR encoder, or the observation as it is."""
+    if lidar_scans:
+        encoder = LidarEncoder(obs_dim, lidar_scans, lidar_rays)
+        return encoder, encoder.out_dim
+    return nn.Identity(), obs_dim
+
+
 class Actor(nn.Module):
     """Deterministic policy mu(s) with actions in [-1, 1]^act_dim."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300), final_bound: float = 3e-3):
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        hidden: Sequence[int] = (400, 300),
+        final_bound: float = 3e-3,
+        lidar_scans: int = 0,
+        lidar_rays: int = 36,
+    ):
         super().__init__()
-        self.net = mlp(obs_dim, hidden, act_dim)
+        self.encode, width = front_end(obs_dim, lidar_scans, lidar_rays)
+        self.net = mlp(width, hidden, act_dim)
         init_final_layer(self.net[-1], final_bound)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.net(obs))
+        return torch.tanh(self.net(self.encode(obs)))
 
 
 class Critic(nn.Module):
     """Q(s, a). ``action_layer`` 0: the action joins the observation at the input (CleanRL); 1: it joins the
     first hidden layer's output (Lillicrap), where it is 2 of ~400 inputs rather than 2 of ~258."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int] = (400, 300), action_layer: int = 0):
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        hidden: Sequence[int] = (400, 300),
+        action_layer: int = 0,
+        lidar_scans: int = 0,
+        lidar_rays: int = 36,
+    ):
         super().__init__()
         self.action_layer = int(action_layer)
+        self.encode, obs_dim = front_end(obs_dim, lidar_scans, lidar_rays)
         if self.action_layer == 0:
             self.net = mlp(obs_dim + act_dim, hidden, 1)
         else:
@@ -159,6 +222,7 @@ class Critic(nn.Module):
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Returns Q with shape (batch,)."""
+        obs = self.encode(obs)
         if self.action_layer:
             obs = self.first(obs)
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
@@ -238,14 +302,15 @@ class DDPG:
         self.obs_dim, self.act_dim, self.cfg = int(obs_dim), int(act_dim), cfg
         self.rng = np.random.default_rng(seed)
         self.updates = 0
-        critic = lambda: Critic(obs_dim, act_dim, cfg.critic_hidden, cfg.critic_action_layer)  # noqa: E731
+        lidar = {"lidar_scans": cfg.lidar_scans, "lidar_rays": cfg.lidar_rays}
+        critic = lambda: Critic(obs_dim, act_dim, cfg.critic_hidden, cfg.critic_action_layer, **lidar)  # noqa: E731
         # Initialise the networks from `seed` without consuming or resetting the global torch RNG,
         # which the caller may be using for something else.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound)
+            self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound, **lidar)
             self.critic = critic()
-            self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound)
+            self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound, **lidar)
             self.critic_target = critic()
             self.critic2 = critic() if cfg.twin_critics else None
             self.critic2_target = critic() if cfg.twin_critics else None
