@@ -173,3 +173,41 @@ def test_kim_action_maps_desired_speed_and_steering_angle():
 def test_the_junction_family_refuses_the_camera():
     with pytest.raises(ValueError, match="family='kim' is not rendered"):
         UrbanCollisionEnv(camera=True, family="kim")
+
+
+def test_ddpg_kim_trains_on_the_lidar_and_evaluate_writes_table_2(tmp_path):
+    """train_agent agent=ddpg_kim (both of Kim's rewards; the goal-aware agent also sees the goal), then
+    evaluate.family=kim: every policy on the same seeded trials, Table 2 with the paper's rows, the figure."""
+    import csv
+    import json
+
+    from worldmodel import evaluate, train_agent
+    from worldmodel.artifacts import trained_agents
+    from worldmodel.config import compose
+
+    def cfg(stage, *overrides):
+        base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
+        return compose(stage, [*base, "threads=1", *overrides])
+
+    train_agent.run(cfg("train_agent", "agent=ddpg_kim"))
+    aware = train_agent.run(cfg("train_agent", "agent=ddpg_kim", "reward=kim_aware"))
+    assert aware["steps"] == 300 and len(aware["curve"]["crash"]) == aware["episodes"]
+    agents = trained_agents(cfg("evaluate"), family="kim")
+    assert [a.key for a in agents] == ["agent_kim_aware_ddpg_kim/seed0", "agent_kim_unaware_ddpg_kim/seed0"]
+    assert trained_agents(cfg("evaluate")) == []  # the paper's evaluation does not pick them up
+
+    summary = evaluate.run(cfg("evaluate", "evaluate.family=kim", "evaluate.kim.trials=1"))
+    out = tmp_path / "runs/k/eval_kim"
+    rows = list(csv.DictReader(open(out / "results.csv")))
+    policies = {r["policy"] for r in rows}
+    assert policies == {"braking", "aeb3m", "oracle", "agent_kim_aware_ddpg_kim", "agent_kim_unaware_ddpg_kim"}
+    for p in policies:  # 1 trial x 3 scenarios each, the same trials for all
+        mine = [(r["scenario"], r["trial"], r["ego_speed"]) for r in rows if r["policy"] == p]
+        assert sorted(mine) == sorted(
+            (r["scenario"], r["trial"], r["ego_speed"]) for r in rows if r["policy"] == "braking"
+        )
+    avoided_by_oracle = [r for r in rows if r["policy"] == "oracle" and r["avoided"] == "1"]
+    assert all(float(r["iss_kmh"]) == 0.0 for r in avoided_by_oracle)
+    assert json.loads((out / "summary.json").read_text())["policies"].keys() == summary["policies"].keys()
+    assert "goal-unaware DDPG (paper)" in (out / "tables.md").read_text()
+    assert (out / "avoidance.png").stat().st_size > 0

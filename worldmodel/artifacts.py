@@ -40,7 +40,11 @@ log = logging.getLogger(__name__)
 
 PROVENANCE = "provenance.json"
 AGENT_REWARDS = REWARDS  # run names are agent_<reward>...: any registered reward (envs/rewards.py)
-REWARD_FAMILIES = {"chae": "chae"}  # rewards defined for one scenario family only; the rest are the paper's
+REWARD_FAMILIES = {
+    "chae": "chae",
+    "kim_unaware": "kim",
+    "kim_aware": "kim",
+}  # rewards defined for one scenario family only; the rest are the paper's
 
 
 # ----------------------------------------------------------------------------- paths
@@ -232,7 +236,14 @@ RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
 # they are left out of the hash and older runs stay current.
 ADDED_DEFAULTS = {
     "env": {"step_s": 1.0 / 15.0, "family": "porav"},
-    "agent": {"obs": "worldmodel", "paper_obs": "worldmodel", "episodes": 3000},
+    "agent": {
+        "obs": "worldmodel",
+        "paper_obs": "worldmodel",
+        "episodes": 3000,
+        "lidar_scans": 0,
+        "lidar_rays": 36,
+        "peer_total_steps": 100_000,
+    },
 }
 
 
@@ -241,10 +252,13 @@ def _drop_added_defaults(settings: dict) -> dict:
     if isinstance(agent, dict) and agent.get("learner") != "dqn":
         agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners
         agent.pop("episodes", None)
+    if isinstance(agent, dict) and isinstance(agent.get("dqn"), dict) and agent["dqn"].get("advantage_alpha") == 0:
+        agent["dqn"].pop("advantage_alpha")  # off: the DQN as before the option
     evaluate = settings.get("evaluate")
     if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
         evaluate.pop("family", None)  # the paper's bank, as before the families existed
         evaluate.pop("chae", None)
+        evaluate.pop("kim", None)
     for section, defaults in ADDED_DEFAULTS.items():
         values = settings.get(section)
         if isinstance(values, dict):

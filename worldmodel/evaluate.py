@@ -120,6 +120,10 @@ def run(cfg) -> dict:
         from .peers import chae
 
         return chae.evaluate(cfg)
+    if cfg.evaluate.family == "kim":
+        from .peers import kim
+
+        return kim.evaluate(cfg)
     if cfg.evaluate.family == "ncap":
         raise StageError(
             f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={cfg.experiment}"

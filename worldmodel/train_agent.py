@@ -74,6 +74,8 @@ def run(cfg) -> dict:
         return run_chooser(cfg, agent_id)
     if typed.agent.learner == "dqn":
         return run_dqn(cfg, agent_id)
+    if typed.agent.obs == "lidar":
+        return run_lidar(cfg, agent_id)
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
     action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
@@ -262,6 +264,26 @@ def run_dqn(cfg, agent_id) -> dict:
             agent_id.policy,
             metrics["episodes"],
             metrics["recent_bump_rate"],
+            run_.dir,
+        )
+        return run_.finish(metrics)
+
+
+def run_lidar(cfg, agent_id) -> dict:
+    """``agent.obs=lidar``: Kim et al.'s LIDAR DDPG on its junction family (worldmodel/peers/kim.py)."""
+    from .peers import kim
+
+    record = artifacts.provenance(cfg, "agent")
+    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+        metrics = kim.train(cfg, run_, agent_id)
+        if metrics.get("stopped"):
+            return metrics
+        log.info(
+            "[%s] %d steps, %d episodes; avoidance in the last 100: %s; wrote %s",
+            agent_id.policy,
+            metrics["steps"],
+            metrics["episodes"],
+            metrics["recent_avoidance"],
             run_.dir,
         )
         return run_.finish(metrics)
