@@ -43,6 +43,7 @@ from ..common import StageError, make_env
 log = logging.getLogger(__name__)
 ROLLING = 100
 CHECKPOINT_EPISODES = 200
+TEST_SEED = 2020  # evaluate.kim.seed's default: the test draw
 GOAL_REWARDS = ("kim_aware",)  # rewards whose agent also sees the goal (Kim et al. §II-F)
 # Table 2 (avoidance %, mean injury) per scenario 1 / 2 / 3 / all, as published
 PAPER_TABLE_2 = {
@@ -490,6 +491,8 @@ def evaluate(cfg) -> dict:
 
     c = cfg.evaluate.kim
     out = artifacts.eval_dir(cfg)
+    if int(c.seed) != TEST_SEED:  # another draw (validation) never overwrites the test draw's results
+        out = out.with_name(f"{out.name}_seed{int(c.seed)}")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     specs = bank(c)
