@@ -46,6 +46,22 @@ TABLE_TTCS = tuple(round(0.9 + 0.2 * i, 1) for i in range(16))  # 0.9 .. 3.9
 PAPER_TABLE_I = {0.9: 61.29, 1.1: 18.85, 1.3: 0.74}  # 0 % from 1.5 s on
 # inputs to roughly unit scale: dx up to ~85 m, dy up to ~4 m, speed up to ~17 m/s
 SCALE = np.tile(np.array([1 / 50.0, 1 / 4.0, 1 / 20.0], np.float32), 5)
+LOG_STATE = False  # --log-state: dx and speed on a log scale (see log_state)
+
+
+def log_state(x: np.ndarray) -> np.ndarray:
+    """dx and speed as sign(.) log(1 + |.|) / log(1 + max): a ratio such as dx / v (the time to reach the
+    pedestrian, which decides whether a standing pedestrian can still start in time) becomes a difference, a
+    boundary a ReLU network draws with one unit; linear scaling squeezes the low-speed cases into a corner."""
+    y = np.asarray(x, np.float32).reshape(-1, 3).copy()
+    y[:, 0] = np.sign(y[:, 0]) * np.log1p(np.abs(y[:, 0])) / np.log1p(85.0)
+    y[:, 1] = y[:, 1] / 4.0
+    y[:, 2] = np.log1p(np.maximum(y[:, 2], 0.0)) / np.log1p(17.0)
+    return y.ravel()
+
+
+def scaled(x: np.ndarray) -> np.ndarray:
+    return log_state(x) if LOG_STATE else x * SCALE
 
 
 def make_env() -> UrbanCollisionEnv:
@@ -74,11 +90,11 @@ def train(
         spec = sample_chae(rng, ttc_range=ttc_range)
         env.reset(options={"scenario": spec})
         view.reset(int(rng.integers(2**31)))
-        obs, ret = view(env) * SCALE, 0.0
+        obs, ret = scaled(view(env)), 0.0
         while True:
             a = agent.act(obs)
             _, reward, terminated, truncated, info = env.step(brake_action(a))
-            next_obs = view(env) * SCALE
+            next_obs = scaled(view(env))
             bump = terminated and info["outcome"]["end"] == "bump"
             agent.remember(obs, a, reward, next_obs, terminated, trauma=bump, episode_end=terminated or truncated)
             agent.update()
@@ -103,7 +119,7 @@ class Greedy:
         self.env = env
 
     def act(self, obs, info):
-        return brake_action(self.agent.act(self.view(self.env) * SCALE, explore=False))
+        return brake_action(self.agent.act(scaled(self.view(self.env)), explore=False))
 
 
 def score(policy, trials: int, seed: int = 99) -> dict:
@@ -158,7 +174,10 @@ def main(argv=None) -> int:
     parser.add_argument("--no-ablation", action="store_true", help="train with trauma memory only")
     parser.add_argument("--ttc-range", default="1.5,4.0", help="training TTC range, s (the paper's: 1.5,4.0)")
     parser.add_argument("--noise-m", type=float, default=0.1, help="position noise of the state, m")
+    parser.add_argument("--log-state", action="store_true", help="dx and speed on a log scale (log_state)")
     args = parser.parse_args(argv)
+    global LOG_STATE
+    LOG_STATE = args.log_state
     overrides = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -595,11 +595,16 @@ class KimEvalConfig(Checked):
 
     trials: int = 200  # seeded trials per scenario; the first 30 are the paper-sized table
     paper_trials: int = 30
+    # scripted policies beside every LIDAR agent: straight-line braking, Kim's AEB-3m, the planner (the ceiling)
+    policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
     # the test draw; settings and checkpoints are chosen on another (evaluate.kim.seed=77: runs/NAME/eval_kim_seed77)
     seed: int = 2020
 
     def problems(self):
         yield from _positive(self, "trials", "paper_trials")
+        known = ("braking", "aeb3m", "oracle")
+        if any(p not in known for p in self.policies):
+            yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(known)}")
 
 
 @dataclass

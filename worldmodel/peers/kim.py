@@ -260,14 +260,17 @@ def load_policy(cfg, agent_id: AgentId) -> LidarPolicy:
 
 
 def scripted(cfg) -> list:
+    """``evaluate.kim.policies``, in their order: braking, AEB-3m and the planner (minimising the ISS cost)."""
     from envs.planner import PrivilegedPlanner
 
     from ..config import oracle_settings
 
-    settings = {**oracle_settings(cfg), "step_s": 0.1, "reward": "kim_unaware"}
-    planner = PrivilegedPlanner.from_settings(**settings)
-    planner.name = "oracle"
-    return [Braking(), Aeb3m(), planner]
+    def oracle():
+        settings = {**oracle_settings(cfg), "step_s": 0.1, "reward": "kim_unaware"}
+        return PrivilegedPlanner.from_settings(**settings)
+
+    make = {"braking": Braking, "aeb3m": Aeb3m, "oracle": oracle}
+    return [make[name]() for name in cfg.evaluate.kim.policies]
 
 
 # ----------------------------------------------------------------------------- evaluation
