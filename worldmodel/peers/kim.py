@@ -113,7 +113,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.peer_total_steps`` steps."""
     from tqdm import tqdm
 
-    from ..models.ddpg import DDPG, DDPGConfig, ReplayBuffer
+    from ..models.ddpg import DDPG, DDPGConfig, NStepWindow, ReplayBuffer
 
     if agent_id.family != "kim":
         raise StageError(
@@ -157,6 +157,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             }
         )
 
+    window = NStepWindow(hp.n_step, hp.gamma)
     writer = run_.writer
     recent: deque = deque((not c for c in curve["crash"][-ROLLING:]), maxlen=ROLLING)
     scale = float(hp.reward_scale)
@@ -171,7 +172,11 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 _, reward, terminated, truncated, info = env.step(kim_action(a, env.ego.v))
                 see.note_action(a)
                 x_next = see(env)
-                buffer.add(x, a, reward * scale, x_next, terminated)
+                for transition in window.push(x, a, reward * scale, x_next, terminated):
+                    buffer.add(*transition)
+                if truncated and not terminated:
+                    for transition in window.flush():
+                        buffer.add(*transition)
                 x, ret = x_next, ret + reward
                 step += 1
                 bar.update(1)
