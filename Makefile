@@ -17,8 +17,10 @@ $(VENV)/.installed: requirements.lock requirements-dev.lock pyproject.toml
 run: setup
 	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick
 
+# Two workers, one per core; a file's tests stay on one worker, so module-scoped fixtures (the smoke pipeline) are
+# built once.
 test: setup lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 lint: setup
 	$(VENV)/bin/ruff check .
