@@ -20,14 +20,14 @@ front bumper, the pedestrian crossing at a right angle, no other traffic.
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
 from .scene import EGO_LANE_Y, ROAD_HALF_WIDTH
+from .specs import FamilySpec
 
 FAMILY = "chae"
 V_INIT_RANGE = (10.0 / 3.6, 60.0 / 3.6)  # 10-60 km/h
@@ -45,7 +45,7 @@ _LIMITS = {"ttc": (0.0, 10.0), "v_init": (0.0, 40.0), "v_ped": (0.0, 10.0)}
 
 
 @dataclass(frozen=True)
-class ChaeSpec:
+class ChaeSpec(FamilySpec):
     """One Chae scenario. ttc (s), v_init and v_ped (m/s); far_side: the pedestrian starts on the oncoming lane's
     side; crosses: Scenario 1 (True) or 2 (False). seed: the street layout."""
 
@@ -78,19 +78,6 @@ class ChaeSpec:
     @property
     def hazard(self) -> str:
         return "pedestrian"
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> ChaeSpec:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown {FAMILY} scenario fields: {sorted(unknown)}")
-        return cls(**d)
 
 
 def sample_chae(

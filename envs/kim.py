@@ -25,15 +25,15 @@ and along the kerbs. The junction is not rendered for the camera yet: the family
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import geometry
 from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
 from .scene import BUILDINGS, POLES, StaticLayout
+from .specs import FamilySpec
 
 FAMILY = "kim"
 SCENARIOS = ("right", "left", "left_turn")
@@ -55,7 +55,7 @@ CAMERA = False  # the junction is not drawn for the segmentation camera yet
 
 
 @dataclass(frozen=True)
-class KimSpec:
+class KimSpec(FamilySpec):
     """One Kim scenario. scenario: right, left or left_turn; ego_speed (m/s) at the takeover; ego_lane and
     runner_lane: 0 inner, 1 outer (a left turn starts from the inner lane whatever runner_lane says); neutral:
     neutral cars present; seed: the neutral cars' draw and the street furniture."""
@@ -94,19 +94,6 @@ class KimSpec:
     @property
     def ttc(self) -> float:
         return CONTACT_S
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> KimSpec:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown {FAMILY} scenario fields: {sorted(unknown)}")
-        return cls(**d)
 
 
 SPEC = KimSpec

@@ -23,13 +23,13 @@ elsewhere.
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
 from .scene import EGO_LANE_Y, ROAD_HALF_WIDTH
+from .specs import FamilySpec
 
 FAMILY = "ncap"
 # test -> (starts on the far side, walking speed km/h, impact point as a share of the car's width, parked cars)
@@ -51,7 +51,7 @@ AVOID_UP_TO_KMH, IMPACT_BELOW_KMH = 40.0, 40.0
 
 
 @dataclass(frozen=True)
-class NcapSpec:
+class NcapSpec(FamilySpec):
     """One Euro NCAP pedestrian test run: ``test`` (a key of :data:`TESTS`) at ``speed_kmh``; seed: the street
     layout."""
 
@@ -85,19 +85,6 @@ class NcapSpec:
     @property
     def walking_speed(self) -> float:
         return TESTS[self.test][1] / 3.6
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> NcapSpec:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown {FAMILY} scenario fields: {sorted(unknown)}")
-        return cls(**d)
 
 
 SPEC = NcapSpec

@@ -14,6 +14,20 @@ from .scene import EGO_LANE_Y
 from .vehicle import VehicleParams
 
 
+class ConstantAction:
+    """The same action at every step (tests, and baselines such as holding speed)."""
+
+    def __init__(self, action=(0.0, 0.0), name: str = "constant"):
+        self.action = np.array(action, dtype=np.float32).reshape(2)
+        self.name = name
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def act(self, obs, info) -> np.ndarray:
+        return self.action
+
+
 class StraightLineBraking:
     """The baseline: full brake from onset, wheel straight."""
 

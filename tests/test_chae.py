@@ -22,19 +22,7 @@ from envs.chae import (
     sample_chae,
 )
 from envs.env import spec_from_dict
-
-
-class Hold:
-    name = "hold"
-
-    def __init__(self, action):
-        self.action = np.asarray(action, np.float32)
-
-    def reset(self, seed=None):
-        pass
-
-    def act(self, obs, info):
-        return self.action
+from envs.policies import ConstantAction
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +63,7 @@ def test_the_pedestrian_starts_when_the_bumper_passes_the_trigger(env):
 
 
 def test_termination_cases(env):
-    keep, brake = Hold([0.0, 0.0]), Hold(brake_action(0))
+    keep, brake = ConstantAction([0.0, 0.0]), ConstantAction(brake_action(0))
     # no braking: the bumper passes the safety line while the pedestrian crosses, 3 m short of it
     o = rollout(env, keep, ChaeSpec(seed=1, ttc=1.5, v_init=10.0)).outcome
     assert o["end"] == "bump" and o["gap_to_pedestrian"] == pytest.approx(3.0, abs=1.0)

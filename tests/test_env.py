@@ -22,22 +22,8 @@ from envs import (
     sample_scenario,
     test_bank,
 )
+from envs.policies import ConstantAction
 from envs.scene import PEDESTRIANS, VEHICLES
-
-
-class Hold:
-    """A constant action."""
-
-    name = "hold"
-
-    def __init__(self, action=(0.0, 0.0)):
-        self.action = np.array(action, dtype=np.float32)
-
-    def reset(self, seed=None):
-        pass
-
-    def act(self, obs, info):
-        return self.action
 
 
 def run_episode(env, spec, action=(0.0, 0.0)):
@@ -47,7 +33,7 @@ def run_episode(env, spec, action=(0.0, 0.0)):
         frames.append(obs)
         infos.append(info)
 
-    rollout(env, Hold(action), spec, on_reset=keep, on_step=lambda obs, a, r, info: keep(obs, info))
+    rollout(env, ConstantAction(action), spec, on_reset=keep, on_step=lambda obs, a, r, info: keep(obs, info))
     return frames, infos
 
 

@@ -23,19 +23,7 @@ from envs.kim import (
     obstacle_ahead,
     sample,
 )
-
-
-class Hold:
-    name = "hold"
-
-    def __init__(self, action):
-        self.action = np.asarray(action, np.float32)
-
-    def reset(self, seed=None):
-        pass
-
-    def act(self, obs, info):
-        return self.action
+from envs.policies import ConstantAction
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +32,7 @@ def env():
 
 
 def first_contact(env, spec, action=(0.0, 0.0)) -> dict | None:
-    rollout(env, Hold(action), spec)
+    rollout(env, ConstantAction(action), spec)
     return env.collisions[0] if env.collisions else None
 
 
@@ -83,8 +71,8 @@ def test_specs_validate_and_replay_bit_identically(env):
         with pytest.raises(ValueError, match=field_name):
             KimSpec(**{**spec.to_dict(), field_name: bad})
     specs = [KimSpec(seed=s, scenario=sc, ego_speed=9.0, neutral=True) for s, sc in enumerate(SCENARIOS)]
-    first = [(rollout(env, Hold([0.3, -0.5]), s).outcome, list(env.collisions)) for s in specs]
-    again = [(rollout(env, Hold([0.3, -0.5]), s).outcome, list(env.collisions)) for s in specs]
+    first = [(rollout(env, ConstantAction([0.3, -0.5]), s).outcome, list(env.collisions)) for s in specs]
+    again = [(rollout(env, ConstantAction([0.3, -0.5]), s).outcome, list(env.collisions)) for s in specs]
     assert json_like(first) == json_like(again)
 
 
@@ -228,7 +216,7 @@ def test_the_planner_replans_with_the_scripted_cars_and_never_does_worse_than_br
         KimSpec(seed=4, scenario="left_turn", ego_speed=8.0, neutral=True),
         KimSpec(seed=5, scenario="right", ego_speed=13.0, ego_lane=1, neutral=True),
     ):
-        rollout(env, Hold([0.0, -1.0]), spec)
+        rollout(env, ConstantAction([0.0, -1.0]), spec)
         braking = crash_iss(env.collisions)
         rollout(env, planner, spec)
         planned = crash_iss(env.collisions)

@@ -73,9 +73,9 @@ def run(cfg) -> dict:
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
     if typed.agent.learner == "dqn":
-        return run_dqn(cfg, agent_id)
+        return run_peer(cfg, agent_id, "chae")
     if typed.agent.obs == "lidar":
-        return run_lidar(cfg, agent_id)
+        return run_peer(cfg, agent_id, "kim")
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
     action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
@@ -250,42 +250,19 @@ def run_chooser(cfg, agent_id) -> dict:
         return run_.finish(metrics)
 
 
-def run_dqn(cfg, agent_id) -> dict:
-    """``agent.learner=dqn``: Chae et al.'s braking DQN on its own scenario family (worldmodel/peers/chae.py)."""
-    from .peers import chae
+def run_peer(cfg, agent_id, family: str) -> dict:
+    """A peer system's learner on its own scenario family (``worldmodel/peers/<family>.py``): Chae et al.'s braking
+    DQN (``agent.learner=dqn``) or Kim et al.'s LIDAR DDPG (``agent.obs=lidar``). Its ``train`` returns the metrics,
+    with ``summary`` (a line for the log)."""
+    import importlib
 
+    peer = importlib.import_module(f".peers.{family}", __package__)
     record = artifacts.provenance(cfg, "agent")
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
-        metrics = chae.train(cfg, run_, agent_id)
+        metrics = peer.train(cfg, run_, agent_id)
         if metrics.get("stopped"):
             return metrics
-        log.info(
-            "[%s] %d episodes; bumps in the last 100: %s; wrote %s",
-            agent_id.policy,
-            metrics["episodes"],
-            metrics["recent_bump_rate"],
-            run_.dir,
-        )
-        return run_.finish(metrics)
-
-
-def run_lidar(cfg, agent_id) -> dict:
-    """``agent.obs=lidar``: Kim et al.'s LIDAR DDPG on its junction family (worldmodel/peers/kim.py)."""
-    from .peers import kim
-
-    record = artifacts.provenance(cfg, "agent")
-    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
-        metrics = kim.train(cfg, run_, agent_id)
-        if metrics.get("stopped"):
-            return metrics
-        log.info(
-            "[%s] %d steps, %d episodes; avoidance in the last 100: %s; wrote %s",
-            agent_id.policy,
-            metrics["steps"],
-            metrics["episodes"],
-            metrics["recent_avoidance"],
-            run_.dir,
-        )
+        log.info("[%s] %s; wrote %s", agent_id.policy, peer.summary(metrics), run_.dir)
         return run_.finish(metrics)
 
 

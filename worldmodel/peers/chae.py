@@ -220,6 +220,11 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     }
 
 
+def summary(metrics: dict) -> str:
+    """One log line for a finished training run."""
+    return f"{metrics['episodes']} episodes; bumps in the last 100: {metrics['recent_bump_rate']}"
+
+
 # ----------------------------------------------------------------------------- policies
 class DQNPolicy:
     """A trained DQN, greedy, behind the scripted-policy interface."""

@@ -34,6 +34,7 @@ import numpy as np
 from envs.kim import SCENARIOS, Aeb3m, KimSpec, kim_action
 from envs.kim import sample as sample_kim
 from envs.lidar import RANGE_M, LidarHistory
+from envs.policies import StraightLineBraking
 from envs.rewards import crash_iss
 
 from .. import artifacts
@@ -212,6 +213,12 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     }
 
 
+def summary(metrics: dict) -> str:
+    """One log line for a finished training run."""
+    steps, episodes, avoided = metrics["steps"], metrics["episodes"], metrics["recent_avoidance"]
+    return f"{steps} steps, {episodes} episodes; avoidance in the last 100: {avoided}"
+
+
 # ----------------------------------------------------------------------------- policies
 class LidarPolicy:
     """A trained LIDAR DDPG actor, without exploration, behind the scripted-policy interface."""
@@ -229,18 +236,6 @@ class LidarPolicy:
         a = self.agent.act(self.see(self.env), explore=False)
         self.see.note_action(a)
         return kim_action(a, self.env.ego.v)
-
-
-class Braking:
-    """Straight-line full braking from the takeover."""
-
-    name = "braking"
-
-    def reset(self, seed=None) -> None:
-        pass
-
-    def act(self, obs, info) -> np.ndarray:
-        return np.array([0.0, -1.0], np.float32)
 
 
 def load_policy(cfg, agent_id: AgentId) -> LidarPolicy:
@@ -274,7 +269,7 @@ def scripted(cfg) -> list:
         settings = {**oracle_settings(cfg), "step_s": 0.1, "reward": "kim_unaware"}
         return PrivilegedPlanner.from_settings(**settings)
 
-    make = {"braking": Braking, "aeb3m": Aeb3m, "oracle": oracle}
+    make = {"braking": StraightLineBraking, "aeb3m": Aeb3m, "oracle": oracle}
     return [make[name]() for name in cfg.evaluate.kim.policies]
 
 
