@@ -36,6 +36,24 @@ class Actors:
     ped_stop_y: np.ndarray  # a crossing pedestrian stops once it walks past this y (nan = never)
     collision_point: tuple[float, float] | None  # where the ego's front bumper is at TTC
 
+    @classmethod
+    def empty(cls, collision_point: tuple[float, float] | None = None) -> Actors:
+        """Every pool slot unused and at rest: a family's ``build`` activates the ones it places."""
+        cars, peds = np.zeros((CAR_POOL, 2)), np.zeros((PEDESTRIAN_POOL, 2))
+        return cls(
+            car_xy=cars,
+            car_vel=cars.copy(),
+            car_heading=np.zeros(CAR_POOL),
+            car_active=np.zeros(CAR_POOL, dtype=bool),
+            car_hazard=np.zeros(CAR_POOL, dtype=bool),
+            ped_xy=peds,
+            ped_vel=peds.copy(),
+            ped_active=np.zeros(PEDESTRIAN_POOL, dtype=bool),
+            ped_hazard=np.zeros(PEDESTRIAN_POOL, dtype=bool),
+            ped_stop_y=np.full(PEDESTRIAN_POOL, np.nan),
+            collision_point=collision_point,
+        )
+
     def advance(self, dt: float) -> None:
         self.car_xy += self.car_vel * dt
         self.ped_xy += self.ped_vel * dt

@@ -30,7 +30,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from . import chae, geometry, kim, ncap
+from . import chae, geometry, kim, merola, ncap
 from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
 from .injury import damaged_side, occupant_injury, pedestrian_injury, plastic_delta_v
 from .rewards import REGISTRY, StepContext, step_rewards
@@ -42,7 +42,7 @@ from .vehicle import VehicleParams, VehicleState, integrate
 # -> (actors, state); the state's hooks (substep, context, end, outcome, horizon_s) drive its episodes. A spec may
 # say where the ego starts across the road (``ego_y``); a module may bring its own obstacles (``layout(spec,
 # state, rng)``) instead of the street's, and may not be drawable (``CAMERA = False``).
-FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap, kim.FAMILY: kim}
+FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap, kim.FAMILY: kim, merola.FAMILY: merola}
 SPEC_TYPES = (ScenarioSpec, *(m.SPEC for m in FAMILY_MODULES.values()))
 FAMILIES = ("porav", *FAMILY_MODULES)  # env.reset() without a scenario samples from ``family``
 
@@ -326,7 +326,7 @@ class UrbanCollisionEnv(gym.Env):
         self.collisions.extend(hits)
         state = self.family_state
         family = state.context(act, ego.x + self._hl, ego) if state is not None else {}
-        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family))
+        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family, ego.psi))
         for name, value in rewards.items():
             self.returns[name] += value
         self.min_speed = min(self.min_speed, ego.v)

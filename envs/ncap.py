@@ -1,4 +1,4 @@
-"""Scenario family ``ncap``: the Euro NCAP AEB pedestrian tests, as one fixed bank for every policy.
+"""Scenario family ``ncap``: the Euro NCAP AEB pedestrian and car-to-car tests, as one fixed bank for every policy.
 
 | test | pedestrian | walks from | impact point on the car's front |
 |---|---|---|---|
@@ -19,15 +19,33 @@ pedestrian is still outside the carriageway). Our pedestrian has one body size, 
 footprint; CPNC-50's two parked 4.5 x 1.8 m cars stand at the kerb, just upstream of the child's path, 1 m apart,
 clear of a car that keeps its lane. The street's static layout (poles, walls) is drawn from the spec's seed as
 elsewhere.
+
+Car-to-car rear tests (``CAR_TESTS``): a target car ahead in the ego's lane, offset sideways so that the two cars'
+fronts overlap by ``overlap_pct`` of the width (positive: the target is offset to the ego's right, the kerb side;
+our choice, PEERS.md does not say):
+
+| test | target | test-car speeds | variants |
+|---|---|---|---|
+| CCRs | stationary | 10-50 km/h | overlap -75, -50, +50, +75, 100 % |
+| CCRm | 20 km/h | 30-80 km/h | the same overlaps |
+| CCRb | 50 km/h, braking at 2 or 6 m/s² from the start | 50 km/h | gap 12 or 40 m, 100 % |
+
+CCRs and CCRm start at TTC 4 s (bumper gap = closing speed × 4 s); CCRb starts as the target begins to brake. A
+run ends when the cars touch (``crash``), when the test car stands still (``stop``) or becomes slower than the
+target (``slower``); at the latest 7 s after the start. Points per impact-speed band (``car_points``) are confirmed
+by PEERS.md only for CCRs at 50 km/h and for full avoidance at 20 km/h and below; elsewhere the same bands are
+applied and labelled approximate.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
+from .merola import Motion
 from .scene import EGO_LANE_Y, ROAD_HALF_WIDTH
 from .specs import FamilySpec
 
@@ -40,6 +58,16 @@ TESTS = {
     "CPNC-50": (False, 5.0, 0.50, True),
 }
 SPEEDS_KMH = tuple(float(v) for v in range(20, 65, 5))
+# car-to-car: test -> (target speed km/h, test-car speeds km/h)
+CAR_TESTS = {
+    "CCRs": (0.0, tuple(float(v) for v in range(10, 55, 5))),
+    "CCRm": (20.0, tuple(float(v) for v in range(30, 85, 5))),
+    "CCRb": (50.0, (50.0,)),
+}
+OVERLAPS_PCT = (-75.0, -50.0, 50.0, 75.0, 100.0)
+CCRB_VARIANTS = ((2.0, 12.0), (2.0, 40.0), (6.0, 12.0), (6.0, 40.0))  # (target deceleration m/s², gap m)
+# points per impact (relative) speed band, km/h (PEERS.md: CCRs at 50 km/h; full avoidance at 20 km/h and below)
+POINT_BANDS = ((5.0, 1.0), (15.0, 0.75), (30.0, 0.5), (40.0, 0.25))
 START_TTC_S = 4.0
 ACCELERATION_M = 1.0
 AFTER_TTC_S = 3.0
@@ -52,19 +80,29 @@ AVOID_UP_TO_KMH, IMPACT_BELOW_KMH = 40.0, 40.0
 
 @dataclass(frozen=True)
 class NcapSpec(FamilySpec):
-    """One Euro NCAP pedestrian test run: ``test`` (a key of :data:`TESTS`) at ``speed_kmh``; seed: the street
-    layout."""
+    """One Euro NCAP test run: ``test`` (a key of :data:`TESTS` or :data:`CAR_TESTS`) at ``speed_kmh``; for the car
+    tests the ``overlap_pct`` and, for CCRb, the target's deceleration (m/s²) and the bumper gap (m); seed: the
+    street layout."""
 
     test: str
     speed_kmh: float
     seed: int = 0
+    overlap_pct: float = 100.0
+    target_decel: float = 0.0
+    gap_m: float = 0.0
     family: str = FAMILY
 
     def __post_init__(self):
         if self.family != FAMILY:
             raise ValueError(f"scenario field family={self.family!r}: an NcapSpec is family {FAMILY!r}")
-        if self.test not in TESTS:
-            raise ValueError(f"scenario field test={self.test!r}: use one of {', '.join(TESTS)}")
+        if self.test not in TESTS and self.test not in CAR_TESTS:
+            raise ValueError(f"scenario field test={self.test!r}: use one of {', '.join([*TESTS, *CAR_TESTS])}")
+        if not (0.0 < abs(self.overlap_pct) <= 100.0):
+            raise ValueError(f"scenario field overlap_pct={self.overlap_pct!r}: it must be in [-100, 0) or (0, 100]")
+        if self.test == "CCRb" and not (self.target_decel > 0.0 and self.gap_m > 0.0):
+            raise ValueError(
+                f"scenario field target_decel={self.target_decel!r} / gap_m={self.gap_m!r}: CCRb needs both > 0"
+            )
         if not 0.0 < self.speed_kmh <= 150.0 or self.speed_kmh != self.speed_kmh:
             raise ValueError(f"scenario field speed_kmh={self.speed_kmh!r} is out of range: it must be in (0, 150]")
         if int(self.seed) != self.seed or self.seed < 0:
@@ -75,8 +113,12 @@ class NcapSpec(FamilySpec):
         return self.speed_kmh / 3.6
 
     @property
+    def car_test(self) -> bool:
+        return self.test in CAR_TESTS
+
+    @property
     def hazard(self) -> str:
-        return "pedestrian"
+        return "car" if self.car_test else "pedestrian"
 
     @property
     def ttc(self) -> float:
@@ -86,6 +128,13 @@ class NcapSpec(FamilySpec):
     def walking_speed(self) -> float:
         return TESTS[self.test][1] / 3.6
 
+    @property
+    def variant(self) -> str:
+        """The car test's parameters as a label ("" for a pedestrian test)."""
+        if self.test == "CCRb":
+            return f"{self.target_decel:g} m/s², {self.gap_m:g} m"
+        return f"{self.overlap_pct:+g} %" if self.car_test else ""
+
 
 SPEC = NcapSpec
 
@@ -93,6 +142,21 @@ SPEC = NcapSpec
 def bank(tests=tuple(TESTS), speeds_kmh=SPEEDS_KMH, seed: int = 0) -> list[NcapSpec]:
     """The fixed bank: every test at every speed, on one street layout."""
     return [NcapSpec(t, float(v), seed) for t in tests for v in speeds_kmh]
+
+
+def car_bank(tests=tuple(CAR_TESTS), overlaps=OVERLAPS_PCT, speed_step_kmh: float = 5.0, seed: int = 0):
+    """The car-to-car runs: CCRs and CCRm at every ``speed_step_kmh`` of their range and every overlap, CCRb's four
+    variants."""
+    out = []
+    for test in tests:
+        speeds = CAR_TESTS[test][1]
+        lo = speeds[0]
+        speeds = [v for v in speeds if abs((v - lo) / speed_step_kmh - round((v - lo) / speed_step_kmh)) < 1e-9]
+        if test == "CCRb":
+            out += [NcapSpec(test, v, seed, 100.0, d, g) for v in speeds for d, g in CCRB_VARIANTS]
+        else:
+            out += [NcapSpec(test, v, seed, float(o)) for v in speeds for o in overlaps]
+    return out
 
 
 def sample(rng: np.random.Generator) -> NcapSpec:
@@ -123,6 +187,10 @@ class NcapState:
     def context(self, actors: Actors, bumper_x: float, ego=None) -> dict:
         return {}
 
+    def ttc(self, t: float, ego) -> float:
+        """The nominal time to the impact point: the test's clock."""
+        return START_TTC_S - t
+
     def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict, ego=None) -> str | None:
         if not actors.ped_active[0]:
             return "impact"
@@ -136,7 +204,61 @@ class NcapState:
         return {"family": FAMILY, "test": spec.test, "gap_to_pedestrian": float(self.ped_x - bumper_x)}
 
 
-def build(spec: NcapSpec, ego_front: float, **options) -> tuple[Actors, NcapState]:
+@dataclass
+class CarTestState:
+    """A car-to-car test's target (``motion``, car 0 of the pool); hooks as in ``NcapState``."""
+
+    motion: Motion
+    ego_half_length: float
+    horizon_s: float = START_TTC_S + AFTER_TTC_S
+    t: float = 0.0
+
+    def substep(self, actors: Actors, bumper_before: float, bumper_after: float, t0: float, tau: float, sub_dt: float):
+        x, y, h = self.motion.pose(t0 + tau)
+        actors.car_vel[0] = ((x - actors.car_xy[0, 0]) / tau, (y - actors.car_xy[0, 1]) / tau)
+        actors.car_heading[0] = h
+        self.t = t0 + tau
+
+    def target_speed(self, t: float) -> float:
+        m = self.motion
+        return max(0.0, m.speed - m.decel * t) if m.decel > 0 else m.speed
+
+    def ttc(self, t: float, ego) -> float:
+        """Bumper gap over closing speed at the current speeds (inf while not closing)."""
+        x, _, _ = self.motion.pose(t)
+        gap = x - PARKED_LENGTH / 2 - (ego.x + self.ego_half_length)
+        closing = ego.v - self.target_speed(t)
+        return gap / closing if closing > 1e-9 else math.inf
+
+    def context(self, actors: Actors, bumper_x: float, ego=None) -> dict:
+        return {}
+
+    def end(self, actors: Actors, bumper_x: float, speed: float, ctx: dict, ego=None) -> str | None:
+        if speed <= STOPPED_MS:
+            return "stop"
+        if speed < self.target_speed(self.t) - 1e-9:
+            return "slower"
+        return None
+
+    def outcome(self, spec: NcapSpec, bumper_x: float) -> dict:
+        x, _, _ = self.motion.pose(self.t)
+        return {"family": FAMILY, "test": spec.test, "gap_to_target": float(x - PARKED_LENGTH / 2 - bumper_x)}
+
+
+def build_car_test(spec: NcapSpec, ego_front: float) -> tuple[Actors, CarTestState]:
+    v, u = spec.ego_speed, CAR_TESTS[spec.test][0] / 3.6
+    gap = spec.gap_m if spec.test == "CCRb" else (v - u) * START_TTC_S
+    offset = math.copysign((1.0 - abs(spec.overlap_pct) / 100.0) * CAR_WIDTH, spec.overlap_pct)
+    motion = Motion(ego_front + gap + PARKED_LENGTH / 2, EGO_LANE_Y - offset, 0.0, u, decel=spec.target_decel)
+    actors = Actors.empty(collision_point=(ego_front + gap, EGO_LANE_Y))
+    actors.car_xy[0] = (motion.x0, motion.y0)
+    actors.car_active[0] = actors.car_hazard[0] = True
+    return actors, CarTestState(motion, ego_half_length=ego_front)  # the ego starts with its centre at x = 0
+
+
+def build(spec: NcapSpec, ego_front: float, **options):
+    if spec.car_test:
+        return build_car_test(spec, ego_front)
     far, walk_kmh, share, parked = TESTS[spec.test]
     v, v_p = spec.ego_speed, walk_kmh / 3.6
     ped_x = ego_front + v * START_TTC_S
@@ -173,6 +295,18 @@ def build(spec: NcapSpec, ego_front: float, **options) -> tuple[Actors, NcapStat
     )
     state = NcapState(ped_x=ped_x, start_t=1.0 / v_p * ACCELERATION_M, velocity=(0.0, direction * v_p))
     return actors, state
+
+
+def car_points(speed_kmh: float, impact_kmh: float | None) -> tuple[float, bool]:
+    """(points in [0, 1], confirmed) for one car-to-car run by its relative impact speed: full avoidance scores 1;
+    at 20 km/h and below only avoidance scores; above, the bands of CCRs at 50 km/h (< 5 km/h: 1, < 15: 0.75,
+    < 30: 0.5, < 40: 0.25). Confirmed by PEERS.md at 50 km/h and at 20 km/h and below; elsewhere approximate."""
+    confirmed = speed_kmh <= 20.0 or speed_kmh == 50.0
+    if impact_kmh is None:
+        return 1.0, confirmed
+    if speed_kmh <= 20.0:
+        return 0.0, confirmed
+    return next((p for band, p in POINT_BANDS if impact_kmh < band), 0.0), confirmed
 
 
 def verdict(speed_kmh: float, impact_kmh: float | None) -> str:

@@ -13,6 +13,7 @@ counts the people involved; R2 = -(sum P_ped + sum P_occ) weights them by the em
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -32,6 +33,7 @@ class StepContext:
     action: np.ndarray
     step_s: float
     family: dict = field(default_factory=dict)
+    heading: float = 0.0  # the ego's heading after the step, rad, counter-clockwise from the road's direction
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,39 @@ def kim_aware(ctx: StepContext) -> float:
     if any(h["kind"] != "pedestrian" for h in ctx.hits):
         return -crash_iss(ctx.hits)
     return float(ctx.family.get("goal_progress", 0.0))
+
+
+# Merola et al. 2022 §3.1 and §4, with PEERS.md's defaults where the paper gives no number
+MEROLA_V_MIN, MEROLA_V_MAX, MEROLA_PHI_MAX = 2.0, 60.0 / 3.6, math.radians(10.0)
+MEROLA_IMPACT_FULL_MS = 60.0 / 3.6  # a crash at this ego delta-v (pedestrian: impact speed) costs the full 100
+
+
+def merola_impact(hits: list[dict]) -> float:
+    """Merola's collision penalty of this step's crashes: each clip(100 dv / 16.67 m/s, 1, 100), with dv the ego's
+    velocity change (a pedestrian: the impact speed)."""
+    total = 0.0
+    for h in hits:
+        dv = h["impact_speed"] if h["kind"] == "pedestrian" else h["delta_v_ego"]
+        total += min(100.0, max(1.0, 100.0 * float(dv) / MEROLA_IMPACT_FULL_MS))
+    return total
+
+
+@register(
+    "merola",
+    "Merola et al. 2022: -impact (1..100), +1 per metre, -5 for braking below v_min or throttle above v_max, "
+    "-1 for steering further off the road's direction beyond 10 deg",
+)
+def merola(ctx: StepContext) -> float:
+    pedal, steer = float(ctx.action[1]), float(ctx.action[0])
+    r = 0.5 * (ctx.speed_before + ctx.speed_after) * ctx.step_s - merola_impact(ctx.hits)
+    if pedal < 0.0 and ctx.speed_after < MEROLA_V_MIN:
+        r -= 5.0
+    if pedal > 0.0 and ctx.speed_after > MEROLA_V_MAX:
+        r -= 5.0
+    # a positive steer turns right, lowering the heading: steering further off is -steer with the heading's sign
+    if abs(ctx.heading) > MEROLA_PHI_MAX and -steer * ctx.heading > 0.0:
+        r -= 1.0
+    return r
 
 
 REWARDS = tuple(REGISTRY)

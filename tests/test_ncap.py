@@ -1,5 +1,6 @@
-"""Family ncap (Euro NCAP AEB pedestrian tests): the test geometry meets the protocol's timing exactly, specs are
-validated, and the takeover protocol of worldmodel.ncap behaves as documented. Real env, camera off."""
+"""Family ncap (Euro NCAP AEB pedestrian and car-to-car tests): the test geometry meets the protocol's timing
+exactly, specs are validated, and the takeover protocol of worldmodel.ncap behaves as documented. Real env, camera
+off."""
 
 from __future__ import annotations
 
@@ -7,7 +8,19 @@ import numpy as np
 import pytest
 
 from envs import StraightLineBraking, UrbanCollisionEnv
-from envs.ncap import ACCELERATION_M, CAR_WIDTH, START_TTC_S, TESTS, NcapSpec, bank, verdict
+from envs.ncap import (
+    ACCELERATION_M,
+    CAR_TESTS,
+    CAR_WIDTH,
+    OVERLAPS_PCT,
+    START_TTC_S,
+    TESTS,
+    NcapSpec,
+    bank,
+    car_bank,
+    car_points,
+    verdict,
+)
 from envs.scene import EGO_LANE_Y
 from worldmodel.ncap import HOLD, Takeover, run_bank, takeover_step
 
@@ -53,7 +66,7 @@ def test_braking_from_takeover_at_1_5s_avoids_every_test():
     env = UrbanCollisionEnv(camera=False, family="ncap")
     start = takeover_step(1.5, env.step_s)
     assert start == 38 and START_TTC_S - start * env.step_s <= 1.5 < START_TTC_S - (start - 1) * env.step_s
-    policy = _Recorder(Takeover(StraightLineBraking(), start))
+    policy = _Recorder(Takeover(StraightLineBraking(), 1.5))  # takes over at the first step with TTC <= 1.5 s
     rows = run_bank(env, policy, bank(), "porav", 0)
     assert all(r["avoided"] and r["end"] == "stop" for r in rows)
     held, braked = policy.actions[:start], policy.actions[start:]
@@ -101,3 +114,50 @@ class _Recorder:
         a = self.policy.act(obs, info)
         self.actions.append(np.asarray(a, dtype=float))
         return a
+
+
+@pytest.mark.parametrize("test", ["CCRs", "CCRm"])
+def test_car_tests_start_at_ttc_4s_and_a_held_speed_hits_the_target_then(test):
+    """Holding speed, the ego's front meets the target's rear 4 s after the start (within one sub-step) at every
+    overlap, with the closing speed as the relative impact speed; the target is the hazard and nothing else is hit."""
+    fine = UrbanCollisionEnv(camera=False, family="ncap", step_s=0.1, substeps=100)
+    specs = [s for s in car_bank((test,), speed_step_kmh=20.0)]
+    assert {s.overlap_pct for s in specs} == set(OVERLAPS_PCT)
+    rows = run_bank(fine, _Hold(), specs, "porav", 0)
+    target_kmh = CAR_TESTS[test][0]
+    for spec, r in zip(specs, rows, strict=True):
+        assert not r["avoided"] and r["kind"] == "car" and not r["other_collision"], spec
+        assert r["impact_kmh"] == pytest.approx(spec.speed_kmh - target_kmh, rel=1e-6), spec
+        assert START_TTC_S - 1e-9 <= fine.collisions[0]["time"] <= START_TTC_S + 0.001 + 1e-9, spec
+        assert r["points"] == car_points(spec.speed_kmh, r["impact_kmh"])[0]
+
+
+def test_ccrb_target_brakes_from_the_start_and_braking_from_takeover_avoids_it():
+    env = UrbanCollisionEnv(camera=False, family="ncap", step_s=0.1)
+    spec = NcapSpec("CCRb", 50.0, target_decel=6.0, gap_m=40.0)
+    env.reset(options={"scenario": spec})
+    x = [env.actors.car_xy[0, 0]]
+    for _ in range(10):
+        env.step(HOLD)
+        x.append(env.actors.car_xy[0, 0])
+    v = np.diff(x) / 0.1
+    np.testing.assert_allclose(v, 50 / 3.6 - 6.0 * (0.1 * np.arange(10) + 0.05), rtol=1e-9)
+    rows = run_bank(env, Takeover(StraightLineBraking(), 1.5), car_bank(), "porav", 0)
+    ccrs = [r for r in rows if r["test"] == "CCRs"]
+    assert all(r["end"] == "stop" for r in ccrs if r["avoided"])  # the target stands: the run ends when the ego does
+    assert all(r["avoided"] for r in ccrs if r["speed_kmh"] <= 40)  # 40 km/h stops in ~8 m of the 16.7 m at 1.5 s
+    assert {r["end"] for r in rows if r["test"] == "CCRm" and r["avoided"]} == {"slower"}
+    with pytest.raises(ValueError, match="CCRb needs"):
+        NcapSpec("CCRb", 50.0)
+    with pytest.raises(ValueError, match="overlap_pct"):
+        NcapSpec("CCRs", 30.0, overlap_pct=0.0)
+    env.close()
+
+
+def test_car_points_follow_the_impact_speed_bands():
+    assert car_points(50.0, None) == (1.0, True)
+    assert car_points(50.0, 4.9) == (1.0, True) and car_points(50.0, 14.0) == (0.75, True)
+    assert car_points(50.0, 29.0) == (0.5, True) and car_points(50.0, 39.0) == (0.25, True)
+    assert car_points(50.0, 41.0) == (0.0, True)
+    assert car_points(20.0, 3.0) == (0.0, True)  # at 20 km/h and below only avoidance scores
+    assert car_points(35.0, 3.0) == (1.0, False)  # the same bands, unconfirmed

@@ -44,6 +44,7 @@ REWARD_FAMILIES = {
     "chae": "chae",
     "kim_unaware": "kim",
     "kim_aware": "kim",
+    "merola": "merola",
 }  # rewards defined for one scenario family only; the rest are the paper's
 
 
@@ -243,6 +244,7 @@ ADDED_DEFAULTS = {
         "lidar_scans": 0,
         "lidar_rays": 36,
         "peer_total_steps": 100_000,
+        "resnet_weights": None,
     },
 }
 
@@ -259,6 +261,7 @@ def _drop_added_defaults(settings: dict) -> dict:
         evaluate.pop("family", None)  # the paper's bank, as before the families existed
         evaluate.pop("chae", None)
         evaluate.pop("kim", None)
+        evaluate.pop("merola", None)
     for section, defaults in ADDED_DEFAULTS.items():
         values = settings.get(section)
         if isinstance(values, dict):

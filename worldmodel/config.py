@@ -362,7 +362,8 @@ class ChooserConfig(Checked):
 LEARNERS = ("ddpg", "chooser", "dqn")
 # what an agent sees: the world model's [z, zhat(, speed)] from the camera, or Chae's privileged 15-value
 # pedestrian history (envs/chae.py); a DDPG or chooser agent always sees the world model
-OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar")
+# LIDAR scans (Kim), or Merola's last 4 camera frames as frozen VAE means or ResNet-18 features
+OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "frames_resnet")
 
 
 @dataclass
@@ -409,6 +410,9 @@ class AgentConfig(DDPGConfig):
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
     paper_obs: str = "worldmodel"
+    # obs=frames_resnet: a local ResNet-18 state dict with torchvision's names (ImageNet weights cannot be
+    # downloaded here; worldmodel/models/resnet.py refuses to run without them)
+    resnet_weights: str | None = None
 
     def problems(self):
         from .action_map import ANCHORS, STEERS
@@ -428,7 +432,7 @@ class AgentConfig(DDPGConfig):
         seen_by = {
             "ddpg": ("worldmodel", "lidar"),
             "chooser": ("worldmodel",),
-            "dqn": ("worldmodel", "pedestrian_history"),
+            "dqn": ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"),
         }
         if self.learner in seen_by and self.obs not in seen_by[self.learner]:
             yield ConfigValueError(
@@ -608,6 +612,23 @@ class KimEvalConfig(Checked):
 
 
 @dataclass
+class MerolaEvalConfig(Checked):
+    """Merola et al.'s scenarios (worldmodel/peers/merola.py): collision rate, ego delta-v, injury risk and return
+    per scenario for braking, the planner, the paper's world-model agents and every ddqn_merola agent."""
+
+    trials: int = 100  # seeded trials per scenario, the same for every policy
+    policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
+    world_model_agents: bool = True  # also the paper's R1 / R2 agents and the chooser, at their own 1/15 s steps
+    # the test draw; settings and checkpoints are chosen on another (evaluate.merola.seed=77: eval_merola_seed77)
+    seed: int = 2022
+
+    def problems(self):
+        yield from _positive(self, "trials")
+        if any(p not in ("braking", "oracle") for p in self.policies):
+            yield ConfigValueError("policies", list(self.policies), "use some of braking, oracle")
+
+
+@dataclass
 class EvaluateConfig(Checked):
     """The seeded test bank (docs/design.md §6) and the scripted policies evaluated beside the agents."""
 
@@ -624,10 +645,11 @@ class EvaluateConfig(Checked):
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
     oracle: OracleConfig = field(default_factory=OracleConfig)
-    # which scenario family to evaluate: porav (the test bank above), chae (evaluate.chae) or kim (evaluate.kim)
+    # which scenario family to evaluate: porav (the test bank above), chae, kim or merola (evaluate.<family>)
     family: str = "porav"
     chae: ChaeEvalConfig = field(default_factory=ChaeEvalConfig)
     kim: KimEvalConfig = field(default_factory=KimEvalConfig)
+    merola: MerolaEvalConfig = field(default_factory=MerolaEvalConfig)
 
     def problems(self):
         yield from _positive(self, "per_cell", "num_workers")
@@ -658,18 +680,30 @@ class EvaluateConfig(Checked):
 
 @dataclass
 class NcapConfig(Checked):
-    """The Euro NCAP pedestrian bank (worldmodel/ncap.py)."""
+    """The Euro NCAP bank (worldmodel/ncap.py): the pedestrian tests and the car-to-car rear tests."""
 
     # the paper's agents (and braking, the planner) act from this TTC on; before it the car holds its speed
     takeover_ttc_s: float = 1.5
     tests: list[str] = field(default_factory=lambda: ["CPFA-50", "CPNA-25", "CPNA-75", "CPNC-50"])
     speeds_kmh: list[float] = field(default_factory=lambda: [float(v) for v in range(20, 65, 5)])
+    # car-to-car: CCRs and CCRm at every car_speed_step_kmh of their speed range and every overlap; CCRb's 4 variants
+    car_tests: list[str] = field(default_factory=lambda: ["CCRs", "CCRm", "CCRb"])
+    overlaps_pct: list[float] = field(default_factory=lambda: [-75.0, -50.0, 50.0, 75.0, 100.0])
+    car_speed_step_kmh: float = 5.0
 
     def problems(self):
-        from envs.ncap import TESTS
+        from envs.ncap import CAR_TESTS, TESTS
 
-        if not self.tests or any(t not in TESTS for t in self.tests):
-            yield ConfigValueError("tests", list(self.tests), f"use a non-empty list of {', '.join(TESTS)}")
+        if any(t not in TESTS for t in self.tests):
+            yield ConfigValueError("tests", list(self.tests), f"use a list of {', '.join(TESTS)}")
+        if any(t not in CAR_TESTS for t in self.car_tests):
+            yield ConfigValueError("car_tests", list(self.car_tests), f"use a list of {', '.join(CAR_TESTS)}")
+        if not self.tests and not self.car_tests:
+            yield ConfigValueError("tests", [], "give at least one pedestrian or car-to-car test")
+        if any(not 0 < abs(o) <= 100 for o in self.overlaps_pct) or not self.overlaps_pct:
+            yield ConfigValueError("overlaps_pct", list(self.overlaps_pct), "use overlaps in [-100, 0) or (0, 100]")
+        if self.car_speed_step_kmh <= 0 or self.car_speed_step_kmh % 5:
+            yield ConfigValueError("car_speed_step_kmh", self.car_speed_step_kmh, "use a positive multiple of 5")
         if not self.speeds_kmh or any(not 0 < v <= 150 for v in self.speeds_kmh):
             yield ConfigValueError("speeds_kmh", list(self.speeds_kmh), "use speeds in (0, 150] km/h")
         if not 0.0 < self.takeover_ttc_s <= 4.0:
@@ -678,7 +712,11 @@ class NcapConfig(Checked):
             )
 
 
-PEERS = {"chae": "dqn_chae", "kim": "ddpg_kim"}  # peer system -> its agent preset (conf/agent/), on its own family
+PEERS = {
+    "chae": "dqn_chae",
+    "kim": "ddpg_kim",
+    "merola": "ddqn_merola",
+}  # peer system -> its agent preset (conf/agent/), on its own family
 
 
 @dataclass

@@ -124,6 +124,10 @@ def run(cfg) -> dict:
         from .peers import kim
 
         return kim.evaluate(cfg)
+    if cfg.evaluate.family == "merola":
+        from .peers import merola
+
+        return merola.evaluate(cfg)
     if cfg.evaluate.family == "ncap":
         raise StageError(
             f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={cfg.experiment}"

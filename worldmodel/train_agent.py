@@ -72,8 +72,8 @@ def run(cfg) -> dict:
     name = agent_id.policy
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
-    if typed.agent.learner == "dqn":
-        return run_peer(cfg, agent_id, "chae")
+    if typed.agent.learner == "dqn":  # Chae's braking DQN or Merola's Double DQN, by the reward's family
+        return run_peer(cfg, agent_id, agent_id.family)
     if typed.agent.obs == "lidar":
         return run_peer(cfg, agent_id, "kim")
     encoder = artifacts.load_world_model(cfg)

@@ -229,8 +229,9 @@ def summary(metrics: dict) -> str:
 class DQNPolicy:
     """A trained DQN, greedy, behind the scripted-policy interface."""
 
-    def __init__(self, name: str, agent, see, policy_seed: int):
+    def __init__(self, name: str, agent, see, policy_seed: int, action_of=None):
         self.name, self.agent, self.see, self.policy_seed = name, agent, see, policy_seed
+        self.action_of = brake_action if action_of is None else action_of  # action index -> [steer, pedal]
 
     def reset(self, seed=None) -> None:
         self.see.reset(seed)
@@ -239,7 +240,7 @@ class DQNPolicy:
         self.env = env
 
     def act(self, obs, info) -> np.ndarray:
-        action = brake_action(self.agent.act(self.see(self.env, obs), explore=False))
+        action = self.action_of(self.agent.act(self.see(self.env, obs), explore=False))
         self.see.note_action(action)
         return action
 

@@ -1,0 +1,496 @@
+"""Merola et al. 2022 on our simulator: Double DQN on camera frames in three pre-accident scenarios (family ``merola``).
+
+    python -m worldmodel.train_agent experiment=NAME agent=ddqn_merola [seed=K] [obs=frames_resnet]
+    python -m worldmodel.evaluate experiment=NAME evaluate.family=merola
+
+Training (``train_agent`` with ``agent.variant=ddqn_merola``): ``agent.episodes`` episodes drawn from
+``envs.merola.sample`` (lead car braking, junction crossing, oncoming drift; 60 steps of 0.1 s), reward ``merola``,
+nine actions {brake, none, throttle} × {left, straight, right} (pedal -1 / 0 / +1, steer -0.5 / 0 / +0.5), Double
+DQN from ``worldmodel/models/dqn.py`` with one update per step. The observation (PEERS.md deviation: our camera
+gives class maps, not RGB, and ImageNet weights are not at hand):
+
+* ``frames_vae`` (default): the frozen VAE's means of the last 4 frames (4 × 128), the first frame repeated at the
+  start of an episode;
+* ``frames_resnet``: the last 4 frames, coloured, through a frozen ResNet-18 (``worldmodel/models/resnet.py``)
+  whose weights the user supplies (``agent.resnet_weights``); the 2×2×512 maps of the 4 frames are concatenated.
+
+Runs: ``runs/NAME/agent_merola_ddqn_merola[-OBS]/seedK/`` with ``last.pt`` (network, optimiser, replay, RNG,
+episode) every ``CHECKPOINT_EPISODES``, TensorBoard and ``metrics.json`` with the learning curve.
+
+Evaluation (``evaluate.family=merola``): per scenario, ``evaluate.merola.trials`` seeded trials shared by every
+policy: collision rate (Wilson 95 %), mean ego Δv, the occupant's Joksch risk and the pedestrian's Rosén risk
+(``envs/injury.py``), and the return. Policies: straight-line braking from the start, the privileged planner, the
+paper's world-model agents of the experiment (R1 / R2 DDPG and the chooser, at their own 1/15 s steps, acting from
+the start), and every ``ddqn_merola`` agent. Writes ``runs/NAME/eval_merola/``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections import deque
+
+import numpy as np
+import torch
+
+from envs.merola import SCENARIOS, MerolaSpec
+from envs.merola import sample as sample_merola
+
+from .. import artifacts
+from ..artifacts import AgentId
+from ..common import StageError, make_env
+from .chae import DQNPolicy, dqn_config
+from .kim import wilson
+
+log = logging.getLogger(__name__)
+PEDALS, STEERS = (-1.0, 0.0, 1.0), (-0.5, 0.0, 0.5)
+ACTIONS = np.array([(s, p) for p in PEDALS for s in STEERS], dtype=np.float32)  # index -> [steer, pedal]
+FRAMES = 4
+ROLLING = 100
+CHECKPOINT_EPISODES = 100
+PAPER_PLATEAU = -10.0  # Merola et al. Fig. 4: the rolling-100 return stays near -10 after ~6,000 episodes
+TEST_SEED = 2022  # evaluate.merola.seed's default: the test draw
+OBSERVATIONS = ("frames_vae", "frames_resnet")
+
+
+def merola_action(index: int) -> np.ndarray:
+    """Action ``index`` of the nine as our [steer, pedal]."""
+    return ACTIONS[int(index)]
+
+
+# ----------------------------------------------------------------------------- what the agent sees
+class FrameStack:
+    """The features of the last ``FRAMES`` camera frames, oldest first; the first frame fills the stack."""
+
+    camera = True
+
+    def __init__(self, features, per_frame: int):
+        self.features, self.per_frame = features, int(per_frame)
+        self.dim = FRAMES * self.per_frame
+        self.frames: deque = deque(maxlen=FRAMES)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.frames.clear()
+
+    def __call__(self, env, obs) -> np.ndarray:
+        f = self.features(np.asarray(obs["seg"]))
+        if not self.frames:
+            self.frames.extend([f] * FRAMES)
+        else:
+            self.frames.append(f)
+        return np.concatenate(self.frames).astype(np.float32)
+
+    def note_action(self, action) -> None:
+        pass
+
+
+def vae_features(vae):
+    def features(seg: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return vae.encode(torch.from_numpy(seg.astype(np.int64))[None])[0][0].numpy()
+
+    return features
+
+
+def resnet_features(net):
+    from envs.camera import colorize
+
+    from ..models.resnet import IMAGENET_MEAN, IMAGENET_STD
+
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+
+    def features(seg: np.ndarray) -> np.ndarray:
+        rgb = torch.from_numpy(colorize(seg)).permute(2, 0, 1)[None].float() / 255.0
+        with torch.inference_mode():
+            return net((rgb - mean) / std).reshape(-1).numpy()
+
+    return features
+
+
+def observer(cfg, obs: str) -> FrameStack:
+    if obs not in OBSERVATIONS:
+        raise StageError(f"agent.obs={obs}: ddqn_merola sees one of {', '.join(OBSERVATIONS)}")
+    if obs == "frames_resnet":
+        from ..models.resnet import load_resnet18
+
+        net = load_resnet18(cfg.agent.get("resnet_weights"))
+        with torch.inference_mode():
+            per_frame = net(torch.zeros(1, 3, 64, 64)).numel()
+        return FrameStack(resnet_features(net), per_frame)
+    vae, _ = artifacts.load_vae(cfg, "best")
+    return FrameStack(vae_features(vae), int(vae.latent_dim))
+
+
+def family_env(cfg, step_s: float | None = None, camera: bool = True):
+    options = {} if step_s is None else {"step_s": step_s}
+    return make_env(cfg, camera=camera, family="merola", reward="merola", **options)
+
+
+# ----------------------------------------------------------------------------- training
+def episode_scenario(seed: int, episode: int) -> MerolaSpec:
+    """Training episode ``episode``'s scenario: a function of (seed, episode) only, so a resumed run draws what an
+    uninterrupted one would."""
+    return sample_merola(np.random.default_rng([int(seed), 2022, int(episode)]))
+
+
+def train(cfg, run_, agent_id: AgentId) -> dict:
+    """``train_agent`` for ``agent.variant=ddqn_merola``: ``agent.episodes`` episodes of family merola."""
+    from tqdm import tqdm
+
+    from ..models.dqn import DQN
+
+    if agent_id.reward != "merola":
+        raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
+    episodes = int(cfg.agent.episodes)
+    see = observer(cfg, str(cfg.agent.obs))
+    env = family_env(cfg)
+    hp = dqn_config(cfg)
+    agent = DQN(see.dim, len(ACTIONS), hp, int(cfg.seed))
+    episode, curve = 0, {"return": [], "collision": [], "scenario": []}
+    if run_.state is not None:
+        if run_.state["obs_dim"] != see.dim:
+            raise StageError(
+                f"{run_.last} expects inputs of size {run_.state['obs_dim']}, the observation gives {see.dim}; "
+                f"delete {run_.dir} to retrain"
+            )
+        agent.load_state_dict(run_.state["agent"])
+        episode, curve = int(run_.state["episode"]), run_.state["curve"]
+        run_.resumed(f"episode {episode}")
+
+    def snapshot():
+        run_.save(
+            {
+                "agent": agent.state_dict(),
+                "episode": episode,
+                "step": agent.steps,
+                "curve": curve,
+                "obs": str(cfg.agent.obs),
+                "obs_dim": see.dim,
+                "learner": "dqn",
+                "family": "merola",
+                "dqn_config": dataclasses.asdict(hp),
+                "reward": agent_id.reward,
+            }
+        )
+
+    writer = run_.writer
+    recent: deque = deque(curve["return"][-ROLLING:], maxlen=ROLLING)
+    crashes: deque = deque(curve["collision"][-ROLLING:], maxlen=ROLLING)
+    loss = None
+    with tqdm(total=episodes, initial=episode, desc=f"ddqn merola ({cfg.agent.obs})", unit="episode") as bar:
+        while episode < episodes and not run_.stop.requested:
+            obs, _ = env.reset(options={"scenario": episode_scenario(int(cfg.seed), episode)})
+            see.reset()
+            x, ret = see(env, obs), 0.0
+            while True:
+                a = agent.act(x)
+                obs, reward, terminated, truncated, info = env.step(merola_action(a))
+                x_next = see(env, obs)
+                agent.remember(x, a, reward, x_next, terminated, trauma=False, episode_end=terminated or truncated)
+                stats = agent.update()
+                loss = stats["loss"] if stats else loss
+                x, ret = x_next, ret + reward
+                if terminated or truncated:
+                    break
+            o = info["outcome"]
+            crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
+            curve["return"].append(float(ret))
+            curve["collision"].append(int(crashed))
+            curve["scenario"].append(env.scenario.scenario)
+            recent.append(float(ret))
+            crashes.append(int(crashed))
+            episode += 1
+            bar.update(1)
+            writer.add_scalar("episode/return", ret, episode)
+            writer.add_scalar("episode/return_rolling", float(np.mean(recent)), episode)
+            writer.add_scalar("episode/collision_rate_rolling", float(np.mean(crashes)), episode)
+            writer.add_scalar("train/epsilon", agent.epsilon(), episode)
+            if loss is not None:
+                writer.add_scalar("train/loss", loss, episode)
+            if episode % CHECKPOINT_EPISODES == 0:
+                snapshot()
+    snapshot()
+    env.close()
+    if run_.stop.requested:
+        return run_.stopped(agent.steps)
+    return {
+        "reward": agent_id.reward,
+        "obs": str(cfg.agent.obs),
+        "episodes": episode,
+        "steps": agent.steps,
+        "recent_return": float(np.mean(recent)) if recent else None,
+        "recent_collision_rate": float(np.mean(crashes)) if crashes else None,
+        "curve": curve,
+    }
+
+
+def summary(metrics: dict) -> str:
+    return (
+        f"{metrics['episodes']} episodes; last 100: return {metrics['recent_return']}, "
+        f"collisions {metrics['recent_collision_rate']}"
+    )
+
+
+def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
+    """A trained ddqn_merola agent, greedy, with the hyperparameters and observation it was trained with."""
+    from ..models.dqn import DQN, DQNConfig
+
+    state = artifacts.load_agent_state(cfg, agent_id, "last")
+    if state.get("family") != "merola":
+        raise StageError(f"{agent_id.dir(cfg)} is not a ddqn_merola agent; move it out of {artifacts.runs_root(cfg)}")
+    see = observer(cfg, state["obs"])
+    if see.dim != state["obs_dim"]:
+        raise StageError(
+            f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the observation {state['obs']} "
+            f"gives {see.dim} (the VAE changed?); retrain it with "
+            f"`python -m worldmodel.train_agent experiment={cfg.experiment} agent=ddqn_merola seed={agent_id.seed}`"
+        )
+    agent = DQN(see.dim, len(ACTIONS), DQNConfig(**state["dqn_config"]), agent_id.seed)
+    agent.load_state_dict(state["agent"])
+    return DQNPolicy(agent_id.policy, agent, see, agent_id.seed, merola_action)
+
+
+# ----------------------------------------------------------------------------- evaluation
+def bank(c) -> list[MerolaSpec]:
+    """``c.trials`` seeded trials per scenario, the same for every policy."""
+    out = []
+    for k, scenario in enumerate(SCENARIOS):
+        rng = np.random.default_rng([int(c.seed), k])
+        out += [sample_merola(rng, scenario) for _ in range(int(c.trials))]
+    return out
+
+
+COLUMNS = (
+    "policy",
+    "policy_seed",
+    "group",
+    "scenario",
+    "ego_speed",
+    "other_speed",
+    "ttc",
+    "collision",
+    "first_crash",
+    "delta_v_ego",
+    "occupant_injury",
+    "pedestrian_injury",
+    "return_merola",
+    "lane_departure",
+)
+
+
+def run_policy(env, policy, specs, group: str, policy_seed: int = 0) -> list[dict]:
+    from tqdm import tqdm
+
+    from envs.rollout import rollout
+
+    rows = []
+    for spec in tqdm(specs, desc=policy.name, unit="trial"):
+        o = rollout(env, policy, spec).outcome
+        hits = [h for h in env.collisions if h["kind"] != "pedestrian"]
+        rows.append(
+            {
+                "policy": policy.name,
+                "policy_seed": policy_seed,
+                "group": group,
+                "scenario": spec.scenario,
+                "ego_speed": spec.ego_speed,
+                "other_speed": spec.other_speed,
+                "ttc": spec.ttc,
+                "collision": int(bool(env.collisions)),
+                "first_crash": env.collisions[0]["class"] if env.collisions else "",
+                "delta_v_ego": float(hits[0]["delta_v_ego"]) if hits else 0.0,
+                "occupant_injury": o["occupant_injury"],
+                "pedestrian_injury": o["pedestrian_injury"],
+                "return_merola": o["return_merola"],
+                "lane_departure": o["lane_departure"],
+            }
+        )
+    return rows
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Per policy (seeds pooled) and scenario: collision rate with its Wilson interval, mean ego Δv over all trials
+    and over the collisions, mean Joksch and Rosén risk, mean return; and the paired difference in collisions
+    against braking."""
+    out: dict = {}
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    for name in policies:
+        mine = [r for r in rows if r["policy"] == name]
+        per: dict = {}
+        for scenario in (*SCENARIOS, "all"):
+            sel = [r for r in mine if scenario == "all" or r["scenario"] == scenario]
+            k, n = sum(r["collision"] for r in sel), len(sel)
+            dv = [r["delta_v_ego"] for r in sel if r["collision"]]
+            per[scenario] = {
+                "trials": n,
+                "collision_rate": 100 * k / n if n else math.nan,
+                "collision_ci": wilson(k, n),
+                "delta_v_ego": float(np.mean([r["delta_v_ego"] for r in sel])) if sel else math.nan,
+                "delta_v_ego_crashes": float(np.mean(dv)) if dv else math.nan,
+                "joksch": 100 * float(np.mean([r["occupant_injury"] for r in sel])) if sel else math.nan,
+                "rosen": 100 * float(np.mean([r["pedestrian_injury"] for r in sel])) if sel else math.nan,
+                "return": float(np.mean([r["return_merola"] for r in sel])) if sel else math.nan,
+                "lane_departure": 100 * float(np.mean([r["lane_departure"] for r in sel])) if sel else math.nan,
+            }
+        out[name] = {"group": mine[0]["group"], "seeds": sorted({r["policy_seed"] for r in mine}), "scenarios": per}
+    return {"policies": out, "scenarios": list(SCENARIOS)}
+
+
+def tables(summary: dict, trials: int) -> str:
+    lines = [
+        f"# Merola et al.'s scenarios, {trials} seeded trials per scenario (the same for every policy)",
+        "",
+        "Collision rate % [Wilson 95 %] per scenario; Δv: the ego's velocity change in its first crash, mean over "
+        "all trials (km/h); Joksch: the occupants' severe-injury risk, mean over all trials (%); return: reward "
+        "merola per episode (the paper's learning curve plateaus near -10 with unpublished thresholds, so compare "
+        "collisions and Δv, not returns). Seeds of one agent are pooled.",
+        "",
+        "| policy | " + " | ".join(f"{s} coll. %" for s in (*SCENARIOS, "all")) + " | Δv km/h | Joksch % | return |",
+        "|---|" + "---:|" * (len(SCENARIOS) + 4),
+    ]
+    for name, s in summary["policies"].items():
+        cells = []
+        for scenario in (*SCENARIOS, "all"):
+            p = s["scenarios"][scenario]
+            lo, hi = p["collision_ci"]
+            cells.append(f"{p['collision_rate']:.1f} [{lo:.0f}, {hi:.0f}]")
+        a = s["scenarios"]["all"]
+        cells += [f"{3.6 * a['delta_v_ego']:.1f}", f"{a['joksch']:.2f}", f"{a['return']:.1f}"]
+        label = name + (f" (seeds {', '.join(map(str, s['seeds']))})" if len(s["seeds"]) > 1 else "")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Rosén pedestrian risk is 0 for every policy: the family has no pedestrians (the column stays in "
+        "`summary.json` for the shared layout).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def figure(summary: dict, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(summary["policies"])
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(names) + 2), 3.6))
+    width = 0.8 / len(SCENARIOS)
+    for k, scenario in enumerate(SCENARIOS):
+        rates = [summary["policies"][n]["scenarios"][scenario]["collision_rate"] for n in names]
+        lo = [r - summary["policies"][n]["scenarios"][scenario]["collision_ci"][0] for r, n in zip(rates, names)]
+        hi = [summary["policies"][n]["scenarios"][scenario]["collision_ci"][1] - r for r, n in zip(rates, names)]
+        ax.bar(np.arange(len(names)) + (k - 1) * width, rates, width, yerr=[lo, hi], capsize=2, label=scenario)
+    ax.set_xticks(np.arange(len(names)))
+    ax.set_xticklabels(names, rotation=25, ha="right", fontsize=8)
+    ax.set_ylabel("collision rate, % (95 % CI)")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8)
+    ax.set_title("Merola et al.'s scenarios: lower is better")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def learning_curves(cfg, agents: list[AgentId], path) -> None:
+    """Rolling-100 return of every ddqn_merola run beside the paper's plateau (Fig. 4)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.4))
+    for agent in agents:
+        curve = artifacts.load_agent_state(cfg, agent, "last")["curve"]["return"]
+        if len(curve) >= ROLLING:
+            rolling = np.convolve(curve, np.ones(ROLLING) / ROLLING, mode="valid")
+            ax.plot(np.arange(ROLLING, len(curve) + 1), rolling, label=agent.key, lw=1)
+    ax.axhline(PAPER_PLATEAU, color="k", ls="--", lw=1, label="paper's plateau (~-10)")
+    ax.set_xlabel("episode")
+    ax.set_ylabel("return, rolling 100")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def scripted(cfg) -> list:
+    """Straight-line braking from the start and the privileged planner (minimising R2's injury cost)."""
+    from envs import StraightLineBraking
+    from envs.planner import PrivilegedPlanner
+
+    from ..config import oracle_settings
+
+    make = {
+        "braking": StraightLineBraking,
+        "oracle": lambda: PrivilegedPlanner.from_settings(**{**oracle_settings(cfg), "step_s": 0.1}),
+    }
+    return [make[name]() for name in cfg.evaluate.merola.policies]
+
+
+def evaluate(cfg) -> dict:
+    """``evaluate.family=merola``: braking, the planner, the paper's world-model agents and every ddqn_merola agent
+    on the same seeded trials."""
+    from ..ncap import porav_policies
+    from ..training import tensorboard
+
+    c = cfg.evaluate.merola
+    out = artifacts.eval_dir(cfg)
+    if int(c.seed) != TEST_SEED:  # another draw (validation) never overwrites the test draw's results
+        out = out.with_name(f"{out.name}_seed{int(c.seed)}")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    specs = bank(c)
+    agents = artifacts.trained_agents(cfg, family="merola")
+    record = artifacts.provenance(cfg, "eval")
+    learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
+    world_model = [(p, s) for p, s, camera in porav_policies(cfg) if camera] if c.world_model_agents else []
+    rows = []
+    env = family_env(cfg, step_s=0.1, camera=False)
+    for policy in scripted(cfg):
+        rows += run_policy(env, policy, specs, "scripted")
+    env.close()
+    env = family_env(cfg, step_s=0.1)
+    for policy in learned:
+        rows += run_policy(env, policy, specs, "ddqn_merola", policy.policy_seed)
+    env.close()
+    if world_model:  # the paper's agents act at the step length they were trained with
+        env = family_env(cfg, step_s=float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0)
+        for policy, seed in world_model:
+            rows += run_policy(env, policy, specs, "world model", seed)
+        env.close()
+    if not agents:
+        log.info(
+            "[eval merola] no ddqn_merola agents under %s. Train one with "
+            "`python -m worldmodel.train_agent experiment=%s agent=ddqn_merola`.",
+            artifacts.runs_root(cfg),
+            cfg.experiment,
+        )
+    with open(out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    summary = summarise(rows)
+    (out / "tables.md").write_text(tables(summary, int(c.trials)))
+    figure(summary, out / "collisions.png")
+    if agents:
+        learning_curves(cfg, agents, out / "learning_curves.png")
+    writer = tensorboard(out)
+    for name, s in summary["policies"].items():
+        writer.add_scalar(f"merola/{name}/collision_rate", s["scenarios"]["all"]["collision_rate"], 0)
+    writer.close()
+    artifacts.write_provenance(out, record)
+    summary["wall_s"] = round(time.perf_counter() - t0, 1)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))  # last: it marks the evaluation complete
+    log.info(
+        "[eval merola] %d trials x %d policies in %.0f s: %s",
+        len(specs),
+        len(summary["policies"]),
+        summary["wall_s"],
+        out / "tables.md",
+    )
+    return summary
