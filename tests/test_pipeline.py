@@ -258,12 +258,47 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
         pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
     assert "running" not in caplog.text and "stale" not in caplog.text
 
-    # the Euro NCAP pedestrian bank runs every policy of the experiment, from one command
-    ncap.run(smoke_cfg(root, "ncap", "ncap.tests=[CPNA-25,CPNC-50]"))
-    summary = json.loads((runs / "eval_ncap/summary.json").read_text())
-    expected = {"braking", "oracle", "ttc_braking", "latest_safe_braking"}
-    expected |= {f"{p}/seed0" for p in ("agent_r1", "agent_r2", "agent_r2_chooser", *policies[3:])}
-    assert set(summary["policies"]) == expected
-    assert all(s["runs"] == 2 * 2 for s in summary["policies"].values())  # two tests at 20 and 60 km/h
-    assert summary["policies"]["braking"]["avoided_pct"] == 100.0  # braking from TTC 1.5 s stops in time
-    assert (runs / "eval_ncap/ncap.png").exists() and "CPNC-50" in (runs / "eval_ncap/tables.md").read_text()
+
+def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experiment, tmp_path):
+    """agent=ddqn_merola on the camera, evaluate.family=merola with braking, the planner and the paper's world-model
+    agents on the same trials; then one NCAP command runs every policy of every family, the car-to-car tests for
+    every policy that can see a car."""
+    root = tmp_path / "copy"
+    shutil.copytree(experiment, root)
+    for preset in ("ddqn_merola", "ddpg_kim", "dqn_chae"):
+        train_agent.run(smoke_cfg(root, "train_agent", f"agent={preset}"))
+    runs = root / "runs/t"
+    metrics = json.loads((runs / "agent_merola_ddqn_merola/seed0/metrics.json").read_text())
+    assert metrics["steps"] >= 300 and len(metrics["curve"]["return"]) == metrics["episodes"]
+
+    evaluate.run(smoke_cfg(root, "evaluate", "evaluate.family=merola"))
+    rows = list(csv.DictReader(open(runs / "eval_merola/results.csv")))
+    names = ["braking", "oracle", "agent_merola_ddqn_merola", "agent_r1", "agent_r2", "agent_r2_chooser"]
+    assert set(r["policy"] for r in rows) == set(names)
+    trials = {p: [(r["scenario"], r["ego_speed"], r["ttc"]) for r in rows if r["policy"] == p] for p in names}
+    assert len(trials["braking"]) == 3 * 2 and all(t == trials["braking"] for t in trials.values())
+    # braking from the start always stops behind a lead car that brakes with 1-2 s of headway
+    assert not any(int(r["collision"]) for r in rows if r["policy"] == "braking" and r["scenario"] == "lead_brake")
+    for name in ("tables.md", "collisions.png", "learning_curves.png", "summary.json"):
+        assert (runs / "eval_merola" / name).exists(), name
+
+    ncap.run(smoke_cfg(root, "ncap", "ncap.tests=[CPNA-25]"))
+    summary = json.loads((runs / "eval_ncap/summary.json").read_text())["policies"]
+    car_runs = {  # 2 CCRs + 2 CCRm speeds at 100 % overlap, 4 CCRb variants; Chae's privileged policies: none
+        "braking": 8,
+        "oracle": 8,
+        "ttc_braking": 0,
+        "latest_safe_braking": 0,
+        "aeb3m": 8,
+        "agent_chae_dqn_chae/seed0": 0,
+        "agent_kim_unaware_ddpg_kim/seed0": 8,
+        "agent_merola_ddqn_merola/seed0": 8,
+        "agent_r1/seed0": 8,
+        "agent_r2/seed0": 8,
+        "agent_r2_chooser/seed0": 8,
+    }
+    assert {k: s["car_runs"] for k, s in summary.items()} == car_runs
+    assert all(s["pedestrian_runs"] == 2 for s in summary.values())  # CPNA-25 at 20 and 60 km/h
+    assert summary["braking"]["pedestrian_avoided_pct"] == 100.0  # braking from TTC 1.5 s stops in time
+    tables = (runs / "eval_ncap/tables.md").read_text()
+    assert "CCRb 6 m/s², 12 m" in tables and (runs / "eval_ncap/ncap.png").exists()

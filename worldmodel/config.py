@@ -403,7 +403,8 @@ class AgentConfig(DDPGConfig):
     # learner "dqn" (worldmodel/peers/chae.py): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
     episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
-    # a LIDAR ddpg peer's training steps (obs=lidar on family kim, worldmodel/peers/kim.py; Kim et al.: 100k).
+    # a LIDAR ddpg peer's training steps (obs=lidar on family kim, worldmodel/peers/kim.py; Kim et al.: 100k), and
+    # ddqn_merola's (worldmodel/peers/merola.py; Merola et al.: 360k).
     # Its own key, so that a scale can shrink it while the peer's preset keeps the paper's other settings
     peer_total_steps: int = 100_000
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs

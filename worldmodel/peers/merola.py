@@ -3,7 +3,8 @@
     python -m worldmodel.train_agent experiment=NAME agent=ddqn_merola [seed=K] [obs=frames_resnet]
     python -m worldmodel.evaluate experiment=NAME evaluate.family=merola
 
-Training (``train_agent`` with ``agent.variant=ddqn_merola``): ``agent.episodes`` episodes drawn from
+Training (``train_agent`` with ``agent.variant=ddqn_merola``): ``agent.peer_total_steps`` steps (whole episodes) drawn
+from
 ``envs.merola.sample`` (lead car braking, junction crossing, oncoming drift; 60 steps of 0.1 s), reward ``merola``,
 nine actions {brake, none, throttle} × {left, straight, right} (pedal -1 / 0 / +1, steer -0.5 / 0 / +0.5), Double
 DQN from ``worldmodel/models/dqn.py`` with one update per step. The observation (PEERS.md deviation: our camera
@@ -139,17 +140,18 @@ def episode_scenario(seed: int, episode: int) -> MerolaSpec:
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
-    """``train_agent`` for ``agent.variant=ddqn_merola``: ``agent.episodes`` episodes of family merola."""
+    """``train_agent`` for ``agent.variant=ddqn_merola``: episodes of family merola until ``agent.peer_total_steps``
+    steps have been taken; the learning rate decays over exactly that many updates."""
     from tqdm import tqdm
 
     from ..models.dqn import DQN
 
     if agent_id.reward != "merola":
         raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
-    episodes = int(cfg.agent.episodes)
+    total = int(cfg.agent.peer_total_steps)
     see = observer(cfg, str(cfg.agent.obs))
     env = family_env(cfg)
-    hp = dqn_config(cfg)
+    hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
     agent = DQN(see.dim, len(ACTIONS), hp, int(cfg.seed))
     episode, curve = 0, {"return": [], "collision": [], "scenario": []}
     if run_.state is not None:
@@ -182,8 +184,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     recent: deque = deque(curve["return"][-ROLLING:], maxlen=ROLLING)
     crashes: deque = deque(curve["collision"][-ROLLING:], maxlen=ROLLING)
     loss = None
-    with tqdm(total=episodes, initial=episode, desc=f"ddqn merola ({cfg.agent.obs})", unit="episode") as bar:
-        while episode < episodes and not run_.stop.requested:
+    with tqdm(total=total, initial=agent.steps, desc=f"ddqn merola ({cfg.agent.obs})", unit="step") as bar:
+        while agent.steps < total and not run_.stop.requested:
             obs, _ = env.reset(options={"scenario": episode_scenario(int(cfg.seed), episode)})
             see.reset()
             x, ret = see(env, obs), 0.0
@@ -205,7 +207,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             recent.append(float(ret))
             crashes.append(int(crashed))
             episode += 1
-            bar.update(1)
+            bar.update(agent.steps - bar.n)
             writer.add_scalar("episode/return", ret, episode)
             writer.add_scalar("episode/return_rolling", float(np.mean(recent)), episode)
             writer.add_scalar("episode/collision_rate_rolling", float(np.mean(crashes)), episode)
@@ -448,7 +450,7 @@ def evaluate(cfg) -> dict:
     agents = artifacts.trained_agents(cfg, family="merola")
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
-    world_model = [(p, s) for p, s, camera in porav_policies(cfg) if camera] if c.world_model_agents else []
+    world_model = [(p, s) for p, s, camera, _ in porav_policies(cfg) if camera] if c.world_model_agents else []
     rows = []
     env = family_env(cfg, step_s=0.1, camera=False)
     for policy in scripted(cfg):
