@@ -273,7 +273,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
 
     evaluate.run(smoke_cfg(root, "evaluate", "evaluate.family=merola"))
     rows = list(csv.DictReader(open(runs / "eval_merola/results.csv")))
-    names = ["braking", "oracle", "agent_merola_ddqn_merola", "agent_r1", "agent_r2", "agent_r2_chooser"]
+    names = ["braking", "aeb3m", "oracle", "agent_merola_ddqn_merola", "agent_r1", "agent_r2", "agent_r2_chooser"]
     assert set(r["policy"] for r in rows) == set(names)
     trials = {p: [(r["scenario"], r["ego_speed"], r["ttc"]) for r in rows if r["policy"] == p] for p in names}
     assert len(trials["braking"]) == 3 * 2 and all(t == trials["braking"] for t in trials.values())
@@ -282,7 +282,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     for name in ("tables.md", "collisions.png", "learning_curves.png", "summary.json"):
         assert (runs / "eval_merola" / name).exists(), name
 
-    ncap.run(smoke_cfg(root, "ncap", "ncap.tests=[CPNA-25]"))
+    evaluate.run(smoke_cfg(root, "evaluate", "evaluate.family=ncap", "ncap.tests=[CPNA-25]"))  # = worldmodel.ncap
     summary = json.loads((runs / "eval_ncap/summary.json").read_text())["policies"]
     car_runs = {  # 2 CCRs + 2 CCRm speeds at 100 % overlap, 4 CCRb variants; Chae's privileged policies: none
         "braking": 8,

@@ -618,15 +618,16 @@ class MerolaEvalConfig(Checked):
     per scenario for braking, the planner, the paper's world-model agents and every ddqn_merola agent."""
 
     trials: int = 100  # seeded trials per scenario, the same for every policy
-    policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
+    # straight-line braking from the start, Kim's AEB-3m (brakes once a footprint is within 3 m ahead), the planner
+    policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
     world_model_agents: bool = True  # also the paper's R1 / R2 agents and the chooser, at their own 1/15 s steps
     # the test draw; settings and checkpoints are chosen on another (evaluate.merola.seed=77: eval_merola_seed77)
     seed: int = 2022
 
     def problems(self):
         yield from _positive(self, "trials")
-        if any(p not in ("braking", "oracle") for p in self.policies):
-            yield ConfigValueError("policies", list(self.policies), "use some of braking, oracle")
+        if any(p not in ("braking", "aeb3m", "oracle") for p in self.policies):
+            yield ConfigValueError("policies", list(self.policies), "use some of braking, aeb3m, oracle")
 
 
 @dataclass

@@ -20,7 +20,9 @@ episode) every ``CHECKPOINT_EPISODES``, TensorBoard and ``metrics.json`` with th
 
 Evaluation (``evaluate.family=merola``): per scenario, ``evaluate.merola.trials`` seeded trials shared by every
 policy: collision rate (Wilson 95 %), mean ego Δv, the occupant's Joksch risk and the pedestrian's Rosén risk
-(``envs/injury.py``), and the return. Policies: straight-line braking from the start, the privileged planner, the
+(``envs/injury.py``), and the return. Policies: straight-line braking from the start (every episode here holds a
+hazard, so braking at once is a strong floor on collisions, and one the reward discourages), Kim's AEB-3m (hold
+speed, brake once something is within 3 m ahead), the privileged planner, the
 paper's world-model agents of the experiment (R1 / R2 DDPG and the chooser, at their own 1/15 s steps, acting from
 the start), and every ``ddqn_merola`` agent. Writes ``runs/NAME/eval_merola/``.
 """
@@ -421,14 +423,16 @@ def learning_curves(cfg, agents: list[AgentId], path) -> None:
 
 
 def scripted(cfg) -> list:
-    """Straight-line braking from the start and the privileged planner (minimising R2's injury cost)."""
+    """Straight-line braking from the start, AEB-3m and the privileged planner (minimising R2's injury cost)."""
     from envs import StraightLineBraking
+    from envs.kim import Aeb3m
     from envs.planner import PrivilegedPlanner
 
     from ..config import oracle_settings
 
     make = {
         "braking": StraightLineBraking,
+        "aeb3m": Aeb3m,
         "oracle": lambda: PrivilegedPlanner.from_settings(**{**oracle_settings(cfg), "step_s": 0.1}),
     }
     return [make[name]() for name in cfg.evaluate.merola.policies]
