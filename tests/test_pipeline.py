@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, evaluate, ncap, pipeline, policies, train_agent, train_vae
+from worldmodel import artifacts, evaluate, pipeline, policies, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv

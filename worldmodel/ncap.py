@@ -277,6 +277,7 @@ def summarise(rows: list[dict]) -> dict:
             "car_points_pct": pct(_mean(r["points"] for r in car)),
             "car_impact_kmh": _mean(r["impact_kmh"] for r in car if not r["avoided"]),
             "other_collisions": int(sum(r["other_collision"] for r in mine)),
+            "clean_pct": pct(_mean(r["avoided"] and not r["other_collision"] for r in mine)),
         }
     return out
 
@@ -294,18 +295,20 @@ def tables(rows: list[dict], summary: dict) -> str:
         "40 km/h, hit below 40 km/h from 40 to 60 km/h. Car points: 1 for avoidance, else by the relative impact "
         "speed (< 5 km/h 1, < 15 0.75, < 30 0.5, < 40 0.25; none at 20 km/h and below), confirmed by PEERS.md for "
         "CCRs at 50 km/h and at 20 km/h and below, approximate elsewhere. n/a: the policy does not run these "
-        "tests. Other collisions: runs that also hit a parked car, a pole or the street.",
+        "tests. Other collisions: runs that also hit a parked car, a pole or the street; clean runs: the target "
+        "avoided and nothing else hit, over every test the policy ran.",
         "",
         "| policy | family | pedestrian avoided % | aim met % | mean impact, km/h | car avoided % | car points % "
-        "| mean relative impact, km/h | other collisions |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| mean relative impact, km/h | other collisions | clean runs % |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for key, s in summary["policies"].items():
         lines.append(
             f"| {key} | {s['family']} | {_fmt(s['pedestrian_avoided_pct'])} | {_fmt(s['aim_met_pct'])} | "
             f"{_fmt(s['pedestrian_impact_kmh'], 1) if s['pedestrian_runs'] else 'n/a'} | "
             f"{_fmt(s['car_avoided_pct'])} | {_fmt(s['car_points_pct'])} | "
-            f"{_fmt(s['car_impact_kmh'], 1) if s['car_runs'] else 'n/a'} | {s['other_collisions']} |"
+            f"{_fmt(s['car_impact_kmh'], 1) if s['car_runs'] else 'n/a'} | {s['other_collisions']} | "
+            f"{_fmt(s['clean_pct'])} |"
         )
     lines += [
         "",
@@ -350,21 +353,23 @@ def figure(rows: list[dict], path) -> None:
         ("pedestrian_avoided_pct", "pedestrian tests avoided"),
         ("car_avoided_pct", "car tests avoided"),
         ("car_points_pct", "car points (approx.)"),
+        ("clean_pct", "clean runs: nothing hit at all"),
     )
     fig, ax = plt.subplots(figsize=(max(7.0, 0.75 * len(keys) + 2.5), 4.2))
     width = 0.8 / len(bars)
     x = np.arange(len(keys))
     for k, (field, label) in enumerate(bars):
         values = [summary[key][field] for key in keys]
-        ax.bar(x + (k - 1) * width, [np.nan if v is None else v for v in values], width, label=label)
-        for xi, v in zip(x + (k - 1) * width, values, strict=True):
+        at = x + (k - (len(bars) - 1) / 2) * width
+        ax.bar(at, [np.nan if v is None else v for v in values], width, label=label)
+        for xi, v in zip(at, values, strict=True):
             if v is None:
                 ax.text(xi, 2, "n/a", ha="center", fontsize=6, rotation=90)
     ax.set_xticks(x, keys, rotation=35, ha="right", fontsize=7)
     ax.set_ylim(0, 105)
     ax.set_ylabel("%")
-    ax.legend(fontsize=8, loc="lower right")
-    ax.set_title("Euro NCAP AEB tests (approximate), every policy: higher is better", fontsize=10)
+    ax.legend(fontsize=8, loc="lower center", bbox_to_anchor=(0.5, 1.06), ncol=len(bars), frameon=False)
+    ax.set_title("Euro NCAP AEB tests (approximate), every policy: higher is better", fontsize=10, pad=24)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

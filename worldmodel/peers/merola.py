@@ -386,8 +386,9 @@ def figure(summary: dict, path) -> None:
     width = 0.8 / len(SCENARIOS)
     for k, scenario in enumerate(SCENARIOS):
         rates = [summary["policies"][n]["scenarios"][scenario]["collision_rate"] for n in names]
-        lo = [r - summary["policies"][n]["scenarios"][scenario]["collision_ci"][0] for r, n in zip(rates, names)]
-        hi = [summary["policies"][n]["scenarios"][scenario]["collision_ci"][1] - r for r, n in zip(rates, names)]
+        ci = [summary["policies"][n]["scenarios"][scenario]["collision_ci"] for n in names]
+        lo = [max(0.0, r - c[0]) for r, c in zip(rates, ci, strict=True)]  # Wilson's bound at 0 % is 0 up to rounding
+        hi = [max(0.0, c[1] - r) for r, c in zip(rates, ci, strict=True)]
         ax.bar(np.arange(len(names)) + (k - 1) * width, rates, width, yerr=[lo, hi], capsize=2, label=scenario)
     ax.set_xticks(np.arange(len(names)))
     ax.set_xticklabels(names, rotation=25, ha="right", fontsize=8)
