@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, evaluate, pipeline, policies, train_agent, train_vae
+from worldmodel import artifacts, evaluate, ncap, pipeline, policies, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv
@@ -282,7 +282,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     for name in ("tables.md", "collisions.png", "learning_curves.png", "summary.json"):
         assert (runs / "eval_merola" / name).exists(), name
 
-    evaluate.run(smoke_cfg(root, "evaluate", "evaluate.family=ncap", "ncap.tests=[CPNA-25]"))  # = worldmodel.ncap
+    ncap.run(smoke_cfg(root, "ncap", "ncap.tests=[CPNA-25]"))
     summary = json.loads((runs / "eval_ncap/summary.json").read_text())["policies"]
     car_runs = {  # 2 CCRs + 2 CCRm speeds at 100 % overlap, 4 CCRb variants; Chae's privileged policies: none
         "braking": 8,

@@ -22,7 +22,7 @@ import logging
 import time
 
 from . import artifacts
-from .common import make_env, set_threads
+from .common import StageError, make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, policy_for
 from .report import OUTCOME_COLUMNS, write_report, write_results_csv
@@ -128,10 +128,10 @@ def run(cfg) -> dict:
         from .peers import merola
 
         return merola.evaluate(cfg)
-    if cfg.evaluate.family == "ncap":  # the same as python -m worldmodel.ncap
-        from . import ncap
-
-        return ncap.run(cfg)
+    if cfg.evaluate.family == "ncap":
+        raise StageError(
+            f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={cfg.experiment}"
+        )
     entries = bank(cfg)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()

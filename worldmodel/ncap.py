@@ -39,6 +39,7 @@ from envs.ncap import bank, car_bank, car_points, verdict
 from . import artifacts
 from .common import make_env, set_threads
 from .config import hydra_main, validate
+from .policies import porav_policies
 
 log = logging.getLogger(__name__)
 HOLD = np.zeros(2, dtype=np.float32)  # no steering, pedal 0: the car holds its speed
@@ -97,20 +98,6 @@ def takeover_step(takeover_ttc_s: float, step_s: float) -> int:
     from envs.ncap import START_TTC_S
 
     return max(0, math.ceil((START_TTC_S - takeover_ttc_s) / step_s - 1e-9))
-
-
-def porav_policies(cfg):
-    """(policy, seed, needs the camera, car tests too) for the paper's family: braking, the planner, every trained
-    agent."""
-    from .policies import policy_for
-
-    names = [p for p in ("braking", "oracle") if p in cfg.evaluate.policies]
-    names += [a.key for a in artifacts.trained_agents(cfg)]
-    out = []
-    for name in names:
-        policy, seed, _ = policy_for(cfg, name)
-        out.append((policy, seed, name not in ("braking", "oracle"), True))
-    return out
 
 
 def chae_policies(cfg):

@@ -56,3 +56,15 @@ def policy_for(cfg, name: str):
         return build_policy(agent.policy, encoder, state), agent.seed, artifacts.models_of(cfg, agent)
     policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
     return policy, agent.seed, artifacts.models_of(cfg, agent)
+
+
+def porav_policies(cfg):
+    """(policy, seed, needs the camera, car tests too) for the paper's family: braking, the planner, every trained
+    agent."""
+    names = [p for p in ("braking", "oracle") if p in cfg.evaluate.policies]
+    names += [a.key for a in artifacts.trained_agents(cfg)]
+    out = []
+    for name in names:
+        policy, seed, _ = policy_for(cfg, name)
+        out.append((policy, seed, name not in ("braking", "oracle"), True))
+    return out

@@ -442,7 +442,7 @@ def scripted(cfg) -> list:
 def evaluate(cfg) -> dict:
     """``evaluate.family=merola``: braking, the planner, the paper's world-model agents and every ddqn_merola agent
     on the same seeded trials."""
-    from ..ncap import porav_policies
+    from ..policies import porav_policies
     from ..training import tensorboard
 
     c = cfg.evaluate.merola
