@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import geometry
-from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
+from .actors import Actors
 from .scene import BUILDINGS, POLES, StaticLayout
 from .specs import FamilySpec
 
@@ -293,29 +293,13 @@ def build(spec: KimSpec, ego_front: float) -> tuple[Actors, KimState]:
             x += float(rng.uniform(15.0, 35.0))
         hazard += [False] * (len(cars) - 1)
 
-    car_xy = np.zeros((CAR_POOL, 2))
-    car_heading = np.zeros(CAR_POOL)
-    car_active = np.zeros(CAR_POOL, dtype=bool)
-    car_hazard = np.zeros(CAR_POOL, dtype=bool)
+    actors = Actors.empty(collision_point=(ego_front + spec.ego_speed * CONTACT_S, spec.ego_y))
     for car, is_hazard in zip(cars, hazard, strict=True):
         x, y, h = car.path.pose(car.s0)
-        car_xy[car.index] = (x + junction_x, y)
-        car_heading[car.index] = h
-        car_active[car.index] = True
-        car_hazard[car.index] = is_hazard
-    actors = Actors(
-        car_xy=car_xy,
-        car_vel=np.zeros((CAR_POOL, 2)),
-        car_heading=car_heading,
-        car_active=car_active,
-        car_hazard=car_hazard,
-        ped_xy=np.zeros((PEDESTRIAN_POOL, 2)),
-        ped_vel=np.zeros((PEDESTRIAN_POOL, 2)),
-        ped_active=np.zeros(PEDESTRIAN_POOL, dtype=bool),
-        ped_hazard=np.zeros(PEDESTRIAN_POOL, dtype=bool),
-        ped_stop_y=np.full(PEDESTRIAN_POOL, np.nan),
-        collision_point=(ego_front + spec.ego_speed * CONTACT_S, spec.ego_y),
-    )
+        actors.car_xy[car.index] = (x + junction_x, y)
+        actors.car_heading[car.index] = h
+        actors.car_active[car.index] = True
+        actors.car_hazard[car.index] = is_hazard
     goal = (junction_x + GOAL_PAST_CENTRE_M, spec.ego_y)
     state = KimState(junction_x, spec.ego_speed, goal, cars)
     state.last_goal_distance = goal[0] - ego_x0  # the ego starts in its lane, on the goal's line

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .actors import CAR_POOL, PEDESTRIAN_POOL, Actors
+from .actors import Actors
 from .merola import Motion
 from .scene import EGO_LANE_Y, ROAD_HALF_WIDTH
 from .specs import FamilySpec
@@ -266,33 +266,16 @@ def build(spec: NcapSpec, ego_front: float, **options):
     impact_y = EGO_LANE_Y - direction * CAR_WIDTH / 2 + direction * share * CAR_WIDTH
     walk = v_p * START_TTC_S - ACCELERATION_M  # covered in 4 s when the first 1 m is an acceleration from rest
     start_y = impact_y - direction * walk
-    ped_xy = np.zeros((PEDESTRIAN_POOL, 2))
-    ped_xy[0] = (ped_x, start_y)
-    ped_active = np.zeros(PEDESTRIAN_POOL, dtype=bool)
-    ped_active[0] = True
-    ped_stop_y = np.full(PEDESTRIAN_POOL, np.nan)
-    ped_stop_y[0] = direction * (ROAD_HALF_WIDTH + 1.0)  # walks on to the far pavement
-    car_xy = np.zeros((CAR_POOL, 2))
-    car_active = np.zeros(CAR_POOL, dtype=bool)
+    actors = Actors.empty(collision_point=(ped_x, impact_y))
+    actors.ped_xy[0] = (ped_x, start_y)
+    actors.ped_active[0] = actors.ped_hazard[0] = True
+    actors.ped_stop_y[0] = direction * (ROAD_HALF_WIDTH + 1.0)  # walks on to the far pavement
     if parked:
         kerb_y = -(ROAD_HALF_WIDTH + 0.2)  # straddling the kerb, 0.15 m clear of a car in its lane
         first = ped_x - 1.0 - PARKED_LENGTH / 2
-        car_xy[0] = (first, kerb_y)
-        car_xy[1] = (first - PARKED_LENGTH - 1.0, kerb_y)
-        car_active[:2] = True
-    actors = Actors(
-        car_xy=car_xy,
-        car_vel=np.zeros((CAR_POOL, 2)),
-        car_heading=np.zeros(CAR_POOL),
-        car_active=car_active,
-        car_hazard=np.zeros(CAR_POOL, dtype=bool),
-        ped_xy=ped_xy,
-        ped_vel=np.zeros((PEDESTRIAN_POOL, 2)),
-        ped_active=ped_active,
-        ped_hazard=ped_active.copy(),
-        ped_stop_y=ped_stop_y,
-        collision_point=(ped_x, impact_y),
-    )
+        actors.car_xy[0] = (first, kerb_y)
+        actors.car_xy[1] = (first - PARKED_LENGTH - 1.0, kerb_y)
+        actors.car_active[:2] = True
     state = NcapState(ped_x=ped_x, start_t=1.0 / v_p * ACCELERATION_M, velocity=(0.0, direction * v_p))
     return actors, state
 
