@@ -21,8 +21,6 @@ braking, the privileged latest-safe braking, and every dqn agent of the experime
 
 from __future__ import annotations
 
-import csv
-import dataclasses
 import json
 import logging
 import time
@@ -46,6 +44,7 @@ from envs.chae import (
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
+from .common import dqn_checkpoint, resume_dqn, seal, write_rows
 
 log = logging.getLogger(__name__)
 # Chae's state to roughly unit scale: dx up to ~85 m, dy up to ~6 m, speed up to ~17 m/s
@@ -142,31 +141,10 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
     agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
-    episode, curve = 0, {"return": [], "end": []}
-    if run_.state is not None:
-        if run_.state["obs_dim"] != see.dim:
-            raise StageError(
-                f"{run_.last} expects inputs of size {run_.state['obs_dim']}, the observation gives {see.dim}; "
-                f"delete {run_.dir} to retrain"
-            )
-        agent.load_state_dict(run_.state["agent"])
-        episode, curve = int(run_.state["episode"]), run_.state["curve"]
-        run_.resumed(f"episode {episode}")
+    episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "end": []})
 
     def snapshot():
-        run_.save(
-            {
-                "agent": agent.state_dict(),
-                "episode": episode,
-                "step": agent.steps,
-                "curve": curve,
-                "obs": str(cfg.agent.obs),
-                "obs_dim": see.dim,
-                "learner": "dqn",
-                "dqn_config": dataclasses.asdict(hp),
-                "reward": agent_id.reward,
-            }
-        )
+        run_.save(dqn_checkpoint(agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward))
 
     writer = run_.writer
     recent: deque = deque(maxlen=ROLLING)
@@ -410,10 +388,7 @@ def evaluate(cfg) -> dict:
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
-    with open(out / "results.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(out, rows, COLUMNS)
     summary = summarise(rows, [float(t) for t in c.ttcs])
     (out / "tables.md").write_text(tables(summary, int(c.trials)))
     figures(rows, summary, out)
@@ -423,9 +398,7 @@ def evaluate(cfg) -> dict:
         for ttc, rate in s["bump_rate"].items():
             writer.add_scalar(f"chae/{policy}/bump_rate", rate, int(round(float(ttc) * 10)))
     writer.close()
-    artifacts.write_provenance(out, record)
-    summary["wall_s"] = round(time.perf_counter() - t0, 1)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))  # last: it marks the evaluation complete
+    seal(out, summary, record, t0)
     log.info(
         "[eval chae] %d trials x %d policies in %.0f s: %s",
         len(entries),

@@ -21,9 +21,7 @@ paired permutation tests on per-trial injury. Writes ``runs/NAME/eval_kim/``.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -40,6 +38,7 @@ from envs.rewards import crash_iss
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
+from .common import seal, write_rows
 
 log = logging.getLogger(__name__)
 ROLLING = 100
@@ -516,10 +515,7 @@ def evaluate(cfg) -> dict:
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
-    with open(out / "results.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(out, rows, COLUMNS)
     summary = summarise(rows, int(c.paper_trials))
     (out / "tables.md").write_text(tables(summary, int(c.trials), int(c.paper_trials)))
     figure(summary, out / "avoidance.png")
@@ -527,9 +523,7 @@ def evaluate(cfg) -> dict:
     for policy, s in summary["policies"].items():
         writer.add_scalar(f"kim/{policy}/avoidance", s["all"]["overall"]["avoidance"], 0)
     writer.close()
-    artifacts.write_provenance(out, record)
-    summary["wall_s"] = round(time.perf_counter() - t0, 1)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))  # last: it marks the evaluation complete
+    seal(out, summary, record, t0)
     log.info(
         "[eval kim] %d trials x %d policies in %.0f s: %s",
         len(specs),

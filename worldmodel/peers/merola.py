@@ -29,9 +29,7 @@ the start), and every ``ddqn_merola`` agent. Writes ``runs/NAME/eval_merola/``.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -47,6 +45,7 @@ from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
 from .chae import DQNPolicy, dqn_config
+from .common import dqn_checkpoint, resume_dqn, seal, write_rows
 from .kim import wilson
 
 log = logging.getLogger(__name__)
@@ -155,32 +154,11 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     env = family_env(cfg)
     hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
     agent = DQN(see.dim, len(ACTIONS), hp, int(cfg.seed))
-    episode, curve = 0, {"return": [], "collision": [], "scenario": []}
-    if run_.state is not None:
-        if run_.state["obs_dim"] != see.dim:
-            raise StageError(
-                f"{run_.last} expects inputs of size {run_.state['obs_dim']}, the observation gives {see.dim}; "
-                f"delete {run_.dir} to retrain"
-            )
-        agent.load_state_dict(run_.state["agent"])
-        episode, curve = int(run_.state["episode"]), run_.state["curve"]
-        run_.resumed(f"episode {episode}")
+    episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "collision": [], "scenario": []})
 
     def snapshot():
-        run_.save(
-            {
-                "agent": agent.state_dict(),
-                "episode": episode,
-                "step": agent.steps,
-                "curve": curve,
-                "obs": str(cfg.agent.obs),
-                "obs_dim": see.dim,
-                "learner": "dqn",
-                "family": "merola",
-                "dqn_config": dataclasses.asdict(hp),
-                "reward": agent_id.reward,
-            }
-        )
+        obs = str(cfg.agent.obs)
+        run_.save(dqn_checkpoint(agent, hp, episode, curve, obs, see.dim, agent_id.reward, family="merola"))
 
     writer = run_.writer
     recent: deque = deque(curve["return"][-ROLLING:], maxlen=ROLLING)
@@ -477,10 +455,7 @@ def evaluate(cfg) -> dict:
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
-    with open(out / "results.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(out, rows, COLUMNS)
     summary = summarise(rows)
     (out / "tables.md").write_text(tables(summary, int(c.trials)))
     figure(summary, out / "collisions.png")
@@ -490,9 +465,7 @@ def evaluate(cfg) -> dict:
     for name, s in summary["policies"].items():
         writer.add_scalar(f"merola/{name}/collision_rate", s["scenarios"]["all"]["collision_rate"], 0)
     writer.close()
-    artifacts.write_provenance(out, record)
-    summary["wall_s"] = round(time.perf_counter() - t0, 1)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))  # last: it marks the evaluation complete
+    seal(out, summary, record, t0)
     log.info(
         "[eval merola] %d trials x %d policies in %.0f s: %s",
         len(specs),

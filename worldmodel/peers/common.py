@@ -1,0 +1,61 @@
+"""What every peer's trainer and evaluation share: resuming a DQN run, its checkpoint, and writing an evaluation
+directory (``results.csv`` first, ``summary.json`` last, since its presence marks the evaluation complete)."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from .. import artifacts
+from ..common import StageError
+
+
+def resume_dqn(run_, agent, obs_dim: int, curve: dict) -> tuple[int, dict]:
+    """(episode, curve) to continue from: the run's checkpoint loaded into ``agent``, or (0, ``curve``) when fresh.
+    Refuses a checkpoint whose input size is not the observation's."""
+    if run_.state is None:
+        return 0, curve
+    if run_.state["obs_dim"] != obs_dim:
+        raise StageError(
+            f"{run_.last} expects inputs of size {run_.state['obs_dim']}, the observation gives {obs_dim}; "
+            f"delete {run_.dir} to retrain"
+        )
+    agent.load_state_dict(run_.state["agent"])
+    episode = int(run_.state["episode"])
+    run_.resumed(f"episode {episode}")
+    return episode, run_.state["curve"]
+
+
+def dqn_checkpoint(agent, hp, episode: int, curve: dict, obs: str, obs_dim: int, reward: str, **extra) -> dict:
+    """A dqn run's ``last.pt``: network, optimiser, memories and RNG (``agent.state_dict``), the learning curve, and
+    what ``load_policy`` needs to rebuild it (observation, its size, the hyperparameters)."""
+    return {
+        "agent": agent.state_dict(),
+        "episode": episode,
+        "step": agent.steps,
+        "curve": curve,
+        "obs": obs,
+        "obs_dim": obs_dim,
+        "learner": "dqn",
+        "dqn_config": dataclasses.asdict(hp),
+        "reward": reward,
+        **extra,
+    }
+
+
+def write_rows(out: Path, rows: list[dict], columns) -> None:
+    with open(out / "results.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(columns))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:
+    """Provenance, the wall time, then ``summary.json``: last, because it marks the evaluation complete."""
+    artifacts.write_provenance(out, record)
+    summary["wall_s"] = round(time.perf_counter() - t0, 1)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
