@@ -38,6 +38,7 @@ import numpy as np
 from .scene import (
     EDGE_LINE_Y,
     GROUND_X,
+    LANE_WIDTH,
     LINE_HALF_WIDTH,
     NONE,
     NUM_CLASSES,
@@ -156,6 +157,93 @@ class FlatGround:
         return cls, upper, kerb, at
 
 
+class CrossroadsGround:
+    """The flat ground of a four-way junction (family kim) as plain geometry, drawn per pixel like ``FlatGround``.
+
+    Two roads of ``half_width`` each side of their centre lines cross at x = ``junction_x``: the main road along
+    x (the ego's) and the cross road along y. Everything else is land at the sidewalk level (Sidewalks, as the
+    street's land behind its sidewalks is). On the roads, outside the junction's box: a solid centre line, solid
+    edge lines 0.2 m inside the kerbs, dashed dividers (3 m of every 6 m) between lanes of ``lane_width``, and a
+    0.4 m stop line across each approach's own lanes (right-hand traffic), 0.5 m before the crossing road's edge.
+    Kerb faces are Sidewalks at the depth where the ray crosses the kerb line, as in ``FlatGround``. There are no
+    ground bodies to compare with: ``analytic_ground=False`` draws the street's hidden boxes instead.
+    """
+
+    UPPER_Z = SIDEWALK_TOP_Z
+    LOWER_Z = ROAD_TOP_Z
+    DASH_PERIOD_M, DASH_M = 6.0, 3.0
+    STOP_LINE_M = (0.5, 0.9)  # from the crossing road's edge, metres
+
+    def __init__(self, junction_x: float, half_width: float, lane_width: float = LANE_WIDTH) -> None:
+        if not half_width > 0.0:
+            raise ValueError(f"crossroads half_width={half_width!r} must be positive")
+        self.junction_x = float(junction_x)
+        self.half_width = float(half_width)
+        self.dividers = lane_width * np.arange(1, int(round(half_width / lane_width)))
+
+    def _land(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        hw = self.half_width
+        return (np.abs(y) >= hw) & (np.abs(x - self.junction_x) >= hw)
+
+    def _markings(self, across: np.ndarray, along: np.ndarray) -> np.ndarray:
+        """Road lines of one road at ``across`` from its centre line and ``along`` from the junction's centre, for
+        points on that road outside the junction's box. Traffic keeps right: the lanes at across < 0 approach the
+        junction from along < 0."""
+        hw, w = self.half_width, LINE_HALF_WIDTH
+        a = np.abs(across)
+        line = (a <= w) | (np.abs(a - (hw - 0.2)) <= w)
+        if self.dividers.size:
+            dash = np.mod(along, self.DASH_PERIOD_M) < self.DASH_M
+            line |= dash & (np.abs(a[:, None] - self.dividers[None, :]) <= w).any(axis=1)
+        near, far = hw + self.STOP_LINE_M[0], hw + self.STOP_LINE_M[1]
+        approach = np.where(across < 0.0, -along, along)
+        return line | ((approach >= near) & (approach <= far))
+
+    def _lines(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Which road points (x, y) carry a road line."""
+        jx, hw = self.junction_x, self.half_width
+        main = (np.abs(y) < hw) & (np.abs(x - jx) > hw)
+        cross = (np.abs(x - jx) < hw) & (np.abs(y) > hw)
+        lines = np.zeros(x.shape, dtype=bool)
+        lines[main] = self._markings(y[main], x[main] - jx)
+        lines[cross] = self._markings(-(x[cross] - jx), y[cross])
+        return lines
+
+    def at_points(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The ground's class at world points (x, y) seen from straight above (the bird's-eye view)."""
+        x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        cls = np.where(self._land(x, y), SIDEWALKS, ROADS).astype(np.uint8)
+        cls[(cls == ROADS) & self._lines(x, y)] = ROADLINES
+        return cls
+
+    def classify(
+        self, rays: np.ndarray, ex: float, ey: float, c: float, s: float, ratio: float, reach: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """As ``FlatGround.classify``: the class per ray, whether it was hit at ``UPPER_Z``, the rays that hit a
+        kerb's face and where (as a multiple of the distance to ``UPPER_Z``, between 1 and ``ratio``)."""
+        along = np.dot((c, -s), rays)  # x - ex at UPPER_Z
+        lat = np.dot((s, c), rays)  # y - ey at UPPER_Z
+        xu, yu = ex + along, ey + lat
+        xl, yl = ex + ratio * along, ey + ratio * lat
+        upper = self._land(xu, yu)
+        cls = np.where(upper, SIDEWALKS, ROADS).astype(np.uint8)
+        low = ~upper
+        kerb = (low & self._land(xl, yl)).nonzero()[0]
+        cls[kerb] = SIDEWALKS
+        road = (low & ~self._land(xl, yl)).nonzero()[0]
+        cls[road[self._lines(xl.take(road), yl.take(road))]] = ROADLINES
+        jx, hw = self.junction_x, self.half_width
+        at = np.empty(0)
+        if kerb.size:
+            # The ray enters the land when both |y| >= hw and |x - jx| >= hw hold: the later of the two crossings.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ay, ax = lat.take(kerb), along.take(kerb)
+                ty = np.where(np.abs(yu.take(kerb)) >= hw, 1.0, (np.sign(yl.take(kerb)) * hw - ey) / ay)
+                tx = np.where(np.abs(xu.take(kerb) - jx) >= hw, 1.0, (jx + np.sign(xl.take(kerb) - jx) * hw - ex) / ax)
+            at = np.clip(np.maximum(ty, tx), 1.0, ratio)
+        return cls, upper, kerb, at
+
+
 class SegmentationCamera:
     def __init__(self, client: int, pool, size: int = 64, fov_deg: float = 90.0):
         import pybullet as p
@@ -178,8 +266,12 @@ class SegmentationCamera:
         self._prepare_ground_rays()
 
     def set_layout(self, layout: StaticLayout) -> None:
-        """The flat ground of this episode's layout (its junction and centre-line dashes)."""
-        self.ground = FlatGround(layout.junction_x, [s[0] for s in layout.placements.get("dash", [])])
+        """The flat ground of this episode's layout: the street (its junction and centre-line dashes) or a four-way
+        junction."""
+        if layout.crossroads_half_width > 0.0:
+            self.ground = CrossroadsGround(layout.junction_x, layout.crossroads_half_width)
+        else:
+            self.ground = FlatGround(layout.junction_x, [s[0] for s in layout.placements.get("dash", [])])
 
     def _view(self, x: float, y: float, heading: float) -> list:
         c, s = math.cos(heading), math.sin(heading)
@@ -299,8 +391,19 @@ class SegmentationCamera:
         fov = math.degrees(2.0 * math.atan(0.5 * span / height))
         view = p.computeViewMatrix((centre[0], centre[1], height), centre, (c, s, 0.0), physicsClientId=self.client)
         proj = p.computeProjectionMatrixFOV(fov, 1.0, 1.0, 400.0, physicsClientId=self.client)
-        self.pool.show_everything(ground=True)
-        return self._image(view, size, proj)[0]
+        if not isinstance(self.ground, CrossroadsGround):
+            self.pool.show_everything(ground=True)  # the street's ground bodies are its reference
+            return self._image(view, size, proj)[0]
+        # A junction has no ground bodies: what shows no body is its ground at the pixel's point (forward up the
+        # image, left to the left; the 1 m of relief is far below a pixel from 150 m).
+        self.pool.show_everything(ground=False)
+        uids = self._image(view, size, proj)[0]
+        ndc = (np.arange(size) + 0.5) / size * 2.0 - 1.0
+        forward, left = -ndc[:, None] * 0.5 * span, -ndc[None, :] * 0.5 * span
+        gx, gy = centre[0] + forward * c - left * s, centre[1] + forward * s + left * c
+        empty = uids < 0
+        uids[empty] = self.pool.ground_uid.take(self.ground.at_points(gx[empty], gy[empty]))
+        return uids
 
 
 def colorize(classes: np.ndarray) -> np.ndarray:

@@ -20,7 +20,9 @@ within 2 m of the point 30 m past the junction's centre in its starting lane) or
 
 Geometry (our choices, documented in docs/design.md §10): both roads have two 3.5 m lanes per direction (|y| < 7
 and |x - x_junction| < 7); 3 m sidewalks, a building on each corner block 1 m behind them, and a pole at each corner
-and along the kerbs. The junction is not rendered for the camera yet: the family runs camera-off (LIDAR).
+and along the kerbs. The camera draws it: the ground per pixel (``camera.CrossroadsGround``: both roads with their
+lane lines and stop lines, sidewalks everywhere else), pooled building boxes along each block's faces to the roads,
+the poles and the cars.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 
 from . import geometry
 from .actors import Actors
-from .scene import BUILDINGS, POLES, StaticLayout
+from .scene import BUILDINGS, POLES, TEMPLATES, StaticLayout
 from .specs import FamilySpec
 
 FAMILY = "kim"
@@ -51,7 +53,7 @@ FOLLOWER_HEADWAY_S = (1.0, 2.0)
 FOLLOWER_DECEL, FOLLOWER_REACTION_S, SLOWED_BY_MS = 6.0, 1.0, 0.5
 CAR_LENGTH, CAR_WIDTH = 4.5, 1.8  # every car's footprint is the ego's (envs/vehicle.py)
 ENDS = ("goal",)
-CAMERA = False  # the junction is not drawn for the segmentation camera yet
+CAMERA = True  # drawn for the segmentation camera (``layout``, ``camera.CrossroadsGround``)
 
 
 @dataclass(frozen=True)
@@ -308,7 +310,7 @@ def build(spec: KimSpec, ego_front: float) -> tuple[Actors, KimState]:
 
 def layout(spec: KimSpec, state: KimState, rng: np.random.Generator) -> StaticLayout:
     """The junction's obstacles: a building on each corner block behind the sidewalks, a pole at each corner and
-    poles along the kerbs every 20-30 m (collision footprints only; nothing is rendered)."""
+    poles along the kerbs every 20-30 m; and, for the camera, pooled bodies that draw them (``render_placements``)."""
     jx = state.junction_x
     kerb = ROAD_HALF_WIDTH
     rects, circles = [], []
@@ -324,12 +326,49 @@ def layout(spec: KimSpec, state: KimState, rng: np.random.Generator) -> StaticLa
             if abs(x - jx) > kerb + 2.0:
                 circles.append((x, sy * (kerb + 0.35), 0.12, POLES))
             x += float(rng.uniform(20.0, 30.0))
+    rects_a = np.array(rects, dtype=np.float64).reshape(-1, 5)
+    circles_a = np.array(circles, dtype=np.float64).reshape(-1, 4)
     return StaticLayout(
         junction_x=jx,
-        placements={},
-        rects=np.array(rects, dtype=np.float64).reshape(-1, 5),
-        circles=np.array(circles, dtype=np.float64).reshape(-1, 4),
+        placements=render_placements(jx, rects_a, circles_a, np.random.default_rng([spec.seed, 14])),
+        rects=rects_a,
+        circles=circles_a,
+        crossroads_half_width=ROAD_HALF_WIDTH,
     )
+
+
+BLOCK_BOXES = {1.0: (3, 4), -1.0: (2, 3)}  # per side of the junction (ahead, behind): long boxes, short boxes
+
+
+def render_placements(jx: float, rects: np.ndarray, circles: np.ndarray, rng: np.random.Generator) -> dict:
+    """Pooled bodies that draw the layout for the camera (``envs.bodies``), inside the collision footprints so the
+    picture never shows a wall where none stands: along each corner block's face to the main road, long building
+    boxes from the corner outwards; along its face to the cross road, short ones beyond the first long box; heights
+    U(6, 24) m from ``rng`` (its own generator: the collision layout's draws are unchanged). The blocks behind
+    the junction get fewer boxes, as less of them is in view. Every pole footprint gets a pole."""
+    placed: dict[str, list] = {"building_long": [], "building_short": [], "pole": []}
+    for cx, cy, hx, hy, _ in rects:
+        sx, sy = np.sign(cx - jx), np.sign(cy)
+        inner_x, inner_y = abs(cx - jx) - hx, abs(cy) - hy
+        n_long, n_short = BLOCK_BOXES[sx]
+        lx, ly, lz = TEMPLATES["building_long"].size
+        for k in range(n_long):
+            placed["building_long"].append(
+                (jx + sx * (inner_x + lx * (2 * k + 1)), sy * (inner_y + ly), rng.uniform(6.0, 24.0) - lz)
+            )
+        bx, by, bz = TEMPLATES["building_short"].size
+        for k in range(n_short):
+            placed["building_short"].append(
+                (jx + sx * (inner_x + bx), sy * (inner_y + 2 * ly + by * (2 * k + 1)), rng.uniform(6.0, 24.0) - bz)
+            )
+    _, pole_height = TEMPLATES["pole"].size
+    placed["pole"] = [(x, y, pole_height / 2) for x, y, _, cls in circles if cls == POLES]
+    for name, spots in placed.items():
+        if len(spots) > TEMPLATES[name].count:
+            raise RuntimeError(
+                f"the kim layout asks for {len(spots)} {name} bodies; the pool holds {TEMPLATES[name].count}"
+            )
+    return placed
 
 
 # ----------------------------------------------------------------------------- actions and baselines

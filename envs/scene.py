@@ -158,6 +158,9 @@ class StaticLayout:
     placements: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)
     rects: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))  # cx, cy, hx, hy, class
     circles: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # cx, cy, r, class
+    crossroads_half_width: float = 0.0
+    """0: the street and its side street (``camera.FlatGround``). Positive: the ground is a four-way junction at
+    ``junction_x`` of two roads this wide each side of their centre lines (family kim; ``camera.CrossroadsGround``)"""
 
 
 def sample_layout(rng: np.random.Generator, junction_x: float) -> StaticLayout:

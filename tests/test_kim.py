@@ -1,5 +1,5 @@
 """Scenario family ``kim`` (envs/kim.py) on the real simulator: the runner's timing in all three scenarios, replay,
-the neutral follower, the injury rewards and the AEB-3m baseline."""
+the neutral follower, the injury rewards, the AEB-3m baseline and the junction the camera draws."""
 
 from __future__ import annotations
 
@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from envs import UrbanCollisionEnv, rollout
+from envs.camera import EYE_HEIGHT, CrossroadsGround
 from envs.env import spec_from_dict
 from envs.injury import injury_severity_score
 from envs.kim import (
+    BLOCK_BOXES,
     CONTACT_S,
     FOLLOWER_DECEL,
     FOLLOWER_REACTION_S,
@@ -24,6 +26,7 @@ from envs.kim import (
     sample,
 )
 from envs.policies import ConstantAction
+from envs.scene import BUILDINGS, POLES, ROADLINES, ROADS, SIDEWALKS, TEMPLATES, VEHICLES
 
 
 @pytest.fixture(scope="module")
@@ -158,9 +161,88 @@ def test_kim_action_maps_desired_speed_and_steering_angle():
     np.testing.assert_allclose(kim_action([-1.0, 0.0], 10.0), [0.0, -1.0])
 
 
-def test_the_junction_family_refuses_the_camera():
-    with pytest.raises(ValueError, match="family='kim' is not rendered"):
-        UrbanCollisionEnv(camera=True, family="kim")
+def _ground_class(ground, ex, ey, x, y, at_road_level=True):
+    """What a downward ray from an eye at (ex, ey), heading +x, shows where it meets the road level (or the
+    sidewalk level) at (x, y)."""
+    ratio = (CrossroadsGround.LOWER_Z - EYE_HEIGHT) / (CrossroadsGround.UPPER_Z - EYE_HEIGHT)
+    scale = ratio if at_road_level else 1.0
+    rays = np.array([[(x - ex) / scale], [(y - ey) / scale]])
+    cls, upper, kerb, at = ground.classify(rays, ex, ey, 1.0, 0.0, ratio, 100.0)
+    return int(cls[0]), bool(upper[0]), (float(at[0]) if kerb.size else None), ratio
+
+
+def test_the_crossroads_ground_by_world_point():
+    """Two 7 m half-width roads crossing at x = 20: lane markings, stop lines (right-hand traffic) and kerbs where
+    the geometry puts them."""
+    ground = CrossroadsGround(20.0, 7.0)
+    road = {  # points at the road level, seen from (0, -1.75)
+        (21.75, 25.0): ROADS,  # the cross road, a lane centre
+        (20.0, 25.0): ROADLINES,  # the cross road's centre line
+        (50.0, 0.0): ROADLINES,  # the main road's centre line beyond the junction
+        (50.0, -3.5): ROADLINES,  # the lane divider: a dash (30 m from the centre, 0 mod 6 m)
+        (53.5, -3.5): ROADS,  # between dashes (33.5 m: 3.5 mod 6)
+        (50.0, -6.8): ROADLINES,  # the edge line 0.2 m inside the kerb
+        (12.3, -3.0): ROADLINES,  # the ego's own stop line, 0.7 m before the cross road
+        (12.3, 3.0): ROADS,  # the oncoming lanes have theirs beyond the junction
+        (27.7, 3.0): ROADLINES,
+        (21.0, -3.5): ROADS,  # no markings inside the junction
+        (23.0, -7.7): ROADLINES,  # the cross road's traffic from the right stops before the main road
+        (17.0, -7.7): ROADS,
+    }
+    for (x, y), expected in road.items():
+        cls, upper, _, _ = _ground_class(ground, 0.0, -1.75, x, y)
+        assert (cls, upper) == (expected, False), (x, y)
+    for x, y in ((35.0, 15.0), (5.0, -12.0), (30.0, -9.0)):  # the corner blocks: land at the sidewalk level
+        cls, upper, _, _ = _ground_class(ground, 0.0, -1.75, x, y, at_road_level=False)
+        assert (cls, upper) == (SIDEWALKS, True), (x, y)
+    # a ray over the road at the sidewalk level and over the land at the road level hits the kerb's face at y = -7
+    cls, upper, at, ratio = _ground_class(ground, 0.0, -1.75, 30.0, -7.2)
+    lateral = (-7.2 + 1.75) / ratio
+    assert (cls, upper) == (SIDEWALKS, False) and at == pytest.approx((-7.0 + 1.75) / lateral)
+
+
+def test_the_camera_draws_the_junction_and_sees_the_runner():
+    """The camera draws family kim: the runner (Vehicles), the corner buildings, the cross road beside the
+    junction; and with the camera on, every outcome is what the camera-off simulation gives."""
+    spec = KimSpec(seed=3, scenario="right", ego_speed=30 / 3.6, ego_lane=0, runner_lane=1, neutral=True)
+    cam = UrbanCollisionEnv(camera=True, step_s=0.1, family="kim", reward="kim_unaware")
+    obs, _ = cam.reset(options={"scenario": spec})
+    seg = np.asarray(obs["seg"])
+    assert (seg == VEHICLES).sum() > 10 and (seg == BUILDINGS).sum() > 200
+    # the junction's centre is 3 m ahead: the cross road fills both edges of the frame below the horizon
+    assert (seg[40:, 0] == ROADS).mean() > 0.8 and (seg[40:, -1] == ROADS).mean() > 0.8
+    actions = [(0.0, -1.0)] * 5 + [(0.4, 0.0)] * 10
+    on, off = [], []
+    blind = UrbanCollisionEnv(camera=False, step_s=0.1, family="kim", reward="kim_unaware")
+    for env, trace in ((cam, on), (blind, off)):
+        env.reset(options={"scenario": spec})
+        for a in actions:
+            _, reward, terminated, truncated, info = env.step(np.array(a, np.float32))
+            trace.append((env.ego.x, env.ego.y, env.ego.v, reward, info.get("outcome")))
+            if terminated or truncated:
+                break
+    assert repr(on) == repr(off)
+    cam.close()
+
+
+def test_every_drawn_body_stands_inside_a_collision_footprint(env):
+    """The picture never shows a wall or a pole where the collision model has none: each building box lies inside
+    a building footprint, and each pole stands on a pole footprint."""
+    for seed in range(5):
+        env.reset(options={"scenario": KimSpec(seed=seed, scenario="left", ego_speed=10.0)})
+        layout = env.layout
+        boxes = [(name, p) for name in ("building_long", "building_short") for p in layout.placements[name]]
+        assert len(boxes) == 2 * (sum(BLOCK_BOXES[1.0]) + sum(BLOCK_BOXES[-1.0]))
+        for name, (x, y, _) in boxes:
+            hx, hy, _ = TEMPLATES[name].size
+            inside = [
+                abs(x - cx) + hx <= rx + 1e-9 and abs(y - cy) + hy <= ry + 1e-9
+                for cx, cy, rx, ry, cls in layout.rects
+                if cls == BUILDINGS
+            ]
+            assert any(inside), (name, x, y)
+        poles = sorted((round(x, 9), round(y, 9)) for x, y, _ in layout.placements["pole"])
+        assert poles == sorted((round(x, 9), round(y, 9)) for x, y, _, cls in layout.circles if cls == POLES)
 
 
 def test_ddpg_kim_trains_on_the_lidar_and_evaluate_writes_table_2(tmp_path):

@@ -265,9 +265,20 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     every policy that can see a car."""
     root = tmp_path / "copy"
     shutil.copytree(experiment, root)
-    for preset in ("ddqn_merola", "ddpg_kim", "dqn_chae"):
+    for preset in ("ddqn_merola", "ddpg_kim", "ddpg_wm_kim", "dqn_chae"):
         train_agent.run(smoke_cfg(root, "train_agent", f"agent={preset}"))
     runs = root / "runs/t"
+
+    # family kim: the LIDAR agent, the camera agent trained there and the paper's street agents, on the same trials
+    evaluate.run(
+        smoke_cfg(root, "evaluate", "evaluate.family=kim", "evaluate.kim.trials=1", "evaluate.kim.policies=[braking]")
+    )
+    rows = list(csv.DictReader(open(runs / "eval_kim/results.csv")))
+    kim_names = ["braking", "agent_kim_unaware_ddpg_kim", "agent_kim_unaware_ddpg_wm_kim"]
+    kim_names += ["agent_r1", "agent_r2", "agent_r2_chooser"]
+    assert sorted(r["policy"] for r in rows) == sorted(kim_names * 3)  # 1 trial x 3 scenarios each
+    kim_trials = {p: sorted((r["scenario"], r["ego_speed"]) for r in rows if r["policy"] == p) for p in kim_names}
+    assert all(t == kim_trials["braking"] for t in kim_trials.values())
     metrics = json.loads((runs / "agent_merola_ddqn_merola/seed0/metrics.json").read_text())
     assert metrics["steps"] >= 300 and len(metrics["curve"]["return"]) == metrics["episodes"]
 

@@ -602,6 +602,7 @@ class KimEvalConfig(Checked):
     paper_trials: int = 30
     # scripted policies beside every LIDAR agent: straight-line braking, Kim's AEB-3m, the planner (the ceiling)
     policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
+    world_model_agents: bool = True  # also the paper's street-trained R1 / R2 agents and the chooser, as they are
     # the test draw; settings and checkpoints are chosen on another (evaluate.kim.seed=77: runs/NAME/eval_kim_seed77)
     seed: int = 2020
 

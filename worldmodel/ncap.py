@@ -113,7 +113,8 @@ def chae_policies(cfg):
 
 
 def kim_policies(cfg):
-    """Kim's family: AEB-3m and every goal-unaware LIDAR agent."""
+    """Kim's family: AEB-3m and every goal-unaware LIDAR agent. A camera agent of the family (agent=ddpg_wm_kim)
+    acts at the world model's 1/15 s steps, not at this group's 0.1 s, and is left out (logged)."""
     from envs.kim import Aeb3m
 
     from .peers import kim
@@ -121,7 +122,11 @@ def kim_policies(cfg):
     out = [(Aeb3m(), 0, False, True)]
     for agent in artifacts.trained_agents(cfg, family="kim"):
         if agent.reward not in kim.GOAL_REWARDS:
-            out.append((kim.load_policy(cfg, agent), agent.seed, False, True))
+            policy, camera = kim.load_policy(cfg, agent)
+            if camera:
+                log.info("[ncap] %s: a camera agent of family kim; not run in the 0.1 s kim group", agent.key)
+                continue
+            out.append((policy, agent.seed, False, True))
     return out
 
 

@@ -59,3 +59,9 @@ def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:
     summary["wall_s"] = round(time.perf_counter() - t0, 1)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def world_model_step_s(cfg) -> float:
+    """The step length the experiment's world model was trained at, at which its agents act on any family: the
+    env section's when it describes the paper's family, else the paper's 1/15 s."""
+    return float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0

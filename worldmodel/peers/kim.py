@@ -1,6 +1,7 @@
 """Kim et al. 2020 on our simulator: DDPG with a LIDAR front end against red-light runners, on family ``kim``.
 
     python -m worldmodel.train_agent experiment=NAME agent=ddpg_kim [reward=kim_aware] [seed=K]
+    python -m worldmodel.train_agent experiment=NAME agent=ddpg_wm_kim [seed=K]     # the camera agent
     python -m worldmodel.evaluate experiment=NAME evaluate.family=kim
 
 Training (``train_agent`` with ``agent.obs=lidar``): ``agent.peer_total_steps`` steps of family ``kim``
@@ -14,7 +15,9 @@ paper. The action is (desired speed, steering angle), mapped onto our controls b
 
 Evaluation (``evaluate.family=kim``): Table 2's layout, avoidance % (no collision of any kind in the episode) and
 mean injury (minus the summed Sobhani ISS, as the paper's table gives it) per scenario and overall, for every
-LIDAR agent, AEB-3m, straight-line braking and the privileged planner, on ``evaluate.kim.trials`` seeded trials per
+LIDAR agent, every world-model agent trained on the family (``agent=ddpg_wm_kim``: camera frames, at the world
+model's 1/15 s steps), the paper's street-trained agents as they are (``evaluate.kim.world_model_agents``), AEB-3m,
+straight-line braking and the privileged planner, on ``evaluate.kim.trials`` seeded trials per
 scenario (the first ``paper_trials`` of them make the paper-sized table), with 95 % Wilson intervals and pairwise
 paired permutation tests on per-trial injury. Writes ``runs/NAME/eval_kim/``.
 """
@@ -38,7 +41,7 @@ from envs.rewards import crash_iss
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
-from .common import seal, write_rows
+from .common import seal, world_model_step_s, write_rows
 
 log = logging.getLogger(__name__)
 ROLLING = 100
@@ -85,14 +88,14 @@ class LidarObserver:
 def observer(cfg, reward: str):
     if str(cfg.agent.obs) != "lidar":
         raise StageError(
-            f"family kim is not drawn for the camera yet, so its agents see the LIDAR only (obs=lidar), not "
-            f"obs={cfg.agent.obs}"
+            f"Kim et al.'s agent (agent=ddpg_kim) sees the LIDAR (obs=lidar), not obs={cfg.agent.obs}; the camera "
+            "agent on this family is agent=ddpg_wm_kim"
         )
     return LidarObserver(goal=reward in GOAL_REWARDS)
 
 
-def family_env(cfg, reward: str):
-    return make_env(cfg, camera=False, family="kim", reward=reward, step_s=0.1)
+def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
+    return make_env(cfg, camera=camera, family="kim", reward=reward, step_s=step_s)
 
 
 def episode_scenario(seed: int, episode: int) -> KimSpec:
@@ -237,13 +240,19 @@ class LidarPolicy:
         return kim_action(a, self.env.ego.v)
 
 
-def load_policy(cfg, agent_id: AgentId) -> LidarPolicy:
+def load_policy(cfg, agent_id: AgentId) -> tuple:
+    """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim), or a world-model agent
+    (agent=ddpg_wm_kim) that acts from camera frames at the world model's step length."""
     from ..models.ddpg import DDPG, DDPGConfig
+    from ..policies import policy_for
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
+    if state.get("obs", "worldmodel") == "worldmodel":
+        return policy_for(cfg, agent_id.key)[0], True
     if state.get("obs") != "lidar":
         raise StageError(
-            f"{agent_id.dir(cfg)} is not a LIDAR agent; delete it or move it out of {artifacts.runs_root(cfg)}"
+            f"{agent_id.dir(cfg)} is neither a LIDAR nor a world-model agent; delete it or move it out of "
+            f"{artifacts.runs_root(cfg)}"
         )
     see = LidarObserver(goal=agent_id.reward in GOAL_REWARDS)
     if see.dim != state["obs_dim"]:
@@ -255,7 +264,7 @@ def load_policy(cfg, agent_id: AgentId) -> LidarPolicy:
     hp = DDPGConfig(**state["ddpg_config"])  # as it was trained, whatever the evaluation's agent section says
     agent = DDPG(see.dim, 2, hp, agent_id.seed)
     agent.load_state_dict(state["agent"])
-    return LidarPolicy(agent_id.policy, agent, see, agent_id.seed)
+    return LidarPolicy(agent_id.policy, agent, see, agent_id.seed), False
 
 
 def scripted(cfg) -> list:
@@ -488,7 +497,9 @@ def figure(summary: dict, path) -> None:
 
 
 def evaluate(cfg) -> dict:
-    """``evaluate.family=kim``: AEB-3m, braking, the planner and every LIDAR agent on the same seeded trials."""
+    """``evaluate.family=kim``: AEB-3m, braking, the planner, every LIDAR and world-model agent of the family and
+    (``evaluate.kim.world_model_agents``) the paper's street-trained agents, on the same seeded trials."""
+    from ..policies import porav_policies
     from ..training import tensorboard
 
     c = cfg.evaluate.kim
@@ -500,18 +511,27 @@ def evaluate(cfg) -> dict:
     specs = bank(c)
     agents = artifacts.trained_agents(cfg, family="kim")
     record = artifacts.provenance(cfg, "eval")
-    learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
+    loaded = [(a, *load_policy(cfg, a)) for a in agents]  # fail fast, before any trial runs
+    lidar = [(p, a.seed) for a, p, camera in loaded if not camera]
+    camera = [(p, a.seed) for a, p, camera in loaded if camera]
+    if c.world_model_agents:  # the paper's agents, trained on the street, at the junction as they are
+        camera += [(p, s) for p, s, sees, _ in porav_policies(cfg) if sees]
     env = family_env(cfg, "kim_unaware")
     rows = []
     for policy in scripted(cfg):
         rows += run_policy(env, policy, specs)
-    for policy in learned:
-        rows += run_policy(env, policy, specs, policy.policy_seed)
+    for policy, seed in lidar:
+        rows += run_policy(env, policy, specs, seed)
     env.close()
+    if camera:  # world-model agents act at the step length their world model was trained with
+        env = family_env(cfg, "kim_unaware", camera=True, step_s=world_model_step_s(cfg))
+        for policy, seed in camera:
+            rows += run_policy(env, policy, specs, seed)
+        env.close()
     if not agents:
         log.info(
-            "[eval kim] no LIDAR agents under %s: scripted policies only. Train one with "
-            "`python -m worldmodel.train_agent experiment=%s agent=ddpg_kim`.",
+            "[eval kim] no kim agents under %s. Train one with `python -m worldmodel.train_agent experiment=%s "
+            "agent=ddpg_kim` (LIDAR) or agent=ddpg_wm_kim (camera).",
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
@@ -527,7 +547,7 @@ def evaluate(cfg) -> dict:
     log.info(
         "[eval kim] %d trials x %d policies in %.0f s: %s",
         len(specs),
-        3 + len(agents),
+        len(c.policies) + len(lidar) + len(camera),
         summary["wall_s"],
         out / "tables.md",
     )

@@ -45,7 +45,7 @@ from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
 from .chae import DQNPolicy, dqn_config
-from .common import dqn_checkpoint, resume_dqn, seal, write_rows
+from .common import dqn_checkpoint, resume_dqn, seal, world_model_step_s, write_rows
 from .kim import wilson
 
 log = logging.getLogger(__name__)
@@ -444,7 +444,7 @@ def evaluate(cfg) -> dict:
         rows += run_policy(env, policy, specs, "ddqn_merola", policy.policy_seed)
     env.close()
     if world_model:  # the paper's agents act at the step length they were trained with
-        env = family_env(cfg, step_s=float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0)
+        env = family_env(cfg, step_s=world_model_step_s(cfg))
         for policy, seed in world_model:
             rows += run_policy(env, policy, specs, "world model", seed)
         env.close()
