@@ -41,7 +41,7 @@ from .vehicle import VehicleParams, VehicleState, integrate
 # Every family but the paper's is a module with FAMILY, a frozen spec class, sample(rng) and build(spec, ego_front)
 # -> (actors, state); the state's hooks (substep, context, end, outcome, horizon_s) drive its episodes. A spec may
 # say where the ego starts across the road (``ego_y``); a module may bring its own obstacles (``layout(spec,
-# state, rng)``) instead of the street's, and may not be drawable (``CAMERA = False``).
+# state, rng)``) instead of the street's, with the bodies and the ground that draw them for the camera.
 FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap, kim.FAMILY: kim, merola.FAMILY: merola}
 SPEC_TYPES = (ScenarioSpec, *(m.SPEC for m in FAMILY_MODULES.values()))
 FAMILIES = ("porav", *FAMILY_MODULES)  # env.reset() without a scenario samples from ``family``
@@ -123,8 +123,6 @@ class UrbanCollisionEnv(gym.Env):
         for key, ok in checks.items():
             if not ok:
                 raise ValueError(f"env config {key}={locals()[key]!r} is invalid")
-        if camera and not getattr(FAMILY_MODULES.get(family), "CAMERA", True):
-            raise ValueError(f"env config family={family!r} is not rendered for the camera yet: use camera=False")
         self.camera = bool(camera)
         self.image_size = int(image_size)
         self.fov_deg = float(fov_deg)
@@ -217,8 +215,6 @@ class UrbanCollisionEnv(gym.Env):
         own_layout = None
         if not isinstance(spec, ScenarioSpec):
             module = FAMILY_MODULES[spec.family]
-            if self.camera and not getattr(module, "CAMERA", True):
-                raise ValueError(f"scenario family {spec.family!r} is not drawn for the camera yet: use camera=False")
             self.actors, self.family_state = module.build(spec, self._hl, **self.family_options)
             own_layout = getattr(module, "layout", None)
             junction_x = float(rng.uniform(200.0, 300.0))  # the junction well beyond where the episode ends

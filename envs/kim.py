@@ -53,7 +53,6 @@ FOLLOWER_HEADWAY_S = (1.0, 2.0)
 FOLLOWER_DECEL, FOLLOWER_REACTION_S, SLOWED_BY_MS = 6.0, 1.0, 0.5
 CAR_LENGTH, CAR_WIDTH = 4.5, 1.8  # every car's footprint is the ego's (envs/vehicle.py)
 ENDS = ("goal",)
-CAMERA = True  # drawn for the segmentation camera (``layout``, ``camera.CrossroadsGround``)
 
 
 @dataclass(frozen=True)
