@@ -76,6 +76,25 @@ def test_advantage_learning_lowers_the_target_of_non_greedy_actions_only():
         DQNConfig(advantage_alpha=1.0)
 
 
+def test_the_dueling_head_adds_the_value_to_the_advantages_less_their_mean():
+    """Hidden h = leaky(s) with identity weights; V(s) = h0 + h1 + 1 and A(s, .) = (h0, 2 h1, 0), so at s = (1, 2):
+    V = 4, A = (1, 4, 0), mean 5/3, Q = (10/3, 19/3, 7/3). The action ranking is A's; a state_dict round-trips."""
+    net = QNetwork(2, 3, hidden=[2], leaky_slope=0.01, dueling=True)
+    with torch.no_grad():
+        net.net[0].weight.copy_(torch.eye(2))
+        net.net[0].bias.zero_()
+        net.value.weight.copy_(torch.tensor([[1.0, 1.0]]))
+        net.value.bias.fill_(1.0)
+        net.advantage.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]]))
+        net.advantage.bias.zero_()
+    q = net(torch.tensor([[1.0, 2.0]]))
+    assert q[0].tolist() == pytest.approx([10 / 3, 19 / 3, 7 / 3], abs=1e-6)
+    agent = DQN(2, 3, DQNConfig(hidden=[2], dueling=True, batch_size=2, buffer_size=2), seed=0)
+    agent.q_network.load_state_dict(roundtrip(net.state_dict()))
+    assert agent.q_values(np.array([1.0, 2.0], np.float32)).tolist() == pytest.approx(q[0].tolist(), abs=1e-6)
+    assert agent.act(np.array([1.0, 2.0], np.float32), explore=False) == 1
+
+
 # ----------------------------------------------------------------------------- trauma memory
 TRAUMA_CFG = dict(
     hidden=[8], batch_size=4, buffer_size=8, trauma_size=5, trauma_batch=3, warmup_steps=0, grad_clip=None, gamma=0.9
@@ -273,8 +292,8 @@ def corridor_step(state: int, action: int) -> tuple[int, float, bool]:
     return state + 1, 0.0, False
 
 
-@pytest.mark.parametrize("double", [False, True])
-def test_learns_the_corridor(double):
+@pytest.mark.parametrize("double, dueling", [(False, False), (True, False), (True, True)])
+def test_learns_the_corridor(double, dueling):
     cfg = DQNConfig(
         hidden=[32],
         lr=1e-3,
@@ -285,6 +304,7 @@ def test_learns_the_corridor(double):
         trauma_batch=4,
         target_every=20,
         double=double,
+        dueling=dueling,
         eps_decay_steps=300,
         warmup_steps=50,
     )

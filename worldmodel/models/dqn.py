@@ -113,6 +113,11 @@ class DQNConfig(Checked):
     loss: str = "sum"
     """how TD errors make the loss. "sum": Chae's Eq. 9, the sum of squared TD errors over the replay and the
     trauma batch; "mse": their mean; "huber": the mean Huber loss (delta 1), as in Mnih et al. 2015"""
+    dueling: bool = False
+    """the dueling head (Wang et al. 2016): the last hidden layer feeds a state value V(s) and advantages A(s, .),
+    and Q = V + A - mean(A). The paper's network has one linear head (False). When the values that separate the
+    actions are small beside the values themselves (Chae: waiting or braking gently at low speed differ by
+    hundredths, beside a bump's 100), the advantages are learnt in their own stream"""
     grad_clip: float | None = 10.0
     """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
     gradient grows with the batch, and one collision penalty can be large"""
@@ -151,10 +156,16 @@ class DQNConfig(Checked):
 
 
 class QNetwork(nn.Module):
-    """Q(s, .): an MLP from the observation to one value per action, leaky ReLU between layers."""
+    """Q(s, .): an MLP from the observation to one value per action, leaky ReLU between layers; with ``dueling``,
+    a value and an advantage head on the last hidden layer, Q = V + A - mean(A)."""
 
     def __init__(
-        self, obs_dim: int, n_actions: int, hidden: Sequence[int] = (100, 70, 50, 70, 100), leaky_slope: float = 0.01
+        self,
+        obs_dim: int,
+        n_actions: int,
+        hidden: Sequence[int] = (100, 70, 50, 70, 100),
+        leaky_slope: float = 0.01,
+        dueling: bool = False,
     ):
         super().__init__()
         layers: list[nn.Module] = []
@@ -162,12 +173,21 @@ class QNetwork(nn.Module):
         for width in hidden:
             layers += [nn.Linear(in_dim, width), nn.LeakyReLU(leaky_slope)]
             in_dim = width
-        layers.append(nn.Linear(in_dim, n_actions))
-        self.net = nn.Sequential(*layers)
+        self.dueling = bool(dueling)
+        if self.dueling:
+            self.net = nn.Sequential(*layers)
+            self.value, self.advantage = nn.Linear(in_dim, 1), nn.Linear(in_dim, n_actions)
+        else:
+            layers.append(nn.Linear(in_dim, n_actions))
+            self.net = nn.Sequential(*layers)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Returns Q with shape (batch, n_actions)."""
-        return self.net(obs)
+        if not self.dueling:
+            return self.net(obs)
+        h = self.net(obs)
+        advantage = self.advantage(h)
+        return self.value(h) + advantage - advantage.mean(dim=-1, keepdim=True)
 
 
 class TransitionBuffer(CircularStore):
@@ -207,8 +227,8 @@ class DQN:
         # Initialise from `seed` without consuming or resetting the global torch RNG, which the caller may use.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.q_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope)
-            self.target_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope)
+            self.q_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope, cfg.dueling)
+            self.target_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope, cfg.dueling)
         self.target_network.load_state_dict(self.q_network.state_dict())
         self.target_network.requires_grad_(False)  # moved only by hard copies
 
