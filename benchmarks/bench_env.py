@@ -51,17 +51,28 @@ from envs.scenario import sample_scenario
 from .common import rss_mb, write
 
 
-def steps_per_second(camera: bool, steps: int) -> tuple[float, float]:
-    """(wall-clock, CPU-time) steps per second, resets included."""
-    env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None)
+def steps_per_second(camera: bool, steps: int, family: str = "porav") -> tuple[float, float]:
+    """(wall-clock, CPU-time) steps per second, resets included; ``family="kim"``: Kim's junction (drawn by
+    ``camera.CrossroadsGround``), 0.1 s steps, scenarios from its own sampler."""
     rng = np.random.default_rng(0)
-    env.reset(options={"scenario": sample_scenario(rng)})
+    if family == "porav":
+        env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None)
+
+        def reset():
+            env.reset(options={"scenario": sample_scenario(rng)})
+    else:
+        env = UrbanCollisionEnv(camera=camera, family=family, step_s=0.1, reward="kim_unaware")
+
+        def reset():
+            env.reset(seed=int(rng.integers(2**31)))
+
+    reset()
     actions = rng.uniform(-0.3, 0.3, size=(steps, 2)).astype(np.float32)
     t0, c0 = time.perf_counter(), time.thread_time()
     for a in actions:
         _, _, term, trunc, _ = env.step(a)
         if term or trunc:
-            env.reset(options={"scenario": sample_scenario(rng)})
+            reset()
     wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
     env.close()
     return steps / wall, steps / cpu
@@ -166,7 +177,10 @@ def main(argv=None) -> dict:
     load_before = os.getloadavg()
     on_wall, on_cpu = steps_per_second(True, args.steps)
     off_wall, off_cpu = steps_per_second(False, args.steps * 5)
+    kim_wall, kim_cpu = steps_per_second(True, args.steps, family="kim")
     result = {
+        "steps_per_s_camera_on_kim": kim_wall,
+        "steps_per_s_camera_on_kim_cpu": kim_cpu,
         "steps_per_s_camera_on": on_wall,
         "steps_per_s_camera_off": off_wall,
         "steps_per_s_camera_on_cpu": on_cpu,

@@ -184,6 +184,9 @@ def section_env(d: dict, summary: list) -> str:
     ]
     for row in rows:
         add_summary(summary, d, row)
+    kim = d.get("steps_per_s_camera_on_kim")
+    if kim is not None:  # no target: a peer family's junction, drawn per pixel like the street
+        rows.append(["env steps/s, camera on, family kim (the junction, 0.1 s steps)", fmt(kim), "–", "no target"])
     for key, label in (("reset_camera_on", "camera on"), ("reset_camera_off", "camera off")):
         r = d.get(key)
         if not r:
