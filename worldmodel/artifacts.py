@@ -494,12 +494,13 @@ def agent_input(state: dict, latent_dim: int) -> dict:
     return {"use_speed": agent_uses_speed(state, latent_dim), "frame_view": bool(state.get("frame_view", False))}
 
 
-def load_actor(cfg, agent: AgentId, which: str = "last"):
-    """A trained actor (eval mode) and its checkpoint; refuses one built on another VAE or LSTM. A chooser's
-    checkpoint (``agent.learner=chooser``) has no actor: the actor returned is None."""
+def load_actor(cfg, agent: AgentId, which: str = "last", state: dict | None = None):
+    """A trained actor (eval mode) and its checkpoint (``state``, if the caller has already loaded it); refuses one
+    built on another VAE or LSTM. A chooser's checkpoint (``agent.learner=chooser``) has no actor: the actor
+    returned is None."""
     from .models.ddpg import Actor
 
-    state = load_agent_state(cfg, agent, which)
+    state = load_agent_state(cfg, agent, which) if state is None else state
     if state.get("learner", "ddpg") == "chooser":
         return None, state
     actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))

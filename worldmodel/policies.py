@@ -38,16 +38,21 @@ def policy_for(cfg, name: str):
     """(policy, training seed, model hashes) for a scripted policy's name or an agent's key."""
     from envs import StraightLineBraking
 
-    from .agent_obs import LearnedPolicy
-
     if name == "braking":
         return StraightLineBraking(), 0, NO_MODELS
     if name == "oracle":
         return make_oracle(cfg), 0, NO_MODELS
     if name == EXACT_CHOOSER:
         return make_exact_chooser(cfg), 0, NO_MODELS
-    agent = AgentId.parse(name)
-    actor, state = artifacts.load_actor(cfg, agent)
+    return learned_policy(cfg, AgentId.parse(name))
+
+
+def learned_policy(cfg, agent: AgentId, state: dict | None = None):
+    """(policy, training seed, model hashes) for a trained world-model agent; ``state``: its checkpoint, if the
+    caller has already loaded it (they are large: the replay memory is in them)."""
+    from .agent_obs import LearnedPolicy
+
+    actor, state = artifacts.load_actor(cfg, agent, state=state)
     # each agent acts as it was trained: its own input (speed or not) and its own action map
     encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
     if actor is None:  # a chooser (agent.learner=chooser)

@@ -244,11 +244,11 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
     """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim), or a world-model agent
     (agent=ddpg_wm_kim) that acts from camera frames at the world model's step length."""
     from ..models.ddpg import DDPG, DDPGConfig
-    from ..policies import policy_for
+    from ..policies import learned_policy
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
     if state.get("obs", "worldmodel") == "worldmodel":
-        return policy_for(cfg, agent_id.key)[0], True
+        return learned_policy(cfg, agent_id, state)[0], True
     if state.get("obs") != "lidar":
         raise StageError(
             f"{agent_id.dir(cfg)} is neither a LIDAR nor a world-model agent; delete it or move it out of "
