@@ -7,7 +7,9 @@ chooser learns the *costs* of a fixed set of manoeuvres instead (docs/design.md 
 * It brakes straight from onset, and at each of its first ``decide_steps`` steps it asks a scorer for the R2 cost
   (the sum of injury probabilities still to come) of starting each candidate manoeuvre now and holding it to the
   end. ``candidates[0]`` is straight-line braking.
-* When the cheapest candidate beats braking by more than ``margin``, it commits to it and follows it open loop.
+* When the cheapest candidate beats braking by more than ``margin``, and braking itself is predicted to cost more
+  than ``min_brake_cost`` when that is set (where braking is nearly safe a switch has little to win and a wrong one
+  much to lose), it commits to it and follows it open loop.
 
 With the exact costs (``ExactCosts``, which reads the true state like the planner) this is a privileged policy whose
 result bounds what a learned scorer can reach with the same candidates. A learned scorer trained by least squares
@@ -104,15 +106,20 @@ class ManoeuvreChooser:
         decide_steps: int,
         margin: float = 0.0,
         name: str = "chooser",
+        min_brake_cost: float = 0.0,
         reset_scorer: Callable[[], None] | None = None,
         note_action: Callable[[np.ndarray], None] | None = None,
     ):
         self.candidates = list(candidates)
         if not self.candidates or self.candidates[0] != Manoeuvre(-1.0):
             raise ValueError("the chooser's first candidate must be straight-line braking, Manoeuvre(-1.0)")
-        if int(decide_steps) < 1 or not margin >= 0:
-            raise ValueError(f"chooser decide_steps={decide_steps} must be >= 1 and margin={margin} >= 0")
+        if int(decide_steps) < 1 or not margin >= 0 or not min_brake_cost >= 0:
+            raise ValueError(
+                f"chooser decide_steps={decide_steps} must be >= 1, margin={margin} and "
+                f"min_brake_cost={min_brake_cost} >= 0"
+            )
         self.scores, self.decide_steps, self.margin, self.name = scores, int(decide_steps), float(margin), name
+        self.min_brake_cost = float(min_brake_cost)
         self.reset_scorer, self.note_action = reset_scorer, note_action
         self.plan: _Plan | None = None
         self.t = 0
@@ -134,7 +141,8 @@ class ManoeuvreChooser:
         if self.plan is None and t < self.decide_steps:
             cost = np.asarray(self.scores(obs, t), dtype=np.float64)
             k = int(np.argmin(cost))
-            if cost[0] - cost[k] > self.margin:
+            nearly_safe = self.min_brake_cost > 0 and cost[0] <= self.min_brake_cost  # 0: no floor at all
+            if cost[0] - cost[k] > self.margin and not nearly_safe:
                 self.plan, self.choice = _Plan(self.candidates[k], t), k
         action = BRAKE.copy() if self.plan is None else self.plan.action(t)
         if self.note_action is not None:

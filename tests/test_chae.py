@@ -149,3 +149,70 @@ def test_evaluation_records_the_bump_and_runs_on_to_measure_contact():
     assert trained["end"] == "bump" and trained["bumped"] == 1 and trained["pedestrian_collision"] == 0
     assert evaluated["bumped"] == 1 and evaluated["end"] != "bump" and n_evaluated > n_trained
     assert evaluated["pedestrian_collision"] == 1 and evaluated["speed_at_collision"] == pytest.approx(12.0)
+
+
+def test_checkpoint_selection_by_chaes_metrics():
+    """best.pt's rule (agent.select): among checkpoints bumping in <= max_bump % at every TTC, fewest needless
+    stops; if none is that safe, the one bumping least; the earliest wins a tie."""
+    from worldmodel.peers.chae import selected
+
+    def score(episode, bump, stops):
+        return {"episode": episode, "max_bump_rate": bump, "unnecessary_stop_rate": stops}
+
+    runs = [score(250, 0.5, 30.0), score(500, 2.0, 1.0), score(750, 1.0, 12.0), score(1000, 0.0, 12.0)]
+    assert selected(runs, 1.0)["episode"] == 750  # 500 stops least but bumps too often
+    assert selected(runs, 2.0)["episode"] == 500
+    assert selected(runs, 0.0)["episode"] == 1000
+    unsafe = [score(250, 3.0, 0.0), score(500, 1.5, 40.0), score(750, 1.5, 20.0)]
+    assert selected(unsafe, 1.0)["episode"] == 750
+    assert selected([], 1.0) is None
+
+
+def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_chosen_one(tmp_path):
+    """Validating greedily between episodes draws nothing from the learner's RNG, so last.pt is what a run without
+    selection ends with; best.pt holds the chosen episode's network, and load_policy returns it. Choosing on the
+    evaluation's own draw is refused."""
+    import torch
+
+    from worldmodel import train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+    from worldmodel.config import compose
+    from worldmodel.peers.chae import load_policy
+
+    def cfg(root, *extra):
+        return compose(
+            "train_agent",
+            [
+                f"paths.data_root={root}/data",
+                f"paths.runs_root={root}/runs",
+                "experiment=t",
+                "scale=smoke",
+                "threads=1",
+                "agent=dqn_chae",
+                "agent.dqn.warmup_steps=40",  # so that the network learns between validations
+                *extra,
+            ],
+        )
+
+    chosen, plain = cfg(tmp_path / "chosen"), cfg(tmp_path / "plain", "agent.select.every=0")
+    train_agent.run(chosen)
+    train_agent.run(plain)
+    agent = AgentId.of(chosen)
+    load = lambda c, which: torch.load(agent.dir(c) / f"{which}.pt", weights_only=False)  # noqa: E731
+    last, last_plain, best = load(chosen, "last"), load(plain, "last"), load(chosen, "best")
+    assert not (agent.dir(plain) / "best.pt").exists()
+    for name, w in last["agent"]["q_network"].items():
+        assert torch.equal(w, last_plain["agent"]["q_network"][name]), name
+    scores = last["curve"]["validation"]
+    assert [s["episode"] for s in scores] == [4, 8, 12]  # smoke: every 4 episodes from a quarter of 12
+    metrics = json.loads((agent.dir(chosen) / "metrics.json").read_text())
+    assert best["episode"] == metrics["selected"]["episode"] in (4, 8, 12)
+    policy = load_policy(chosen, agent)
+    for name, w in policy.agent.q_network.state_dict().items():
+        assert torch.equal(w, best["agent"]["q_network"][name]), name
+    if best["episode"] != 12:  # then last.pt's network has moved on, and was not the one loaded
+        moved = [not torch.equal(w, last["agent"]["q_network"][n]) for n, w in best["agent"]["q_network"].items()]
+        assert last["episode"] == 12 and any(moved)
+    with pytest.raises(StageError, match="evaluate.chae.seed"):
+        train_agent.run(cfg(tmp_path / "clash", "agent.select.seed=2017"))

@@ -59,6 +59,13 @@ def test_scripted_scores_commit_once_and_follow_the_manoeuvre():
     cautious = ManoeuvreChooser(CANDIDATES, scores, decide_steps=10, margin=0.6)
     cautious.reset()
     assert all((cautious.act(None, None) == [0.0, -1.0]).all() for _ in range(12)) and cautious.choice is None
+    # braking predicted to cost 1.0: a floor just below it lets the switch through, a floor at it keeps braking
+    for floor, choice in ((0.99, 2), (1.0, None)):
+        floored = ManoeuvreChooser(CANDIDATES, scores, decide_steps=10, min_brake_cost=floor)
+        floored.reset()
+        for _ in range(8):
+            floored.act(None, None)
+        assert floored.choice == choice, floor
 
 
 def test_exact_costs_never_lose_to_braking_and_offline_cost_equals_the_simulated_one():
@@ -108,6 +115,12 @@ def test_policy_cost_by_hand():
     np.testing.assert_allclose(chooser.policy_cost(pred, costs, episode, 0.0), [0.9 - 0.8 + 0.1, 0.2], atol=1e-6)
     # a margin of 0.35 lets only episode 1's saving (0.4) through
     np.testing.assert_allclose(chooser.policy_cost(pred, costs, episode, 0.35), [0.9, 0.2], atol=1e-6)
+    # braking predicted to cost 0.5 in both: a floor of 0.5 stops both switches, 0.45 neither
+    floored = chooser.policy_cost(pred, costs, episode, 0.0, min_brake_cost=0.5)
+    np.testing.assert_allclose(floored, [0.9, 0.5], atol=1e-6)
+    np.testing.assert_allclose(
+        chooser.policy_cost(pred, costs, episode, 0.0, min_brake_cost=0.45), [0.9 - 0.8 + 0.1, 0.2], atol=1e-6
+    )
 
 
 OVERRIDES = [

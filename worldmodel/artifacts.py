@@ -256,6 +256,13 @@ def _drop_added_defaults(settings: dict) -> dict:
         agent.pop("episodes", None)
     if isinstance(agent, dict) and isinstance(agent.get("dqn"), dict) and agent["dqn"].get("advantage_alpha") == 0:
         agent["dqn"].pop("advantage_alpha")  # off: the DQN as before the option
+    if isinstance(agent, dict) and isinstance(agent.get("dqn"), dict) and agent["dqn"].get("dueling") is False:
+        agent["dqn"].pop("dueling")  # off: the DQN as before the option
+    if isinstance(agent, dict) and (agent.get("learner") != "dqn" or settings.get("reward") != "chae"):
+        agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw
+    chooser = agent.get("chooser") if isinstance(agent, dict) else None
+    if isinstance(chooser, dict) and not chooser.get("min_brake_cost"):
+        chooser.pop("min_brake_cost", None)  # off: the chooser as before the option
     evaluate = settings.get("evaluate")
     if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
         evaluate.pop("family", None)  # the paper's bank, as before the families existed

@@ -277,10 +277,13 @@ def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool) -> np.ndarra
     return np.concatenate([x, mask_features(data["seg"], data["episode"])], axis=1) if mask_view else x
 
 
-def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None):
+def policy_cost(
+    pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None, min_brake_cost=0.0
+):
     """Per labelled episode, the exact R2 cost of the chooser that acts on ``pred``: braking until the first step
-    where some candidate is predicted cheaper than braking by more than ``margin``, then that candidate. With
-    ``t`` and ``steps``: a chooser whose window ends after ``steps`` decision steps."""
+    where some candidate is predicted cheaper than braking by more than ``margin`` (and, when ``min_brake_cost`` is
+    set, braking is predicted to cost more than it), then that candidate. With ``t`` and ``steps``: a chooser whose
+    window ends after ``steps`` decision steps."""
     out = []
     for e in np.unique(episode):
         rows = np.flatnonzero(episode == e)
@@ -290,7 +293,8 @@ def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin
         total = float(c[0, 0])
         for k_t in range(len(rows)):
             k = int(np.argmin(p[k_t]))
-            if p[k_t, 0] - p[k_t, k] > margin:
+            nearly_safe = min_brake_cost > 0 and p[k_t, 0] <= min_brake_cost  # 0: no floor at all
+            if p[k_t, 0] - p[k_t, k] > margin and not nearly_safe:
                 total = float(c[0, 0] - c[k_t, 0] + c[k_t, k])
                 break
         out.append(total)
@@ -411,6 +415,7 @@ def train(cfg, run_, agent_id) -> dict:
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
         "margin": float(c.margin),
+        "min_brake_cost": float(c.min_brake_cost),
         "obs_dim": int(encoder.dim),
         "use_speed": bool(cfg.agent.use_speed),
         "frame_view": bool(cfg.agent.frame_view),
@@ -428,7 +433,7 @@ def train(cfg, run_, agent_id) -> dict:
         "held_out_cost": {
             "braking": round(float(braking.mean()), 5),
             "exact_chooser": round(float(exact.mean()), 5),
-            "learned": round(margins.get(float(c.margin), float(policy_cost(pred, yv, ev, c.margin).mean())), 5),
+            "learned": round(float(policy_cost(pred, yv, ev, c.margin, min_brake_cost=c.min_brake_cost).mean()), 5),
             "learned_by_margin": {str(m): round(v, 5) for m, v in margins.items()},
         },
         "checks": [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history],
@@ -484,6 +489,7 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
         int(state["decide_steps"]),
         float(state["margin"] if margin is None else margin),
         name=name,
+        min_brake_cost=float(state.get("min_brake_cost", 0.0)),  # absent: a chooser trained before the option
         reset_scorer=learned.reset,
         note_action=learned.note_action,
     )

@@ -292,6 +292,10 @@ class ChooserConfig(Checked):
     pedals: list[float] = field(default_factory=lambda: [-1.0])
     sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
     margin: float = 0.0  # switch only when the predicted saving over braking exceeds this (R2 units)
+    # ... and only where braking itself is predicted to cost more than this (R2 units): where braking is nearly safe
+    # a switch has little to win and a wrong one much to lose. A decision-time rule: the scorer is fitted and kept
+    # as without it
+    min_brake_cost: float = 0.0  # 0 = no floor
     hidden: list[int] = field(default_factory=lambda: [256, 256])
     dropout: float = 0.2
     lr: float = 1.0e-3
@@ -320,6 +324,8 @@ class ChooserConfig(Checked):
             value = list(getattr(self, key))
             if len(value) != 2 or not 0 < value[0] <= value[1]:
                 yield ConfigValueError(f"chooser.{key}", value, "it must be [low, high] with 0 < low <= high")
+        if self.min_brake_cost < 0:
+            yield ConfigValueError("chooser.min_brake_cost", self.min_brake_cost, "it must be >= 0 (R2 units)")
         if self.margin < 0 or not 0.0 <= self.dropout < 1.0 or self.weight_decay < 0:
             yield ConfigValueError("chooser.margin", self.margin, "margin and weight_decay >= 0, dropout in [0, 1)")
         if self.aux_weight < 0:
@@ -367,6 +373,37 @@ OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "fram
 
 
 @dataclass
+class SelectConfig(Checked):
+    """Checkpoint selection for the dqn learner on family chae (``worldmodel/peers/chae.py``). Every ``every``
+    episodes once ``start`` of the run has passed, the greedy agent drives a validation draw of Chae's trials
+    (``trials`` Scenario-1 trials at each TTC of ``ttcs`` and as many Scenario-2 trials, seeded by ``seed``: never
+    the evaluation's ``evaluate.chae.seed``), and ``best.pt`` keeps the checkpoint that, among those bumping in at
+    most ``max_bump`` % at every TTC, stops needlessly least (else: the one that bumps least). Evaluation then loads
+    it. Chae's two metrics chose it because the reward alone does not tell a needless stop from a pass at 10-30
+    km/h, and successive checkpoints of one run differ there (docs/results/chae/)."""
+
+    every: int = 250  # episodes between validations; 0 = off, evaluation loads last.pt
+    start: float = 0.25  # the share of agent.episodes before the first validation
+    seed: int = 99
+    trials: int = 200
+    ttcs: list[float] = field(default_factory=lambda: [1.5, 1.7, 1.9])
+    max_bump: float = 1.0  # %, at each TTC
+
+    def problems(self):
+        yield from _positive(self, "trials")
+        if self.seed < 0:
+            yield ConfigValueError("select.seed", self.seed, "it must be >= 0")
+        if self.every < 0:
+            yield ConfigValueError("select.every", self.every, "it must be >= 0 episodes (0 = off)")
+        if not 0.0 <= self.start <= 1.0:
+            yield ConfigValueError("select.start", self.start, "it must be a share of the run, in [0, 1]")
+        if not self.ttcs or any(not 0.0 < float(t) < 5.0 for t in self.ttcs):
+            yield ConfigValueError("select.ttcs", list(self.ttcs), "use a non-empty list of TTCs in (0, 5) s")
+        if not 0.0 <= self.max_bump <= 100.0:
+            yield ConfigValueError("select.max_bump", self.max_bump, "it must be a rate in [0, 100] %")
+
+
+@dataclass
 class AgentConfig(DDPGConfig):
     """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there) and the training loop's settings."""
 
@@ -403,6 +440,7 @@ class AgentConfig(DDPGConfig):
     # learner "dqn" (worldmodel/peers/chae.py): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
     episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
+    select: SelectConfig = field(default_factory=SelectConfig)  # the dqn learner on family chae: best.pt
     # a LIDAR ddpg peer's training steps (obs=lidar on family kim, worldmodel/peers/kim.py; Kim et al.: 100k), and
     # ddqn_merola's (worldmodel/peers/merola.py; Merola et al.: 360k).
     # Its own key, so that a scale can shrink it while the peer's preset keeps the paper's other settings

@@ -25,6 +25,7 @@ import json
 import logging
 import time
 from collections import deque
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -137,14 +138,24 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             f"agent.learner=dqn learns Chae's braking with reward chae, not {agent_id.reward}: use agent=dqn_chae"
         )
     episodes = int(cfg.agent.episodes)
+    sel = cfg.agent.select
+    if sel.every and int(sel.seed) == int(cfg.evaluate.chae.seed):
+        raise StageError(
+            f"agent.select.seed={sel.seed} is the evaluation's draw (evaluate.chae.seed): checkpoints must be chosen "
+            "on other trials; give agent.select.seed another value"
+        )
     see = observer(cfg, str(cfg.agent.obs))
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
     agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
     episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "end": []})
+    curve.setdefault("validation", [])
+    first_validation = int(np.ceil(float(sel.start) * episodes))
+    validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
 
-    def snapshot():
-        run_.save(dqn_checkpoint(agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward))
+    def snapshot(best: bool = False):
+        state = dqn_checkpoint(agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward)
+        run_.save(state, best=best)
 
     writer = run_.writer
     recent: deque = deque(maxlen=ROLLING)
@@ -180,10 +191,19 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             writer.add_scalar("train/epsilon", agent.epsilon(), episode)
             if loss is not None:
                 writer.add_scalar("train/loss", loss, episode)
-            if episode % CHECKPOINT_EPISODES == 0:
+            if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
+                score = validation.score(DQNPolicy("validation", agent, see, int(cfg.seed)), episode)
+                improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
+                curve["validation"].append(score)
+                writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
+                writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
+                snapshot(best=improved)
+            elif episode % CHECKPOINT_EPISODES == 0:
                 snapshot()
     snapshot()
     env.close()
+    if validation is not None:
+        validation.env.close()
     if run_.stop.requested:
         return run_.stopped(agent.steps)
     last = curve["end"][-ROLLING:]
@@ -194,13 +214,55 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         "steps": agent.steps,
         "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
         "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
+        "selected": selected(curve["validation"], float(sel.max_bump)),
         "curve": curve,
     }
 
 
+# ----------------------------------------------------------------------------- checkpoint selection
+class Validation:
+    """``agent.select``'s validation draw (``bank`` on its own seed), driven greedily by a checkpoint."""
+
+    def __init__(self, sel, env):
+        self.ttcs = [float(t) for t in sel.ttcs]
+        self.entries = bank(SimpleNamespace(seed=int(sel.seed), trials=int(sel.trials), ttcs=self.ttcs))
+        self.env = env
+
+    def score(self, policy, episode: int) -> dict:
+        """Bump rate per TTC (%), the worst of them, and Scenario 2's unnecessary stops (%)."""
+        rows = run_policy(self.env, policy, self.entries, leave=False)
+        s = summarise(rows, self.ttcs)["policies"][policy.name]
+        bumps = {str(t): rate for t, rate in s["bump_rate"].items()}
+        return {
+            "episode": int(episode),
+            "bump_rate": bumps,
+            "max_bump_rate": max(bumps.values()),
+            "unnecessary_stop_rate": s["unnecessary_stop_rate"],
+        }
+
+
+def selected(scores: list[dict], max_bump: float) -> dict | None:
+    """The validation score ``best.pt`` holds: among the checkpoints bumping in at most ``max_bump`` % at every
+    TTC, the one with the fewest unnecessary stops; if none, the one bumping least (fewer stops breaking ties).
+    The earliest wins a tie, so a later checkpoint replaces it only by doing strictly better."""
+
+    def key(s):
+        safe = s["max_bump_rate"] <= max_bump
+        return (0, s["unnecessary_stop_rate"]) if safe else (1, s["max_bump_rate"], s["unnecessary_stop_rate"])
+
+    return min(scores, key=key) if scores else None
+
+
 def summary(metrics: dict) -> str:
     """One log line for a finished training run."""
-    return f"{metrics['episodes']} episodes; bumps in the last 100: {metrics['recent_bump_rate']}"
+    line = f"{metrics['episodes']} episodes; bumps in the last 100: {metrics['recent_bump_rate']}"
+    chosen = metrics.get("selected")
+    if chosen:
+        line += (
+            f"; best.pt = episode {chosen['episode']} (validation: bumps <= {chosen['max_bump_rate']:.1f} % per TTC, "
+            f"{chosen['unnecessary_stop_rate']:.1f} % unnecessary stops)"
+        )
+    return line
 
 
 # ----------------------------------------------------------------------------- policies
@@ -257,13 +319,16 @@ SCRIPTED = {"braking": StraightBraking, "ttc_braking": TTCBraking, "latest_safe_
 
 
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
-    """A trained dqn agent, built with the hyperparameters it was trained with."""
+    """A trained dqn agent, built with the hyperparameters it was trained with: the checkpoint ``agent.select``
+    chose on its validation draw (``best.pt``) when the run validated, else the last one."""
     from omegaconf import OmegaConf
 
     from ..config import agent_preset
     from ..models.dqn import DQN, DQNConfig
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
+    if state.get("curve", {}).get("validation"):
+        state = artifacts.load_agent_state(cfg, agent_id, "best")
     if state.get("learner") != "dqn":
         raise StageError(
             f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
@@ -332,13 +397,13 @@ COLUMNS = (
 )
 
 
-def run_policy(env, policy, entries, policy_seed: int = 0) -> list[dict]:
+def run_policy(env, policy, entries, policy_seed: int = 0, leave: bool = True) -> list[dict]:
     from tqdm import tqdm
 
     from envs.rollout import rollout
 
     rows = []
-    for scenario, spec in tqdm(entries, desc=policy.name, unit="trial"):
+    for scenario, spec in tqdm(entries, desc=policy.name, unit="trial", leave=leave):
         o = rollout(env, policy, spec).outcome
         rows.append(
             {

@@ -1,0 +1,96 @@
+"""The trained choosers under a floor on switching, exactly and offline, on the validation bank.
+
+    python -m experiments.chooser_floor experiment=paper scale=paper [--seeds 0,1,2] [--floors 0,0.05]
+
+``agent.chooser.min_brake_cost`` lets the chooser switch only where its scorer predicts braking to cost more than
+the floor. It is a decision-time rule, so the trained scorers (``runs/NAME/agent_r2_chooser/seed<S>/``) are scored
+as they are: on the validation bank's labels (``data/NAME/chooser_labels/validation-*/``, made once if missing),
+each seed's exact R2 cost per scenario (``worldmodel.chooser.policy_cost``, equal to the simulated episode) under
+each floor. Prints, per floor, the mean gain over braking per seed and the TTC <= 1.0 s cells in which the
+seed-averaged chooser costs more than braking (the issue's cells bar). The test bank is never touched.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections import defaultdict
+
+import numpy as np
+import torch
+
+from worldmodel import artifacts, chooser
+from worldmodel.artifacts import AgentId
+from worldmodel.config import compose
+
+log = logging.getLogger("chooser_floor")
+
+
+def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray]:
+    """Each seed's predicted costs on the validation labels, as its live chooser sees them."""
+    out = []
+    encoder = None
+    for seed in seeds:
+        cfg = compose("train_agent", [*base, f"seed={seed}"])
+        encoder = encoder or artifacts.load_world_model(cfg)
+        state = artifacts.load_agent_state(cfg, AgentId.of(cfg), "last")
+        scorer = chooser.build_policy("floor", encoder, state).scores.scorer
+        x = chooser.scorer_inputs(encoder, val, int(state["decide_steps"]), bool(state.get("mask_view")))
+        with torch.no_grad():
+            out.append(scorer(torch.from_numpy(x)).numpy())
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=paper scale=paper")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
+    parser.add_argument("--margin", type=float, default=None, help="default: the chooser preset's")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(1)
+    base = [*args.overrides, "reward=r2", "agent=chooser", "agent.chooser.num_workers=1"]
+    cfg = compose("train_agent", base)
+    margin = float(cfg.agent.chooser.margin if args.margin is None else args.margin)
+    val = chooser.labels(cfg, "validation")
+    cells = [(e.speed, e.ttc) for e in chooser.validation_entries(cfg)]
+    costs, episode = val["costs"], val["episode"]
+    braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]
+    exact = chooser.policy_cost(costs, costs, episode, 0.0)
+    preds = predictions(base, [int(s) for s in args.seeds.split(",")], val)
+    lines = [
+        f"Validation bank, {len(braking)} scenarios: braking {100 * braking.mean():.2f} %, the chooser on exact "
+        f"costs {100 * exact.mean():.2f} % (mean R2 total risk); margin {margin}.",
+        "",
+        "| min_brake_cost | risk - braking, pts, per seed | mean | TTC <= 1.0 s cells above braking "
+        "(chooser / braking, %) |",
+        "|---:|---|---:|---|",
+    ]
+    for floor in [float(f) for f in args.floors.split(",")]:
+        per_seed = [chooser.policy_cost(p, costs, episode, margin, min_brake_cost=floor) for p in preds]
+        mean = np.mean(per_seed, axis=0)
+        by_cell = defaultdict(list)
+        for i, cell in enumerate(cells):
+            by_cell[cell].append((mean[i], braking[i]))
+        worse = []
+        for (speed, ttc), pairs in sorted(by_cell.items()):
+            mine, theirs = (100 * float(np.mean(v)) for v in zip(*pairs))
+            if ttc <= 1.0 and mine > theirs + 1e-9:
+                worse.append(f"{speed:g} m/s {ttc:g} s: {mine:.2f} / {theirs:.2f}")
+        gains = [100 * float(c.mean() - braking.mean()) for c in per_seed]
+        lines.append(
+            f"| {floor:g} | {', '.join(f'{g:+.2f}' for g in gains)} | {np.mean(gains):+.2f} | "
+            f"{'; '.join(worse) or 'none'} |"
+        )
+        log.info(lines[-1])
+    out = artifacts.runs_root(cfg) / "chooser_floor"
+    out.mkdir(parents=True, exist_ok=True)
+    text = "\n".join(lines) + "\n"
+    (out / "floor.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
