@@ -258,8 +258,9 @@ def _drop_added_defaults(settings: dict) -> dict:
         agent["dqn"].pop("advantage_alpha")  # off: the DQN as before the option
     if isinstance(agent, dict) and isinstance(agent.get("dqn"), dict) and agent["dqn"].get("dueling") is False:
         agent["dqn"].pop("dueling")  # off: the DQN as before the option
-    if isinstance(agent, dict) and (agent.get("learner") != "dqn" or settings.get("reward") != "chae"):
-        agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw
+    chooses = isinstance(agent, dict) and agent.get("learner") == "dqn" and settings.get("reward") == "chae"
+    if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
+        agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
     chooser = agent.get("chooser") if isinstance(agent, dict) else None
     if isinstance(chooser, dict) and not chooser.get("min_brake_cost"):
         chooser.pop("min_brake_cost", None)  # off: the chooser as before the option
