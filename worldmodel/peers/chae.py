@@ -329,6 +329,7 @@ def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
     state = artifacts.load_agent_state(cfg, agent_id, "last")
     if state.get("curve", {}).get("validation"):
         state = artifacts.load_agent_state(cfg, agent_id, "best")
+        log.info("[eval chae] %s: best.pt, episode %d, chosen on the validation draw", agent_id.key, state["episode"])
     if state.get("learner") != "dqn":
         raise StageError(
             f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
