@@ -93,6 +93,15 @@ class ExactCosts:
         return np.array([plan_cost(self._twin, snap, _Plan(m, t_step)) for m in self.candidates], np.float64)
 
 
+def switch_choice(cost: np.ndarray, margin: float, min_brake_cost: float = 0.0) -> int | None:
+    """The candidate the chooser commits to on these predicted costs, or None to keep braking: the cheapest, when it
+    beats braking (``cost[0]``) by more than ``margin`` and, if ``min_brake_cost`` is set, braking is predicted to
+    cost more than that. The one rule of the live chooser and of ``worldmodel.chooser.policy_cost``."""
+    k = int(np.argmin(cost))
+    nearly_safe = min_brake_cost > 0 and cost[0] <= min_brake_cost  # 0: no floor at all
+    return k if cost[0] - cost[k] > margin and not nearly_safe else None
+
+
 class ManoeuvreChooser:
     """Scripted-policy interface (``reset``, ``act``; ``bind`` when the scorer reads the true state).
 
@@ -140,9 +149,8 @@ class ManoeuvreChooser:
         self.t += 1
         if self.plan is None and t < self.decide_steps:
             cost = np.asarray(self.scores(obs, t), dtype=np.float64)
-            k = int(np.argmin(cost))
-            nearly_safe = self.min_brake_cost > 0 and cost[0] <= self.min_brake_cost  # 0: no floor at all
-            if cost[0] - cost[k] > self.margin and not nearly_safe:
+            k = switch_choice(cost, self.margin, self.min_brake_cost)
+            if k is not None:
                 self.plan, self.choice = _Plan(self.candidates[k], t), k
         action = BRAKE.copy() if self.plan is None else self.plan.action(t)
         if self.note_action is not None:

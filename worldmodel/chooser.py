@@ -34,7 +34,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from envs.chooser import BRAKE, HAZARD_STATE, ManoeuvreChooser, cost_labels, decide_steps_for
+from envs.chooser import BRAKE, HAZARD_STATE, ManoeuvreChooser, cost_labels, decide_steps_for, switch_choice
 from envs.planner import Manoeuvre
 from envs.views import MaskView
 
@@ -292,9 +292,8 @@ def policy_cost(
         p, c = pred[rows], costs[rows]
         total = float(c[0, 0])
         for k_t in range(len(rows)):
-            k = int(np.argmin(p[k_t]))
-            nearly_safe = min_brake_cost > 0 and p[k_t, 0] <= min_brake_cost  # 0: no floor at all
-            if p[k_t, 0] - p[k_t, k] > margin and not nearly_safe:
+            k = switch_choice(p[k_t], margin, min_brake_cost)
+            if k is not None:
                 total = float(c[0, 0] - c[k_t, 0] + c[k_t, k])
                 break
         out.append(total)

@@ -327,6 +327,8 @@ def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
     from ..models.dqn import DQN, DQNConfig
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
+    # last.pt says whether the run validated (a best.pt alone could be left from another run's settings); a chae
+    # checkpoint is small, so reading best.pt after it costs little
     if state.get("curve", {}).get("validation"):
         state = artifacts.load_agent_state(cfg, agent_id, "best")
         log.info("[eval chae] %s: best.pt, episode %d, chosen on the validation draw", agent_id.key, state["episode"])
