@@ -374,3 +374,46 @@ def test_trauma_lead_stores_the_steps_before_a_trauma_within_its_episode():
     step(8.0, trauma=True, end=True)
     assert sorted(agent.trauma.obs[:5, 0].tolist()) == [4.0, 5.0, 6.0, 7.0, 8.0]  # nothing from the last episode
     assert len(agent.replay) == 8
+
+
+def test_trauma_weight_decays_to_its_final_value_and_scales_only_the_trauma_term():
+    agent, crash_obs = agent_with_old_trauma(-1.0, loss="mse", trauma_weight_final=0.25, total_steps=4)
+    assert [agent.trauma_weight(u) for u in (0, 2, 4, 9)] == pytest.approx([1.0, 0.5, 0.25, 0.25])
+    for _ in range(4):
+        agent.update()
+    # A copy at weight 1 draws the same batch (same rng state): the losses differ by 3/4 of the trauma term, which
+    # is the crash transition's squared error (terminal: y = r = -1) over the 4 + 1 transitions.
+    plain = DQN(3, 2, DQNConfig(**{**agent.cfg.__dict__, "trauma_weight_final": None}), seed=0)
+    plain.load_state_dict(roundtrip(agent.state_dict()))
+    q_crash = agent.q_values(crash_obs)[1]
+    weighted, unweighted = agent.update(), plain.update()
+    assert weighted["trauma_weight"] == 0.25 and unweighted["trauma_weight"] == 1.0
+    assert unweighted["loss"] - weighted["loss"] == pytest.approx(0.75 * (q_crash + 1.0) ** 2 / 5, rel=1e-4)
+
+
+def test_normalized_inputs_are_the_warm_up_statistics_frozen_and_saved():
+    cfg = DQNConfig(hidden=[8], batch_size=4, buffer_size=50, warmup_steps=20, trauma_batch=0, normalize_obs=True)
+    agent = DQN(3, 2, cfg, seed=0)
+    env = np.random.default_rng(0)
+    scale = np.array([50.0, 1.0, 10.0])
+    for _ in range(20):
+        agent.remember(env.normal(size=3) * scale + 7, int(env.integers(2)), env.normal(), env.normal(size=3), False)
+    warm = agent.replay.obs[:20].copy()
+    agent.update()
+    net = agent.q_network
+    assert np.allclose(net.obs_mean.numpy(), warm.mean(axis=0), atol=1e-5)
+    assert np.allclose(net.obs_std.numpy(), warm.std(axis=0), rtol=1e-5)
+    assert torch.equal(agent.target_network.obs_std, net.obs_std)
+    # The network sees standardised inputs: the same layers without normalisation, fed (x - mean) / std, agree.
+    raw = QNetwork(3, 2, [8])
+    raw.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("obs_")})
+    x = torch.as_tensor(warm[:5])
+    assert torch.allclose(net(x), raw((x - net.obs_mean) / net.obs_std))
+
+    for _ in range(30):  # later transitions do not move the frozen statistics
+        agent.remember(env.normal(size=3) * 1000, 0, 0.0, env.normal(size=3), False)
+        agent.update()
+    assert np.allclose(net.obs_mean.numpy(), warm.mean(axis=0), atol=1e-5)
+    resumed = DQN(3, 2, cfg, seed=1)
+    resumed.load_state_dict(roundtrip(agent.state_dict()))
+    assert resumed.normalized and torch.equal(resumed.q_network.obs_std, net.obs_std)

@@ -247,6 +247,8 @@ ADDED_DEFAULTS = {
         "resnet_weights": None,
     },
 }
+# DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
+DQN_OPTIONS_OFF = {"advantage_alpha": 0.0, "dueling": False, "trauma_weight_final": None, "normalize_obs": False}
 
 
 def _drop_added_defaults(settings: dict) -> dict:
@@ -254,10 +256,11 @@ def _drop_added_defaults(settings: dict) -> dict:
     if isinstance(agent, dict) and agent.get("learner") != "dqn":
         agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners
         agent.pop("episodes", None)
-    if isinstance(agent, dict) and isinstance(agent.get("dqn"), dict) and agent["dqn"].get("advantage_alpha") == 0:
-        agent["dqn"].pop("advantage_alpha")  # off: the DQN as before the option
-    if isinstance(agent, dict) and isinstance(agent.get("dqn"), dict) and agent["dqn"].get("dueling") is False:
-        agent["dqn"].pop("dueling")  # off: the DQN as before the option
+    dqn = agent.get("dqn") if isinstance(agent, dict) else None
+    if isinstance(dqn, dict):
+        for key, off in DQN_OPTIONS_OFF.items():
+            if key in dqn and dqn[key] == off:
+                dqn.pop(key)  # off: the DQN as before the option
     chooses = isinstance(agent, dict) and agent.get("learner") == "dqn" and settings.get("reward") == "chae"
     if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
         agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before

@@ -118,6 +118,18 @@ class DQNConfig(Checked):
     and Q = V + A - mean(A). The paper's network has one linear head (False). When the values that separate the
     actions are small beside the values themselves (Chae: waiting or braking gently at low speed differ by
     hundredths, beside a bump's 100), the advantages are learnt in their own stream"""
+    trauma_weight_final: float | None = None
+    """if set, the trauma batch's share of the loss is weighted by a factor that decays exponentially from 1 to
+    this over ``total_steps`` updates (the schedule of ``lr_final``), then stays there. None = weight 1 throughout,
+    as Chae et al. Every trauma transition is also in the replay memory, so the trauma batch is pure
+    over-sampling: it makes the penalty travel back quickly while collisions are rare, but late in training it
+    biases the fit towards the states near a collision (Chae: gentle braking for every pedestrian in case it
+    starts); annealing its weight removes that bias as prioritised replay's importance weights do (Schaul et al.
+    2016)"""
+    normalize_obs: bool = False
+    """standardise each observation feature by the mean and standard deviation of the replay memory at the first
+    update (the warm-up transitions), frozen from then on and saved with the network. False = raw inputs, as
+    Chae et al. (their state mixes metres up to ~80 with speeds)"""
     grad_clip: float | None = 10.0
     """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
     gradient grows with the batch, and one collision penalty can be large"""
@@ -127,6 +139,8 @@ class DQNConfig(Checked):
         yield from positive_fields(self, "eps_decay_steps")
         if self.lr_final is not None and not 0 < self.lr_final <= self.lr:
             yield ConfigValueError("lr_final", self.lr_final, f"it must be in (0, lr={self.lr}] or null")
+        if self.trauma_weight_final is not None and not 0 <= self.trauma_weight_final <= 1:
+            yield ConfigValueError("trauma_weight_final", self.trauma_weight_final, "it must be in [0, 1] or null")
         if self.grad_clip is not None and not self.grad_clip > 0:
             yield ConfigValueError("grad_clip", self.grad_clip, "it must be positive or null")
         if not 0 <= self.gamma <= 1:
@@ -155,6 +169,17 @@ class DQNConfig(Checked):
             yield ConfigValueError("hidden", list(self.hidden), "layer widths must be positive integers")
 
 
+def td_loss(q: torch.Tensor, target: torch.Tensor, kind: str, batch: int | None = None) -> torch.Tensor:
+    """The TD loss of ``kind`` ("sum", "mse", "huber"; see DQNConfig.loss); the means divide by ``batch``
+    (default: len(q)), so that a batch split in parts sums back to the whole."""
+    if kind == "sum":
+        return ((q - target) ** 2).sum()
+    if batch is None:
+        return F.mse_loss(q, target) if kind == "mse" else F.smooth_l1_loss(q, target)
+    reduction = F.mse_loss if kind == "mse" else F.smooth_l1_loss
+    return reduction(q, target, reduction="sum") / batch
+
+
 class QNetwork(nn.Module):
     """Q(s, .): an MLP from the observation to one value per action, leaky ReLU between layers; with ``dueling``,
     a value and an advantage head on the last hidden layer, Q = V + A - mean(A)."""
@@ -166,8 +191,13 @@ class QNetwork(nn.Module):
         hidden: Sequence[int] = (100, 70, 50, 70, 100),
         leaky_slope: float = 0.01,
         dueling: bool = False,
+        normalize: bool = False,
     ):
         super().__init__()
+        self.normalize = bool(normalize)
+        if self.normalize:  # set once by DQN.update (freeze_normalization); buffers, so checkpoints carry them
+            self.register_buffer("obs_mean", torch.zeros(obs_dim))
+            self.register_buffer("obs_std", torch.ones(obs_dim))
         layers: list[nn.Module] = []
         in_dim = obs_dim
         for width in hidden:
@@ -183,6 +213,8 @@ class QNetwork(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Returns Q with shape (batch, n_actions)."""
+        if self.normalize:
+            obs = (obs - self.obs_mean) / self.obs_std
         if not self.dueling:
             return self.net(obs)
         h = self.net(obs)
@@ -227,8 +259,8 @@ class DQN:
         # Initialise from `seed` without consuming or resetting the global torch RNG, which the caller may use.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.q_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope, cfg.dueling)
-            self.target_network = QNetwork(obs_dim, n_actions, cfg.hidden, cfg.leaky_slope, cfg.dueling)
+            shape = (obs_dim, n_actions, cfg.hidden, cfg.leaky_slope, cfg.dueling, cfg.normalize_obs)
+            self.q_network, self.target_network = QNetwork(*shape), QNetwork(*shape)
         self.target_network.load_state_dict(self.q_network.state_dict())
         self.target_network.requires_grad_(False)  # moved only by hard copies
 
@@ -238,6 +270,7 @@ class DQN:
         total = cfg.total_steps
         # lr * ratio^(u / total): exactly lr_final after `total` updates, held there after.
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda u: ratio ** (min(u, total) / total))
+        self.normalized = False  # whether the networks' input statistics are frozen yet (normalize_obs)
 
         self.replay = TransitionBuffer(cfg.buffer_size, obs_dim)
         self.trauma = TransitionBuffer(cfg.trauma_size, obs_dim) if cfg.trauma_batch > 0 else None
@@ -281,6 +314,28 @@ class DQN:
         self.steps += 1
 
     # ------------------------------------------------------------------ learning
+    def trauma_weight(self, update: int | None = None) -> float:
+        """The trauma batch's loss weight at update ``update`` (default: updates so far): 1, decaying exponentially
+        to ``trauma_weight_final`` over ``total_steps`` updates when that is set."""
+        final = self.cfg.trauma_weight_final
+        if final is None:
+            return 1.0
+        u = self.updates if update is None else update
+        return float(final ** (min(u, self.cfg.total_steps) / self.cfg.total_steps)) if final > 0 else 0.0
+
+    @torch.no_grad()
+    def freeze_normalization(self) -> None:
+        """Both networks standardise their inputs by the replay memory's per-feature mean and standard deviation
+        (a feature that never varied keeps scale 1)."""
+        obs = self.replay.obs[: len(self.replay)]
+        mean = torch.as_tensor(obs.mean(axis=0), dtype=torch.float32)
+        std = torch.as_tensor(obs.std(axis=0), dtype=torch.float32)
+        std = torch.where(std > 1e-6, std, torch.ones_like(std))
+        for net in (self.q_network, self.target_network):
+            net.obs_mean.copy_(mean)
+            net.obs_std.copy_(std)
+        self.normalized = True
+
     @torch.no_grad()
     def td_targets(
         self, reward: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor, obs=None, action=None
@@ -309,11 +364,13 @@ class DQN:
         """One gradient step on a replay batch plus a trauma batch; every ``target_every``-th also copies the
         online network into the target. None (and nothing changes) while warming up.
 
-        Returns loss, q_mean (mean Q(s, a) over the batch), target_mean, trauma_in_batch and lr (the rate this step
-        used)."""
+        Returns loss, q_mean (mean Q(s, a) over the batch), target_mean, trauma_in_batch, trauma_weight and lr (the
+        rate this step used)."""
         cfg = self.cfg
         if self.steps < cfg.warmup_steps or len(self.replay) < cfg.batch_size:
             return None
+        if cfg.normalize_obs and not self.normalized:
+            self.freeze_normalization()
         batch = self.replay.sample(cfg.batch_size, self.rng)
         n_trauma = 0
         if self.trauma is not None and len(self.trauma) > 0:
@@ -326,12 +383,14 @@ class DQN:
             batch["rewards"], batch["next_obs"], batch["terminated"], batch["obs"], batch["actions"]
         )
         q = self.q_network(batch["obs"]).gather(1, batch["actions"].unsqueeze(1)).squeeze(1)
-        if cfg.loss == "sum":
-            loss = ((q - target) ** 2).sum()
-        elif cfg.loss == "mse":
-            loss = F.mse_loss(q, target)
-        else:
-            loss = F.smooth_l1_loss(q, target)
+        weight = self.trauma_weight()
+        if weight == 1.0:
+            loss = td_loss(q, target, cfg.loss)
+        else:  # the replay part and the down-weighted trauma part, each over the whole batch as above
+            split = len(q) - n_trauma
+            loss = td_loss(q[:split], target[:split], cfg.loss, len(q)) + weight * td_loss(
+                q[split:], target[split:], cfg.loss, len(q)
+            )
 
         lr = self.optimizer.param_groups[0]["lr"]
         self.optimizer.zero_grad()
@@ -348,6 +407,7 @@ class DQN:
             "q_mean": q.mean().item(),
             "target_mean": target.mean().item(),
             "trauma_in_batch": float(n_trauma),
+            "trauma_weight": weight,
             "lr": float(lr),
         }
 
@@ -365,6 +425,7 @@ class DQN:
             "rng": self.rng.bit_generator.state,
             "steps": self.steps,
             "updates": self.updates,
+            "normalized": self.normalized,
             "replay": self.replay.state_dict(),
             "trauma": None if self.trauma is None else self.trauma.state_dict(),
         }
@@ -378,6 +439,7 @@ class DQN:
         self.scheduler.load_state_dict(state["scheduler"])
         self.rng.bit_generator.state = state["rng"]
         self.steps, self.updates = int(state["steps"]), int(state["updates"])
+        self.normalized = bool(state.get("normalized", False))  # absent: saved before normalize_obs existed
         self.replay.load_state_dict(state["replay"])
         if self.trauma is not None:
             self.trauma.load_state_dict(state["trauma"])
