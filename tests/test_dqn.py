@@ -338,6 +338,8 @@ def test_learns_the_corridor(double, dueling):
         ("gamma", 1.5),
         ("target_every", 0),
         ("hidden", [100, 0]),
+        ("trauma_weight_final", 0.0),  # an exponential decay cannot reach 0
+        ("trauma_weight_final", 1.5),
     ],
 )
 def test_impossible_values_are_rejected_by_name(key, value):

@@ -121,11 +121,11 @@ class DQNConfig(Checked):
     trauma_weight_final: float | None = None
     """if set, the trauma batch's share of the loss is weighted by a factor that decays exponentially from 1 to
     this over ``total_steps`` updates (the schedule of ``lr_final``), then stays there. None = weight 1 throughout,
-    as Chae et al. Every trauma transition is also in the replay memory, so the trauma batch is pure
-    over-sampling: it makes the penalty travel back quickly while collisions are rare, but late in training it
-    biases the fit towards the states near a collision (Chae: gentle braking for every pedestrian in case it
-    starts); annealing its weight removes that bias as prioritised replay's importance weights do (Schaul et al.
-    2016)"""
+    as Chae et al. Every trauma transition also enters the replay memory, so the trauma batch over-samples
+    collisions (Chae, late in a run: thousands of times their share of the replay memory): it makes the penalty
+    travel back quickly while collisions are rare, but late in training it biases the fit towards the states near
+    a collision (Chae: gentle braking for every pedestrian in case it starts); annealing its weight removes that
+    bias as prioritised replay's importance weights do (Schaul et al. 2016)"""
     normalize_obs: bool = False
     """standardise each observation feature by the mean and standard deviation of the replay memory at the first
     update (the warm-up transitions), frozen from then on and saved with the network. False = raw inputs, as
@@ -139,8 +139,8 @@ class DQNConfig(Checked):
         yield from positive_fields(self, "eps_decay_steps")
         if self.lr_final is not None and not 0 < self.lr_final <= self.lr:
             yield ConfigValueError("lr_final", self.lr_final, f"it must be in (0, lr={self.lr}] or null")
-        if self.trauma_weight_final is not None and not 0 <= self.trauma_weight_final <= 1:
-            yield ConfigValueError("trauma_weight_final", self.trauma_weight_final, "it must be in [0, 1] or null")
+        if self.trauma_weight_final is not None and not 0 < self.trauma_weight_final <= 1:
+            yield ConfigValueError("trauma_weight_final", self.trauma_weight_final, "it must be in (0, 1] or null")
         if self.grad_clip is not None and not self.grad_clip > 0:
             yield ConfigValueError("grad_clip", self.grad_clip, "it must be positive or null")
         if not 0 <= self.gamma <= 1:
@@ -174,7 +174,7 @@ def td_loss(q: torch.Tensor, target: torch.Tensor, kind: str, batch: int | None 
     (default: len(q)), so that a batch split in parts sums back to the whole."""
     if kind == "sum":
         return ((q - target) ** 2).sum()
-    if batch is None:
+    if batch is None:  # torch's own mean, so runs at trauma weight 1 reproduce earlier ones bit for bit
         return F.mse_loss(q, target) if kind == "mse" else F.smooth_l1_loss(q, target)
     reduction = F.mse_loss if kind == "mse" else F.smooth_l1_loss
     return reduction(q, target, reduction="sum") / batch
@@ -321,7 +321,7 @@ class DQN:
         if final is None:
             return 1.0
         u = self.updates if update is None else update
-        return float(final ** (min(u, self.cfg.total_steps) / self.cfg.total_steps)) if final > 0 else 0.0
+        return float(final ** (min(u, self.cfg.total_steps) / self.cfg.total_steps))
 
     @torch.no_grad()
     def freeze_normalization(self) -> None:
