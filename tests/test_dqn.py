@@ -340,6 +340,8 @@ def test_learns_the_corridor(double, dueling):
         ("hidden", [100, 0]),
         ("trauma_weight_final", 0.0),  # an exponential decay cannot reach 0
         ("trauma_weight_final", 1.5),
+        ("trauma_weight_hold", 1.0),  # no updates left to decay over
+        ("trauma_weight_hold", -0.1),
     ],
 )
 def test_impossible_values_are_rejected_by_name(key, value):
@@ -391,6 +393,12 @@ def test_trauma_weight_decays_to_its_final_value_and_scales_only_the_trauma_term
     weighted, unweighted = agent.update(), plain.update()
     assert weighted["trauma_weight"] == 0.25 and unweighted["trauma_weight"] == 1.0
     assert unweighted["loss"] - weighted["loss"] == pytest.approx(0.75 * (q_crash + 1.0) ** 2 / 5, rel=1e-4)
+
+
+def test_trauma_weight_holds_at_one_then_decays_over_the_remaining_updates():
+    agent = DQN(3, 2, DQNConfig(trauma_weight_final=0.25, trauma_weight_hold=0.5, total_steps=8), seed=0)
+    # 4 updates at 1, then 1 -> 0.25 exponentially over the other 4: halves every 2 updates.
+    assert [agent.trauma_weight(u) for u in (0, 4, 6, 8, 20)] == pytest.approx([1.0, 1.0, 0.5, 0.25, 0.25])
 
 
 def test_normalized_inputs_are_the_warm_up_statistics_frozen_and_saved():

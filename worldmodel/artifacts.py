@@ -248,7 +248,10 @@ ADDED_DEFAULTS = {
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
-DQN_OPTIONS_OFF = {"advantage_alpha": 0.0, "dueling": False, "trauma_weight_final": None, "normalize_obs": False}
+DQN_OPTIONS_OFF = {
+    "advantage_alpha": 0.0, "dueling": False, "trauma_weight_final": None, "trauma_weight_hold": 0.0,
+    "normalize_obs": False,
+}
 
 
 def _drop_added_defaults(settings: dict) -> dict:

@@ -126,6 +126,11 @@ class DQNConfig(Checked):
     travel back quickly while collisions are rare, but late in training it biases the fit towards the states near
     a collision (Chae: gentle braking for every pedestrian in case it starts); annealing its weight removes that
     bias as prioritised replay's importance weights do (Schaul et al. 2016)"""
+    trauma_weight_hold: float = 0.0
+    """with ``trauma_weight_final``: the share of ``total_steps`` updates during which the weight stays 1 before it
+    starts to decay (then over the remaining updates). 0 = decay from the first update. For runs that have not yet
+    learnt to avoid the collisions when the decay starts (Chae: the first bumps are avoided only when epsilon is
+    low, around 55 % of the run), so that the bias is removed after the penalty has travelled back, not before"""
     normalize_obs: bool = False
     """standardise each observation feature by the mean and standard deviation of the replay memory at the first
     update (the warm-up transitions), frozen from then on and saved with the network. False = raw inputs, as
@@ -141,6 +146,8 @@ class DQNConfig(Checked):
             yield ConfigValueError("lr_final", self.lr_final, f"it must be in (0, lr={self.lr}] or null")
         if self.trauma_weight_final is not None and not 0 < self.trauma_weight_final <= 1:
             yield ConfigValueError("trauma_weight_final", self.trauma_weight_final, "it must be in (0, 1] or null")
+        if not 0 <= self.trauma_weight_hold < 1:
+            yield ConfigValueError("trauma_weight_hold", self.trauma_weight_hold, "it must be in [0, 1)")
         if self.grad_clip is not None and not self.grad_clip > 0:
             yield ConfigValueError("grad_clip", self.grad_clip, "it must be positive or null")
         if not 0 <= self.gamma <= 1:
@@ -316,12 +323,15 @@ class DQN:
     # ------------------------------------------------------------------ learning
     def trauma_weight(self, update: int | None = None) -> float:
         """The trauma batch's loss weight at update ``update`` (default: updates so far): 1, decaying exponentially
-        to ``trauma_weight_final`` over ``total_steps`` updates when that is set."""
+        to ``trauma_weight_final`` over ``total_steps`` updates when that is set (after the first
+        ``trauma_weight_hold`` share of them at 1)."""
         final = self.cfg.trauma_weight_final
         if final is None:
             return 1.0
         u = self.updates if update is None else update
-        return float(final ** (min(u, self.cfg.total_steps) / self.cfg.total_steps))
+        hold = self.cfg.trauma_weight_hold * self.cfg.total_steps
+        progress = (min(u, self.cfg.total_steps) - hold) / (self.cfg.total_steps - hold)
+        return float(final ** max(progress, 0.0))
 
     @torch.no_grad()
     def freeze_normalization(self) -> None:
