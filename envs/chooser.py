@@ -181,21 +181,27 @@ def cost_labels(
 ) -> dict:
     """Straight-line braking through scenario ``spec``, and at each of its first ``decide_steps`` steps the exact
     cost of starting every candidate there: what the chooser's scorer learns from. Returns ``seg`` (T, H, W) uint8,
-    ``speed`` (T,), ``costs`` (T, K) and ``state`` (T, len(HAZARD_STATE)), the privileged facts of ``hazard_state``."""
+    ``speed`` (T,), ``costs`` (T, K) and ``state`` (T, len(HAZARD_STATE)), the privileged facts of ``hazard_state``;
+    with a second, narrow camera (``env.tele_fov_deg``) also its frames, ``seg_tele`` (T, H, W)."""
     obs, _ = env.reset(options={"scenario": spec})
-    segs, speeds, costs, states = [], [], [], []
+    segs, teles, speeds, costs, states = [], [], [], [], []
     for t in range(decide_steps):
         snap = env.snapshot()
         states.append(hazard_state(env))
         costs.append([plan_cost(twin, snap, _Plan(m, t)) for m in candidates])
         segs.append(np.asarray(obs["seg"], np.uint8))
+        if "seg_tele" in obs:
+            teles.append(np.asarray(obs["seg_tele"], np.uint8))
         speeds.append(float(np.asarray(obs["speed"]).reshape(-1)[0]))
         obs, _, terminated, truncated, info = env.step(BRAKE)
         if terminated or truncated:
             break
-    return {
+    out = {
         "seg": np.stack(segs),
         "speed": np.asarray(speeds, np.float32),
         "costs": np.asarray(costs, np.float32),
         "state": np.stack(states),
     }
+    if teles:
+        out["seg_tele"] = np.stack(teles)
+    return out

@@ -77,8 +77,10 @@ class UrbanCollisionEnv(gym.Env):
     """See the module docstring. Keyword arguments are the env config (``conf/env/urban.yaml``).
 
     camera: render the segmentation frame (False: zeros, for scripted evaluation and planners).
-    image_size, fov_deg: the camera. reward: 'r1' or 'r2'. horizon_after_ttc_s: agent-episode length
-    after the TTC (None: ``max_episode_s``). mu: tyre-road friction. occupants_per_car: people per car.
+    image_size, fov_deg: the camera. tele_fov_deg: a second, narrow camera at the same pose (obs ``seg_tele``; None:
+    none), so that a pedestrian 20-35 m ahead covers tens of pixels instead of a few. reward: 'r1' or 'r2'.
+    horizon_after_ttc_s: agent-episode length after the TTC (None: ``max_episode_s``). mu: tyre-road friction.
+    occupants_per_car: people per car.
     ego_mass, car_mass: kg, for delta-v. substeps: collision/dynamics sub-steps per step.
     step_s: seconds per step (``DT`` = 1/15 by default); planners and evaluation read it from the env.
     family: the scenario family ``reset()`` samples when no scenario is given (``porav``, the paper's; ``chae``,
@@ -92,6 +94,7 @@ class UrbanCollisionEnv(gym.Env):
         camera: bool = True,
         image_size: int = 64,
         fov_deg: float = 90.0,
+        tele_fov_deg: float | None = None,
         reward: str = "r2",
         horizon_after_ttc_s: float | None = 3.0,
         max_episode_s: float = 15.0,
@@ -108,6 +111,7 @@ class UrbanCollisionEnv(gym.Env):
         checks = {
             "image_size": image_size >= 8,
             "fov_deg": 10.0 <= fov_deg <= 170.0,
+            "tele_fov_deg": tele_fov_deg is None or 10.0 <= tele_fov_deg <= 170.0,
             "mu": mu > 0.0,
             "max_episode_s": max_episode_s > 0.0,
             "occupants_per_car": occupants_per_car >= 1,
@@ -126,6 +130,7 @@ class UrbanCollisionEnv(gym.Env):
         self.camera = bool(camera)
         self.image_size = int(image_size)
         self.fov_deg = float(fov_deg)
+        self.tele_fov_deg = None if tele_fov_deg is None else float(tele_fov_deg)
         self.reward_name = reward
         self.horizon_after_ttc_s = horizon_after_ttc_s
         self.max_episode_s = float(max_episode_s)
@@ -139,17 +144,19 @@ class UrbanCollisionEnv(gym.Env):
         self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
 
         s = self.image_size
-        self.observation_space = spaces.Dict(
-            {
-                "seg": spaces.Box(0, NUM_CLASSES - 1, (s, s), np.uint8),
-                "speed": spaces.Box(0.0, MAX_SPEED_OBS, (1,), np.float32),
-            }
-        )
+        views = {
+            "seg": spaces.Box(0, NUM_CLASSES - 1, (s, s), np.uint8),
+            "speed": spaces.Box(0.0, MAX_SPEED_OBS, (1,), np.float32),
+        }
+        if self.tele_fov_deg is not None:
+            views["seg_tele"] = spaces.Box(0, NUM_CLASSES - 1, (s, s), np.uint8)
+        self.observation_space = spaces.Dict(views)
         self.action_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
 
         self._client = None
         self._pool = None
         self._camera = None
+        self._tele = None
         if self.camera or self.render_mode is not None:
             self._connect()
         self.scenario: ScenarioSpec | None = None
@@ -171,10 +178,14 @@ class UrbanCollisionEnv(gym.Env):
         vehicle_size = (self.params.length, self.params.width, self.params.height)
         self._pool = BodyPool(self._client, CAR_POOL, PEDESTRIAN_POOL, vehicle_size, PEDESTRIAN_HALF_SIZE)
         self._camera = SegmentationCamera(self._client, self._pool, self.image_size, self.fov_deg)
+        if self.tele_fov_deg is not None:
+            self._tele = SegmentationCamera(self._client, self._pool, self.image_size, self.tele_fov_deg)
 
     def _apply_layout(self) -> None:
         self._pool.apply_layout(self.layout)
         self._camera.set_layout(self.layout)
+        if self._tele is not None:
+            self._tele.set_layout(self.layout)
 
     def close(self) -> None:
         if getattr(self, "_client", None) is not None:
@@ -389,6 +400,7 @@ class UrbanCollisionEnv(gym.Env):
             camera=False,
             image_size=self.image_size,
             fov_deg=self.fov_deg,
+            tele_fov_deg=self.tele_fov_deg,
             reward=self.reward_name,
             horizon_after_ttc_s=self.horizon_after_ttc_s,
             max_episode_s=self.max_episode_s,
@@ -484,12 +496,16 @@ class UrbanCollisionEnv(gym.Env):
 
     # ------------------------------------------------------------------ observation / info
     def _observe(self) -> dict:
+        blank = np.zeros((self.image_size, self.image_size), dtype=np.uint8)
         if self.camera:
             self._sync_bodies()
             seg = self._camera.render(self.ego.x, self.ego.y, self.ego.psi)
         else:
-            seg = np.zeros((self.image_size, self.image_size), dtype=np.uint8)
-        return {"seg": seg, "speed": np.array([min(self.ego.v, MAX_SPEED_OBS)], dtype=np.float32)}
+            seg = blank
+        obs = {"seg": seg, "speed": np.array([min(self.ego.v, MAX_SPEED_OBS)], dtype=np.float32)}
+        if self.tele_fov_deg is not None:
+            obs["seg_tele"] = self._tele.render(self.ego.x, self.ego.y, self.ego.psi) if self.camera else blank.copy()
+        return obs
 
     def _sync_bodies(self) -> None:
         a = self.actors

@@ -35,7 +35,9 @@ def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray
         encoder = encoder or artifacts.load_world_model(cfg)
         state = artifacts.load_agent_state(cfg, AgentId.of(cfg), "last")
         scorer = chooser.build_policy("floor", encoder, state).scores.scorer
-        x = chooser.scorer_inputs(encoder, val, int(state["decide_steps"]), bool(state.get("mask_view")))
+        x = chooser.scorer_inputs(
+            encoder, val, int(state["decide_steps"]), bool(state.get("mask_view")), state.get("mask_camera", "wide")
+        )
         with torch.no_grad():
             out.append(scorer(torch.from_numpy(x)).numpy())
     return out

@@ -1,6 +1,7 @@
 """Choosing the chooser's settings on the validation bank, exactly and without simulating.
 
     python -m experiments.chooser_sweep experiment=quick [--variants base,adv,ens5,...] [--seeds 0]
+    python -m experiments.chooser_sweep experiment=quick env.tele_fov_deg=30 --variants maskauxcost,teleauxcost
 
 The chooser brakes until it switches, so its cost on a scenario follows from the exact costs of every candidate at
 every step of braking (``worldmodel.chooser.policy_cost``, tested equal to the simulated episode). This labels the
@@ -46,6 +47,13 @@ VARIANTS: dict[str, tuple[list[str], dict]] = {
     "auxcost": ([], {"aux_weight": 1.0}),
     "privileged": ([], {"target": "advantage"}),
     "maskens3": ([], {"target": "advantage", "mask_view": True, "steps": 3000, "ensemble": 3}),
+    # the band of the narrow second camera (run the sweep with env.tele_fov_deg=30, so the labels hold its frames)
+    "maskauxcost": ([], {"mask_view": True, "steps": 3000, "aux_weight": 1.0}),
+    "teleauxcost": ([], {"mask_view": True, "mask_camera": "tele", "steps": 3000, "aux_weight": 1.0}),
+    "teleaux": (
+        [],
+        {"mask_view": True, "mask_camera": "tele", "steps": 3000, "aux_weight": 1.0, "target": "advantage"},
+    ),
 }
 
 
@@ -93,7 +101,7 @@ def main(argv=None) -> int:
             vcfg = compose("train_agent", [*base, *inputs, f"seed={seed}"])
             c = OmegaConf.to_object(OmegaConf.merge(chooser.cfg_chooser(vcfg), settings))
             steps = chooser.decide_steps_for(c.decide_s)
-            key = f"{inputs}-{seed}-{c.mask_view}-{name == 'privileged'}"
+            key = f"{inputs}-{seed}-{c.mask_view}-{c.mask_camera}-{name == 'privileged'}"
             if key not in encoded:
                 train = chooser.labels(vcfg)
                 if name == "privileged":  # the true hazard state instead of the camera: the learner's own bound
@@ -103,8 +111,8 @@ def main(argv=None) -> int:
                     )
                 else:
                     encoder = artifacts.load_world_model(vcfg)
-                    x = chooser.scorer_inputs(encoder, train, steps, bool(c.mask_view))
-                    xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view))
+                    x = chooser.scorer_inputs(encoder, train, steps, bool(c.mask_view), c.mask_camera)
+                    xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view), c.mask_camera)
                 encoded[key] = (x, train, xv)
             x, train, xv = encoded[key]
             scorer, _ = chooser.fit_scorer(x, train["costs"], train["episode"], c, seed, state=train["state"])

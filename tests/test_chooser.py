@@ -14,6 +14,7 @@ import torch
 from envs import StraightLineBraking, UrbanCollisionEnv, rollout, sample_focus_scenario
 from envs.chooser import ExactCosts, ManoeuvreChooser, chooser_candidates, cost_labels, decide_steps_for
 from envs.planner import Manoeuvre
+from envs.views import CLASS_NAMES, HAZARD_CLASSES
 from worldmodel import artifacts, chooser, evaluate, policies, train_agent
 from worldmodel.common import StageError
 
@@ -131,6 +132,8 @@ OVERRIDES = [
     "agent.chooser.lane_change_s=[0.3]",
     "agent.chooser.swerve=true",
     "agent.chooser.mask_view=true",
+    "env.tele_fov_deg=30",  # the frame band from the narrow second camera
+    "agent.chooser.mask_camera=tele",
     "agent.chooser.target=advantage",
     "agent.chooser.aux_weight=1.0",
     "agent.chooser.decide_s=0.5",
@@ -157,8 +160,9 @@ def test_labels_are_reproducible_for_any_worker_count(trained, stage_cfg, tmp_pa
     assert metrics["learner"] == "chooser" and metrics["labelled_episodes"] == 4
     again = stage_cfg("train_agent", *OVERRIDES, "agent.chooser.num_workers=2", root=tmp_path)
     a, b = chooser.labels(cfg), chooser.labels(again)
-    for key in chooser.LABEL_KEYS:
+    for key in (*chooser.LABEL_KEYS, chooser.TELE_KEY):
         np.testing.assert_array_equal(a[key], b[key])
+    assert a[chooser.TELE_KEY].shape == a["seg"].shape and (a[chooser.TELE_KEY] != a["seg"]).any()
     assert a["costs"].shape[1] == len(CANDIDATES) and a["t"].max() < decide_steps_for(0.5)
     # a corrupt shard is named, with what to do
     shard = next(chooser.labels_dir(again).glob("shard_*.h5"))
@@ -175,13 +179,18 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
 
     agent = artifacts.AgentId.of(cfg)
     assert agent.key == "agent_r2_chooser/seed0"
-    ecfg = compose("evaluate", base)
+    ecfg = compose("evaluate", [*base, "env.tele_fov_deg=30"])
     policy, _, models = policies.policy_for(ecfg, agent.key)
     assert isinstance(policy, ManoeuvreChooser) and models["actor_sha"]
     data = chooser.labels(cfg)
     rows = np.flatnonzero(data["episode"] == 0)
     encoder = artifacts.load_world_model(cfg)
-    offline_x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True)[rows]
+    offline_x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True, "tele")[rows]
+    band = offline_x[:, -policy.scores.mask.dim :].reshape(-1, *policy.scores.mask.shape)
+    classes = [CLASS_NAMES.index(c) for c in HAZARD_CLASSES]
+    np.testing.assert_array_equal(
+        band[0, : len(classes)], data[chooser.TELE_KEY][rows[0], 8:48] == np.array(classes)[:, None, None]
+    )
     with torch.no_grad():
         offline = policy.scores.scorer(torch.from_numpy(offline_x)).numpy()
     # the same episode live: the policy never commits (huge margin), so it brakes exactly as labelled
@@ -192,6 +201,13 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     env = evaluate.make_env(ecfg, camera=True)
     rollout(env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))
     np.testing.assert_allclose(np.stack(seen)[: len(rows)], offline, atol=1e-4)
+    # without the second camera, the chooser says what to set; labels without its frames likewise
+    wide_env = evaluate.make_env(ecfg, camera=True, tele_fov_deg=None)
+    policy.scores = inner
+    with pytest.raises(StageError, match="env.tele_fov_deg"):
+        rollout(wide_env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))
+    with pytest.raises(StageError, match="env.tele_fov_deg"):
+        chooser.scorer_inputs(encoder, {k: v for k, v in data.items() if k != chooser.TELE_KEY}, 3, True, "tele")
     # a chooser needs R2
     with pytest.raises(StageError, match="reward=r2"):
         train_agent.run(compose("train_agent", [*base, *OVERRIDES, "reward=r1", "agent.variant=chooserr1"]))

@@ -463,3 +463,27 @@ def test_every_registered_reward_is_reported_in_info_and_outcome():
         del rewards.REGISTRY["speed_lost"]
     with pytest.raises(ValueError, match="reward"):
         UrbanCollisionEnv(camera=False, reward="speed_lost")
+
+
+def test_the_narrow_second_camera_sees_the_far_pedestrian_larger():
+    """``tele_fov_deg`` adds ``seg_tele`` from the same pose: at 30 m/s, TTC 1.0 s (a pedestrian ~30 m ahead) the
+    hazard pedestrian covers several times the pixels it covers in the 90-degree frame, and the wide frame is
+    exactly what an env without the second camera renders."""
+    spec = ScenarioSpec(seed=11, ttc=1.0, ego_speed=30.0, p_pedestrian=1.0, pedestrian_speed=2.0)
+    with pytest.raises(ValueError, match="tele_fov_deg"):
+        UrbanCollisionEnv(tele_fov_deg=5.0)
+    wide, both = UrbanCollisionEnv(), UrbanCollisionEnv(tele_fov_deg=30.0)
+    try:
+        assert "seg_tele" not in wide.observation_space.spaces
+        o_wide, _ = wide.reset(options={"scenario": spec})
+        o_both, _ = both.reset(options={"scenario": spec})
+        assert both.observation_space.contains(o_both) and "seg_tele" not in o_wide
+        np.testing.assert_array_equal(o_wide["seg"], o_both["seg"])
+        hazard = [u for u, hz in zip(both._pool.pedestrians, both.actors.ped_hazard) if hz]
+        n_wide = int(np.isin(both._camera.last_uids, hazard).sum())
+        n_tele = int(np.isin(both._tele.last_uids, hazard).sum())
+        assert n_tele >= 4 * max(n_wide, 1), (n_wide, n_tele)
+        assert (o_both["seg_tele"] == envs.CLASS_NAMES.index("Pedestrians")).sum() >= n_tele
+    finally:
+        wide.close()
+        both.close()

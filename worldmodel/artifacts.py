@@ -236,7 +236,7 @@ RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
 # Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
 # they are left out of the hash and older runs stay current.
 ADDED_DEFAULTS = {
-    "env": {"step_s": 1.0 / 15.0, "family": "porav"},
+    "env": {"step_s": 1.0 / 15.0, "family": "porav", "tele_fov_deg": None},
     "agent": {
         "obs": "worldmodel",
         "paper_obs": "worldmodel",
@@ -249,7 +249,10 @@ ADDED_DEFAULTS = {
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
 DQN_OPTIONS_OFF = {
-    "advantage_alpha": 0.0, "dueling": False, "trauma_weight_final": None, "trauma_weight_hold": 0.0,
+    "advantage_alpha": 0.0,
+    "dueling": False,
+    "trauma_weight_final": None,
+    "trauma_weight_hold": 0.0,
     "normalize_obs": False,
 }
 
@@ -270,6 +273,8 @@ def _drop_added_defaults(settings: dict) -> dict:
     chooser = agent.get("chooser") if isinstance(agent, dict) else None
     if isinstance(chooser, dict) and not chooser.get("min_brake_cost"):
         chooser.pop("min_brake_cost", None)  # off: the chooser as before the option
+    if isinstance(chooser, dict) and chooser.get("mask_camera") == "wide":
+        chooser.pop("mask_camera")  # the world model's camera, as before the second one
     evaluate = settings.get("evaluate")
     if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
         evaluate.pop("family", None)  # the paper's bank, as before the families existed

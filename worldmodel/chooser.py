@@ -45,6 +45,12 @@ log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
 TARGETS = ("cost", "advantage", "policy")
 LABEL_KEYS = ("seg", "speed", "costs", "state", "episode", "t")
+TELE_KEY = "seg_tele"  # the narrow second camera's frames, in labels made with env.tele_fov_deg
+# the frame band the scorer's CNN reads, per camera (agent.chooser.mask_camera): the rows where road users from
+# ~4 m to the far end of the street appear; in the 30-degree camera the hazard pedestrians of the validation bank
+# fall in rows 8-46 on braking's first three frames
+MASK_ROWS = {"wide": (20, 44), "tele": (8, 48)}
+MASK_OBS = {"wide": "seg", "tele": TELE_KEY}
 HELD_OUT = 0.15  # share of labelled episodes held out for selecting the scorer
 
 
@@ -56,6 +62,8 @@ def labels_dir(cfg, source: str = "train") -> Path:
     """``data/NAME/chooser_labels/<hash of the label settings>-seed<S>/`` for the training labels;
     ``.../validation-<hash>/`` for the validation bank's scenarios (independent of the training seed)."""
     settings = cfg_chooser(cfg).label_settings()
+    if cfg.env.get("tele_fov_deg") is not None:  # the labels also hold the second camera's frames
+        settings["tele_fov_deg"] = float(cfg.env.tele_fov_deg)
     if source == "validation":
         e = cfg.evaluate
         settings = {**settings, "bank": [list(e.ttcs), list(e.speeds), list(e.hazards), int(e.per_cell)]}
@@ -114,7 +122,7 @@ def _label_shard(task) -> int:
         parts.append({**lab, "episode": np.full(n, e, np.int32), "t": np.arange(n, dtype=np.int16)})
     env.close()
     with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
-        for key in LABEL_KEYS:
+        for key in parts[0]:
             f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
     return shard
 
@@ -154,12 +162,14 @@ def labels(cfg, source: str = "train") -> dict:
                         bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)
     data: dict[str, list] = {k: [] for k in LABEL_KEYS}
+    if cfg.env.get("tele_fov_deg") is not None:
+        data[TELE_KEY] = []
     for p in paths:
         try:
             with h5py.File(p, "r") as f:
                 for k in data:
                     data[k].append(f[k][...])
-        except OSError as err:
+        except (OSError, KeyError) as err:
             raise StageError(f"{p} is not a readable HDF5 file ({err}); delete it and rerun to relabel it") from None
     return {k: np.concatenate(v) for k, v in data.items()}
 
@@ -259,10 +269,10 @@ def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarra
     return np.concatenate([encoded, (np.asarray(t, np.float32) / decide_steps)[:, None]], axis=1).astype(np.float32)
 
 
-def mask_features(seg: np.ndarray, episode: np.ndarray) -> np.ndarray:
+def mask_features(seg: np.ndarray, episode: np.ndarray, rows: tuple[int, int] = MASK_ROWS["wide"]) -> np.ndarray:
     """The frame band of ``envs.views.MaskView`` for every labelled frame, episode by episode as a live run sees
     it (the previous frame is zeros at each episode's start)."""
-    view = MaskView()
+    view = MaskView(rows)
     out = np.empty((len(seg), view.dim), np.float32)
     for e in np.unique(episode):
         view.reset()
@@ -271,10 +281,19 @@ def mask_features(seg: np.ndarray, episode: np.ndarray) -> np.ndarray:
     return out
 
 
-def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool) -> np.ndarray:
-    """Everything the scorer reads for every labelled frame: world-model features, decision step, frame band."""
+def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool, camera: str = "wide") -> np.ndarray:
+    """Everything the scorer reads for every labelled frame: world-model features, decision step, and the frame
+    band of ``camera``."""
     x = features(encode_labels(encoder, data), data["t"], steps)
-    return np.concatenate([x, mask_features(data["seg"], data["episode"])], axis=1) if mask_view else x
+    if not mask_view:
+        return x
+    if MASK_OBS[camera] not in data:
+        raise StageError(
+            f"the chooser's frame band reads the {camera} camera, and these labels have no {MASK_OBS[camera]!r} "
+            "frames: set env.tele_fov_deg (e.g. 30) to give the env its second camera"
+        )
+    band = mask_features(data[MASK_OBS[camera]], data["episode"], MASK_ROWS[camera])
+    return np.concatenate([x, band], axis=1)
 
 
 def policy_cost(
@@ -336,7 +355,7 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
     xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
     members = int(c.ensemble)
-    mask_shape = MaskView().shape if c.mask_view else None
+    mask_shape = MaskView(MASK_ROWS[c.mask_camera]).shape if c.mask_view else None
     scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target, mask_shape)
     vec = xt[:, : xt.shape[1] - scorer.mask_dim]
     scorer.mean.copy_(vec.mean(0))
@@ -392,7 +411,7 @@ def train(cfg, run_, agent_id) -> dict:
     candidates = c.candidates(float(cfg.env.step_s))
     data = labels(cfg)
     encoder = artifacts.load_world_model(cfg)
-    x = scorer_inputs(encoder, data, steps, bool(c.mask_view))
+    x = scorer_inputs(encoder, data, steps, bool(c.mask_view), c.mask_camera)
     y = data["costs"].astype(np.float32)
     scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
     is_held = held_out_split(data["episode"])
@@ -411,6 +430,7 @@ def train(cfg, run_, agent_id) -> dict:
         "members": int(c.ensemble),
         "target": c.target,
         "mask_view": bool(c.mask_view),
+        "mask_camera": c.mask_camera,
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
         "margin": float(c.margin),
@@ -443,9 +463,10 @@ def train(cfg, run_, agent_id) -> dict:
 class LearnedScorer:
     """The trained scorer behind ``ManoeuvreChooser``'s ``scores(obs, t)``, with the world model's state."""
 
-    def __init__(self, encoder, scorer: Scorer, decide_steps: int):
+    def __init__(self, encoder, scorer: Scorer, decide_steps: int, camera: str = "wide"):
         self.encoder, self.scorer, self.decide_steps = encoder, scorer.eval(), int(decide_steps)
-        self.mask = MaskView() if scorer.mask_shape else None
+        self.mask = MaskView(MASK_ROWS[camera]) if scorer.mask_shape else None
+        self.mask_obs = MASK_OBS[camera]
 
     def reset(self) -> None:
         self.encoder.reset()
@@ -458,7 +479,12 @@ class LearnedScorer:
     def __call__(self, obs, t: int) -> np.ndarray:
         x = features(self.encoder.encode(obs)[None], np.array([t]), self.decide_steps)
         if self.mask is not None:
-            x = np.concatenate([x, self.mask(obs["seg"])[None]], axis=1)
+            if self.mask_obs not in obs:
+                raise StageError(
+                    f"this chooser reads the frames of a second camera ({self.mask_obs!r}) that the env does not "
+                    "render: set env.tele_fov_deg to the field of view it was trained with"
+                )
+            x = np.concatenate([x, self.mask(obs[self.mask_obs])[None]], axis=1)
         with torch.inference_mode():
             return self.scorer(torch.from_numpy(x))[0].numpy()
 
@@ -466,6 +492,7 @@ class LearnedScorer:
 def build_policy(name: str, encoder, state: dict, margin: float | None = None) -> ManoeuvreChooser:
     """A chooser checkpoint as a scripted-policy (``reset``, ``act``)."""
     candidates = [Manoeuvre(**m) for m in state["candidates"]]
+    camera = str(state.get("mask_camera", "wide"))  # absent: a chooser trained before the second camera
     scorer = Scorer(
         int(state["in_dim"]),
         len(candidates),
@@ -473,7 +500,7 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
         float(state["dropout"]),
         int(state.get("members", 1)),
         str(state.get("target", "cost")),
-        MaskView().shape if state.get("mask_view") else None,
+        MaskView(MASK_ROWS[camera]).shape if state.get("mask_view") else None,
     )
     scorer.load_state_dict(state["scorer"])
     if encoder.dim + 1 + scorer.mask_dim != int(state["in_dim"]):
@@ -481,7 +508,7 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
             f"the chooser {name} expects {int(state['in_dim']) - 1} world-model features, the world model gives "
             f"{encoder.dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed): retrain it"
         )
-    learned = LearnedScorer(encoder, scorer, int(state["decide_steps"]))
+    learned = LearnedScorer(encoder, scorer, int(state["decide_steps"]), camera)
     return ManoeuvreChooser(
         candidates,
         learned,

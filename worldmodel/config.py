@@ -175,6 +175,10 @@ class EnvConfig(Checked):
     camera: bool = True
     image_size: int = 64
     fov_deg: float = 90.0
+    # a second camera at the same pose with this narrower field of view (obs "seg_tele"), for the chooser's
+    # frame band (agent.chooser.mask_camera=tele): at 90 degrees a pedestrian 30 m ahead is ~1 px wide and is
+    # missing from half the first frames at 30 m/s, TTC 0.9-1.1 s; at 30 degrees it covers 10-20 px. null = none
+    tele_fov_deg: float | None = None
     horizon_after_ttc_s: float | None = 3.0  # agent episodes: truncated this long after the sampled TTC
     mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
@@ -187,6 +191,8 @@ class EnvConfig(Checked):
         yield from _positive(self, "mu", "occupants_per_car")
         if not 10.0 <= self.fov_deg <= 170.0:
             yield ConfigValueError("fov_deg", self.fov_deg, "the camera's field of view must be in [10, 170] degrees")
+        if self.tele_fov_deg is not None and not 10.0 <= self.tele_fov_deg <= 170.0:
+            yield ConfigValueError("tele_fov_deg", self.tele_fov_deg, "it must be in [10, 170] degrees, or null")
         if not 0.0 < self.step_s <= 0.5:
             yield ConfigValueError("step_s", self.step_s, "it must be in (0, 0.5] seconds")
         from envs.env import FAMILIES
@@ -268,6 +274,9 @@ class RNNConfig(Checked):
             yield ConfigValueError("head", self.head, f"it must be one of {', '.join(RNN_HEADS)}")
 
 
+MASK_CAMERAS = ("wide", "tele")
+
+
 @dataclass
 class ChooserConfig(Checked):
     """The chooser agent (``agent.learner=chooser``; ``envs/chooser.py``, ``worldmodel/chooser.py``): it brakes,
@@ -309,6 +318,9 @@ class ChooserConfig(Checked):
     # the scorer also reads a band of the raw frame around the horizon (envs.views.MaskView: pedestrians and
     # vehicles, this frame and the last) through a small CNN: where the hazard is, not only in which rows and columns
     mask_view: bool = False
+    # which camera's band the scorer reads: "wide" (the world model's 90-degree camera, rows 20-44) or "tele"
+    # (the narrow second camera of env.tele_fov_deg, rows 8-48, where the hazard pedestrian appears 20x larger)
+    mask_camera: str = "wide"
     # learning by cheating for perception: the scorer's first layer also feeds a head that guesses the privileged
     # hazard state (envs.chooser.hazard_state: where the hazard pedestrian and car are, how they move), trained
     # with this weight beside the cost loss; the guess is never used to act
@@ -330,6 +342,8 @@ class ChooserConfig(Checked):
             yield ConfigValueError("chooser.margin", self.margin, "margin and weight_decay >= 0, dropout in [0, 1)")
         if self.aux_weight < 0:
             yield ConfigValueError("chooser.aux_weight", self.aux_weight, "it must be >= 0")
+        if self.mask_camera not in MASK_CAMERAS:
+            yield ConfigValueError("chooser.mask_camera", self.mask_camera, f"it must be one of {MASK_CAMERAS}")
         if self.ensemble < 1:
             yield ConfigValueError("chooser.ensemble", self.ensemble, "it must be >= 1")
         if self.target not in ("cost", "advantage", "policy"):
