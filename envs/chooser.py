@@ -106,7 +106,8 @@ class ManoeuvreChooser:
     """Scripted-policy interface (``reset``, ``act``; ``bind`` when the scorer reads the true state).
 
     ``scores(obs, t) -> (len(candidates),)`` predicted costs at decision step ``t`` (0 at onset); ``reset_scorer``
-    is called at every reset (a learned scorer's recurrent state)."""
+    is called at every reset (a learned scorer's recurrent state). ``env_overrides``: env settings the scores need
+    (a scorer that reads the narrow second camera: ``{"tele_fov_deg": 30.0}``), for whoever makes its env."""
 
     def __init__(
         self,
@@ -118,6 +119,7 @@ class ManoeuvreChooser:
         min_brake_cost: float = 0.0,
         reset_scorer: Callable[[], None] | None = None,
         note_action: Callable[[np.ndarray], None] | None = None,
+        env_overrides: dict | None = None,
     ):
         self.candidates = list(candidates)
         if not self.candidates or self.candidates[0] != Manoeuvre(-1.0):
@@ -130,6 +132,7 @@ class ManoeuvreChooser:
         self.scores, self.decide_steps, self.margin, self.name = scores, int(decide_steps), float(margin), name
         self.min_brake_cost = float(min_brake_cost)
         self.reset_scorer, self.note_action = reset_scorer, note_action
+        self.env_overrides = dict(env_overrides or {})
         self.plan: _Plan | None = None
         self.t = 0
         self.choice: int | None = None  # the candidate committed to (None: braked throughout)

@@ -179,7 +179,7 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
 
     agent = artifacts.AgentId.of(cfg)
     assert agent.key == "agent_r2_chooser/seed0"
-    ecfg = compose("evaluate", [*base, "env.tele_fov_deg=30"])
+    ecfg = compose("evaluate", base)
     policy, _, models = policies.policy_for(ecfg, agent.key)
     assert isinstance(policy, ManoeuvreChooser) and models["actor_sha"]
     data = chooser.labels(cfg)
@@ -198,11 +198,13 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     seen = []
     inner = policy.scores
     policy.scores = lambda obs, t: seen.append(inner(obs, t)) or seen[-1]
-    env = evaluate.make_env(ecfg, camera=True)
+    # evaluation makes the policy's env with the second camera it was trained with, unasked
+    assert policies.env_overrides(policy) == {"tele_fov_deg": 30.0}
+    env = evaluate.make_env(ecfg, camera=True, **policies.env_overrides(policy))
     rollout(env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))
     np.testing.assert_allclose(np.stack(seen)[: len(rows)], offline, atol=1e-4)
     # without the second camera, the chooser says what to set; labels without its frames likewise
-    wide_env = evaluate.make_env(ecfg, camera=True, tele_fov_deg=None)
+    wide_env = evaluate.make_env(ecfg, camera=True)
     policy.scores = inner
     with pytest.raises(StageError, match="env.tele_fov_deg"):
         rollout(wide_env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))

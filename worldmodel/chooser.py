@@ -431,6 +431,7 @@ def train(cfg, run_, agent_id) -> dict:
         "target": c.target,
         "mask_view": bool(c.mask_view),
         "mask_camera": c.mask_camera,
+        "tele_fov_deg": cfg.env.get("tele_fov_deg") if c.mask_view and c.mask_camera == "tele" else None,
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
         "margin": float(c.margin),
@@ -518,4 +519,5 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
         min_brake_cost=float(state.get("min_brake_cost", 0.0)),  # absent: a chooser trained before the option
         reset_scorer=learned.reset,
         note_action=learned.note_action,
+        env_overrides={"tele_fov_deg": float(state["tele_fov_deg"])} if state.get("tele_fov_deg") else None,
     )

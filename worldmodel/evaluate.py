@@ -24,7 +24,7 @@ import time
 from . import artifacts
 from .common import StageError, make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
-from .policies import EXACT_CHOOSER, NO_MODELS, policy_for
+from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
 from .report import OUTCOME_COLUMNS, write_report, write_results_csv
 
 log = logging.getLogger(__name__)
@@ -82,7 +82,8 @@ def _run_chunk(task) -> list[dict]:
     if name not in _WORKER:
         cfg = OmegaConf.create(cfg_dict)
         camera = name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER)
-        _WORKER[name] = (make_env(cfg, camera=camera), *policy_for(cfg, name))
+        policy, seed, models = policy_for(cfg, name)
+        _WORKER[name] = (make_env(cfg, camera=camera, **env_overrides(policy)), policy, seed, models)
     env, policy, seed, models = _WORKER[name]
     return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
 

@@ -39,7 +39,7 @@ from envs.ncap import bank, car_bank, car_points, verdict
 from . import artifacts
 from .common import make_env, set_threads
 from .config import hydra_main, validate
-from .policies import porav_policies
+from .policies import env_overrides, porav_policies
 
 log = logging.getLogger(__name__)
 HOLD = np.zeros(2, dtype=np.float32)  # no steering, pedal 0: the car holds its speed
@@ -211,11 +211,13 @@ def run(cfg) -> dict:
         for family, step_s, policies, reward, start in groups:
             envs = {}
             for policy, seed, camera, car_tests in policies:
-                if camera not in envs:
-                    envs[camera] = make_env(cfg, camera=camera, family="ncap", step_s=step_s, reward=reward)
+                extra = env_overrides(policy)
+                key = (camera, *sorted(extra.items()))
+                if key not in envs:
+                    envs[key] = make_env(cfg, camera=camera, family="ncap", step_s=step_s, reward=reward, **extra)
                 acting = Takeover(policy, start) if start is not None else policy
                 specs = pedestrians + (cars if car_tests else [])
-                rows += run_bank(envs[camera], acting, specs, family, seed)
+                rows += run_bank(envs[key], acting, specs, family, seed)
                 bar.update(len(specs))
             for env in envs.values():
                 env.close()

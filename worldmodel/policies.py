@@ -63,6 +63,11 @@ def learned_policy(cfg, agent: AgentId, state: dict | None = None):
     return policy, agent.seed, artifacts.models_of(cfg, agent)
 
 
+def env_overrides(policy) -> dict:
+    """Env settings a policy needs beyond the experiment's (a chooser reading the narrow second camera)."""
+    return dict(getattr(policy, "env_overrides", None) or {})
+
+
 def porav_policies(cfg):
     """(policy, seed, needs the camera, car tests too) for the paper's family: braking, the planner, every trained
     agent."""
