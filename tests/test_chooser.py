@@ -108,6 +108,19 @@ def test_hazard_state_is_where_the_scenario_put_the_hazard():
     assert not hazard_state(env).any()
 
 
+def test_label_seed_shares_one_label_set_between_training_seeds():
+    from worldmodel.config import compose
+
+    def cfg(*extra):
+        return compose("train_agent", ["experiment=t", "scale=smoke", "agent=chooser", "reward=r2", *extra])
+
+    own = [chooser.labels_dir(cfg(f"seed={s}")) for s in (0, 1)]
+    shared = [chooser.labels_dir(cfg(f"seed={s}", "agent.chooser.label_seed=0")) for s in (0, 1)]
+    assert own[0] != own[1] and shared[0] == shared[1] == own[0]
+    c = chooser.cfg_chooser(cfg("seed=1", "agent.chooser.label_seed=0"))
+    assert chooser.label_seed(cfg("seed=1", "agent.chooser.label_seed=0")) == 0 and c.label_seed == 0
+
+
 def test_policy_cost_by_hand():
     # episode 0: the prediction first favours candidate 1 at t = 1; braking's cost falls 0.9 -> 0.8 by then
     costs = np.array([[0.9, 0.7], [0.8, 0.1], [0.8, 0.8], [0.5, 0.2]], np.float32)

@@ -273,6 +273,8 @@ def _drop_added_defaults(settings: dict) -> dict:
     chooser = agent.get("chooser") if isinstance(agent, dict) else None
     if isinstance(chooser, dict) and not chooser.get("min_brake_cost"):
         chooser.pop("min_brake_cost", None)  # off: the chooser as before the option
+    if isinstance(chooser, dict) and chooser.get("label_seed", 0) is None:
+        chooser.pop("label_seed")  # each seed its own labels, as before the option
     if isinstance(chooser, dict) and chooser.get("mask_camera") == "wide":
         chooser.pop("mask_camera")  # the world model's camera, as before the second one
     evaluate = settings.get("evaluate")

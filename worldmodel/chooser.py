@@ -69,7 +69,14 @@ def labels_dir(cfg, source: str = "train") -> Path:
         settings = {**settings, "bank": [list(e.ttcs), list(e.speeds), list(e.hazards), int(e.per_cell)]}
         settings["bank_seed"] = int(e.validation_seed)
         return artifacts.data_dir(cfg) / "chooser_labels" / f"validation-{artifacts.config_sha256(settings)[:10]}"
-    return artifacts.data_dir(cfg) / "chooser_labels" / f"{artifacts.config_sha256(settings)[:10]}-seed{cfg.seed}"
+    seed = label_seed(cfg)
+    return artifacts.data_dir(cfg) / "chooser_labels" / f"{artifacts.config_sha256(settings)[:10]}-seed{seed}"
+
+
+def label_seed(cfg) -> int:
+    """The seed of the labelled scenarios: ``agent.chooser.label_seed``, or the training seed when that is unset."""
+    seed = cfg.agent.chooser.get("label_seed")
+    return int(cfg.seed if seed is None else seed)
 
 
 def validation_entries(cfg):
@@ -116,7 +123,7 @@ def _label_shard(task) -> int:
     bank = validation_entries(cfg) if source == "validation" else None
     n = len(bank) if bank is not None else int(c.episodes)
     for e in range(shard * SHARD, min((shard + 1) * SHARD, n)):
-        spec = bank[e].spec if bank is not None else label_scenario(int(cfg.seed), e, c)
+        spec = bank[e].spec if bank is not None else label_scenario(label_seed(cfg), e, c)
         lab = cost_labels(env, spec, candidates, steps, twin)
         n = len(lab["speed"])
         parts.append({**lab, "episode": np.full(n, e, np.int32), "t": np.arange(n, dtype=np.int16)})
@@ -135,7 +142,7 @@ def labels(cfg, source: str = "train") -> dict:
     c = cfg_chooser(cfg)
     out = labels_dir(cfg, source)
     out.mkdir(parents=True, exist_ok=True)
-    settings = {**c.label_settings(), "seed": int(cfg.seed), "source": source}
+    settings = {**c.label_settings(), "seed": label_seed(cfg), "source": source}
     meta = out / "settings.json"
     if not meta.exists():
         meta.write_text(json.dumps(settings, indent=1))

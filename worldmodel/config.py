@@ -283,7 +283,10 @@ class ChooserConfig(Checked):
     and switches once to the candidate manoeuvre its scorer predicts to cost least. The scorer learns the exact
     costs of every candidate on straight-line braking's states, labelled by the simulator."""
 
-    episodes: int = 3000  # labelled braking episodes (data/NAME/chooser_labels/), the last 10 % held out
+    episodes: int = 3000  # labelled braking episodes (data/NAME/chooser_labels/), the last 15 % held out
+    # the seed of the labelled scenarios; null = the training seed (each seed its own labels). Set, seeds share one
+    # label set and differ only in the scorer's initialisation and minibatches
+    label_seed: int | None = None
     num_workers: int = 2
     # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
     hazard_share: float = 0.85
