@@ -51,12 +51,15 @@ from envs.scenario import sample_scenario
 from .common import rss_mb, write
 
 
-def steps_per_second(camera: bool, steps: int, family: str = "porav") -> tuple[float, float]:
+def steps_per_second(
+    camera: bool, steps: int, family: str = "porav", tele_fov_deg: float | None = None
+) -> tuple[float, float]:
     """(wall-clock, CPU-time) steps per second, resets included; ``family="kim"``: Kim's junction (drawn by
-    ``camera.CrossroadsGround``), 0.1 s steps, scenarios from its own sampler."""
+    ``camera.CrossroadsGround``), 0.1 s steps, scenarios from its own sampler; ``tele_fov_deg``: with the
+    narrow second camera (issue 11's chooser_tele), a second render per step."""
     rng = np.random.default_rng(0)
     if family == "porav":
-        env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None)
+        env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None, tele_fov_deg=tele_fov_deg)
 
         def reset():
             env.reset(options={"scenario": sample_scenario(rng)})
@@ -178,7 +181,10 @@ def main(argv=None) -> dict:
     on_wall, on_cpu = steps_per_second(True, args.steps)
     off_wall, off_cpu = steps_per_second(False, args.steps * 5)
     kim_wall, kim_cpu = steps_per_second(True, args.steps, family="kim")
+    tele_wall, tele_cpu = steps_per_second(True, args.steps, tele_fov_deg=30.0)
     result = {
+        "steps_per_s_camera_on_tele": tele_wall,
+        "steps_per_s_camera_on_tele_cpu": tele_cpu,
         "steps_per_s_camera_on_kim": kim_wall,
         "steps_per_s_camera_on_kim_cpu": kim_cpu,
         "steps_per_s_camera_on": on_wall,

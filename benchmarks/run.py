@@ -184,6 +184,11 @@ def section_env(d: dict, summary: list) -> str:
     ]
     for row in rows:
         add_summary(summary, d, row)
+    tele = d.get("steps_per_s_camera_on_tele")
+    if tele is not None:  # no target: an option, a second render per step
+        rows.append(
+            ["env steps/s, camera on, with the 30° second camera (`env.tele_fov_deg=30`)", fmt(tele), "–", "no target"]
+        )
     kim = d.get("steps_per_s_camera_on_kim")
     if kim is not None:  # no target: a peer family's junction, drawn per pixel like the street
         rows.append(["env steps/s, camera on, family kim (the junction, 0.1 s steps)", fmt(kim), "–", "no target"])
