@@ -88,6 +88,7 @@ POLICY_LABELS = {
     "agent_r1": "Brake&Steer, reward 1",
     "agent_r2": "Brake&Steer, reward 2",
     "agent_r2_chooser": "Chooser (brake, then one lane change), reward 2",
+    "agent_r2_chooser_tele": "Chooser, frame band from a 30° second camera, reward 2",
     "oracle": "Privileged planner (oracle)",
 }
 CEILING = "oracle"
