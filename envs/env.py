@@ -496,15 +496,16 @@ class UrbanCollisionEnv(gym.Env):
 
     # ------------------------------------------------------------------ observation / info
     def _observe(self) -> dict:
-        blank = np.zeros((self.image_size, self.image_size), dtype=np.uint8)
+        size = (self.image_size, self.image_size)
         if self.camera:
             self._sync_bodies()
             seg = self._camera.render(self.ego.x, self.ego.y, self.ego.psi)
         else:
-            seg = blank
+            seg = np.zeros(size, dtype=np.uint8)
         obs = {"seg": seg, "speed": np.array([min(self.ego.v, MAX_SPEED_OBS)], dtype=np.float32)}
         if self.tele_fov_deg is not None:
-            obs["seg_tele"] = self._tele.render(self.ego.x, self.ego.y, self.ego.psi) if self.camera else blank.copy()
+            e = self.ego
+            obs["seg_tele"] = self._tele.render(e.x, e.y, e.psi) if self.camera else np.zeros(size, dtype=np.uint8)
         return obs
 
     def _sync_bodies(self) -> None:

@@ -6,7 +6,7 @@ Issue 11's perception bound, measured at the source. For the validation bank's p
 30 m/s with TTC <= 1.1 s (seed 4711; the test bank is never touched), the ego brakes straight and each of its
 first three frames is rendered at every field of view; the table gives the mean number of pixels the hazard
 pedestrian covers (``UrbanCollisionEnv.hazard_pixels``) and the share of scenarios where it covers none at onset.
-~30 s on one core.
+~3 s on one core.
 """
 
 from __future__ import annotations
