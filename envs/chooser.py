@@ -184,14 +184,21 @@ def cost_labels(
 ) -> dict:
     """Straight-line braking through scenario ``spec``, and at each of its first ``decide_steps`` steps the exact
     cost of starting every candidate there: what the chooser's scorer learns from. Returns ``seg`` (T, H, W) uint8,
-    ``speed`` (T,), ``costs`` (T, K) and ``state`` (T, len(HAZARD_STATE)), the privileged facts of ``hazard_state``;
-    with a second, narrow camera (``env.tele_fov_deg``) also its frames, ``seg_tele`` (T, H, W)."""
+    ``speed`` (T,), ``costs`` (T, K), ``static`` (T, K) int8, whether starting that candidate there ends in a
+    static object (so a decision rule's static-collision rate is counted offline, as its cost is), and ``state``
+    (T, len(HAZARD_STATE)), the privileged facts of ``hazard_state``; with a second, narrow camera
+    (``env.tele_fov_deg``) also its frames, ``seg_tele`` (T, H, W)."""
     obs, _ = env.reset(options={"scenario": spec})
-    segs, teles, speeds, costs, states = [], [], [], [], []
+    segs, teles, speeds, costs, statics, states = [], [], [], [], [], []
     for t in range(decide_steps):
         snap = env.snapshot()
         states.append(hazard_state(env))
-        costs.append([plan_cost(twin, snap, _Plan(m, t)) for m in candidates])
+        row_cost, row_static = [], []
+        for m in candidates:
+            row_cost.append(plan_cost(twin, snap, _Plan(m, t)))
+            row_static.append(any(c["kind"] == "static" for c in twin.collisions))
+        costs.append(row_cost)
+        statics.append(row_static)
         segs.append(np.asarray(obs["seg"], np.uint8))
         if "seg_tele" in obs:
             teles.append(np.asarray(obs["seg_tele"], np.uint8))
@@ -203,6 +210,7 @@ def cost_labels(
         "seg": np.stack(segs),
         "speed": np.asarray(speeds, np.float32),
         "costs": np.asarray(costs, np.float32),
+        "static": np.asarray(statics, np.int8),
         "state": np.stack(states),
     }
     if teles:

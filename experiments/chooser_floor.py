@@ -1,13 +1,19 @@
 """The trained choosers under a floor on switching, exactly and offline, on the validation bank.
 
-    python -m experiments.chooser_floor experiment=paper scale=paper [--seeds 0,1,2] [--floors 0,0.05]
+    python -m experiments.chooser_floor experiment=paper scale=paper [--agent chooser_tele] [--seeds 0,1,2]
+        [--floors 0,0.05] [--margins 0.02,0.05]
 
 ``agent.chooser.min_brake_cost`` lets the chooser switch only where its scorer predicts braking to cost more than
 the floor. It is a decision-time rule, so the trained scorers (``runs/NAME/agent_r2_chooser/seed<S>/``) are scored
 as they are: on the validation bank's labels (``data/NAME/chooser_labels/validation-*/``, made once if missing),
 each seed's exact R2 cost per scenario (``worldmodel.chooser.policy_cost``, equal to the simulated episode) under
-each floor. Prints, per floor, the mean gain over braking per seed and the TTC <= 1.0 s cells in which the
+each floor. Prints, per floor, the mean gain over braking per seed, the static-collision rate (labels made since
+2026-11-24 record, per candidate, whether it ends in a static object) and the TTC <= 1.0 s cells in which the
 seed-averaged chooser costs more than braking (the issue's cells bar). The test bank is never touched.
+
+A margin other than the one the scorers were trained with is a what-if of the decision rule alone: training keeps
+the scorer checkpoint that is best on its held-out labels at the preset's margin, so a chooser trained with another
+margin may keep another checkpoint.
 """
 
 from __future__ import annotations
@@ -46,50 +52,62 @@ def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=paper scale=paper")
+    parser.add_argument("--agent", default="chooser", help="the chooser preset: chooser or chooser_tele")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
-    parser.add_argument("--margin", type=float, default=None, help="default: the chooser preset's")
+    parser.add_argument("--margins", default=None, help="comma-separated; default: the chooser preset's")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
-    base = [*args.overrides, "reward=r2", "agent=chooser", "agent.chooser.num_workers=1"]
+    base = [*args.overrides, "reward=r2", f"agent={args.agent}", "agent.chooser.num_workers=1"]
     cfg = compose("train_agent", base)
-    margin = float(cfg.agent.chooser.margin if args.margin is None else args.margin)
+    margins = [float(m) for m in args.margins.split(",")] if args.margins else [float(cfg.agent.chooser.margin)]
     val = chooser.labels(cfg, "validation")
     cells = [(e.speed, e.ttc) for e in chooser.validation_entries(cfg)]
-    costs, episode = val["costs"], val["episode"]
+    costs, episode, static = val["costs"], val["episode"], val.get(chooser.STATIC_KEY)
     braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]
     exact = chooser.policy_cost(costs, costs, episode, 0.0)
     preds = predictions(base, [int(s) for s in args.seeds.split(",")], val)
+    exact_static = "n/a" if static is None else f"{100 * chooser.policy_static(costs, static, episode, 0.0).mean():.1f}"
     lines = [
-        f"Validation bank, {len(braking)} scenarios: braking {100 * braking.mean():.2f} %, the chooser on exact "
-        f"costs {100 * exact.mean():.2f} % (mean R2 total risk); margin {margin}.",
+        f"Validation bank, {len(braking)} scenarios, agent={args.agent}: braking {100 * braking.mean():.2f} %, the "
+        f"chooser on exact costs {100 * exact.mean():.2f} % (mean R2 total risk; its static collisions "
+        f"{exact_static} %).",
         "",
-        "| min_brake_cost | risk - braking, pts, per seed | mean | TTC <= 1.0 s cells above braking "
-        "(chooser / braking, %) |",
-        "|---:|---|---:|---|",
+        "| margin | min_brake_cost | risk - braking, pts, per seed | mean | static coll. %, per seed | "
+        "TTC <= 1.0 s cells above braking (chooser / braking, %) |",
+        "|---:|---:|---|---:|---|---|",
     ]
-    for floor in [float(f) for f in args.floors.split(",")]:
-        per_seed = [chooser.policy_cost(p, costs, episode, margin, min_brake_cost=floor) for p in preds]
-        mean = np.mean(per_seed, axis=0)
-        by_cell = defaultdict(list)
-        for i, cell in enumerate(cells):
-            by_cell[cell].append((mean[i], braking[i]))
-        worse = []
-        for (speed, ttc), pairs in sorted(by_cell.items()):
-            mine, theirs = (100 * float(np.mean(v)) for v in zip(*pairs))
-            if ttc <= 1.0 and mine > theirs + 1e-9:
-                worse.append(f"{speed:g} m/s {ttc:g} s: {mine:.2f} / {theirs:.2f}")
-        gains = [100 * float(c.mean() - braking.mean()) for c in per_seed]
-        lines.append(
-            f"| {floor:g} | {', '.join(f'{g:+.2f}' for g in gains)} | {np.mean(gains):+.2f} | "
-            f"{'; '.join(worse) or 'none'} |"
-        )
-        log.info(lines[-1])
+    for margin in margins:
+        for floor in [float(f) for f in args.floors.split(",")]:
+            window = {"min_brake_cost": floor}
+            per_seed = [chooser.policy_cost(p, costs, episode, margin, **window) for p in preds]
+            hits = (
+                "n/a (labels without static flags)"
+                if static is None
+                else ", ".join(
+                    f"{100 * chooser.policy_static(p, static, episode, margin, **window).mean():.1f}" for p in preds
+                )
+            )
+            mean = np.mean(per_seed, axis=0)
+            by_cell = defaultdict(list)
+            for i, cell in enumerate(cells):
+                by_cell[cell].append((mean[i], braking[i]))
+            worse = []
+            for (speed, ttc), pairs in sorted(by_cell.items()):
+                mine, theirs = (100 * float(np.mean(v)) for v in zip(*pairs))
+                if ttc <= 1.0 and mine > theirs + 1e-9:
+                    worse.append(f"{speed:g} m/s {ttc:g} s: {mine:.2f} / {theirs:.2f}")
+            gains = [100 * float(c.mean() - braking.mean()) for c in per_seed]
+            lines.append(
+                f"| {margin:g} | {floor:g} | {', '.join(f'{g:+.2f}' for g in gains)} | {np.mean(gains):+.2f} | "
+                f"{hits} | {'; '.join(worse) or 'none'} |"
+            )
+            log.info(lines[-1])
     out = artifacts.runs_root(cfg) / "chooser_floor"
     out.mkdir(parents=True, exist_ok=True)
     text = "\n".join(lines) + "\n"
-    (out / "floor.md").write_text(text)
+    (out / f"floor-{args.agent}.md").write_text(text)
     print(text)
     return 0
 

@@ -71,11 +71,12 @@ def test_scripted_scores_commit_once_and_follow_the_manoeuvre():
 
 def test_exact_costs_never_lose_to_braking_and_offline_cost_equals_the_simulated_one():
     """The exact-cost chooser's episode costs at most braking's, strictly less in some; and policy_cost on the
-    labels of braking's states gives exactly the R2 cost the chooser's simulated episode returns."""
+    labels of braking's states gives exactly the R2 cost the chooser's simulated episode returns, policy_static
+    exactly whether it hit a static object (these scenarios include one where it does)."""
     env = UrbanCollisionEnv(camera=False)
     twin = env.planning_twin()
     steps = decide_steps_for(1.0)
-    better = 0
+    better, statics = 0, []
     for spec in scenarios(6):
         brake = total_risk(rollout(env, StraightLineBraking(), spec).outcome)
         policy = ManoeuvreChooser(CANDIDATES, ExactCosts(CANDIDATES), steps)
@@ -86,7 +87,11 @@ def test_exact_costs_never_lose_to_braking_and_offline_cost_equals_the_simulated
         offline = chooser.policy_cost(lab["costs"], lab["costs"], np.zeros(len(lab["costs"]), int), 0.0)
         assert offline[0] == pytest.approx(-live["return_r2"], abs=1e-5)
         assert lab["costs"][0, 0] == pytest.approx(brake, abs=1e-5)
-    assert better >= 1
+        hit = chooser.policy_static(lab["costs"], lab["static"], np.zeros(len(lab["costs"]), int), 0.0)
+        assert hit[0] == bool(live["static_collision"])
+        assert not lab["static"][:, 0].any()  # braking straight never reaches a pole
+        statics.append(hit[0])
+    assert better >= 1 and any(statics) and not all(statics)
 
 
 def test_hazard_state_is_where_the_scenario_put_the_hazard():
@@ -135,6 +140,10 @@ def test_policy_cost_by_hand():
     np.testing.assert_allclose(
         chooser.policy_cost(pred, costs, episode, 0.0, min_brake_cost=0.45), [0.9 - 0.8 + 0.1, 0.2], atol=1e-6
     )
+    # the static flags of the chosen (row, candidate), or of braking's first row where nothing is chosen
+    static = np.array([[0, 0], [0, 1], [1, 1], [0, 0]], np.int8)
+    assert chooser.policy_static(pred, static, episode, 0.0).tolist() == [True, False]
+    assert chooser.policy_static(pred, static, episode, 0.35).tolist() == [False, False]
 
 
 OVERRIDES = [
@@ -226,3 +235,28 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     # a chooser needs R2
     with pytest.raises(StageError, match="reward=r2"):
         train_agent.run(compose("train_agent", [*base, *OVERRIDES, "reward=r1", "agent.variant=chooserr1"]))
+
+
+def test_a_finished_chooser_resumed_with_a_new_floor_keeps_its_scorer(trained, tmp_path):
+    """min_brake_cost is a decision-time rule: resuming a finished run with only it changed keeps the fitted scorer
+    (same weights, same checks, same held-out predictions) and records the floor; any setting that shapes the fit
+    changes the fit identity, so it is refitted."""
+    from worldmodel.config import compose
+
+    root, base, cfg, metrics = trained
+    shutil.copytree(root, tmp_path, dirs_exist_ok=True)
+    base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", *base[2:]]
+    floored = compose("train_agent", [*base, *OVERRIDES, "agent.chooser.min_brake_cost=0.5", "resume=true"])
+    assert chooser.fit_identity(floored) == chooser.fit_identity(cfg)
+    assert chooser.fit_identity(compose("train_agent", [*base, *OVERRIDES, "agent.chooser.steps=260"])) != (
+        chooser.fit_identity(cfg)
+    )
+    again = train_agent.run(floored)
+    assert again["checks"] == metrics["checks"]
+    before = artifacts.load_agent_state(cfg, artifacts.AgentId.of(cfg), "last")
+    after = artifacts.load_agent_state(floored, artifacts.AgentId.of(floored), "last")
+    assert after["min_brake_cost"] == 0.5 and before["min_brake_cost"] == 0.0
+    for name, value in before["scorer"].items():
+        assert torch.equal(value, after["scorer"][name]), name
+    # the same predictions: the floor-free costs on the held-out labels are unchanged
+    assert again["held_out_cost"]["learned_by_margin"] == metrics["held_out_cost"]["learned_by_margin"]

@@ -21,6 +21,7 @@ and the exact-cost chooser (the same rule with the true costs: this agent's ceil
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -45,6 +46,7 @@ log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
 TARGETS = ("cost", "advantage", "policy")
 LABEL_KEYS = ("seg", "speed", "costs", "state", "episode", "t")
+STATIC_KEY = "static"  # per candidate, whether it ends in a static object (labels made since 2026-11-24)
 TELE_KEY = "seg_tele"  # the narrow second camera's frames, in labels made with env.tele_fov_deg
 # the frame band the scorer's CNN reads, per camera (agent.chooser.mask_camera): the rows where road users from
 # ~4 m to the far end of the street appear; in the 30-degree camera the hazard pedestrians of the validation bank
@@ -171,6 +173,9 @@ def labels(cfg, source: str = "train") -> dict:
     data: dict[str, list] = {k: [] for k in LABEL_KEYS}
     if cfg.env.get("tele_fov_deg") is not None:
         data[TELE_KEY] = []
+    with contextlib.suppress(OSError), h5py.File(paths[0], "r") as f:
+        if STATIC_KEY in f:  # labels made before the flags have none; what counts static collisions says so
+            data[STATIC_KEY] = []
     for p in paths:
         try:
             with h5py.File(p, "r") as f:
@@ -303,27 +308,42 @@ def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool, camera: str 
     return np.concatenate([x, band], axis=1)
 
 
-def policy_cost(
-    pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None, min_brake_cost=0.0
-):
-    """Per labelled episode, the exact R2 cost of the chooser that acts on ``pred``: braking until the first step
-    where some candidate is predicted cheaper than braking by more than ``margin`` (and, when ``min_brake_cost`` is
-    set, braking is predicted to cost more than it), then that candidate. With ``t`` and ``steps``: a chooser whose
-    window ends after ``steps`` decision steps."""
-    out = []
+def policy_choices(pred: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None, min_brake_cost=0.0):
+    """Per labelled episode, where the chooser that acts on ``pred`` switches: braking until the first step where
+    some candidate is predicted cheaper than braking by more than ``margin`` (and, when ``min_brake_cost`` is set,
+    braking is predicted to cost more than it), then that candidate. With ``t`` and ``steps``: a chooser whose
+    window ends after ``steps`` decision steps. Returns row indices ``first`` (the episode's first decision),
+    ``at`` (the switch, -1 for none) and the candidate ``k`` (0, braking, for none)."""
+    first, at, ks = [], [], []
     for e in np.unique(episode):
         rows = np.flatnonzero(episode == e)
         if t is not None and steps is not None:
             rows = rows[np.asarray(t)[rows] < steps]
-        p, c = pred[rows], costs[rows]
-        total = float(c[0, 0])
-        for k_t in range(len(rows)):
-            k = switch_choice(p[k_t], margin, min_brake_cost)
+        first.append(rows[0])
+        at.append(-1)
+        ks.append(0)
+        for row in rows:
+            k = switch_choice(pred[row], margin, min_brake_cost)
             if k is not None:
-                total = float(c[0, 0] - c[k_t, 0] + c[k_t, k])
+                at[-1], ks[-1] = row, k
                 break
-        out.append(total)
-    return np.asarray(out)
+    return np.asarray(first), np.asarray(at), np.asarray(ks)
+
+
+def policy_cost(pred: np.ndarray, costs: np.ndarray, episode: np.ndarray, margin: float, **window) -> np.ndarray:
+    """Per labelled episode, the exact R2 cost of the chooser that acts on ``pred`` (``policy_choices``; ``window``:
+    its ``t``, ``steps``, ``min_brake_cost``): braking's cost up to the switch plus the chosen candidate's after."""
+    first, at, k = policy_choices(pred, episode, margin, **window)
+    out = costs[first, 0].astype(np.float64)
+    s = at >= 0
+    out[s] += costs[at[s], k[s]] - costs[at[s], 0]
+    return out
+
+
+def policy_static(pred: np.ndarray, static: np.ndarray, episode: np.ndarray, margin: float, **window) -> np.ndarray:
+    """Per labelled episode, whether the chooser that acts on ``pred`` hits a static object (labels' ``static``)."""
+    first, at, k = policy_choices(pred, episode, margin, **window)
+    return np.where(at >= 0, static[np.maximum(at, 0), k], static[first, 0]).astype(bool)
 
 
 def encode_labels(encoder, data: dict) -> np.ndarray:
@@ -407,6 +427,21 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     return scorer.eval(), history
 
 
+# settings of the decision rule alone: the scorer is fitted and kept as without them, so a finished run resumed
+# (resume=true) with only these changed keeps its scorer and applies them, in seconds rather than a refit
+DECISION_KEYS = ("min_brake_cost",)
+
+
+def fit_identity(cfg) -> str:
+    """The hash of everything that shapes the fitted scorer: the agent's provenance without ``DECISION_KEYS``."""
+    from omegaconf import OmegaConf
+
+    fitted = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    for key in (*DECISION_KEYS, "num_workers"):  # labels are the same for any worker count (tests/test_chooser.py)
+        fitted.agent.chooser[key] = None
+    return artifacts.config_sha256(artifacts.provenance(fitted, "agent"))
+
+
 def train(cfg, run_, agent_id) -> dict:
     """Label (or reuse labels), encode, fit the scorer; saves the chooser's checkpoint through ``run_``."""
     from .action_map import ActionMap
@@ -420,7 +455,19 @@ def train(cfg, run_, agent_id) -> dict:
     encoder = artifacts.load_world_model(cfg)
     x = scorer_inputs(encoder, data, steps, bool(c.mask_view), c.mask_camera)
     y = data["costs"].astype(np.float32)
-    scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
+    fitted = fit_identity(cfg)
+    finished = run_.state is not None and run_.marker.exists()  # a stopped fit saved a partial scorer: refit it
+    if finished and run_.state.get("fit_identity") == fitted:
+        log.info(
+            "[chooser] the scorer in %s was fitted on these inputs and settings: kept, the decision rule's "
+            "settings (%s) applied to it",
+            run_.last,
+            ", ".join(DECISION_KEYS),
+        )
+        scorer = scorer_from_state(run_.state)
+        history = [(k["step"], k["held_out_cost"], k["held_out_mse"]) for k in run_.state["checks"]]
+    else:
+        scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
     is_held = held_out_split(data["episode"])
     yv, ev = y[is_held], data["episode"][is_held]
     with torch.no_grad():
@@ -428,8 +475,11 @@ def train(cfg, run_, agent_id) -> dict:
     exact = policy_cost(yv, yv, ev, 0.0)
     braking = yv[np.r_[True, ev[1:] != ev[:-1]], 0]
     margins = {m: float(policy_cost(pred, yv, ev, m).mean()) for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
+    checks = [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history]
     state = {
         "learner": "chooser",
+        "fit_identity": fitted,
+        "checks": checks,
         "scorer": scorer.state_dict(),
         "in_dim": int(x.shape[1]),
         "hidden": [int(h) for h in c.hidden],
@@ -463,7 +513,7 @@ def train(cfg, run_, agent_id) -> dict:
             "learned": round(float(policy_cost(pred, yv, ev, c.margin, min_brake_cost=c.min_brake_cost).mean()), 5),
             "learned_by_margin": {str(m): round(v, 5) for m, v in margins.items()},
         },
-        "checks": [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history],
+        "checks": checks,
     }
 
 
@@ -497,13 +547,12 @@ class LearnedScorer:
             return self.scorer(torch.from_numpy(x))[0].numpy()
 
 
-def build_policy(name: str, encoder, state: dict, margin: float | None = None) -> ManoeuvreChooser:
-    """A chooser checkpoint as a scripted-policy (``reset``, ``act``)."""
-    candidates = [Manoeuvre(**m) for m in state["candidates"]]
+def scorer_from_state(state: dict) -> Scorer:
+    """The fitted scorer of a chooser checkpoint, in eval mode."""
     camera = str(state.get("mask_camera", "wide"))  # absent: a chooser trained before the second camera
     scorer = Scorer(
         int(state["in_dim"]),
-        len(candidates),
+        len(state["candidates"]),
         tuple(state["hidden"]),
         float(state["dropout"]),
         int(state.get("members", 1)),
@@ -511,6 +560,14 @@ def build_policy(name: str, encoder, state: dict, margin: float | None = None) -
         MaskView(MASK_ROWS[camera]).shape if state.get("mask_view") else None,
     )
     scorer.load_state_dict(state["scorer"])
+    return scorer.eval()
+
+
+def build_policy(name: str, encoder, state: dict, margin: float | None = None) -> ManoeuvreChooser:
+    """A chooser checkpoint as a scripted-policy (``reset``, ``act``)."""
+    candidates = [Manoeuvre(**m) for m in state["candidates"]]
+    camera = str(state.get("mask_camera", "wide"))
+    scorer = scorer_from_state(state)
     if encoder.dim + 1 + scorer.mask_dim != int(state["in_dim"]):
         raise StageError(
             f"the chooser {name} expects {int(state['in_dim']) - 1} world-model features, the world model gives "

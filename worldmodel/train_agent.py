@@ -242,7 +242,7 @@ def run_chooser(cfg, agent_id) -> dict:
     record = artifacts.provenance(cfg, "agent")
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
         if run_.state is not None:  # the scorer trains in minutes: a stopped run starts again (labels are kept)
-            run_.resumed("refitting the scorer from the stored labels")
+            run_.resumed("refitting the scorer from the stored labels, unless only its decision rule changed")
         metrics = chooser.train(cfg, run_, agent_id)
         if run_.stop.requested:
             return run_.stopped(0)
