@@ -260,3 +260,24 @@ def test_a_finished_chooser_resumed_with_a_new_floor_keeps_its_scorer(trained, t
         assert torch.equal(value, after["scorer"][name]), name
     # the same predictions: the floor-free costs on the held-out labels are unchanged
     assert again["held_out_cost"]["learned_by_margin"] == metrics["held_out_cost"]["learned_by_margin"]
+
+
+def test_static_penalty_needs_labels_with_static_flags(trained, tmp_path):
+    """static_penalty shapes the fit (a new fit identity) and is reported with the held-out static rate; on labels
+    made before the static flags it stops with what to do."""
+    import h5py
+
+    from worldmodel.config import compose
+
+    root, base, cfg, metrics = trained
+    assert 0.0 <= metrics["held_out_static"]["learned"] <= 1.0
+    shutil.copytree(root, tmp_path, dirs_exist_ok=True)
+    base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", *base[2:]]
+    penalised = compose("train_agent", [*base, *OVERRIDES, "agent.chooser.static_penalty=0.2", "agent.variant=pen"])
+    assert chooser.fit_identity(penalised) != chooser.fit_identity(cfg)
+    assert chooser.labels_dir(penalised).name == chooser.labels_dir(cfg).name  # the same labels, another target
+    for shard in chooser.labels_dir(penalised).glob("shard_*.h5"):
+        with h5py.File(shard, "a") as f:
+            del f[chooser.STATIC_KEY]
+    with pytest.raises(StageError, match="static_penalty=0.2.*relabel"):
+        train_agent.run(penalised)

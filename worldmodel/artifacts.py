@@ -271,8 +271,9 @@ def _drop_added_defaults(settings: dict) -> dict:
     if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
         agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
     chooser = agent.get("chooser") if isinstance(agent, dict) else None
-    if isinstance(chooser, dict) and not chooser.get("min_brake_cost"):
-        chooser.pop("min_brake_cost", None)  # off: the chooser as before the option
+    for key in ("min_brake_cost", "static_penalty"):
+        if isinstance(chooser, dict) and not chooser.get(key):
+            chooser.pop(key, None)  # off: the chooser as before the option
     if isinstance(chooser, dict) and chooser.get("label_seed", 0) is None:
         chooser.pop("label_seed")  # each seed its own labels, as before the option
     if isinstance(chooser, dict) and chooser.get("mask_camera") == "wide":

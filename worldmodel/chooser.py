@@ -455,6 +455,14 @@ def train(cfg, run_, agent_id) -> dict:
     encoder = artifacts.load_world_model(cfg)
     x = scorer_inputs(encoder, data, steps, bool(c.mask_view), c.mask_camera)
     y = data["costs"].astype(np.float32)
+    static = data.get(STATIC_KEY)
+    if c.static_penalty > 0 and static is None:
+        raise StageError(
+            f"agent.chooser.static_penalty={c.static_penalty} needs labels that record static collisions, and "
+            f"{labels_dir(cfg)} predates them: delete that folder and rerun to relabel"
+        )
+    # what the scorer learns and its checkpoint is chosen on: the costs, plus the penalty where a pole is hit
+    y_fit = y + np.float32(c.static_penalty) * static if c.static_penalty > 0 else y
     fitted = fit_identity(cfg)
     finished = run_.state is not None and run_.marker.exists()  # a stopped fit saved a partial scorer: refit it
     if finished and run_.state.get("fit_identity") == fitted:
@@ -467,7 +475,7 @@ def train(cfg, run_, agent_id) -> dict:
         scorer = scorer_from_state(run_.state)
         history = [(k["step"], k["held_out_cost"], k["held_out_mse"]) for k in run_.state["checks"]]
     else:
-        scorer, history = fit_scorer(x, y, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
+        scorer, history = fit_scorer(x, y_fit, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
     is_held = held_out_split(data["episode"])
     yv, ev = y[is_held], data["episode"][is_held]
     with torch.no_grad():
@@ -475,6 +483,7 @@ def train(cfg, run_, agent_id) -> dict:
     exact = policy_cost(yv, yv, ev, 0.0)
     braking = yv[np.r_[True, ev[1:] != ev[:-1]], 0]
     margins = {m: float(policy_cost(pred, yv, ev, m).mean()) for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
+    rule = {"min_brake_cost": float(c.min_brake_cost)}
     checks = [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history]
     state = {
         "learner": "chooser",
@@ -510,9 +519,20 @@ def train(cfg, run_, agent_id) -> dict:
         "held_out_cost": {
             "braking": round(float(braking.mean()), 5),
             "exact_chooser": round(float(exact.mean()), 5),
-            "learned": round(float(policy_cost(pred, yv, ev, c.margin, min_brake_cost=c.min_brake_cost).mean()), 5),
+            "learned": round(float(policy_cost(pred, yv, ev, c.margin, **rule).mean()), 5),
             "learned_by_margin": {str(m): round(v, 5) for m, v in margins.items()},
         },
+        # the share of held-out episodes that end in a static object (labels without the flags: absent)
+        **(
+            {}
+            if static is None
+            else {
+                "held_out_static": {
+                    "exact_chooser": round(float(policy_static(yv, static[is_held], ev, 0.0).mean()), 5),
+                    "learned": round(float(policy_static(pred, static[is_held], ev, c.margin, **rule).mean()), 5),
+                }
+            }
+        ),
         "checks": checks,
     }
 
