@@ -408,6 +408,13 @@ def test_share_of_achievable_improvement():
     table = table_rows(report.tables_markdown(rows), "Table IV.")
     assert table["Brake&Steer, reward 1: share (%)"] == ["50", "50", "—"]
     assert table["Brake&Steer, reward 2: share (%)"][0] == "-100"
+    # agent_r2 is above braking in the one cell where anyone is hurt; agent_r1 nowhere
+    above = report.cells_above_baseline(rows, "agent_r2")
+    assert above == [{"ttc": 0.5, "speed": 10.0, "policy": 35.0, "baseline": 20.0, "planner_gain": pytest.approx(15.0)}]
+    assert report.cells_above_baseline(rows, "agent_r1") == []
+    cells = table_rows(report.tables_markdown(rows), "Cells where")
+    assert cells["Brake&Steer, reward 2"] == ["10 m/s, 0.5 s: 35.00 / 20.00 (planner gain 15.00)", "none"]
+    assert cells["Brake&Steer, reward 1"] == ["none", "none"]
     # without the planner there is no ceiling and no share
     assert report.achievable_share_grids([r for r in rows if r["policy"] != "oracle"]) == {}
     assert "Table IV." not in report.tables_markdown([r for r in rows if r["policy"] != "oracle"])

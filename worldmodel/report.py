@@ -870,6 +870,59 @@ def achievable_share_markdown(rows: Sequence[dict], baseline: str = "braking") -
     return "\n".join(lines)
 
 
+def cells_above_baseline(rows: Sequence[dict], policy: str, baseline: str = "braking") -> list[dict]:
+    """The TTC × speed cells where ``policy``'s mean total severe-injury risk (pooled over its seeds) is above
+    ``baseline``'s, each with both risks and the planner's gain over the baseline there (NaN without the planner),
+    in points. A learned policy should never be worse than braking where braking is nearly safe."""
+    grid = grid_of(rows)
+    ttcs, speeds = grid["ttcs"], grid["speeds"]
+
+    def totals(name):
+        return 100.0 * _metric_grid([r for r in rows if r["policy"] == name], "total_injury", "all", ttcs, speeds)
+
+    mine, base = totals(policy), totals(baseline)
+    top = totals(CEILING) if CEILING in policy_order(rows) else np.full_like(base, np.nan)
+    out = []
+    for i, ttc in enumerate(ttcs):
+        for j, speed in enumerate(speeds):
+            if mine[i, j] > base[i, j] + 1e-9:
+                cell = {"ttc": ttc, "speed": speed, "policy": float(mine[i, j]), "baseline": float(base[i, j])}
+                out.append({**cell, "planner_gain": float(base[i, j] - top[i, j])})
+    return out
+
+
+def _cells_listed(cells: list[dict], near: bool) -> str:
+    picked = [c for c in cells if (c["ttc"] <= 1.0) == near]
+    return (
+        "; ".join(
+            f"{_fmt_speed(c['speed'])} m/s, {_fmt_ttc(c['ttc'])} s: {c['policy']:.2f} / {c['baseline']:.2f}"
+            + (f" (planner gain {c['planner_gain']:.2f})" if math.isfinite(c["planner_gain"]) else "")
+            for c in picked
+        )
+        or "none"
+    )
+
+
+def cells_above_baseline_markdown(rows: Sequence[dict], baseline: str = "braking") -> str:
+    """For every policy but the baseline and the planner: the cells where it is riskier than the baseline."""
+    policies = [p for p in policy_order(rows) if p not in (baseline, CEILING)]
+    if baseline not in policy_order(rows) or not policies:
+        return ""
+    lines = [f"### Cells where a policy's total risk is above {policy_label(baseline).lower()}'s", ""]
+    lines.append(_md_row(["Policy", "TTC ≤ 1.0 s", "TTC > 1.0 s"]))
+    lines.append(_md_row(["---", "---", "---"]))
+    for policy in policies:
+        cells = cells_above_baseline(rows, policy, baseline)
+        lines.append(_md_row([policy_label(policy), _cells_listed(cells, True), _cells_listed(cells, False)]))
+    lines += [
+        "",
+        f"_Mean total severe-injury risk (%) per cell, the policy's / {policy_label(baseline).lower()}'s, pooled "
+        "over training seeds; the planner's gain is how many points below braking the privileged planner is "
+        "there (under 0.5: braking is nearly as safe as anything can be)._",
+    ]
+    return "\n".join(lines)
+
+
 def seed_spread_markdown(rows: Sequence[dict], baseline: str = "braking") -> str:
     """Mean ± standard deviation (min–max) over training seeds, for policies evaluated with two or more seeds."""
     spreads = {p: seed_spread(rows, p, baseline) for p in policy_order(rows)}
@@ -924,6 +977,7 @@ def tables_markdown(rows: Sequence[dict]) -> str:
         table_ii_markdown(rows),
         table_iii_markdown(rows),
         achievable_share_markdown(rows),
+        cells_above_baseline_markdown(rows),
         other_outcomes_markdown(rows),
         seed_spread_markdown(rows),
     ]
