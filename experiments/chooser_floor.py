@@ -49,11 +49,38 @@ def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray
     return out
 
 
+def exact_penalty_table(costs, static, episode, braking, margins, penalties: str) -> list[str]:
+    """The exact-cost chooser deciding on its costs plus ``penalty`` where a candidate hits a static object (what
+    ``agent.chooser.static_penalty`` teaches the scorer), scored on the true costs: what the penalty can buy."""
+    if static is None or not penalties:
+        return []
+    lines = [
+        "The exact-cost chooser deciding on costs + penalty x (ends in a static object), scored on the true costs:",
+        "",
+        "| static_penalty | margin | risk - braking, pts | static coll. % |",
+        "|---:|---:|---:|---:|",
+    ]
+    for penalty in [float(p) for p in penalties.split(",")]:
+        decided = costs + np.float32(penalty) * static
+        for margin in margins:
+            cost = chooser.policy_cost(decided, costs, episode, margin)
+            hits = chooser.policy_static(decided, static, episode, margin)
+            lines.append(
+                f"| {penalty:g} | {margin:g} | {100 * (cost.mean() - braking.mean()):+.2f} | {100 * hits.mean():.2f} |"
+            )
+    return [*lines, ""]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=paper scale=paper")
     parser.add_argument("--agent", default="chooser", help="the chooser preset: chooser or chooser_tele")
-    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--seeds", default="0,1,2", help="trained seeds to score; empty: the exact-cost table only")
+    parser.add_argument(
+        "--penalties",
+        default="0,0.05,0.1,0.2,0.5,1",
+        help="static penalties (agent.chooser.static_penalty) for the exact-cost chooser's table",
+    )
     parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
     parser.add_argument("--margins", default=None, help="comma-separated; default: the chooser preset's")
     args = parser.parse_args(argv)
@@ -67,18 +94,21 @@ def main(argv=None) -> int:
     costs, episode, static = val["costs"], val["episode"], val.get(chooser.STATIC_KEY)
     braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]
     exact = chooser.policy_cost(costs, costs, episode, 0.0)
-    preds = predictions(base, [int(s) for s in args.seeds.split(",")], val)
+    preds = predictions(base, [int(s) for s in args.seeds.split(",") if s.strip()], val)
     exact_static = "n/a" if static is None else f"{100 * chooser.policy_static(costs, static, episode, 0.0).mean():.1f}"
     lines = [
         f"Validation bank, {len(braking)} scenarios, agent={args.agent}: braking {100 * braking.mean():.2f} %, the "
         f"chooser on exact costs {100 * exact.mean():.2f} % (mean R2 total risk; its static collisions "
         f"{exact_static} %).",
         "",
+        *exact_penalty_table(costs, static, episode, braking, margins, args.penalties),
+        "The trained seeds:",
+        "",
         "| margin | min_brake_cost | risk - braking, pts, per seed | mean | static coll. %, per seed | "
         "TTC <= 1.0 s cells above braking (chooser / braking, %) |",
         "|---:|---:|---|---:|---|---|",
     ]
-    for margin in margins:
+    for margin in margins if preds else []:
         for floor in [float(f) for f in args.floors.split(",")]:
             window = {"min_brake_cost": floor}
             per_seed = [chooser.policy_cost(p, costs, episode, margin, **window) for p in preds]
