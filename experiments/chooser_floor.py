@@ -1,7 +1,7 @@
 """The trained choosers under a floor on switching, exactly and offline, on the validation bank.
 
     python -m experiments.chooser_floor experiment=paper scale=paper [--agent chooser_tele] [--seeds 0,1,2]
-        [--floors 0,0.05] [--margins 0.02,0.05]
+        [--floors 0,0.05] [--margins 0.02,0.05] [--penalties 0,0.2] [--ensemble]
 
 ``agent.chooser.min_brake_cost`` lets the chooser switch only where its scorer predicts braking to cost more than
 the floor. It is a decision-time rule, so the trained scorers (``runs/NAME/agent_r2_chooser/seed<S>/``) are scored
@@ -9,7 +9,9 @@ as they are: on the validation bank's labels (``data/NAME/chooser_labels/validat
 each seed's exact R2 cost per scenario (``worldmodel.chooser.policy_cost``, equal to the simulated episode) under
 each floor. Prints, per floor, the mean gain over braking per seed, the static-collision rate (labels made since
 2026-11-24 record, per candidate, whether it ends in a static object) and the TTC <= 1.0 s cells in which the
-seed-averaged chooser costs more than braking (the issue's cells bar). The test bank is never touched.
+seed-averaged chooser costs more than braking (the issue's cells bar). First, from the labels alone, the exact-cost
+chooser under static penalties (``agent.chooser.static_penalty``); with ``--ensemble``, also the seeds' predictions
+averaged. The test bank is never touched.
 
 A margin other than the one the scorers were trained with is a what-if of the decision rule alone: training keeps
 the scorer checkpoint that is best on its held-out labels at the preset's margin, so a chooser trained with another
@@ -71,45 +73,16 @@ def exact_penalty_table(costs, static, episode, braking, margins, penalties: str
     return [*lines, ""]
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=paper scale=paper")
-    parser.add_argument("--agent", default="chooser", help="the chooser preset: chooser or chooser_tele")
-    parser.add_argument("--seeds", default="0,1,2", help="trained seeds to score; empty: the exact-cost table only")
-    parser.add_argument(
-        "--penalties",
-        default="0,0.05,0.1,0.2,0.5,1",
-        help="static penalties (agent.chooser.static_penalty) for the exact-cost chooser's table",
-    )
-    parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
-    parser.add_argument("--margins", default=None, help="comma-separated; default: the chooser preset's")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(1)
-    base = [*args.overrides, "reward=r2", f"agent={args.agent}", "agent.chooser.num_workers=1"]
-    cfg = compose("train_agent", base)
-    margins = [float(m) for m in args.margins.split(",")] if args.margins else [float(cfg.agent.chooser.margin)]
-    val = chooser.labels(cfg, "validation")
-    cells = [(e.speed, e.ttc) for e in chooser.validation_entries(cfg)]
-    costs, episode, static = val["costs"], val["episode"], val.get(chooser.STATIC_KEY)
-    braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]
-    exact = chooser.policy_cost(costs, costs, episode, 0.0)
-    preds = predictions(base, [int(s) for s in args.seeds.split(",") if s.strip()], val)
-    exact_static = "n/a" if static is None else f"{100 * chooser.policy_static(costs, static, episode, 0.0).mean():.1f}"
+def learned_table(preds, costs, static, episode, braking, cells, margins, floors) -> list[str]:
+    """Per (margin, floor): each seed's gain over braking, static-collision rate, and the TTC <= 1.0 s cells in
+    which the seed-averaged chooser costs more than braking."""
     lines = [
-        f"Validation bank, {len(braking)} scenarios, agent={args.agent}: braking {100 * braking.mean():.2f} %, the "
-        f"chooser on exact costs {100 * exact.mean():.2f} % (mean R2 total risk; its static collisions "
-        f"{exact_static} %).",
-        "",
-        *exact_penalty_table(costs, static, episode, braking, margins, args.penalties),
-        "The trained seeds:",
-        "",
         "| margin | min_brake_cost | risk - braking, pts, per seed | mean | static coll. %, per seed | "
         "TTC <= 1.0 s cells above braking (chooser / braking, %) |",
         "|---:|---:|---|---:|---|---|",
     ]
     for margin in margins if preds else []:
-        for floor in [float(f) for f in args.floors.split(",")]:
+        for floor in floors:
             window = {"min_brake_cost": floor}
             per_seed = [chooser.policy_cost(p, costs, episode, margin, **window) for p in preds]
             hits = (
@@ -134,6 +107,53 @@ def main(argv=None) -> int:
                 f"{hits} | {'; '.join(worse) or 'none'} |"
             )
             log.info(lines[-1])
+    return lines
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=paper scale=paper")
+    parser.add_argument("--agent", default="chooser", help="the chooser preset: chooser or chooser_tele")
+    parser.add_argument("--seeds", default="0,1,2", help="trained seeds to score; empty: the exact-cost table only")
+    parser.add_argument(
+        "--penalties",
+        default="0,0.05,0.1,0.2,0.5,1",
+        help="static penalties (agent.chooser.static_penalty) for the exact-cost chooser's table",
+    )
+    parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
+    parser.add_argument("--margins", default=None, help="comma-separated; default: the chooser preset's")
+    parser.add_argument("--ensemble", action="store_true", help="also the seeds' predictions averaged")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(1)
+    base = [*args.overrides, "reward=r2", f"agent={args.agent}", "agent.chooser.num_workers=1"]
+    cfg = compose("train_agent", base)
+    margins = [float(m) for m in args.margins.split(",")] if args.margins else [float(cfg.agent.chooser.margin)]
+    val = chooser.labels(cfg, "validation")
+    cells = [(e.speed, e.ttc) for e in chooser.validation_entries(cfg)]
+    costs, episode, static = val["costs"], val["episode"], val.get(chooser.STATIC_KEY)
+    braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]
+    exact = chooser.policy_cost(costs, costs, episode, 0.0)
+    preds = predictions(base, [int(s) for s in args.seeds.split(",") if s.strip()], val)
+    exact_static = "n/a" if static is None else f"{100 * chooser.policy_static(costs, static, episode, 0.0).mean():.1f}"
+    lines = [
+        f"Validation bank, {len(braking)} scenarios, agent={args.agent}: braking {100 * braking.mean():.2f} %, the "
+        f"chooser on exact costs {100 * exact.mean():.2f} % (mean R2 total risk; its static collisions "
+        f"{exact_static} %).",
+        "",
+        *exact_penalty_table(costs, static, episode, braking, margins, args.penalties),
+        "The trained seeds:",
+        "",
+    ]
+    floors = [float(f) for f in args.floors.split(",")]
+    lines += learned_table(preds, costs, static, episode, braking, cells, margins, floors)
+    if args.ensemble and len(preds) > 1:
+        lines += [
+            "",
+            "The seeds' scorers averaged into one (what agent.chooser.ensemble would train in one run):",
+            "",
+            *learned_table([np.mean(preds, axis=0)], costs, static, episode, braking, cells, margins, floors),
+        ]
     out = artifacts.runs_root(cfg) / "chooser_floor"
     out.mkdir(parents=True, exist_ok=True)
     text = "\n".join(lines) + "\n"
