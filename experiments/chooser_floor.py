@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
     parser.add_argument("--margins", default=None, help="comma-separated; default: the chooser preset's")
     parser.add_argument("--ensemble", action="store_true", help="also the seeds' predictions averaged")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)  # Hydra overrides may come after the options
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     base = [*args.overrides, "reward=r2", f"agent={args.agent}", "agent.chooser.num_workers=1"]
