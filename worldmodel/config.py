@@ -309,9 +309,10 @@ class ChooserConfig(Checked):
     # as without it
     min_brake_cost: float = 0.0  # 0 = no floor
     # R2 units added to a candidate's labelled cost where it ends in a static object, so the scorer learns to keep
-    # clear of poles and walls (the issue bars static collisions at 2 %). With exact costs on the paper-scale
-    # validation bank, 0.2 cuts the chooser's static collisions from 2.1 to 1.1 % for 0.06 points of its gain
-    # (docs/results/agent/README.md). Needs labels that record the flags (made since 2026-11-24)
+    # clear of poles and walls (the issue bars static collisions at 2 %). On the paper-scale validation bank, 0.2
+    # cuts the exact-cost chooser's static collisions from 2.1 to 1.1 % for 0.06 points of its gain, but a learned
+    # scorer's from 2.9 to 0.1 % for ~0.6 points (docs/results/agent/README.md). Needs labels that record the flags
+    # (made since 2026-11-24)
     static_penalty: float = 0.0
     hidden: list[int] = field(default_factory=lambda: [256, 256])
     dropout: float = 0.2
