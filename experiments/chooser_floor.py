@@ -46,8 +46,7 @@ def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray
         x = chooser.scorer_inputs(
             encoder, val, int(state["decide_steps"]), bool(state.get("mask_view")), state.get("mask_camera", "wide")
         )
-        with torch.no_grad():
-            out.append(scorer(torch.from_numpy(x)).numpy())
+        out.append(scorer.predict(x))
     return out
 
 

@@ -146,6 +146,16 @@ def test_policy_cost_by_hand():
     assert chooser.policy_static(pred, static, episode, 0.35).tolist() == [False, False]
 
 
+def test_chunked_prediction_equals_one_forward_pass():
+    torch.manual_seed(0)
+    scorer = chooser.Scorer(12 + 2 * 8 * 8, 3, hidden=(16,), members=2, mask_shape=(2, 8, 8)).eval()
+    x = torch.randn(50, 12 + 2 * 8 * 8)
+    with torch.no_grad():
+        whole = scorer(x).numpy()
+    np.testing.assert_allclose(scorer.predict(x.numpy(), chunk=7), whole, rtol=1e-6, atol=1e-7)
+    assert scorer.predict(x, chunk=7).shape == (50, 3)  # the last, short chunk included
+
+
 OVERRIDES = [
     "reward=r2",
     "agent=chooser",

@@ -338,6 +338,8 @@ def test_learns_the_corridor(double, dueling):
         ("gamma", 1.5),
         ("target_every", 0),
         ("hidden", [100, 0]),
+        ("greedy_average", 1.0),  # would never move
+        ("greedy_average", 0.0),  # that is the online network: leave it null
         ("trauma_weight_final", 0.0),  # an exponential decay cannot reach 0
         ("trauma_weight_final", 1.5),
         ("trauma_weight_hold", 1.0),  # no updates left to decay over
@@ -427,3 +429,31 @@ def test_normalized_inputs_are_the_warm_up_statistics_frozen_and_saved():
     resumed = DQN(3, 2, cfg, seed=1)
     resumed.load_state_dict(roundtrip(agent.state_dict()))
     assert resumed.normalized and torch.equal(resumed.q_network.obs_std, net.obs_std)
+
+
+def test_greedy_average_is_the_hand_computed_weight_average_and_makes_the_greedy_decisions():
+    cfg = DQNConfig(hidden=[8], batch_size=4, buffer_size=50, warmup_steps=8, trauma_batch=0, greedy_average=0.75)
+    agent = DQN(3, 2, cfg, seed=0)
+    env = np.random.default_rng(0)
+    for _ in range(8):
+        agent.remember(env.normal(size=3), int(env.integers(2)), env.normal(), env.normal(size=3), False)
+    expected = params(agent.q_network)  # starts as a copy of the online network
+    for _ in range(5):
+        agent.update()
+        expected = [0.75 * a + 0.25 * w for a, w in zip(expected, params(agent.q_network), strict=True)]
+    averaged = params(agent.average_network)
+    assert all(torch.allclose(a, e, atol=1e-6) for a, e in zip(averaged, expected, strict=True))
+    assert not same(averaged, params(agent.q_network))
+
+    obs = env.normal(size=(200, 3)).astype(np.float32) * 5
+    from_average, from_online = agent.q_values(obs, averaged=True), agent.q_values(obs)
+    assert not np.allclose(from_average, from_online)
+    assert [agent.act(o, explore=False) for o in obs] == from_average.argmax(1).tolist()
+    agent.cfg.eps_start = agent.cfg.eps_end = 0.0  # exploring with epsilon 0: the online network's choice
+    assert [agent.act(o, step=10**6) for o in obs] == from_online.argmax(1).tolist()
+
+    resumed = DQN(3, 2, cfg, seed=1)
+    resumed.load_state_dict(roundtrip(agent.state_dict()))
+    assert same(params(resumed.average_network), averaged)
+    with pytest.raises(ValueError, match="greedy_average"):
+        DQN(3, 2, DQNConfig(hidden=[8], trauma_batch=0), seed=0).load_state_dict(roundtrip(agent.state_dict()))

@@ -138,6 +138,13 @@ class DQNConfig(Checked):
     grad_clip: float | None = 10.0
     """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
     gradient grows with the batch, and one collision penalty can be large"""
+    greedy_average: float | None = None
+    """if set, a third copy of the network follows the online one as an exponential moving average of its weights
+    (after every update, w_avg := d w_avg + (1 - d) w_online, d = this), and greedy decisions (``act(...,
+    explore=False)``: evaluation, checkpoint selection) use it; exploration and the TD targets do not. None = greedy
+    decisions use the online network, as Chae et al. For when successive checkpoints of one run act very
+    differently (Chae: 250 episodes apart, 1 % and 30 % bumps), as weight averaging does in Polyak and Juditsky 1992
+    and SWA (Izmailov et al. 2018): 1 - d is the inverse of the number of updates averaged over"""
 
     def problems(self):
         yield from positive_fields(self, "lr", "total_steps", "batch_size", "buffer_size", "target_every")
@@ -152,6 +159,8 @@ class DQNConfig(Checked):
             yield ConfigValueError("grad_clip", self.grad_clip, "it must be positive or null")
         if not 0 <= self.gamma <= 1:
             yield ConfigValueError("gamma", self.gamma, "it must be in [0, 1]")
+        if self.greedy_average is not None and not 0 < self.greedy_average < 1:
+            yield ConfigValueError("greedy_average", self.greedy_average, "it must be in (0, 1) or null")
         if not 0 <= self.advantage_alpha < 1:
             yield ConfigValueError("advantage_alpha", self.advantage_alpha, "it must be in [0, 1)")
         for key in ("eps_start", "eps_end"):
@@ -270,6 +279,11 @@ class DQN:
             self.q_network, self.target_network = QNetwork(*shape), QNetwork(*shape)
         self.target_network.load_state_dict(self.q_network.state_dict())
         self.target_network.requires_grad_(False)  # moved only by hard copies
+        self.average_network = None  # greedy_average: the weight average that greedy decisions use
+        if cfg.greedy_average is not None:
+            self.average_network = QNetwork(*shape)
+            self.average_network.load_state_dict(self.q_network.state_dict())
+            self.average_network.requires_grad_(False)
 
         optimizer = {"rmsprop": torch.optim.RMSprop, "adam": torch.optim.Adam}[cfg.optimizer]
         self.optimizer = optimizer(self.q_network.parameters(), lr=cfg.lr)
@@ -291,15 +305,18 @@ class DQN:
         return self.cfg.eps_start + frac * (self.cfg.eps_end - self.cfg.eps_start)
 
     @torch.no_grad()
-    def q_values(self, obs: np.ndarray) -> np.ndarray:
-        """Q(obs, .) from the online network, for one observation (n_actions,) or a batch (n, n_actions)."""
-        return self.q_network(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+    def q_values(self, obs: np.ndarray, averaged: bool = False) -> np.ndarray:
+        """Q(obs, .) from the online network (``averaged``: from the weight average when ``greedy_average`` keeps
+        one), for one observation (n_actions,) or a batch (n, n_actions)."""
+        net = self.average_network if averaged and self.average_network is not None else self.q_network
+        return net(torch.as_tensor(obs, dtype=torch.float32)).numpy()
 
     def act(self, obs: np.ndarray, step: int | None = None, explore: bool = True) -> int:
-        """A uniformly random action with probability ``epsilon(step)`` if ``explore``, else the greedy one."""
+        """A uniformly random action with probability ``epsilon(step)`` if ``explore``, else the greedy one: of the
+        online network while exploring, of the weight average (``greedy_average``) when not."""
         if explore and self.rng.random() < self.epsilon(step):
             return int(self.rng.integers(self.n_actions))
-        return int(np.argmax(self.q_values(obs)))
+        return int(np.argmax(self.q_values(obs, averaged=not explore)))
 
     def remember(
         self, obs, action: int, reward: float, next_obs, terminated: bool, trauma: bool = False, episode_end=None
@@ -341,7 +358,9 @@ class DQN:
         mean = torch.as_tensor(obs.mean(axis=0), dtype=torch.float32)
         std = torch.as_tensor(obs.std(axis=0), dtype=torch.float32)
         std = torch.where(std > 1e-6, std, torch.ones_like(std))
-        for net in (self.q_network, self.target_network):
+        for net in (self.q_network, self.target_network, self.average_network):
+            if net is None:
+                continue
             net.obs_mean.copy_(mean)
             net.obs_std.copy_(std)
         self.normalized = True
@@ -410,6 +429,8 @@ class DQN:
         self.optimizer.step()
         self.scheduler.step()
         self.updates += 1
+        if self.average_network is not None:
+            self._average()
         if self.updates % cfg.target_every == 0:
             self.sync_target()
         return {
@@ -420,6 +441,12 @@ class DQN:
             "trauma_weight": weight,
             "lr": float(lr),
         }
+
+    @torch.no_grad()
+    def _average(self) -> None:
+        d = float(self.cfg.greedy_average)
+        for avg, online in zip(self.average_network.parameters(), self.q_network.parameters(), strict=True):
+            avg.mul_(d).add_(online, alpha=1.0 - d)
 
     def sync_target(self) -> None:
         """Target := online network."""
@@ -438,13 +465,21 @@ class DQN:
             "normalized": self.normalized,
             "replay": self.replay.state_dict(),
             "trauma": None if self.trauma is None else self.trauma.state_dict(),
+            "average_network": None if self.average_network is None else self.average_network.state_dict(),
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         if (state["trauma"] is None) != (self.trauma is None):
             raise ValueError("the checkpoint and this agent disagree on whether the trauma memory is on (trauma_batch)")
+        if (state.get("average_network") is None) != (self.average_network is None):
+            raise ValueError(
+                "the checkpoint and this agent disagree on whether greedy decisions use a weight average "
+                "(greedy_average): resume or evaluate with the greedy_average the run was trained with"
+            )
         self.q_network.load_state_dict(state["q_network"])
         self.target_network.load_state_dict(state["target_network"])
+        if self.average_network is not None:
+            self.average_network.load_state_dict(state["average_network"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.rng.bit_generator.state = state["rng"]
