@@ -1,7 +1,7 @@
 """The trained choosers under a floor on switching, exactly and offline, on the validation bank.
 
     python -m experiments.chooser_floor experiment=paper scale=paper [--agent chooser_tele] [--seeds 0,1,2]
-        [--floors 0,0.05] [--margins 0.02,0.05] [--penalties 0,0.2] [--ensemble]
+        [--floors 0,0.05] [--margins 0.02,0.05] [--penalties 0,0.2] [--ensemble] [--validation-seeds 4711,4712]
 
 ``agent.chooser.min_brake_cost`` lets the chooser switch only where its scorer predicts braking to cost more than
 the floor. It is a decision-time rule, so the trained scorers (``runs/NAME/agent_r2_chooser/seed<S>/``) are scored
@@ -50,6 +50,24 @@ def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray
     return out
 
 
+def pooled_validation(base: list[str], banks: list[int | None], seeds: list[int]):
+    """The labels of one or more validation banks (``evaluate.validation_seed`` values; None = the config's), one
+    after the other with episode numbers kept apart; each scenario's (speed, TTC) cell; and each bank's
+    predictions per trained seed."""
+    parts, cells, per_bank, offset = [], [], [], 0
+    for bank in banks:
+        overrides = [*base] if bank is None else [*base, f"evaluate.validation_seed={bank}"]
+        cfg = compose("train_agent", overrides)
+        val = chooser.labels(cfg, "validation")
+        per_bank.append(predictions(overrides, seeds, val))
+        parts.append({**val, "episode": val["episode"] + offset})
+        entries = chooser.validation_entries(cfg)
+        cells += [(e.speed, e.ttc) for e in entries]
+        offset += len(entries)
+    keys = [k for k in parts[0] if all(k in p for p in parts)]
+    return {k: np.concatenate([p[k] for p in parts]) for k in keys}, cells, per_bank
+
+
 def exact_penalty_table(costs, static, episode, braking, margins, penalties: str) -> list[str]:
     """The exact-cost chooser deciding on its costs plus ``penalty`` where a candidate hits a static object (what
     ``agent.chooser.static_penalty`` teaches the scorer), scored on the true costs: what the penalty can buy."""
@@ -91,10 +109,10 @@ def learned_table(preds, costs, static, episode, braking, cells, margins, floors
                     f"{100 * chooser.policy_static(p, static, episode, margin, **window).mean():.1f}" for p in preds
                 )
             )
-            mean = np.mean(per_seed, axis=0)
+            mean = np.mean(np.asarray(per_seed, np.float64), axis=0)  # float32 means left ~1e-8 excesses
             by_cell = defaultdict(list)
             for i, cell in enumerate(cells):
-                by_cell[cell].append((mean[i], braking[i]))
+                by_cell[cell].append((mean[i], float(braking[i])))
             worse = []
             for (speed, ttc), pairs in sorted(by_cell.items()):
                 mine, theirs = (100 * float(np.mean(v)) for v in zip(*pairs))
@@ -122,21 +140,29 @@ def main(argv=None) -> int:
     parser.add_argument("--floors", default="0,0.02,0.03,0.04,0.05,0.07,0.1,0.15")
     parser.add_argument("--margins", default=None, help="comma-separated; default: the chooser preset's")
     parser.add_argument("--ensemble", action="store_true", help="also the seeds' predictions averaged")
+    parser.add_argument(
+        "--validation-seeds",
+        default=None,
+        help="comma-separated evaluate.validation_seed values whose banks are pooled (each labelled once); "
+        "default: the config's. More banks make the cells rule judge each cell on more scenarios",
+    )
     args = parser.parse_intermixed_args(argv)  # Hydra overrides may come after the options
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     base = [*args.overrides, "reward=r2", f"agent={args.agent}", "agent.chooser.num_workers=1"]
     cfg = compose("train_agent", base)
     margins = [float(m) for m in args.margins.split(",")] if args.margins else [float(cfg.agent.chooser.margin)]
-    val = chooser.labels(cfg, "validation")
-    cells = [(e.speed, e.ttc) for e in chooser.validation_entries(cfg)]
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    banks = [int(v) for v in args.validation_seeds.split(",")] if args.validation_seeds else [None]
+    val, cells, per_bank = pooled_validation(base, banks, seeds)
     costs, episode, static = val["costs"], val["episode"], val.get(chooser.STATIC_KEY)
     braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]
     exact = chooser.policy_cost(costs, costs, episode, 0.0)
-    preds = predictions(base, [int(s) for s in args.seeds.split(",") if s.strip()], val)
+    preds = [np.concatenate(p) for p in zip(*per_bank, strict=True)] if seeds else []
     exact_static = "n/a" if static is None else f"{100 * chooser.policy_static(costs, static, episode, 0.0).mean():.1f}"
     lines = [
-        f"Validation bank, {len(braking)} scenarios, agent={args.agent}: braking {100 * braking.mean():.2f} %, the "
+        f"Validation bank{'s ' + args.validation_seeds if args.validation_seeds else ''}, {len(braking)} "
+        f"scenarios, agent={args.agent}: braking {100 * braking.mean():.2f} %, the "
         f"chooser on exact costs {100 * exact.mean():.2f} % (mean R2 total risk; its static collisions "
         f"{exact_static} %).",
         "",

@@ -434,13 +434,18 @@ def test_normalized_inputs_are_the_warm_up_statistics_frozen_and_saved():
 def test_greedy_average_is_the_hand_computed_weight_average_and_makes_the_greedy_decisions():
     cfg = DQNConfig(hidden=[8], batch_size=4, buffer_size=50, warmup_steps=8, trauma_batch=0, greedy_average=0.75)
     agent = DQN(3, 2, cfg, seed=0)
+    plain = DQN(3, 2, DQNConfig(hidden=[8], batch_size=4, buffer_size=50, warmup_steps=8, trauma_batch=0), seed=0)
     env = np.random.default_rng(0)
     for _ in range(8):
-        agent.remember(env.normal(size=3), int(env.integers(2)), env.normal(), env.normal(size=3), False)
+        transition = (env.normal(size=3), int(env.integers(2)), env.normal(), env.normal(size=3), False)
+        agent.remember(*transition)
+        plain.remember(*transition)
     expected = params(agent.q_network)  # starts as a copy of the online network
     for _ in range(5):
         agent.update()
+        plain.update()
         expected = [0.75 * a + 0.25 * w for a, w in zip(expected, params(agent.q_network), strict=True)]
+    assert same(params(agent.q_network), params(plain.q_network))  # training itself is unchanged
     averaged = params(agent.average_network)
     assert all(torch.allclose(a, e, atol=1e-6) for a, e in zip(averaged, expected, strict=True))
     assert not same(averaged, params(agent.q_network))
