@@ -891,11 +891,20 @@ def cells_above_baseline(rows: Sequence[dict], policy: str, baseline: str = "bra
     return out
 
 
+def _apart(a: float, b: float) -> str:
+    """``a / b`` with two decimals, or as many more (up to six) as it takes to show that they differ."""
+    for digits in range(2, 7):
+        left, right = f"{a:.{digits}f}", f"{b:.{digits}f}"
+        if left != right:
+            break
+    return f"{left} / {right}"
+
+
 def _cells_listed(cells: list[dict], near: bool) -> str:
     picked = [c for c in cells if (c["ttc"] <= 1.0) == near]
     return (
         "; ".join(
-            f"{_fmt_speed(c['speed'])} m/s, {_fmt_ttc(c['ttc'])} s: {c['policy']:.2f} / {c['baseline']:.2f}"
+            f"{_fmt_speed(c['speed'])} m/s, {_fmt_ttc(c['ttc'])} s: {_apart(c['policy'], c['baseline'])}"
             + (f" (planner gain {c['planner_gain']:.2f})" if math.isfinite(c["planner_gain"]) else "")
             for c in picked
         )
