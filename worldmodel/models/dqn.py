@@ -144,7 +144,8 @@ class DQNConfig(Checked):
     explore=False)``: evaluation, checkpoint selection) use it; exploration and the TD targets do not. None = greedy
     decisions use the online network, as Chae et al. For when successive checkpoints of one run act very
     differently (Chae: 250 episodes apart, 1 % and 30 % bumps), as weight averaging does in Polyak and Juditsky 1992
-    and SWA (Izmailov et al. 2018): 1 - d is the inverse of the number of updates averaged over"""
+    and SWA (Izmailov et al. 2018): 1 - d is the inverse of the number of updates averaged over. Measured on Chae
+    (d = 0.9999, three seeds): the same two runs in three pass the bars as without it"""
 
     def problems(self):
         yield from positive_fields(self, "lr", "total_steps", "batch_size", "buffer_size", "target_every")
