@@ -383,6 +383,21 @@ def kim_action(action, speed: float) -> np.ndarray:
     return np.array([a[1], min(1.0, max(-1.0, 0.5 * (v_des - speed)))], dtype=np.float32)
 
 
+def kim_action_for(control, speed: float) -> np.ndarray:
+    """The inverse of ``kim_action``: the (desired speed, steering angle) pair in [-1, 1] that asks for our
+    [steer, pedal] ``control`` at ``speed``, so that a planner's controls can be demonstrated to Kim's actor. A
+    saturated pedal asks for the extreme desired speed (0 or 16.67 m/s), which keeps it saturated as the speed
+    changes; a pedal the controller cannot give (full braking below 2 m/s) maps to the nearest it can."""
+    steer, pedal = (float(x) for x in np.clip(np.asarray(control, dtype=np.float64).reshape(2), -1.0, 1.0))
+    if pedal <= -1.0:
+        v_des = 0.0
+    elif pedal >= 1.0:
+        v_des = V_DES_MAX
+    else:
+        v_des = min(V_DES_MAX, max(0.0, speed + 2.0 * pedal))
+    return np.array([2.0 * v_des / V_DES_MAX - 1.0, steer], dtype=np.float32)
+
+
 class Aeb3m:
     """Kim's AEB baseline: hold speed, and brake fully (for good) once any footprint enters the box 3 m long and one
     car wide ahead of the front bumper. Privileged: it reads the footprints, as a perfect sensor would."""

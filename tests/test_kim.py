@@ -22,6 +22,7 @@ from envs.kim import (
     Aeb3m,
     KimSpec,
     kim_action,
+    kim_action_for,
     obstacle_ahead,
     sample,
 )
@@ -159,6 +160,18 @@ def test_kim_action_maps_desired_speed_and_steering_angle():
     np.testing.assert_allclose(kim_action([1.0, 0.5], 10.0), [0.5, 1.0])
     np.testing.assert_allclose(kim_action([0.0, -1.0], 8.0), [-1.0, 0.5 * (60 / 7.2 - 8.0)], rtol=1e-6)
     np.testing.assert_allclose(kim_action([-1.0, 0.0], 10.0), [0.0, -1.0])
+
+
+def test_kim_action_for_asks_for_the_planners_controls():
+    """The inverse map gives back every control the speed controller can give: full braking and full throttle by
+    the extreme desired speeds, partial pedals by v_des = v + 2 pedal; full braking below 2 m/s is not reachable
+    (the controller asks for -v / 2) and maps to v_des = 0, the nearest it can do."""
+    for speed in (2.5, 7.0, 13.9):
+        for control in ([0.0, -1.0], [0.3, -0.5], [-1.0, 0.0], [0.6, 1.0]):
+            np.testing.assert_allclose(kim_action(kim_action_for(control, speed), speed), control, atol=1e-5)
+    np.testing.assert_allclose(kim_action_for([0.0, -1.0], 5.0), [-1.0, 0.0])
+    np.testing.assert_allclose(kim_action_for([0.0, 1.0], 5.0), [1.0, 0.0])
+    np.testing.assert_allclose(kim_action(kim_action_for([0.0, -1.0], 1.0), 1.0), [0.0, -0.5])
 
 
 def _ground_class(ground, ex, ey, x, y, at_road_level=True):
@@ -305,3 +318,46 @@ def test_the_planner_replans_with_the_scripted_cars_and_never_does_worse_than_br
         assert planned <= braking + 1e-9, spec
         better += planned < braking
     assert better >= 1
+
+
+def test_the_lidar_agent_learns_from_the_planner(tmp_path):
+    """agent=ddpg_kim with planner demonstrations: the demonstrations are the planner's own episodes (the same
+    outcomes as the planner driving those scenarios, through the inverse of Kim's action map), drawn again
+    identically; cloning and a DAgger round give a checkpoint without reinforcement learning
+    (agent.peer_total_steps=0), whose provenance names what made its demonstrations."""
+    from worldmodel import artifacts, train_agent
+    from worldmodel.common import StageError
+    from worldmodel.config import compose, validate
+    from worldmodel.peers import kim
+
+    def cfg(*overrides):
+        base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
+        return compose("train_agent", [*base, "threads=1", "agent=ddpg_kim", *overrides])
+
+    with pytest.raises(StageError, match="peer_total_steps"):
+        validate(cfg("agent.peer_total_steps=0"))
+    learn = ["demos.episodes=4", "agent.bc_pretrain_steps=60", "agent.dagger_rounds=1", "agent.dagger_episodes=1"]
+    c = cfg(*learn, "agent.peer_total_steps=0", "agent.variant=ddpg_kim_dag")
+    hp = validate(c).agent
+    env = kim.family_env(c, "kim_unaware")
+    see = kim.LidarObserver(goal=False)
+    first, avoided = kim.planner_demonstrations(c, env, see, hp, "train")
+    again, _ = kim.planner_demonstrations(c, env, see, hp, "train")
+    assert len(first) > 20 and len(first) == len(again)
+    for key in ("obs", "actions", "rewards", "next_obs"):
+        np.testing.assert_array_equal(getattr(first, key)[: len(first)], getattr(again, key)[: len(again)])
+    planner, own = kim.teacher(c), []
+    for i in (0, 1, 2):  # episode 3 is held out (the last tenth, at least one)
+        spec = sample(np.random.default_rng([0, kim.DEMO_STREAM, i]))
+        rollout(env, planner, spec)
+        own.append(not env.collisions)
+    assert avoided == round(100.0 * sum(own) / 3, 1)
+
+    metrics = train_agent.run(c)
+    assert metrics["steps"] == 0 and metrics["demonstrations"]["dagger_round1"]["labels"] > 0
+    assert {"after_cloning_round0", "after_cloning_round1"} <= metrics["demonstrations"].keys()
+    run_dir = tmp_path / "runs/k/agent_kim_unaware_ddpg_kim_dag/seed0"
+    recorded = artifacts.read_provenance(run_dir)
+    assert artifacts.differences(recorded, artifacts.provenance(c, "agent")) == []
+    changed = cfg(*learn[1:], "demos.episodes=5", "agent.peer_total_steps=0", "agent.variant=ddpg_kim_dag")
+    assert artifacts.differences(recorded, artifacts.provenance(changed, "agent")) != []

@@ -310,10 +310,18 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         uses_world_model = str(cfg.agent.get("obs", "worldmodel")) == "worldmodel"
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
-        if uses_demos(cfg):
+        if uses_demos(cfg) and not uses_world_model:
+            # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/peers/kim.py): what
+            # makes them is part of its settings, not an input on disk
+            from .config import teacher_settings
+
+            demos = _config(cfg, "demos")["demos"]
+            settings["demos"] = {k: demos[k] for k in ("episodes", "teacher_sides")}
+            settings["teacher"] = teacher_settings(cfg)
+        elif uses_demos(cfg):
             inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")
-        if uses_demos(cfg) or float(cfg.agent.focus_share) > 0:  # the focus mix's ranges shape the training
-            settings["focus"] = _config(cfg, "demos")["demos"]["focus"]
+        if uses_world_model and (uses_demos(cfg) or float(cfg.agent.focus_share) > 0):
+            settings["focus"] = _config(cfg, "demos")["demos"]["focus"]  # the focus mix's ranges shape the training
     elif stage == "eval":
         family = str(cfg.evaluate.get("family", "porav"))
         inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family)}

@@ -485,9 +485,12 @@ class AgentConfig(DDPGConfig):
             yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
 
         yield from super().problems()
-        yield from _positive(self, "checkpoint_every", "reward_scale", "episodes", "peer_total_steps")
-        if self.learner == "ddpg" and (self.total_steps < 0 or (self.total_steps == 0 and self.bc_pretrain_steps == 0)):
-            yield ConfigValueError("total_steps", self.total_steps, "it must be > 0 (or 0 with bc_pretrain_steps > 0)")
+        yield from _positive(self, "checkpoint_every", "reward_scale", "episodes")
+        clones = self.learner == "ddpg" and self.bc_pretrain_steps > 0  # 0 steps: the cloned actor alone
+        for key, applies in (("total_steps", self.learner == "ddpg"), ("peer_total_steps", True)):
+            steps = getattr(self, key)
+            if applies and (steps < 0 or (steps == 0 and not clones)):
+                yield ConfigValueError(key, steps, "it must be > 0 (or 0 with a ddpg learner's bc_pretrain_steps > 0)")
         if not self.variant.replace("_", "").isalnum() or not self.variant.islower():
             yield ConfigValueError("variant", self.variant, "it must be a lower-case name of letters, digits and _")
         for key in ("obs", "paper_obs"):
