@@ -201,11 +201,11 @@ def learn_from_planner(cfg, env, see: LidarObserver, agent, hp, writer, cloned: 
     from ..imitation import clone, cloning_fit
 
     demos, planner_avoided = planner_demonstrations(cfg, env, see, hp, "train")
-    held_out, _ = planner_demonstrations(cfg, env, see, hp, "validation")
     info = {"episodes": int(cfg.demos.episodes), "transitions": len(demos), "planner_avoidance": planner_avoided}
     log.info("%d demonstration transitions; the planner avoided %.1f %%", len(demos), planner_avoided)
     if cloned or hp.bc_pretrain_steps <= 0:
         return demos, info
+    held_out, _ = planner_demonstrations(cfg, env, see, hp, "validation")
     inputs, targets = demos.obs[: len(demos)], demos.actions[: len(demos)]
     for round_ in range(int(hp.dagger_rounds) + 1):
         if round_:
@@ -252,7 +252,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         step, episode, curve = int(state["step"]), int(state["episode"]), state["curve"]
         run_.resumed(f"step {step}, episode {episode}")
     demos, demo_info = None, {}
-    if hp.demo_share > 0 or hp.bc_pretrain_steps > 0:
+    if hp.demo_share > 0 or (hp.bc_pretrain_steps > 0 and run_.state is None):  # resumed: cloned already
         demos, demo_info = learn_from_planner(cfg, env, see, agent, hp, run_.writer, cloned=run_.state is not None)
 
     def snapshot():
