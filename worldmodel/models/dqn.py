@@ -135,7 +135,7 @@ class DQNConfig(Checked):
     """standardise each observation feature by the mean and standard deviation of the replay memory at the first
     update (the warm-up transitions), frozen from then on and saved with the network. False = raw inputs, as
     Chae et al. (their state mixes metres up to ~80 with speeds). Measured on Chae (one seed): learning starts
-    as late and the greedy agent swings as much as with raw inputs
+    as late and the greedy agent swings as much as with raw inputs"""
     grad_clip: float | None = 10.0
     """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
     gradient grows with the batch, and one collision penalty can be large"""
