@@ -338,6 +338,7 @@ def test_learns_the_corridor(double, dueling):
         ("gamma", 1.5),
         ("target_every", 0),
         ("hidden", [100, 0]),
+        ("target_average", 0),  # no target network at all
         ("greedy_average", 1.0),  # would never move
         ("greedy_average", 0.0),  # that is the online network: leave it null
         ("trauma_weight_final", 0.0),  # an exponential decay cannot reach 0
@@ -461,4 +462,44 @@ def test_greedy_average_is_the_hand_computed_weight_average_and_makes_the_greedy
     resumed.load_state_dict(roundtrip(agent.state_dict()))
     assert same(params(resumed.average_network), averaged)
     with pytest.raises(ValueError, match="greedy_average"):
+        DQN(3, 2, DQNConfig(hidden=[8], trauma_batch=0), seed=0).load_state_dict(roundtrip(agent.state_dict()))
+
+
+def test_target_average_values_next_states_by_the_mean_of_the_latest_target_copies():
+    """Averaged-DQN with 3 copies and a copy every 2 updates: after 6 updates the copies are the online network at
+    updates 6, 4 and 2; the TD target (plain DQN) is r + gamma max_a of their mean Q; a checkpoint carries them."""
+    cfg = DQNConfig(hidden=[8], batch_size=4, buffer_size=50, warmup_steps=8, target_every=2, trauma_batch=0)
+    cfg.target_average = 3
+    agent = DQN(3, 2, cfg, seed=0)
+    env = np.random.default_rng(0)
+    for _ in range(8):
+        agent.remember(env.normal(size=3), int(env.integers(2)), env.normal(), env.normal(size=3), False)
+    initial = params(agent.q_network)
+    assert all(same(params(net), initial) for net in agent.earlier_targets)  # all start as the initial network
+    snapshots = {}
+    for u in range(1, 7):
+        agent.update()
+        snapshots[u] = params(agent.q_network)
+    assert same(params(agent.target_network), snapshots[6])
+    assert [same(params(net), snapshots[u]) for net, u in zip(agent.earlier_targets, (4, 2), strict=True)] == [1, 1]
+
+    next_obs = torch.as_tensor(env.normal(size=(5, 3)), dtype=torch.float32)
+    copies = [QNetwork(3, 2, [8]) for _ in range(3)]
+    for net, u in zip(copies, (6, 4, 2), strict=True):
+        with torch.no_grad():
+            for p, w in zip(net.parameters(), snapshots[u], strict=True):
+                p.copy_(w)
+    with torch.no_grad():
+        mean_q = sum(net(next_obs) for net in copies) / 3
+    reward, done = torch.ones(5), torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0])
+    expected = 1.0 + cfg.gamma * (1 - done) * mean_q.max(dim=1).values
+    assert torch.allclose(agent.td_targets(reward, next_obs, done), expected, atol=1e-6)
+    with torch.no_grad():
+        latest_only = 1.0 + cfg.gamma * (1 - done) * copies[0](next_obs).max(dim=1).values
+    assert not torch.allclose(expected, latest_only)  # the average is not the latest copy's value
+
+    resumed = DQN(3, 2, cfg, seed=1)
+    resumed.load_state_dict(roundtrip(agent.state_dict()))
+    assert torch.equal(resumed.td_targets(reward, next_obs, done), agent.td_targets(reward, next_obs, done))
+    with pytest.raises(ValueError, match="target_average"):
         DQN(3, 2, DQNConfig(hidden=[8], trauma_batch=0), seed=0).load_state_dict(roundtrip(agent.state_dict()))

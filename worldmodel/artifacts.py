@@ -255,6 +255,7 @@ DQN_OPTIONS_OFF = {
     "trauma_weight_hold": 0.0,
     "normalize_obs": False,
     "greedy_average": None,
+    "target_average": 1,
 }
 
 

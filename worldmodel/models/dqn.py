@@ -94,6 +94,12 @@ class DQNConfig(Checked):
     more before it; replaying those states with the trauma shortens the way the penalty travels back by TD"""
     target_every: int = 500
     """updates between hard copies of the online network into the target network"""
+    target_average: int = 1
+    """Averaged-DQN (Anschel et al. 2017): the TD target values the next state by the mean of the last this-many
+    target networks (the copies made ``target_every`` updates apart), not by the latest alone. 1 = one target
+    network, as DQN. Averaging K copies divides the variance that the target's approximation error adds to the
+    targets by about K, which Anschel et al. show damps DQN's oscillations; for when successive checkpoints of a
+    run swing between policies (Chae: bumping and needless stops, 250 episodes apart)"""
     double: bool = False
     """Double DQN target: the online network chooses the next action, the target network values it"""
     advantage_alpha: float = 0.0
@@ -150,6 +156,7 @@ class DQNConfig(Checked):
 
     def problems(self):
         yield from positive_fields(self, "lr", "total_steps", "batch_size", "buffer_size", "target_every")
+        yield from positive_fields(self, "target_average")
         yield from positive_fields(self, "eps_decay_steps")
         if self.lr_final is not None and not 0 < self.lr_final <= self.lr:
             yield ConfigValueError("lr_final", self.lr_final, f"it must be in (0, lr={self.lr}] or null")
@@ -281,6 +288,12 @@ class DQN:
             self.q_network, self.target_network = QNetwork(*shape), QNetwork(*shape)
         self.target_network.load_state_dict(self.q_network.state_dict())
         self.target_network.requires_grad_(False)  # moved only by hard copies
+        # target_average: the earlier copies, newest first; all start as the initial network, as the target does
+        self.earlier_targets: list[QNetwork] = []
+        for _ in range(cfg.target_average - 1):
+            self.earlier_targets.append(QNetwork(*shape))
+            self.earlier_targets[-1].load_state_dict(self.q_network.state_dict())
+            self.earlier_targets[-1].requires_grad_(False)
         self.average_network = None  # greedy_average: the weight average that greedy decisions use
         if cfg.greedy_average is not None:
             self.average_network = QNetwork(*shape)
@@ -360,23 +373,33 @@ class DQN:
         mean = torch.as_tensor(obs.mean(axis=0), dtype=torch.float32)
         std = torch.as_tensor(obs.std(axis=0), dtype=torch.float32)
         std = torch.where(std > 1e-6, std, torch.ones_like(std))
-        for net in (self.q_network, self.target_network, self.average_network):
+        for net in (self.q_network, self.target_network, self.average_network, *self.earlier_targets):
             if net is None:
                 continue
             net.obs_mean.copy_(mean)
             net.obs_std.copy_(std)
         self.normalized = True
 
+    def target_values(self, obs: torch.Tensor) -> torch.Tensor:
+        """Q'(obs, .): the target network's values, or with ``target_average`` > 1 the mean over the latest copies."""
+        values = self.target_network(obs)
+        if not self.earlier_targets:
+            return values
+        for net in self.earlier_targets:
+            values = values + net(obs)
+        return values / (1 + len(self.earlier_targets))
+
     @torch.no_grad()
     def td_targets(
         self, reward: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor, obs=None, action=None
     ) -> torch.Tensor:
         """y = r + gamma (1 - terminated) Q'(s', a'), a' = argmax Q'(s', .) (DQN) or argmax Q(s', .) (Double DQN);
-        with ``advantage_alpha`` > 0, minus alpha (max_b Q'(s, b) - Q'(s, a)), which needs ``obs`` and ``action``."""
+        with ``advantage_alpha`` > 0, minus alpha (max_b Q'(s, b) - Q'(s, a)), which needs ``obs`` and ``action``.
+        Q' is ``target_values``: the mean of the latest ``target_average`` target copies."""
         reward = torch.as_tensor(reward, dtype=torch.float32)
         next_obs = torch.as_tensor(next_obs, dtype=torch.float32)
         terminated = torch.as_tensor(terminated, dtype=torch.float32)
-        next_q = self.target_network(next_obs)
+        next_q = self.target_values(next_obs)
         if self.cfg.double:
             next_action = self.q_network(next_obs).argmax(dim=1, keepdim=True)
             next_value = next_q.gather(1, next_action).squeeze(1)
@@ -386,7 +409,7 @@ class DQN:
         if self.cfg.advantage_alpha > 0:
             if obs is None or action is None:
                 raise ValueError("advantage learning (advantage_alpha > 0) needs the batch's obs and action")
-            q_here = self.target_network(torch.as_tensor(obs, dtype=torch.float32))
+            q_here = self.target_values(torch.as_tensor(obs, dtype=torch.float32))
             taken = q_here.gather(1, torch.as_tensor(action, dtype=torch.int64).view(-1, 1)).squeeze(1)
             target = target - self.cfg.advantage_alpha * (q_here.max(dim=1).values - taken)
         return target
@@ -451,7 +474,12 @@ class DQN:
             avg.mul_(d).add_(online, alpha=1.0 - d)
 
     def sync_target(self) -> None:
-        """Target := online network."""
+        """Target := online network; with ``target_average``, the previous target becomes the newest earlier copy
+        and the oldest copy is dropped."""
+        if self.earlier_targets:
+            oldest = self.earlier_targets.pop()
+            oldest.load_state_dict(self.target_network.state_dict())
+            self.earlier_targets.insert(0, oldest)
         self.target_network.load_state_dict(self.q_network.state_dict())
 
     # ------------------------------------------------------------------ checkpoints
@@ -468,6 +496,7 @@ class DQN:
             "replay": self.replay.state_dict(),
             "trauma": None if self.trauma is None else self.trauma.state_dict(),
             "average_network": None if self.average_network is None else self.average_network.state_dict(),
+            "earlier_targets": [net.state_dict() for net in self.earlier_targets],
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -478,8 +507,17 @@ class DQN:
                 "the checkpoint and this agent disagree on whether greedy decisions use a weight average "
                 "(greedy_average): resume or evaluate with the greedy_average the run was trained with"
             )
+        earlier = state.get("earlier_targets", [])  # absent: saved before target_average existed
+        if len(earlier) != len(self.earlier_targets):
+            raise ValueError(
+                f"the checkpoint averages {len(earlier) + 1} target networks and this agent "
+                f"{len(self.earlier_targets) + 1} (target_average): resume or evaluate with the target_average the "
+                "run was trained with"
+            )
         self.q_network.load_state_dict(state["q_network"])
         self.target_network.load_state_dict(state["target_network"])
+        for net, saved in zip(self.earlier_targets, earlier, strict=True):
+            net.load_state_dict(saved)
         if self.average_network is not None:
             self.average_network.load_state_dict(state["average_network"])
         self.optimizer.load_state_dict(state["optimizer"])
