@@ -324,15 +324,16 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     """agent=ddpg_kim with planner demonstrations: the demonstrations are the planner's own episodes (the same
     outcomes as the planner driving those scenarios, through the inverse of Kim's action map), drawn again
     identically; cloning and a DAgger round give a checkpoint without reinforcement learning
-    (agent.peer_total_steps=0), whose provenance names what made its demonstrations."""
+    (agent.peer_total_steps=0), whose provenance names what made its demonstrations; the preset ddpg_kim_fd then
+    learns by DDPG from the same demonstrations after its cloning."""
     from worldmodel import artifacts, train_agent
     from worldmodel.common import StageError
     from worldmodel.config import compose, validate
     from worldmodel.peers import kim
 
-    def cfg(*overrides):
+    def cfg(*overrides, agent="ddpg_kim"):
         base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
-        return compose("train_agent", [*base, "threads=1", "agent=ddpg_kim", *overrides])
+        return compose("train_agent", [*base, "threads=1", f"agent={agent}", *overrides])
 
     with pytest.raises(StageError, match="peer_total_steps"):
         validate(cfg("agent.peer_total_steps=0"))
@@ -361,3 +362,10 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     assert artifacts.differences(recorded, artifacts.provenance(c, "agent")) == []
     changed = cfg(*learn[1:], "demos.episodes=5", "agent.peer_total_steps=0", "agent.variant=ddpg_kim_dag")
     assert artifacts.differences(recorded, artifacts.provenance(changed, "agent")) != []
+
+    preset = cfg(*learn, agent="ddpg_kim_fd")
+    assert (preset.agent.demo_share, preset.agent.bc_weight) == (0.25, 1.0)
+    metrics = train_agent.run(preset)
+    assert metrics["steps"] >= 300 and metrics["demonstrations"]["transitions"] == len(first)  # whole episodes
+    assert {"after_cloning_round0", "after_cloning_round1"} <= metrics["demonstrations"].keys()
+    assert (tmp_path / "runs/k/agent_kim_unaware_ddpg_kim_fd/seed0/last.pt").exists()
