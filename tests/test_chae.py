@@ -216,3 +216,43 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
         assert last["episode"] == 12 and any(moved)
     with pytest.raises(StageError, match="evaluate.chae.seed"):
         train_agent.run(cfg(tmp_path / "clash", "agent.select.seed=2017"))
+
+
+def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp_path):
+    """evaluate.chae.ensemble=2 with seeds 0 and 1 trained: one ensemble, greedy on the mean of the two chosen
+    checkpoints' Q-values, driven through the same trials as every policy; with 3 per ensemble no group is complete,
+    and 1 member is not an ensemble."""
+    import csv
+
+    from worldmodel import train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+    from worldmodel.config import compose, validate
+    from worldmodel.peers import chae
+
+    def cfg(stage, *extra):
+        base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=e", "scale=smoke"]
+        return compose(stage, [*base, "threads=1", "agent=dqn_chae", "agent.dqn.warmup_steps=40", *extra])
+
+    for seed in (0, 1):
+        train_agent.run(cfg("train_agent", f"seed={seed}"))
+    ev = cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=2")
+    agents = [AgentId.of(cfg("train_agent", f"seed={s}")) for s in (0, 1)]
+    members = [chae.load_policy(ev, a) for a in agents]
+    (ensemble,) = chae.ensembles(agents, members, 2)
+    assert (ensemble.name, ensemble.policy_seed) == ("agent_chae_dqn_chae_ensemble2", 0)
+    obs = np.random.default_rng(0).normal(size=(300, members[0].see.dim)).astype(np.float32)
+    q0, q1 = (m.agent.q_values(obs) for m in members)
+    np.testing.assert_allclose(ensemble.agent.q_values(obs), (q0 + q1) / 2, rtol=1e-6)
+    chosen = [ensemble.agent.act(o) for o in obs]
+    assert chosen == ((q0 + q1) / 2).argmax(1).tolist()
+    assert chosen != q0.argmax(1).tolist() or chosen != q1.argmax(1).tolist()  # not simply one member
+    assert chae.ensembles(agents, members, 3) == []  # seed 2 missing: no partial ensemble
+
+    chae.evaluate(ev)
+    rows = list(csv.DictReader(open(tmp_path / "runs/e/eval_chae/results.csv")))
+    per_policy = {p: sum(r["policy"] == p for r in rows) for p in {r["policy"] for r in rows}}
+    assert per_policy["agent_chae_dqn_chae_ensemble2"] == per_policy["braking"] == 12  # 3 TTCs + Scenario 2, 3 each
+    assert per_policy["agent_chae_dqn_chae"] == 24  # the two seeds alone, as before
+    with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
+        validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=1"))

@@ -652,11 +652,18 @@ class ChaeEvalConfig(Checked):
     trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
     ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
     seed: int = 2017  # the test draw; experiments/chae_dqn.py chooses settings on another draw (seed 99)
+    # k >= 2: also evaluate, per dqn variant, the ensemble of each k consecutive training seeds (seeds 0..k-1, then
+    # k..2k-1, ...): greedy on the mean of the members' Q-values, each member at its chosen checkpoint. 0 = each
+    # run alone. Successive checkpoints of one run swing between bumping and needless stops, and the runs' swings
+    # are out of phase (docs/results/chae/); averaging Q over independent runs damps what one run gets wrong
+    ensemble: int = 0
 
     def problems(self):
         yield from _positive(self, "trials")
         if not self.ttcs or any(t <= 0 for t in self.ttcs):
             yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
+        if self.ensemble == 1 or self.ensemble < 0:
+            yield ConfigValueError("chae.ensemble", self.ensemble, "give 0 (none) or the members per ensemble, >= 2")
 
 
 @dataclass

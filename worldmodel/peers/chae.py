@@ -16,7 +16,8 @@ Evaluation (``evaluate.family=chae``): Table I's layout, Scenario-1 bump rate at
 over ``evaluate.chae.trials`` seeded trials (the same scenarios for every policy), Scenario 2's unnecessary stops,
 the stopping distance to the pedestrian (their Fig. 7), and, since "bump" is only Chae's proxy, footprint contact,
 impact speed and Rosen pedestrian injury. Policies: straight-line braking from the pedestrian's start, TTC-threshold
-braking, the privileged latest-safe braking, and every dqn agent of the experiment. Writes ``runs/NAME/eval_chae/``.
+braking, the privileged latest-safe braking, every dqn agent of the experiment and, with ``evaluate.chae.ensemble``
+k, the greedy mean-Q ensemble of each k consecutive seeds of a variant. Writes ``runs/NAME/eval_chae/``.
 """
 
 from __future__ import annotations
@@ -285,6 +286,42 @@ class DQNPolicy:
         return action
 
 
+class QEnsemble:
+    """Several trained DQNs acting as one: greedy on the mean of their Q-values (Chae's four brake levels)."""
+
+    def __init__(self, members):
+        self.members = list(members)
+
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        return np.mean([m.q_values(obs) for m in self.members], axis=0)
+
+    def act(self, obs: np.ndarray, step: int | None = None, explore: bool = False) -> int:
+        if explore:
+            raise ValueError("a Q-ensemble only acts greedily: it is evaluated, not trained")
+        return int(np.argmax(self.q_values(obs)))
+
+
+def ensembles(agents: list[AgentId], policies: list[DQNPolicy], k: int) -> list[DQNPolicy]:
+    """``evaluate.chae.ensemble``: per policy name (variant and observation), one ``QEnsemble`` of each ``k``
+    consecutive seeds 0..k-1, k..2k-1, ..., named ``<policy>_ensemble<k>`` with the group's index as its seed.
+    A group with a seed missing is left out (logged), so an ensemble is always the same runs."""
+    by_name: dict[str, dict[int, DQNPolicy]] = {}
+    for agent, policy in zip(agents, policies, strict=True):
+        by_name.setdefault(agent.policy, {})[agent.seed] = policy
+    out = []
+    for name, seeds in by_name.items():
+        for group in range(max(seeds) // k + 1):
+            wanted = list(range(group * k, (group + 1) * k))
+            missing = [s for s in wanted if s not in seeds]
+            if missing:
+                log.info("[eval chae] no %s_ensemble%d over seeds %s: seeds %s not trained", name, k, wanted, missing)
+                continue
+            members = [seeds[s] for s in wanted]
+            see = members[0].see  # the members' observers are alike; one makes the ensemble's input
+            out.append(DQNPolicy(f"{name}_ensemble{k}", QEnsemble(m.agent for m in members), see, group))
+    return out
+
+
 class TTCBraking:
     """Brake fully once the time to reach the safety line at the current speed falls below ``threshold_s``, while
     the pedestrian is crossing (privileged, as an AEB with a perfect sensor)."""
@@ -440,6 +477,8 @@ def evaluate(cfg) -> dict:
     agents = artifacts.trained_agents(cfg, family="chae")
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
+    if int(c.ensemble):
+        learned += ensembles(agents, learned, int(c.ensemble))
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
     for name in SCRIPTED:
@@ -470,7 +509,7 @@ def evaluate(cfg) -> dict:
     log.info(
         "[eval chae] %d trials x %d policies in %.0f s: %s",
         len(entries),
-        len(SCRIPTED) + len(agents),
+        len(SCRIPTED) + len(learned),
         summary["wall_s"],
         out / "tables.md",
     )
