@@ -655,8 +655,10 @@ class ChaeEvalConfig(Checked):
     # k >= 2: also evaluate, per dqn variant, the ensemble of each k consecutive training seeds (seeds 0..k-1, then
     # k..2k-1, ...): greedy on the mean of the members' Q-values, each member at its chosen checkpoint. 0 = each
     # run alone. Successive checkpoints of one run swing between bumping and needless stops, and the runs' swings
-    # are out of phase (docs/results/chae/); averaging Q over independent runs damps what one run gets wrong
-    ensemble: int = 0
+    # are out of phase (docs/results/chae/); averaging Q over independent runs damps what one run gets wrong.
+    # 3, chosen on the validation draw: two ensembles in three inside both of the issue's bars, single runs three in
+    # nine (docs/results/chae/settings_validation.md)
+    ensemble: int = 3
 
     def problems(self):
         yield from _positive(self, "trials")
