@@ -43,12 +43,20 @@ def first_contact(env, spec, action=(0.0, 0.0)) -> dict | None:
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_the_runner_meets_a_coasting_ego_one_second_after_takeover(scenario):
     """At the family's speed extremes, in both lanes, the first contact comes at 1.0 s to within one sub-step; with
-    1 ms sub-steps that is 1 ms (nothing tunnels at 16.7 + 13.9 m/s with the default 8 sub-steps either)."""
+    1 ms sub-steps that is 1 ms (nothing tunnels at 16.7 + 13.9 m/s with the default 8 sub-steps either). So it
+    does wherever along the ego the runner's path crosses (impact_offset: the middle of the flank, the bumpers)."""
     fine = UrbanCollisionEnv(camera=False, step_s=0.1, family="kim", substeps=100)
     coarse = UrbanCollisionEnv(camera=False, step_s=0.1, family="kim")
     for ego_speed in (10 / 3.6, 50 / 3.6):
-        for ego_lane, runner_lane in ((0, 0), (1, 1), (0, 1)):
-            spec = KimSpec(seed=5, scenario=scenario, ego_speed=ego_speed, ego_lane=ego_lane, runner_lane=runner_lane)
+        for ego_lane, runner_lane, offset in ((0, 0, 0.0), (1, 1, 0.0), (0, 1, 0.0), (0, 0, 2.25), (1, 0, -2.25)):
+            spec = KimSpec(
+                seed=5,
+                scenario=scenario,
+                ego_speed=ego_speed,
+                ego_lane=ego_lane,
+                runner_lane=runner_lane,
+                impact_offset=offset,
+            )
             hit = first_contact(fine, spec)
             assert hit is not None and hit["hazard"] and hit["class"] == "Vehicles", spec
             assert CONTACT_S - 0.001 - 1e-9 <= hit["time"] <= CONTACT_S + 1e-9, (spec, hit["time"])
@@ -60,6 +68,12 @@ def test_the_runner_meets_a_coasting_ego_one_second_after_takeover(scenario):
         for _ in range(5):
             fine.step([0.0, -1.0])
         assert np.hypot(*(fine.actors.car_xy[0] - before)) == pytest.approx(0.5 * RUNNER_SPEED, rel=1e-6)
+        # impact_offset moves the runner's lane along the ego's path, and nothing else about the ego
+        xs = []
+        for offset in (0.0, 2.25):
+            fine.reset(options={"scenario": KimSpec(seed=5, scenario=scenario, ego_speed=5.0, impact_offset=offset)})
+            xs.append((fine.actors.car_xy[0][0], fine.ego.x))
+        assert xs[1][0] - xs[0][0] == pytest.approx(2.25, abs=1e-9) and xs[1][1] == xs[0][1]
 
 
 def test_the_damaged_side_follows_the_runners_direction(env):
@@ -71,7 +85,8 @@ def test_the_damaged_side_follows_the_runners_direction(env):
 def test_specs_validate_and_replay_bit_identically(env):
     spec = sample(np.random.default_rng(3))
     assert spec_from_dict(spec.to_dict()) == spec
-    for field_name, bad in (("scenario", "behind"), ("ego_lane", 2), ("ego_speed", -1.0), ("neutral", 1)):
+    bad_values = (("scenario", "behind"), ("ego_lane", 2), ("ego_speed", -1.0), ("neutral", 1), ("impact_offset", 3.0))
+    for field_name, bad in bad_values:
         with pytest.raises(ValueError, match=field_name):
             KimSpec(**{**spec.to_dict(), field_name: bad})
     specs = [KimSpec(seed=s, scenario=sc, ego_speed=9.0, neutral=True) for s, sc in enumerate(SCENARIOS)]

@@ -680,12 +680,18 @@ class KimEvalConfig(Checked):
     world_model_agents: bool = True  # also the paper's street-trained R1 / R2 agents and the chooser, as they are
     # the test draw; settings and checkpoints are chosen on another (evaluate.kim.seed=77: runs/NAME/eval_kim_seed77)
     seed: int = 2020
+    # where the runner's path crosses the ego at contact, m forward of its centre (envs.kim.KimSpec.impact_offset):
+    # 0 the middle of the flank (ours, and the training distribution's), +2.25 the front bumper, -2.25 the rear. The
+    # paper does not say; other values measure how much the results depend on it
+    impact_offset: float = 0.0
 
     def problems(self):
         yield from _positive(self, "trials", "paper_trials")
         known = ("braking", "aeb3m", "oracle")
         if any(p not in known for p in self.policies):
             yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(known)}")
+        if not abs(self.impact_offset) <= 2.25:
+            yield ConfigValueError("kim.impact_offset", self.impact_offset, "it must be within [-2.25, 2.25] m")
 
 
 @dataclass

@@ -400,13 +400,14 @@ def scripted(cfg) -> list:
 
 # ----------------------------------------------------------------------------- evaluation
 def bank(c) -> list[KimSpec]:
-    """``c.trials`` seeded trials per scenario; scenario k's first ``c.paper_trials`` make the paper-sized table."""
+    """``c.trials`` seeded trials per scenario; scenario k's first ``c.paper_trials`` make the paper-sized table. Every
+    trial's runner crosses the ego at ``c.impact_offset`` (0 by default, as in training)."""
     out = []
     for k, scenario in enumerate(SCENARIOS):
         rng = np.random.default_rng([int(c.seed), k])
         for _ in range(int(c.trials)):
             spec = sample_kim(rng)
-            out.append(KimSpec(**{**spec.to_dict(), "scenario": scenario}))
+            out.append(KimSpec(**{**spec.to_dict(), "scenario": scenario, "impact_offset": float(c.impact_offset)}))
     return out
 
 
