@@ -219,8 +219,9 @@ def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, t
 
 
 def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, caplog):
-    """pipeline peers=[chae]: Chae's DQN on its privileged state, and (found on disk) the same learner on our world
-    model's view; then evaluate.family=chae runs the scripted baselines and both agents on the same trials."""
+    """pipeline peers=[chae]: Chae's DQN on its privileged state (seeds 0-2, for the evaluation's ensemble of three),
+    and (found on disk) the same learner on our world model's view; then evaluate.family=chae runs the scripted
+    baselines, every agent and the seed ensemble on the same trials."""
     root = tmp_path / "copy"
     shutil.copytree(experiment, root)
     train_agent.run(smoke_cfg(root, "train_agent", "agent=dqn_chae", "obs=worldmodel"))
@@ -229,6 +230,8 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
     runs = root / "runs/t"
     for rel in (
         "agent_chae_dqn_chae/seed0",
+        "agent_chae_dqn_chae/seed1",
+        "agent_chae_dqn_chae/seed2",
         "agent_chae_dqn_chae-worldmodel/seed0",
         "agent_chae_dqn_chae_notrauma/seed0",
     ):
@@ -242,11 +245,16 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
         "agent_chae_dqn_chae",
         "agent_chae_dqn_chae-worldmodel",
         "agent_chae_dqn_chae_notrauma",
+        "agent_chae_dqn_chae_ensemble3",
     ]
-    assert list(dict.fromkeys(r["policy"] for r in rows)) == policies
-    per_policy = len(rows) // len(policies)
-    assert per_policy == 3 * (3 + 1)  # 3 trials at each of 3 TTCs, and 3 in Scenario 2
-    by_policy = {p: [(r["ttc"], r["v_init"], r["scenario"]) for r in rows if r["policy"] == p] for p in policies}
+    assert set(r["policy"] for r in rows) == set(policies)
+    per_policy = {p: sum(r["policy"] == p for r in rows) for p in policies}
+    trials = 3 * (3 + 1)  # 3 trials at each of 3 TTCs, and 3 in Scenario 2
+    assert per_policy == {p: 3 * trials if p == "agent_chae_dqn_chae" else trials for p in policies}
+    by_policy = {
+        p: [(r["ttc"], r["v_init"], r["scenario"]) for r in rows if r["policy"] == p and r["policy_seed"] == "0"]
+        for p in policies
+    }
     assert all(v == by_policy["braking"] for v in by_policy.values())  # every policy on the same trials
     summary = json.loads((runs / "eval_chae/summary.json").read_text())
     assert set(summary["policies"]) == set(policies)

@@ -13,7 +13,8 @@ be built from now:
 
 Agents are the presets of ``agents`` (each with its rewards, at ``seed``) plus any other trained seed found on disk,
 so a seed sweep is rebuilt too when the world model changes. ``peers=[chae]`` adds a peer system (docs/design.md
-§10): its agent on its own scenario family, and that family's evaluation (``runs/NAME/eval_chae/``).
+§10): its agent on its own scenario family (Chae's: seeds 0..k-1 for ``evaluate.chae.ensemble`` k), and that
+family's evaluation (``runs/NAME/eval_chae/``).
 
 The collection is the root: its own settings check stops a run whose collection settings differ. Each stage's wall
 time and peak memory (this process and its workers, sampled every 0.2 s) are written to ``runs/NAME/pipeline.json``.
@@ -85,6 +86,14 @@ class Step:
     agent: AgentId | None = None
 
 
+def peer_seeds(cfg, variant: str) -> list[int]:
+    """The seeds a peer's agent trains with: the run's seed and, for Chae's DQN evaluated as seed ensembles
+    (``evaluate.chae.ensemble`` k), seeds 0..k-1, so that the evaluation has its first ensemble."""
+    family = preset_globals(variant).get("env", {}).get("family")
+    k = int(cfg.evaluate.chae.ensemble) if family == "chae" else 0
+    return sorted({int(cfg.seed), *range(k)})
+
+
 def steps(cfg) -> list[Step]:
     """The stages in order: every later stage only reads what the earlier ones wrote."""
     from . import collect, demonstrate, evaluate, train_agent, train_rnn, train_vae
@@ -92,7 +101,7 @@ def steps(cfg) -> list[Step]:
     agents = {AgentId(r, int(cfg.seed), v) for v in cfg.agents for r in agent_preset(cfg, v).rewards}
     agents |= set(artifacts.trained_agents(cfg))
     peers = [PEERS[p] for p in cfg.peers]
-    peer_agents = {AgentId(r, int(cfg.seed), v) for v in peers for r in agent_preset(cfg, v).rewards}
+    peer_agents = {AgentId(r, s, v) for v in peers for r in agent_preset(cfg, v).rewards for s in peer_seeds(cfg, v)}
     for family in {a.family for a in peer_agents}:
         peer_agents |= set(artifacts.trained_agents(cfg, family))
 
