@@ -99,7 +99,8 @@ class DQNConfig(Checked):
     target networks (the copies made ``target_every`` updates apart), not by the latest alone. 1 = one target
     network, as DQN. Averaging K copies divides the variance that the target's approximation error adds to the
     targets by about K, which Anschel et al. show damps DQN's oscillations; for when successive checkpoints of a
-    run swing between policies (Chae: bumping and needless stops, 250 episodes apart)"""
+    run swing between policies (Chae: bumping and needless stops, 250 episodes apart). Measured on Chae (K = 10,
+    one seed): it swings as widely"""
     double: bool = False
     """Double DQN target: the online network chooses the next action, the target network values it"""
     advantage_alpha: float = 0.0
