@@ -384,3 +384,25 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     assert metrics["steps"] >= 300 and metrics["demonstrations"]["transitions"] == len(first)  # whole episodes
     assert {"after_cloning_round0", "after_cloning_round1"} <= metrics["demonstrations"].keys()
     assert (tmp_path / "runs/k/agent_kim_unaware_ddpg_kim_fd/seed0/last.pt").exists()
+
+
+def test_the_bank_can_draw_where_the_runner_crosses_the_ego_and_keeps_everything_else():
+    """evaluate.kim.impact_offset_spread: each trial's crossing drawn along the ego (within its length), the same
+    trials otherwise; a spread that would leave the ego is refused."""
+    from types import SimpleNamespace
+
+    from worldmodel.common import StageError
+    from worldmodel.config import compose, validate
+    from worldmodel.peers import kim
+
+    plain = kim.bank(SimpleNamespace(seed=77, trials=40, impact_offset=0.0, impact_offset_spread=0.0))
+    spread = kim.bank(SimpleNamespace(seed=77, trials=40, impact_offset=0.0, impact_offset_spread=2.25))
+    forward = kim.bank(SimpleNamespace(seed=77, trials=40, impact_offset=2.0, impact_offset_spread=1.0))
+    offsets = np.array([s.impact_offset for s in spread])
+    assert all(s.impact_offset == 0.0 for s in plain) and len(set(offsets)) == len(offsets)
+    assert offsets.min() < -1.5 and offsets.max() > 1.5 and np.all(np.abs(offsets) <= 2.25)
+    assert all(1.0 <= s.impact_offset <= 2.25 for s in forward)  # kept on the ego
+    for a, b in zip(plain, spread, strict=True):
+        assert {**a.to_dict(), "impact_offset": 0.0} == {**b.to_dict(), "impact_offset": 0.0}
+    with pytest.raises(StageError, match="impact_offset_spread"):
+        validate(compose("evaluate", ["evaluate.family=kim", "evaluate.kim.impact_offset_spread=5"]))

@@ -684,9 +684,14 @@ class KimEvalConfig(Checked):
     # 0 the middle of the flank (ours, and the training distribution's), +2.25 the front bumper, -2.25 the rear. The
     # paper does not say; other values measure how much the results depend on it
     impact_offset: float = 0.0
+    # > 0: each trial's crossing is drawn uniformly within impact_offset ± this (kept on the ego), from a stream of
+    # its own, so the trials are otherwise the same; 2.25 with offset 0 = anywhere along the ego
+    impact_offset_spread: float = 0.0
 
     def problems(self):
         yield from _positive(self, "trials", "paper_trials")
+        if not 0.0 <= self.impact_offset_spread <= 4.5:
+            yield ConfigValueError("kim.impact_offset_spread", self.impact_offset_spread, "it must be in [0, 4.5] m")
         known = ("braking", "aeb3m", "oracle")
         if any(p not in known for p in self.policies):
             yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(known)}")

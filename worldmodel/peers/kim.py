@@ -32,7 +32,7 @@ from collections import deque
 
 import numpy as np
 
-from envs.kim import SCENARIOS, Aeb3m, KimSpec, kim_action, kim_action_for
+from envs.kim import CAR_LENGTH, SCENARIOS, Aeb3m, KimSpec, kim_action, kim_action_for
 from envs.kim import sample as sample_kim
 from envs.lidar import RANGE_M, LidarHistory
 from envs.policies import StraightLineBraking
@@ -401,13 +401,19 @@ def scripted(cfg) -> list:
 # ----------------------------------------------------------------------------- evaluation
 def bank(c) -> list[KimSpec]:
     """``c.trials`` seeded trials per scenario; scenario k's first ``c.paper_trials`` make the paper-sized table. Every
-    trial's runner crosses the ego at ``c.impact_offset`` (0 by default, as in training)."""
-    out = []
+    trial's runner crosses the ego at ``c.impact_offset`` (0 by default, as in training), or uniformly within
+    ``c.impact_offset_spread`` of it."""
+    out, half = [], CAR_LENGTH / 2
     for k, scenario in enumerate(SCENARIOS):
         rng = np.random.default_rng([int(c.seed), k])
+        crossing = np.random.default_rng([int(c.seed), k, 1])  # its own stream: the other fields stay the same
         for _ in range(int(c.trials)):
             spec = sample_kim(rng)
-            out.append(KimSpec(**{**spec.to_dict(), "scenario": scenario, "impact_offset": float(c.impact_offset)}))
+            offset = float(c.impact_offset)
+            if c.impact_offset_spread > 0:
+                low, high = max(-half, offset - c.impact_offset_spread), min(half, offset + c.impact_offset_spread)
+                offset = float(crossing.uniform(low, high))
+            out.append(KimSpec(**{**spec.to_dict(), "scenario": scenario, "impact_offset": offset}))
     return out
 
 
