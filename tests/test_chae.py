@@ -256,3 +256,17 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert per_policy["agent_chae_dqn_chae"] == 24  # the two seeds alone, as before
     with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=1"))
+
+
+def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():
+    """`evaluate evaluate.family=chae` does not load conf/agent/dqn_chae.yaml (which sets env.step_s=0.1); the
+    family's env must still step every 0.1 s, as its agents were trained and chosen."""
+    from worldmodel.config import compose
+    from worldmodel.peers import chae
+
+    cfg = compose("evaluate", ["experiment=x", "evaluate.family=chae"])
+    assert cfg.env.step_s != 0.1  # the default street's 1/15 s: the case this guards
+    for end_on_bump in (True, False):
+        env = chae.family_env(cfg, camera=False, end_on_bump=end_on_bump)
+        assert env.step_s == 0.1
+        env.close()

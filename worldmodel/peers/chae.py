@@ -33,6 +33,7 @@ import numpy as np
 from envs.chae import (
     BRAKE_LEVELS,
     SAFETY_LINE_M,
+    STEP_S,
     V_INIT_RANGE,
     V_PED_RANGE,
     BrakeAtTrigger,
@@ -107,9 +108,11 @@ def observer(cfg, obs: str):
 
 
 def family_env(cfg, camera: bool, end_on_bump: bool = True):
-    """Family chae's env; ``end_on_bump=False`` (evaluation) records the bump and runs on, to measure contact."""
+    """Family chae's env at the paper's 0.1 s steps, whatever ``env.step_s`` the stage was given (``evaluate
+    evaluate.family=chae`` does not load the agent preset that sets it); ``end_on_bump=False`` (evaluation) records
+    the bump and runs on, to measure contact."""
     options = {} if end_on_bump else {"family_options": {"end_on_bump": False}}
-    return make_env(cfg, camera=camera, family="chae", reward="chae", **options)
+    return make_env(cfg, camera=camera, family="chae", reward="chae", step_s=STEP_S, **options)
 
 
 def dqn_config(cfg):
