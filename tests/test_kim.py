@@ -406,3 +406,30 @@ def test_the_bank_can_draw_where_the_runner_crosses_the_ego_and_keeps_everything
         assert {**a.to_dict(), "impact_offset": 0.0} == {**b.to_dict(), "impact_offset": 0.0}
     with pytest.raises(StageError, match="impact_offset_spread"):
         validate(compose("evaluate", ["evaluate.family=kim", "evaluate.kim.impact_offset_spread=5"]))
+
+
+def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
+    """agent.kim_impact_offset_spread (preset ddpg_kim_fd_anywhere): training episodes, demonstrations and DAgger
+    rounds draw the runner's crossing anywhere along the ego, the other fields as without it; 0 (every other
+    preset) keeps the middle; a spread beyond the ego is refused."""
+    from worldmodel.common import StageError
+    from worldmodel.config import compose, validate
+    from worldmodel.peers import kim
+
+    middle = compose("train_agent", ["agent=ddpg_kim_fd"])
+    anywhere = compose("train_agent", ["agent=ddpg_kim_fd_anywhere"])
+    assert anywhere.agent.variant == "ddpg_kim_fd_anywhere" and anywhere.agent.demo_share == middle.agent.demo_share
+    for stream in ((kim.EPISODE_STREAM,), (kim.DEMO_STREAM,), (kim.DAGGER_STREAM, 1)):
+        plain = [kim.training_scenario(middle, *stream, i) for i in range(60)]
+        drawn = [kim.training_scenario(anywhere, *stream, i) for i in range(60)]
+        assert all(s.impact_offset == 0.0 for s in plain)
+        offsets = np.array([s.impact_offset for s in drawn])
+        assert offsets.min() < -1.5 and offsets.max() > 1.5 and np.all(np.abs(offsets) <= 2.25)
+        for a, b in zip(plain, drawn, strict=True):
+            assert {**a.to_dict(), "impact_offset": 0.0} == {**b.to_dict(), "impact_offset": 0.0}
+    assert plain == [kim.training_scenario(middle, kim.DAGGER_STREAM, 1, i) for i in range(60)]  # replays
+    assert all(abs(sample(np.random.default_rng(i), 9.0).impact_offset) <= 2.25 for i in range(20))  # on the ego
+    with pytest.raises(ValueError, match="impact_offset_spread"):
+        sample(np.random.default_rng(0), -1.0)
+    with pytest.raises(StageError, match="kim_impact_offset_spread"):
+        validate(compose("train_agent", ["agent=ddpg_kim_fd", "agent.kim_impact_offset_spread=3"]))

@@ -245,6 +245,7 @@ ADDED_DEFAULTS = {
         "lidar_rays": 36,
         "peer_total_steps": 100_000,
         "resnet_weights": None,
+        "kim_impact_offset_spread": 0.0,
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.

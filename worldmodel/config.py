@@ -470,6 +470,10 @@ class AgentConfig(DDPGConfig):
     # ddqn_merola's (worldmodel/peers/merola.py; Merola et al.: 360k).
     # Its own key, so that a scale can shrink it while the peer's preset keeps the paper's other settings
     peer_total_steps: int = 100_000
+    # family kim's training distribution (episodes, planner demonstrations, DAgger): > 0 draws where the runner's
+    # path crosses the ego uniformly within this many metres of the middle of its flank (envs.kim.sample), the
+    # placement the paper leaves unstated; 0 keeps the middle. Evaluate it there: evaluate.kim.impact_offset_spread
+    kim_impact_offset_spread: float = 0.0
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
@@ -508,6 +512,10 @@ class AgentConfig(DDPGConfig):
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
+        if not 0.0 <= self.kim_impact_offset_spread <= 2.25:
+            yield ConfigValueError(
+                "kim_impact_offset_spread", self.kim_impact_offset_spread, "it must be in [0, 2.25] m (half the ego)"
+            )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
         if self.dagger_rounds and not self.bc_pretrain_steps:

@@ -98,10 +98,11 @@ def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
     return make_env(cfg, camera=camera, family="kim", reward=reward, step_s=step_s)
 
 
-def episode_scenario(seed: int, episode: int) -> KimSpec:
-    """Training episode ``episode``'s scenario: a function of (seed, episode) only, so a resumed run draws what an
-    uninterrupted one would."""
-    return sample_kim(np.random.default_rng([int(seed), 2020, int(episode)]))
+def training_scenario(cfg, *stream: int) -> KimSpec:
+    """A scenario of the training distribution (``agent.kim_impact_offset_spread`` says where the runner may
+    strike), a function of (seed, ``stream``) only, so a resumed run draws what an uninterrupted one would."""
+    rng = np.random.default_rng([int(cfg.seed), *map(int, stream)])
+    return sample_kim(rng, float(cfg.agent.kim_impact_offset_spread))
 
 
 def ddpg_config(cfg):
@@ -112,7 +113,8 @@ def ddpg_config(cfg):
 
 
 # ----------------------------------------------------------------------------- learning from the planner
-DEMO_STREAM = 2021  # keeps demonstration scenarios apart from the training episodes' (seed, 2020, i) draws
+EPISODE_STREAM = 2020  # training episode i: (seed, 2020, i)
+DEMO_STREAM = 2021  # keeps demonstration scenarios apart from the training episodes' draws
 DAGGER_STREAM = 2022
 HELD_OUT_SHARE = 0.1  # the last tenth of the demonstration episodes (at least one) stops the cloning early
 
@@ -146,7 +148,7 @@ def planner_demonstrations(cfg, env, see: LidarObserver, hp, split: str):
     buffer = ReplayBuffer(max(1, len(episodes) * 60), see.dim, 2)  # 5 s of 0.1 s steps, and room to spare
     window, scale, avoided = NStepWindow(hp.n_step, hp.gamma), float(hp.reward_scale), 0
     for i in tqdm(episodes, desc=f"planner demonstrations ({split})", unit="episode"):
-        env.reset(options={"scenario": sample_kim(np.random.default_rng([int(cfg.seed), DEMO_STREAM, i]))})
+        env.reset(options={"scenario": training_scenario(cfg, DEMO_STREAM, i)})
         planner.reset()
         planner.bind(env)
         see.reset()
@@ -176,7 +178,7 @@ def dagger_labels(cfg, env, see: LidarObserver, agent, round_: int):
     planner = teacher(cfg)
     xs, ys, avoided, n = [], [], 0, int(cfg.agent.dagger_episodes)
     for e in tqdm(range(n), desc=f"DAgger round {round_}", unit="episode"):
-        env.reset(options={"scenario": sample_kim(np.random.default_rng([int(cfg.seed), DAGGER_STREAM, round_, e]))})
+        env.reset(options={"scenario": training_scenario(cfg, DAGGER_STREAM, round_, e)})
         planner.reset()
         planner.bind(env)
         see.reset()
@@ -279,7 +281,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     losses: dict = {}
     with tqdm(total=total, initial=step, desc=f"ddpg kim ({agent_id.reward})", unit="step") as bar:
         while step < total and not run_.stop.requested:
-            env.reset(options={"scenario": episode_scenario(int(cfg.seed), episode)})
+            env.reset(options={"scenario": training_scenario(cfg, EPISODE_STREAM, episode)})
             see.reset()
             x, ret = see(env), 0.0
             while True:
