@@ -249,13 +249,20 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert chosen != q0.argmax(1).tolist() or chosen != q1.argmax(1).tolist()  # not simply one member
     assert chae.ensembles(agents, members, 3) == []  # seed 2 missing: no partial ensemble
 
-    chae.evaluate(ev)
+    summary = chae.evaluate(ev)
     rows = list(csv.DictReader(open(tmp_path / "runs/e/eval_chae/results.csv")))
     per_policy = {p: sum(r["policy"] == p for r in rows) for p in {r["policy"] for r in rows}}
     assert per_policy["agent_chae_dqn_chae_ensemble2"] == per_policy["braking"] == 12  # 3 TTCs + Scenario 2, 3 each
     assert per_policy["agent_chae_dqn_chae"] == 24  # the two seeds alone, as before
+    alone = chae.evaluate(
+        cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=2", "evaluate.chae.singles=false")
+    )
+    assert set(alone["policies"]) == {*chae.SCRIPTED, "agent_chae_dqn_chae_ensemble2"}
+    assert alone["policies"]["agent_chae_dqn_chae_ensemble2"] == summary["policies"]["agent_chae_dqn_chae_ensemble2"]
     with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=1"))
+    with pytest.raises(StageError, match="evaluate.chae.singles"):
+        validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.singles=false"))
 
 
 def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():

@@ -667,9 +667,16 @@ class ChaeEvalConfig(Checked):
     # 3, chosen on the validation draw: two ensembles in three inside both of the bars, single runs three in
     # nine (docs/results/chae/settings_validation.md)
     ensemble: int = 3
+    # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
+    # 1,000 trials per TTC, where each run alone would cost as much again per seed
+    singles: bool = True
 
     def problems(self):
         yield from _positive(self, "trials")
+        if not self.singles and not self.ensemble:
+            yield ConfigValueError(
+                "chae.singles", self.singles, "with no ensembles (chae.ensemble=0) no agent would drive"
+            )
         if not self.ttcs or any(t <= 0 for t in self.ttcs):
             yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
         if self.ensemble == 1 or self.ensemble < 0:

@@ -481,7 +481,8 @@ def evaluate(cfg) -> dict:
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
     if int(c.ensemble):
-        learned += ensembles(agents, learned, int(c.ensemble))
+        grouped = ensembles(agents, learned, int(c.ensemble))
+        learned = learned + grouped if c.singles else grouped
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
     for name in SCRIPTED:
