@@ -277,3 +277,30 @@ def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():
         env = chae.family_env(cfg, camera=False, end_on_bump=end_on_bump)
         assert env.step_s == 0.1
         env.close()
+
+
+def test_the_bars_are_judged_run_by_run():
+    """bars_per_run: each (policy, seed) on its own, its worst TTC from 1.5 s (bumps <= 1 %) and its Scenario-2
+    stops (<= 5 %); TTCs below 1.5 s do not count."""
+    from worldmodel.peers.chae import bars_per_run
+
+    def trials(policy, seed, ttc, bumps, n=100):
+        return [
+            {"policy": policy, "policy_seed": seed, "scenario": 1, "ttc": ttc, "bump": int(i < bumps)} for i in range(n)
+        ]
+
+    def scenario2(policy, seed, stops, n=100):
+        return [
+            {"policy": policy, "policy_seed": seed, "scenario": 2, "end": "stop" if i < stops else "pass"}
+            for i in range(n)
+        ]
+
+    rows = []
+    for seed, (early, at15, at17, stops) in enumerate([(90, 1, 0, 5), (90, 0, 2, 0), (0, 0, 0, 6)]):
+        rows += trials("dqn", seed, 1.3, early) + trials("dqn", seed, 1.5, at15) + trials("dqn", seed, 1.7, at17)
+        rows += scenario2("dqn", seed, stops)
+    got = {
+        (r["seed"]): (r["max_bump"], r["at_ttc"], r["stops"], r["inside"]) for r in bars_per_run(rows, [1.3, 1.5, 1.7])
+    }
+    assert got == {0: (1.0, 1.5, 5.0, True), 1: (2.0, 1.7, 0.0, False), 2: (0.0, 1.5, 6.0, False)}
+    assert bars_per_run(rows, [1.3]) == []

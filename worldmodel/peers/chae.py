@@ -59,6 +59,10 @@ PHYSICS_BAND = {
     1.3: (0.0, 0.46),
     1.5: (0.0, 0.0),
 }  # brake at the trigger .. 0.1 s late
+# What a reproduction must reach (docs/design.md §10): the paper's Table I has no bumps from 1.5 s on, and its
+# agent brakes only when it must; we ask for bumps in at most 1 % of the trials at every TTC from 1.5 s and
+# needless stops in at most 5 % of Scenario 2's, judged for each run (or ensemble) on its own.
+BAR_FROM_TTC, BAR_BUMP, BAR_STOPS = 1.5, 1.0, 5.0
 ROLLING = 100
 CHECKPOINT_EPISODES = 100
 
@@ -544,6 +548,35 @@ def summarise(rows: list[dict], ttcs: list[float]) -> dict:
         s["unnecessary_stop_rate"] = 100 * float(np.mean([r["end"] == "stop" for r in s2])) if s2 else None
         s["stop_gaps"] = [r["stop_gap"] for r in s1 if r["stop_gap"] == r["stop_gap"]]
         out["policies"][policy] = s
+    out["runs"] = bars_per_run(rows, ttcs)
+    return out
+
+
+def bars_per_run(rows: list[dict], ttcs: list[float]) -> list[dict]:
+    """Each (policy, seed) against the bars: its highest bump rate at a TTC from ``BAR_FROM_TTC`` (and where),
+    Scenario 2's needless stops, and whether it is inside both. Empty when no TTC reaches ``BAR_FROM_TTC``."""
+    late = [t for t in ttcs if t >= BAR_FROM_TTC - 1e-9]
+    out = []
+    for policy, seed in dict.fromkeys((r["policy"], r["policy_seed"]) for r in rows) if late else ():
+        mine = [r for r in rows if r["policy"] == policy and r["policy_seed"] == seed]
+        bumps = {
+            t: 100 * float(np.mean([r["bump"] for r in mine if r["scenario"] == 1 and abs(r["ttc"] - t) < 1e-9]))
+            for t in late
+        }
+        worst = max(late, key=lambda t: (bumps[t], -t))  # the earliest of equal rates
+        s2 = [r["end"] == "stop" for r in mine if r["scenario"] == 2]
+        stops = 100 * float(np.mean(s2)) if s2 else None
+        inside = bumps[worst] <= BAR_BUMP and stops is not None and stops <= BAR_STOPS
+        out.append(
+            {
+                "policy": policy,
+                "seed": int(seed),
+                "max_bump": bumps[worst],
+                "at_ttc": worst,
+                "stops": stops,
+                "inside": bool(inside),
+            }
+        )
     return out
 
 
@@ -584,6 +617,21 @@ def tables(summary: dict, trials: int) -> str:
     ):
         lines += ["", f"## Scenario 1: {title}", "", head, rule]
         lines += [line(p, [s[key][t] for t in ttcs]) for p, s in pol.items()]
+    if summary.get("runs"):
+        lines += [
+            "",
+            f"## The bars, run by run: bumps <= {BAR_BUMP:g} % at every TTC from {BAR_FROM_TTC:g} s, needless stops "
+            f"<= {BAR_STOPS:g} %",
+            "",
+            f"| policy | seed | highest bump rate from {BAR_FROM_TTC:g} s, % (at TTC, s) | needless stops % | inside |",
+            "|---|---:|---:|---:|---|",
+        ]
+        for r in summary["runs"]:
+            stops = "–" if r["stops"] is None else f"{r['stops']:.1f}"
+            verdict = "yes" if r["inside"] else "no"
+            lines.append(
+                f"| {r['policy']} | {r['seed']} | {r['max_bump']:.1f} ({r['at_ttc']:g}) | {stops} | {verdict} |"
+            )
     lines += [
         "",
         "Stopping distance (Fig. 7 layout): `stopping_distance.png`, the gap from the front bumper to the "
