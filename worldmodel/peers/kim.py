@@ -59,13 +59,15 @@ PAPER_TABLE_2 = {
 
 # ----------------------------------------------------------------------------- what the agent sees
 class LidarObserver:
-    """Kim's observation: 4 LIDAR scans and the previous action (``envs.lidar.LidarHistory``), plus, for the
-    goal-aware agent, the distance to the goal (/ 50 m) and its bearing from the heading (/ pi)."""
+    """Kim's observation: ``scans`` LIDAR scans of ``rays`` rays (the paper: 4 of 36) and the previous action
+    (``envs.lidar.LidarHistory``), plus, for the goal-aware agent, the distance to the goal (/ 50 m) and its
+    bearing from the heading (/ pi). The agent's ``lidar_scans`` and ``lidar_rays`` set both, so the encoder reads
+    the scans it is given."""
 
     camera = False
 
-    def __init__(self, goal: bool):
-        self.history, self.goal = LidarHistory(), bool(goal)
+    def __init__(self, goal: bool, scans: int = 4, rays: int = 36):
+        self.history, self.goal = LidarHistory(scans=scans, n_rays=rays), bool(goal)
         self.dim = self.history.dim + (2 if self.goal else 0)
 
     def reset(self, seed=None) -> None:
@@ -91,7 +93,7 @@ def observer(cfg, reward: str):
             f"Kim et al.'s agent (agent=ddpg_kim) sees the LIDAR (obs=lidar), not obs={cfg.agent.obs}; the camera "
             "agent on this family is agent=ddpg_wm_kim"
         )
-    return LidarObserver(goal=reward in GOAL_REWARDS)
+    return LidarObserver(reward in GOAL_REWARDS, int(cfg.agent.lidar_scans), int(cfg.agent.lidar_rays))
 
 
 def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
@@ -373,7 +375,8 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
             f"{agent_id.dir(cfg)} is neither a LIDAR nor a world-model agent; delete it or move it out of "
             f"{artifacts.runs_root(cfg)}"
         )
-    see = LidarObserver(goal=agent_id.reward in GOAL_REWARDS)
+    trained = state["ddpg_config"]  # the scans it was trained on
+    see = LidarObserver(agent_id.reward in GOAL_REWARDS, int(trained["lidar_scans"]), int(trained["lidar_rays"]))
     if see.dim != state["obs_dim"]:
         raise StageError(
             f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the LIDAR view gives "
