@@ -625,6 +625,17 @@ def figure(summary: dict, path) -> None:
     plt.close(fig)
 
 
+def draw_suffix(c) -> str:
+    """What sets this bank apart from the test draw at the middle of the flank, for its directory's name, so that
+    another draw (validation: ``_seed77``) or placement (``_at+2.25``, ``_spread2.25``) never overwrites it."""
+    suffix = "" if int(c.seed) == TEST_SEED else f"_seed{int(c.seed)}"
+    if float(c.impact_offset):
+        suffix += f"_at{float(c.impact_offset):+g}"
+    if float(c.impact_offset_spread):
+        suffix += f"_spread{float(c.impact_offset_spread):g}"
+    return suffix
+
+
 def evaluate(cfg) -> dict:
     """``evaluate.family=kim``: AEB-3m, braking, the planner, every LIDAR and world-model agent of the family and
     (``evaluate.kim.world_model_agents``) the paper's street-trained agents, on the same seeded trials."""
@@ -633,8 +644,7 @@ def evaluate(cfg) -> dict:
 
     c = cfg.evaluate.kim
     out = artifacts.eval_dir(cfg)
-    if int(c.seed) != TEST_SEED:  # another draw (validation) never overwrites the test draw's results
-        out = out.with_name(f"{out.name}_seed{int(c.seed)}")
+    out = out.with_name(out.name + draw_suffix(c))
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     specs = bank(c)
