@@ -274,9 +274,9 @@ def test_every_drawn_body_stands_inside_a_collision_footprint(env):
 
 
 def test_ddpg_kim_trains_on_the_lidar_and_evaluate_writes_table_2(tmp_path):
-    """train_agent agent=ddpg_kim (both of Kim's rewards; the goal-aware agent also sees the goal, and scans of 72
-    rays instead of 36, which its evaluation reads back from the checkpoint), then evaluate.family=kim: every policy
-    on the same seeded trials, Table 2 with the paper's rows, the figure."""
+    """train_agent agent=ddpg_kim (both of Kim's rewards; the goal-aware agent also sees the goal, scans of 72
+    rays instead of 36 and its speed, which its evaluation reads back from the checkpoint), then
+    evaluate.family=kim: every policy on the same seeded trials, Table 2 with the paper's rows, the figure."""
     import csv
     import json
 
@@ -290,14 +290,21 @@ def test_ddpg_kim_trains_on_the_lidar_and_evaluate_writes_table_2(tmp_path):
         return compose(stage, [*base, "threads=1", *overrides])
 
     train_agent.run(cfg("train_agent", "agent=ddpg_kim"))
-    aware = train_agent.run(cfg("train_agent", "agent=ddpg_kim", "reward=kim_aware", "agent.lidar_rays=72"))
+    aware = train_agent.run(
+        cfg("train_agent", "agent=ddpg_kim", "reward=kim_aware", "agent.lidar_rays=72", "agent.use_speed=true")
+    )
     assert 300 <= aware["steps"] < 350 and len(aware["curve"]["crash"]) == aware["episodes"]  # whole episodes
     agents = trained_agents(cfg("evaluate"), family="kim")
     assert [a.key for a in agents] == ["agent_kim_aware_ddpg_kim/seed0", "agent_kim_unaware_ddpg_kim/seed0"]
     (aware_policy, _), (unaware_policy, _) = (
         kim.load_policy(cfg("evaluate", "evaluate.family=kim"), a) for a in agents
     )
-    assert (aware_policy.see.dim, unaware_policy.see.dim) == (4 * 72 + 2 + 2, 4 * 36 + 2)
+    assert (aware_policy.see.dim, unaware_policy.see.dim) == (4 * 72 + 2 + 2 + 1, 4 * 36 + 2)
+    env = kim.family_env(cfg("evaluate", "evaluate.family=kim"), "kim_aware")
+    env.reset(options={"scenario": KimSpec(seed=1, scenario="left", ego_speed=8.0)})
+    aware_policy.see.reset()
+    assert aware_policy.see(env)[-1] == pytest.approx(8.0 / 20.0)  # the ego's speed, last
+    env.close()
     assert trained_agents(cfg("evaluate")) == []  # the paper's evaluation does not pick them up
 
     # the planner is left out to keep the test short (tests/test_planner.py covers it, test_kim the ISS cost it uses)

@@ -62,13 +62,14 @@ class LidarObserver:
     """Kim's observation: ``scans`` LIDAR scans of ``rays`` rays (the paper: 4 of 36) and the previous action
     (``envs.lidar.LidarHistory``), plus, for the goal-aware agent, the distance to the goal (/ 50 m) and its
     bearing from the heading (/ pi). The agent's ``lidar_scans`` and ``lidar_rays`` set both, so the encoder reads
-    the scans it is given."""
+    the scans it is given. ``speed`` (``agent.use_speed``; not the paper's) also appends the ego's speed / 20 m/s,
+    which the scans only show as the change between them."""
 
     camera = False
 
-    def __init__(self, goal: bool, scans: int = 4, rays: int = 36):
-        self.history, self.goal = LidarHistory(scans=scans, n_rays=rays), bool(goal)
-        self.dim = self.history.dim + (2 if self.goal else 0)
+    def __init__(self, goal: bool, scans: int = 4, rays: int = 36, speed: bool = False):
+        self.history, self.goal, self.speed = LidarHistory(scans=scans, n_rays=rays), bool(goal), bool(speed)
+        self.dim = self.history.dim + (2 if self.goal else 0) + (1 if self.speed else 0)
 
     def reset(self, seed=None) -> None:
         self.history.reset(seed)
@@ -77,14 +78,16 @@ class LidarObserver:
         self.history.note_action(action)
 
     def __call__(self, env, obs=None) -> np.ndarray:
-        x = self.history(env)
-        if not self.goal:
-            return x
-        ego, (gx, gy) = env.ego, env.family_state.goal
-        bearing = math.atan2(gy - ego.y, gx - ego.x) - ego.psi
-        bearing = (bearing + math.pi) % (2 * math.pi) - math.pi
-        d = min(1.0, math.hypot(gx - ego.x, gy - ego.y) / RANGE_M)
-        return np.concatenate([x, np.array([d, bearing / math.pi], np.float32)])
+        parts, ego = [self.history(env)], env.ego
+        if self.goal:
+            gx, gy = env.family_state.goal
+            bearing = math.atan2(gy - ego.y, gx - ego.x) - ego.psi
+            bearing = (bearing + math.pi) % (2 * math.pi) - math.pi
+            d = min(1.0, math.hypot(gx - ego.x, gy - ego.y) / RANGE_M)
+            parts.append(np.array([d, bearing / math.pi], np.float32))
+        if self.speed:
+            parts.append(np.array([ego.v / 20.0], np.float32))
+        return np.concatenate(parts) if len(parts) > 1 else parts[0]
 
 
 def observer(cfg, reward: str):
@@ -93,7 +96,8 @@ def observer(cfg, reward: str):
             f"Kim et al.'s agent (agent=ddpg_kim) sees the LIDAR (obs=lidar), not obs={cfg.agent.obs}; the camera "
             "agent on this family is agent=ddpg_wm_kim"
         )
-    return LidarObserver(reward in GOAL_REWARDS, int(cfg.agent.lidar_scans), int(cfg.agent.lidar_rays))
+    a = cfg.agent
+    return LidarObserver(reward in GOAL_REWARDS, int(a.lidar_scans), int(a.lidar_rays), bool(a.use_speed))
 
 
 def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
@@ -269,6 +273,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 "curve": curve,
                 "obs": "lidar",
                 "obs_dim": see.dim,
+                "lidar_speed": see.speed,
                 "learner": "ddpg",
                 "actor_hidden": list(hp.actor_hidden),
                 "ddpg_config": {f.name: getattr(hp, f.name) for f in dataclasses.fields(DDPGConfig)},
@@ -376,7 +381,12 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
             f"{artifacts.runs_root(cfg)}"
         )
     trained = state["ddpg_config"]  # the scans it was trained on
-    see = LidarObserver(agent_id.reward in GOAL_REWARDS, int(trained["lidar_scans"]), int(trained["lidar_rays"]))
+    see = LidarObserver(
+        agent_id.reward in GOAL_REWARDS,
+        int(trained["lidar_scans"]),
+        int(trained["lidar_rays"]),
+        bool(state.get("lidar_speed", False)),  # checkpoints before the option saw no speed
+    )
     if see.dim != state["obs_dim"]:
         raise StageError(
             f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the LIDAR view gives "
