@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
+from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
 from envs.scene import NUM_CLASSES
 
 from .common import CONF_DIR, Checked, ConfigValueError, StageError, return_freed_memory
@@ -512,9 +513,11 @@ class AgentConfig(DDPGConfig):
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
-        if not 0.0 <= self.kim_impact_offset_spread <= 2.25:
+        if not 0.0 <= self.kim_impact_offset_spread <= KIM_CAR_LENGTH / 2:
             yield ConfigValueError(
-                "kim_impact_offset_spread", self.kim_impact_offset_spread, "it must be in [0, 2.25] m (half the ego)"
+                "kim_impact_offset_spread",
+                self.kim_impact_offset_spread,
+                f"it must be in [0, {KIM_CAR_LENGTH / 2:g}] m (half the ego)",
             )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
@@ -710,8 +713,9 @@ class KimEvalConfig(Checked):
         known = ("braking", "aeb3m", "oracle")
         if any(p not in known for p in self.policies):
             yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(known)}")
-        if not abs(self.impact_offset) <= 2.25:
-            yield ConfigValueError("kim.impact_offset", self.impact_offset, "it must be within [-2.25, 2.25] m")
+        half = KIM_CAR_LENGTH / 2
+        if not abs(self.impact_offset) <= half:
+            yield ConfigValueError("kim.impact_offset", self.impact_offset, f"it must be within ±{half:g} m")
 
 
 @dataclass

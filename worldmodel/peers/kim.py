@@ -87,7 +87,7 @@ class LidarObserver:
             parts.append(np.array([d, bearing / math.pi], np.float32))
         if self.speed:
             parts.append(np.array([ego.v / 20.0], np.float32))
-        return np.concatenate(parts) if len(parts) > 1 else parts[0]
+        return np.concatenate(parts)
 
 
 def observer(cfg, reward: str):
