@@ -144,3 +144,32 @@ def test_a_one_sided_teacher_steers_only_to_its_side(tmp_path):
     assert (artifacts.demos_dir(default).name, artifacts.demos_dir(one).name) == ("demos", "demos_right")
     with pytest.raises(StageError, match="demos.teacher_sides"):
         validate(cfg("demos.teacher_sides=[1.0,1.0]"))
+
+
+def test_a_teacher_without_later_starts_labels_what_to_do_now(tmp_path):
+    """demos.teacher_delays_s: the teacher's steering delays replace evaluate.oracle's (so a label made from scratch
+    never postpones the steering), its store and a LIDAR agent's provenance say so, and null changes nothing."""
+    from worldmodel import artifacts
+    from worldmodel.config import oracle_settings, teacher_settings
+
+    def cfg(*overrides):
+        return compose(
+            "train_agent",
+            [f"paths.data_root={tmp_path}", f"paths.runs_root={tmp_path}", "agent=ddpg_kim_fd", *overrides],
+        )
+
+    default, now = cfg(), cfg("demos.teacher_delays_s=[0.0]")
+    planner = lambda c: PrivilegedPlanner.from_settings(**teacher_settings(c))  # noqa: E731
+    assert any(m.delay > 0 for m in planner(default).candidates)
+    assert all(m.delay == 0 for m in planner(now).candidates)
+    assert oracle_settings(now) == oracle_settings(default)  # the ceiling is evaluate.oracle's, unchanged
+    assert teacher_settings(cfg("demos.teacher_delays_s=null")) == teacher_settings(default)
+    assert (artifacts.demos_dir(default).name, artifacts.demos_dir(now).name) == ("demos", "demos_delays0")
+    assert artifacts.demos_dir(cfg("demos.teacher_sides=[1.0]", "demos.teacher_delays_s=[0.0,0.2]")).name == (
+        "demos_right_delays0-0.2"
+    )
+    assert artifacts.provenance(now, "agent") != artifacts.provenance(default, "agent")
+    assert artifacts.provenance(cfg("demos.teacher_delays_s=null"), "agent") == artifacts.provenance(default, "agent")
+    for bad in ("[]", "[-0.1]"):
+        with pytest.raises(StageError, match="demos.teacher_delays_s"):
+            validate(cfg(f"demos.teacher_delays_s={bad}"))

@@ -66,11 +66,12 @@ def manifest_path(cfg) -> Path:
 
 
 def demos_dir(cfg) -> Path:
-    """``data/NAME/demos/``, or ``demos_<sides>/`` for a teacher steering to one side (``demos.teacher_sides``)."""
+    """``data/NAME/demos/``, or ``demos_<teacher>/`` for a teacher other than evaluate.oracle's planner steering
+    both ways (``demos.teacher_sides``, ``demos.teacher_delays_s``; e.g. ``demos_right/``)."""
     from .config import validate
 
-    sides = validate(cfg).demos.side_names()
-    return data_dir(cfg) / ("demos_" + sides if sides else "demos")
+    teacher = validate(cfg).demos.teacher_name()
+    return data_dir(cfg) / ("demos_" + teacher if teacher else "demos")
 
 
 def uses_demos(cfg) -> bool:
@@ -319,6 +320,8 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
 
             demos = _config(cfg, "demos")["demos"]
             settings["demos"] = {k: demos[k] for k in ("episodes", "teacher_sides")}
+            if demos.get("teacher_delays_s") is not None:  # absent = evaluate.oracle's, as before the option
+                settings["demos"]["teacher_delays_s"] = demos["teacher_delays_s"]
             settings["teacher"] = teacher_settings(cfg)
         elif uses_demos(cfg):
             inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")

@@ -152,19 +152,34 @@ class DemosConfig(Checked):
     # sides. One side takes the left/right ambiguity out of the teacher, which a student cloning by least squares
     # would otherwise average into braking straight. Stored apart: data/NAME/demos_right/ for [1.0].
     teacher_sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
+    # the teacher's steering delays (s), in place of evaluate.oracle.delays_s; null = those. A label made from
+    # scratch (DAgger's) by a planner that may start steering later says "straight on" for as long as some later
+    # start still avoids, so the student is taught to steer at the last feasible moment, and a student that copies
+    # with any lag misses it. [0.0]: every label says what to do now. Stored apart: data/NAME/demos_delays0/.
+    teacher_delays_s: list[float] | None = None
 
     def problems(self):
         yield from _positive(self, "num_workers", "episodes_per_shard")
+        if self.teacher_delays_s is not None and (
+            not self.teacher_delays_s or any(float(d) < 0 for d in self.teacher_delays_s)
+        ):
+            yield ConfigValueError(
+                "teacher_delays_s", self.teacher_delays_s, "use delays >= 0 s, or null for evaluate.oracle's"
+            )
         if self.episodes < 0:
             yield ConfigValueError("episodes", self.episodes, "it must be >= 0 (0 = no demonstrations)")
         sides = [float(x) for x in self.teacher_sides]
         if not sides or any(x not in (1.0, -1.0) for x in sides) or len(set(sides)) != len(sides):
             yield ConfigValueError("teacher_sides", sides, "use distinct values of 1.0 (right) and -1.0 (left)")
 
-    def side_names(self) -> str:
-        """'' for both sides in the default order, else e.g. 'right' or 'left_right' (names the store)."""
+    def teacher_name(self) -> str:
+        """'' for evaluate.oracle's planner steering both ways, else what differs, e.g. 'right', 'left_right',
+        'delays0' or 'right_delays0-0.2' (names the store)."""
         sides = [float(x) for x in self.teacher_sides]
-        return "" if sides == [1.0, -1.0] else "_".join("right" if x > 0 else "left" for x in sides)
+        parts = [] if sides == [1.0, -1.0] else ["right" if x > 0 else "left" for x in sides]
+        if self.teacher_delays_s is not None:
+            parts.append("delays" + "-".join(f"{float(d):g}" for d in self.teacher_delays_s))
+        return "_".join(parts)
 
 
 @dataclass
@@ -643,11 +658,15 @@ def oracle_settings(cfg) -> dict:
 
 def teacher_settings(cfg) -> dict:
     """The planner that records demonstrations and labels DAgger states: ``evaluate.oracle`` planning from the first
-    frame, steering to ``demos.teacher_sides`` (``PrivilegedPlanner.from_settings`` keyword arguments)."""
+    frame, steering to ``demos.teacher_sides`` after ``demos.teacher_delays_s`` (``PrivilegedPlanner.from_settings``
+    keyword arguments)."""
     settings = {k: v for k, v in oracle_settings(cfg).items() if k not in ("brake_first", "sides")}
     sides = [float(x) for x in cfg.demos.teacher_sides]
     if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
         settings["sides"] = sides
+    delays = cfg.demos.get("teacher_delays_s")
+    if delays is not None:
+        settings["delays_s"] = [float(x) for x in delays]
     return settings
 
 
