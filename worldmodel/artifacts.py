@@ -247,6 +247,7 @@ ADDED_DEFAULTS = {
         "peer_total_steps": 100_000,
         "resnet_weights": None,
         "kim_impact_offset_spread": 0.0,
+        "bc_steer_weight": 1.0,
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.

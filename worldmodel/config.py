@@ -470,6 +470,10 @@ class AgentConfig(DDPGConfig):
     # labels every state it reaches, and the actor is cloned again on everything so far
     dagger_rounds: int = 0
     dagger_episodes: int = 100
+    # Kim's LIDAR agent: the weight, in the cloning loss, of the samples whose label steers (|steering| > 0.15 of
+    # full); 1 = plain least squares. The planner steers on ~6 % of its labels, and a least-squares student, unsure
+    # when, under-steers (docs/results/kim/, "Why the student stops at braking")
+    bc_steer_weight: float = 1.0
     reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
     # the rewards the pipeline trains this preset with (`agents:`); a student that only clones the R2 planner
     # lists r2 alone, since its R1 run would be the same network under another name
@@ -536,6 +540,12 @@ class AgentConfig(DDPGConfig):
             )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
+        if self.bc_steer_weight <= 0 or (self.bc_steer_weight != 1.0 and self.obs != "lidar"):
+            yield ConfigValueError(
+                "bc_steer_weight",
+                self.bc_steer_weight,
+                "it must be > 0, and 1 unless the agent sees the LIDAR (obs=lidar)",
+            )
         if self.dagger_rounds and not self.bc_pretrain_steps:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "DAgger clones: set bc_pretrain_steps > 0")
         if self.bc_pretrain_steps < 0:

@@ -55,14 +55,18 @@ def demonstration_buffer(
     return buffer, {"episodes": len(episodes), "transitions": len(buffer)}
 
 
-def clone(agent: DDPG, inputs: np.ndarray, targets: np.ndarray, hp, writer, round_: int, held_out) -> float:
+def clone(
+    agent: DDPG, inputs: np.ndarray, targets: np.ndarray, hp, writer, round_: int, held_out, weights=None
+) -> float:
     """Up to ``hp.bc_pretrain_steps`` minibatches of behaviour cloning on (inputs, targets), stopped early: the
     actor kept is the one with the best fit on the held-out demonstrations, checked every 250 minibatches (the
-    student overfits a few hundred episodes within a few thousand minibatches). Returns the last training loss."""
+    student overfits a few hundred episodes within a few thousand minibatches). ``weights``: one per sample, on its
+    squared error (None: all alike). Returns the last training loss."""
     loss, best, best_state = float("nan"), math.inf, None
     for k in range(hp.bc_pretrain_steps):
         idx = agent.rng.integers(0, len(inputs), size=hp.batch_size)
-        loss = agent.clone(torch.from_numpy(inputs[idx]), torch.from_numpy(targets[idx]))
+        w = None if weights is None else torch.from_numpy(np.asarray(weights, np.float32)[idx])
+        loss = agent.clone(torch.from_numpy(inputs[idx]), torch.from_numpy(targets[idx]), w)
         if k % 50 == 0:
             writer.add_scalar(f"pretrain/bc_loss_round{round_}", loss, k)
         if (k + 1) % 250 == 0 or k + 1 == hp.bc_pretrain_steps:

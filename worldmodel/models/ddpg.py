@@ -413,14 +413,16 @@ class DDPG:
         out["actor_loss"] = actor_loss.item()
         return out
 
-    def clone(self, obs: torch.Tensor, actions: torch.Tensor) -> float:
-        """One supervised step of the actor towards ``actions`` (behaviour-cloning pre-training); returns the loss."""
+    def clone(self, obs: torch.Tensor, actions: torch.Tensor, weights: torch.Tensor | None = None) -> float:
+        """One supervised step of the actor towards ``actions`` (behaviour-cloning pre-training), each sample's squared
+        error weighted by ``weights`` (None: all alike); returns the loss."""
         if getattr(self, "_clone_optimizer", None) is None:
             # its own optimiser: pre-training ends before RL starts, and the actor's Adam state stays fresh
             self._clone_optimizer = torch.optim.AdamW(
                 self.actor.parameters(), lr=self.cfg.bc_lr, weight_decay=self.cfg.bc_weight_decay
             )
-        loss = ((self.actor(obs) - actions) ** 2).sum(-1).mean()
+        squared = ((self.actor(obs) - actions) ** 2).sum(-1)
+        loss = squared.mean() if weights is None else (weights * squared).sum() / weights.sum()
         self._clone_optimizer.zero_grad()
         loss.backward()
         self._clone_optimizer.step()

@@ -123,6 +123,7 @@ EPISODE_STREAM = 2020  # training episode i: (seed, 2020, i)
 DEMO_STREAM = 2021  # keeps demonstration scenarios apart from the training episodes' draws
 DAGGER_STREAM = 2022
 HELD_OUT_SHARE = 0.1  # the last tenth of the demonstration episodes (at least one) stops the cloning early
+STEERING_LABEL = 0.15  # a label steers (agent.bc_steer_weight) above this share of full steering; the planner: 0.3+
 
 
 def teacher(cfg):
@@ -221,7 +222,8 @@ def learn_from_planner(cfg, env, see: LidarObserver, agent, hp, writer, cloned: 
             inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])
             info[f"dagger_round{round_}"] = {"labels": len(x), "student_avoidance": student}
             log.info("DAgger round %d: the student avoided %.1f %%, %d labels", round_, student, len(x))
-        clone(agent, inputs, targets, hp, writer, round_, held_out)
+        weights = np.where(np.abs(targets[:, 1]) > STEERING_LABEL, float(cfg.agent.bc_steer_weight), 1.0)
+        clone(agent, inputs, targets, hp, writer, round_, held_out, weights)
         info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)
     agent.sync_targets()
     return demos, info
