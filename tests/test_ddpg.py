@@ -462,6 +462,24 @@ def test_cloning_fits_a_known_state_to_action_map():
     assert after < 0.05 * before
 
 
+def test_weighted_cloning_fits_the_weighted_samples():
+    """agent.bc_steer_weight's loss: a sample of weight 0 does not pull the actor, so a step on (a, b) weighted (1, 0)
+    is a step on a alone; equal weights are the plain mean."""
+    obs, target = torch.randn(2, 4), torch.tensor([[0.5, -0.5], [-0.9, 0.9]])
+    twins = [DDPG(4, 2, DDPGConfig(**SMALL), seed=1) for _ in range(4)]
+    twins[0].clone(obs, target, torch.tensor([1.0, 0.0]))
+    twins[1].clone(obs[:1], target[:1])
+    twins[2].clone(obs, target, torch.tensor([3.0, 3.0]))
+    twins[3].clone(obs, target)
+    for a, b in ((0, 1), (2, 3)):
+        for p, q in zip(twins[a].actor.parameters(), twins[b].actor.parameters(), strict=True):
+            torch.testing.assert_close(p, q)
+    moved = [
+        not torch.equal(p, q) for p, q in zip(twins[0].actor.parameters(), twins[2].actor.parameters(), strict=True)
+    ]
+    assert any(moved)
+
+
 def test_lidar_front_end_reads_scans_through_circular_convolutions():
     """Kim et al.'s encoder: 4 scans x 36 rays -> 32 x 17 features, plus the observation's other numbers untouched.
     The angle wraps: an obstacle on the last ray reaches the first output position, as one on the second ray does."""
