@@ -1,0 +1,198 @@
+"""Kim's LIDAR student against its teacher: where cloning the privileged planner falls short (issue 14).
+
+    python -m experiments.kim_student labels [--episodes 60] OVERRIDES...
+    python -m experiments.kim_student collect --student ddpg_kim_dag [--episodes 400] [--out FILE] OVERRIDES...
+    python -m experiments.kim_student fit [--input lidar|state] [--steer-weight 1] [--data FILE] OVERRIDES...
+
+``labels``: the planner drives training-distribution episodes (the demonstrations' stream) and, at every step, a
+second planner plans from scratch, as a DAgger label does; counts the labels that go straight on, steer now, or
+plan a steering manoeuvre that starts later (and so say "straight on" now).
+
+``collect``: a trained cloned student (``agent.variant`` = ``--student``, its ``experiment`` and ``seed`` from the
+overrides) drives ``--episodes`` fresh training-distribution episodes (stream 7777, apart from the training's) and,
+at every step, records what it sees (the LIDAR view), the true state in its frame (``true_state``), the planner's
+from-scratch label and its own action. Prints how often the label steers and how often the student follows, and
+writes an ``.npz``.
+
+``fit``: clones a fresh actor (the agent's network, ``agent.*`` overrides apply) on the first 80 % of the collected
+episodes, from the LIDAR view or from the true state, and reports on the last 20 %: the mean squared error, and
+where the label steers, how often the actor steers the same way. Settles whether the view or the teacher limits
+the student: a student that sees the true state does no better if the teacher's choices are what it cannot copy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from envs.kim import SCENARIOS, kim_action, kim_action_for
+from worldmodel.artifacts import AgentId
+from worldmodel.common import set_threads
+from worldmodel.config import compose
+from worldmodel.models.ddpg import DDPG
+from worldmodel.peers import kim
+
+STUDENT_STREAM = 7777  # the students' episodes: neither the training's, the demonstrations' nor DAgger's draws
+HELD_OUT = 0.2
+
+
+def steering(labels: np.ndarray) -> np.ndarray:
+    """-1, 0 or 1 per Kim action: which way it steers (beyond ``kim.STEERING_LABEL``)."""
+    return np.sign(labels[:, 1]) * (np.abs(labels[:, 1]) > kim.STEERING_LABEL)
+
+
+def true_state(env) -> np.ndarray:
+    """The state a perfect perception would give, in the ego's frame: its speed / 20 m/s, lateral position / 5 m
+    and heading; for every car slot its position / 30 m, velocity relative to the ego / 20 m/s, heading (cos, sin)
+    and whether it is in the scene (zeros when not); and the scenario's kind, one-hot."""
+    ego, cars = env.ego, env.actors
+    c, s = np.cos(-ego.psi), np.sin(-ego.psi)
+    rotate = np.array([[c, -s], [s, c]])
+    active = cars.car_active[:, None].astype(np.float64)
+    position = (cars.car_xy - [ego.x, ego.y]) @ rotate.T / 30.0
+    velocity = (cars.car_vel - [ego.v * np.cos(ego.psi), ego.v * np.sin(ego.psi)]) @ rotate.T / 20.0
+    heading = cars.car_heading - ego.psi
+    slots = np.concatenate([position, velocity, np.cos(heading)[:, None], np.sin(heading)[:, None], active], 1)
+    kind = [float(env.scenario.scenario == k) for k in SCENARIOS]
+    return np.concatenate([[ego.v / 20.0, ego.y / 5.0, ego.psi], (slots * active).ravel(), kind]).astype(np.float32)
+
+
+def labels(cfg, episodes: int) -> None:
+    env = kim.family_env(cfg, "kim_unaware")
+    drive, label = kim.teacher(cfg), kim.teacher(cfg)
+    counts, avoided = {"straight on": 0, "steer now": 0, "steer later": 0}, 0
+    for i in tqdm(range(episodes), desc="planner episodes", unit="episode"):
+        env.reset(options={"scenario": kim.training_scenario(cfg, kim.DEMO_STREAM, i)})
+        for p in (drive, label):
+            p.reset()
+            p.bind(env)
+        while True:
+            label.plan = None  # from scratch, as a DAgger label
+            label.act(None, None)
+            m = label.plan.manoeuvre
+            counts["straight on" if not m.steer else ("steer later" if m.delay else "steer now")] += 1
+            _, _, terminated, truncated, _ = env.step(drive.act(None, None))
+            if terminated or truncated:
+                break
+        avoided += int(not env.collisions)
+    total = sum(counts.values())
+    print(", ".join(f"{k}: {v} ({100 * v / total:.1f} %)" for k, v in counts.items()))
+    print(f"the planner avoided {100 * avoided / episodes:.1f} % of {episodes} episodes")
+
+
+def collect(cfg, episodes: int, out: Path) -> None:
+    policy, _ = kim.load_policy(cfg, AgentId.of(cfg))
+    env = kim.family_env(cfg, "kim_unaware")
+    planner = kim.teacher(cfg)
+    view, state, label, action, episode, collided = [], [], [], [], [], []
+    for e in tqdm(range(episodes), desc="student episodes", unit="episode"):
+        env.reset(options={"scenario": kim.training_scenario(cfg, STUDENT_STREAM, e)})
+        planner.reset()
+        planner.bind(env)
+        policy.reset()
+        policy.bind(env)
+        n = 0
+        while True:
+            planner.plan = None
+            label.append(kim_action_for(planner.act(None, None), env.ego.v))
+            x = policy.see(env)
+            a = policy.agent.act(x, explore=False)
+            policy.see.note_action(a)
+            view.append(x)
+            state.append(true_state(env))
+            action.append(a)
+            n += 1
+            _, _, terminated, truncated, _ = env.step(kim_action(a, env.ego.v))
+            if terminated or truncated:
+                break
+        episode += [e] * n
+        collided += [bool(env.collisions)] * n
+    data = {
+        "view": np.asarray(view, np.float32),
+        "state": np.asarray(state, np.float32),
+        "label": np.asarray(label, np.float32),
+        "action": np.asarray(action, np.float32),
+        "episode": np.asarray(episode),
+        "collided": np.asarray(collided),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, **data)
+    agreement("the student", data["action"], data["label"])
+    side, ep = steering(data["label"]), data["episode"]
+    crashed = [e for e in np.unique(ep) if data["collided"][ep == e][0]]
+    steered = sum(bool(np.any(side[ep == e] != 0)) for e in crashed)
+    print(f"{len(crashed)} of {episodes} student episodes end in a collision; in {steered} the planner would steer")
+    runs = [len(list(g)) for e in np.unique(ep) for k, g in itertools.groupby(side[ep == e]) if k != 0]
+    both = sum(len(set(side[(ep == e) & (side != 0)])) > 1 for e in np.unique(ep))
+    print(
+        f"{len(runs)} runs of steering labels, {100 * np.mean(np.array(runs) == 1):.0f} % one step long; "
+        f"labels steer both ways in {both} episodes"
+    )
+    print(f"wrote {out}")
+
+
+def agreement(who: str, actions: np.ndarray, targets: np.ndarray) -> None:
+    side = steering(targets)
+    steers = side != 0
+    same = np.mean(steering(actions)[steers] == side[steers])
+    false = np.mean(steering(actions)[~steers] != 0)
+    print(
+        f"{who}: where the label steers ({100 * steers.mean():.1f} % of {len(side)} steps), the same way on "
+        f"{100 * same:.1f} % (|steer| {np.abs(actions[steers, 1]).mean():.2f} against the label's "
+        f"{np.abs(targets[steers, 1]).mean():.2f}); where it does not, it steers on {100 * false:.1f} %"
+    )
+
+
+def fit(cfg, data: Path, source: str, steer_weight: float, steps: int = 6000) -> None:
+    d = np.load(data)
+    x, y, ep = d["view" if source == "lidar" else "state"], d["label"], d["episode"]
+    held_out = ep >= np.quantile(np.unique(ep), 1.0 - HELD_OUT)
+    hp = kim.ddpg_config(cfg)
+    if source == "state":
+        hp = dataclasses.replace(hp, lidar_scans=0)  # the true state goes straight into the MLP
+    agent = DDPG(x.shape[1], 2, hp, int(cfg.seed))
+    xs, ys = torch.from_numpy(x[~held_out]), torch.from_numpy(y[~held_out])
+    weights = torch.where(ys[:, 1].abs() > kim.STEERING_LABEL, steer_weight, 1.0)
+    rng = np.random.default_rng(int(cfg.seed))
+    print(f"{source}: {int((~held_out).sum())} training steps, {int(held_out.sum())} held out")
+    for k in range(steps):
+        idx = torch.from_numpy(rng.integers(0, len(xs), size=hp.batch_size))
+        agent.clone(xs[idx], ys[idx], weights[idx])
+        if (k + 1) % (steps // 4) == 0:
+            with torch.no_grad():
+                a = agent.actor(torch.from_numpy(x[held_out])).numpy()
+            mse = ((a - y[held_out]) ** 2).sum(-1).mean()
+            agreement(f"after {k + 1} minibatches (held-out squared error {mse:.3f})", a, y[held_out])
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("command", choices=("labels", "collect", "fit"))
+    parser.add_argument("--episodes", type=int, default=None, help="labels: 60; collect: 400")
+    parser.add_argument("--student", default="ddpg_kim_dag", help="collect: the cloned student's agent.variant")
+    parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_student/steps.npz"))
+    parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit: what the actor sees")
+    parser.add_argument("--steer-weight", type=float, default=1.0, help="fit: as agent.bc_steer_weight")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=kimfd scale=quick seed=0")
+    args = parser.parse_intermixed_args(argv)  # options may follow the overrides
+    overrides = ["agent=ddpg_kim", *args.overrides]
+    if args.command == "collect":
+        overrides.append(f"agent.variant={args.student}")
+    cfg = compose("train_agent", overrides)
+    set_threads(1)
+    if args.command == "labels":
+        labels(cfg, args.episodes or 60)
+    elif args.command == "collect":
+        collect(cfg, args.episodes or 400, args.data)
+    else:
+        fit(cfg, args.data, args.input, args.steer_weight)
+
+
+if __name__ == "__main__":
+    main()
