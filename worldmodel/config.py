@@ -154,8 +154,8 @@ class DemosConfig(Checked):
     teacher_sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
     # the teacher's steering delays (s), in place of evaluate.oracle.delays_s; null = those. A label made from
     # scratch (DAgger's) by a planner that may start steering later says "straight on" for as long as some later
-    # start still avoids, so the student is taught to steer at the last feasible moment, and a student that copies
-    # with any lag misses it. [0.0]: every label says what to do now. Stored apart: data/NAME/demos_delays0/.
+    # start still avoids; [0.0]: every label says what to do now. Stored apart: data/NAME/demos_delays0/. On Kim's
+    # family it changes neither the planner's avoidance nor its student's (docs/results/kim/)
     teacher_delays_s: list[float] | None = None
 
     def problems(self):

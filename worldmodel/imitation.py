@@ -63,9 +63,10 @@ def clone(
     student overfits a few hundred episodes within a few thousand minibatches). ``weights``: one per sample, on its
     squared error (None: all alike). Returns the last training loss."""
     loss, best, best_state = float("nan"), math.inf, None
+    weights = None if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
     for k in range(hp.bc_pretrain_steps):
         idx = agent.rng.integers(0, len(inputs), size=hp.batch_size)
-        w = None if weights is None else torch.from_numpy(np.asarray(weights, np.float32)[idx])
+        w = None if weights is None else weights[idx]
         loss = agent.clone(torch.from_numpy(inputs[idx]), torch.from_numpy(targets[idx]), w)
         if k % 50 == 0:
             writer.add_scalar(f"pretrain/bc_loss_round{round_}", loss, k)

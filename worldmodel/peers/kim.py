@@ -222,7 +222,8 @@ def learn_from_planner(cfg, env, see: LidarObserver, agent, hp, writer, cloned: 
             inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])
             info[f"dagger_round{round_}"] = {"labels": len(x), "student_avoidance": student}
             log.info("DAgger round %d: the student avoided %.1f %%, %d labels", round_, student, len(x))
-        weights = np.where(np.abs(targets[:, 1]) > STEERING_LABEL, float(cfg.agent.bc_steer_weight), 1.0)
+        w = float(cfg.agent.bc_steer_weight)
+        weights = None if w == 1.0 else np.where(np.abs(targets[:, 1]) > STEERING_LABEL, w, 1.0)  # None: as before
         clone(agent, inputs, targets, hp, writer, round_, held_out, weights)
         info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)
     agent.sync_targets()
