@@ -304,3 +304,59 @@ def test_the_bars_are_judged_run_by_run():
     }
     assert got == {0: (1.0, 1.5, 5.0, True), 1: (2.0, 1.7, 0.0, False), 2: (0.0, 1.5, 6.0, False)}
     assert bars_per_run(rows, [1.3]) == []
+
+
+def test_the_training_ttc_range_reaches_the_episodes_and_its_default_is_the_papers(tmp_path):
+    """agent.chae_ttc_range: the default draws the paper's episodes exactly (and leaves provenance as before the
+    option); a lower bound of 1.3 s rescales only the TTC of the same draws, and it reaches the training loop (the
+    trained network differs). An empty or inverted range is refused, naming the key."""
+    import torch
+
+    from worldmodel import artifacts, train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+    from worldmodel.config import compose, validate
+    from worldmodel.peers.chae import episode_scenario
+
+    def cfg(root, *extra):
+        return compose(
+            "train_agent",
+            [
+                f"paths.data_root={root}/data",
+                f"paths.runs_root={root}/runs",
+                "experiment=t",
+                "scale=smoke",
+                "threads=1",
+                "agent=dqn_chae",
+                "agent.select.every=0",
+                "agent.dqn.warmup_steps=40",  # so that the network learns within smoke's 12 episodes
+                *extra,
+            ],
+        )
+
+    for episode in range(50):
+        (paper, _), (wide, _) = episode_scenario(3, episode), episode_scenario(3, episode, [1.3, 4.0])
+        assert episode_scenario(3, episode, [1.5, 4.0]) == episode_scenario(3, episode)
+        assert (wide.v_init, wide.v_ped, wide.crosses, wide.seed) == (
+            paper.v_init,
+            paper.v_ped,
+            paper.crosses,
+            paper.seed,
+        )
+        assert wide.ttc == pytest.approx(1.3 + (paper.ttc - 1.5) * 2.7 / 2.5)
+    assert min(episode_scenario(3, e, [1.3, 4.0])[0].ttc for e in range(50)) < 1.5
+
+    default, wide = cfg(tmp_path / "paper"), cfg(tmp_path / "wide", "agent.chae_ttc_range=[1.3,4.0]")
+    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_ttc_range=[1.5,4.0]"), "agent") == (
+        artifacts.provenance(default, "agent")
+    )
+    assert artifacts.provenance(wide, "agent") != artifacts.provenance(default, "agent")
+    for bad in ("[2.0,1.5]", "[1.5]", "[0.0,4.0]", "[1.5,6.0]"):
+        with pytest.raises(StageError, match="agent.chae_ttc_range"):
+            validate(cfg(tmp_path / "bad", f"agent.chae_ttc_range={bad}"))
+    train_agent.run(default)
+    train_agent.run(wide)
+    nets = [
+        torch.load(AgentId.of(c).dir(c) / "last.pt", weights_only=False)["agent"]["q_network"] for c in (default, wide)
+    ]
+    assert any(not torch.equal(w, nets[1][name]) for name, w in nets[0].items())

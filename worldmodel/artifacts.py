@@ -248,6 +248,7 @@ ADDED_DEFAULTS = {
         "resnet_weights": None,
         "kim_impact_offset_spread": 0.0,
         "bc_steer_weight": 1.0,
+        "chae_ttc_range": [1.5, 4.0],
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.

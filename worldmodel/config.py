@@ -494,6 +494,10 @@ class AgentConfig(DDPGConfig):
     # path crosses the ego uniformly within this many metres of the middle of its flank (envs.kim.sample), the
     # placement the paper leaves unstated; 0 keeps the middle. Evaluate it there: evaluate.kim.impact_offset_spread
     kim_impact_offset_spread: float = 0.0
+    # family chae's training TTCs (the dqn learner's episodes), U(lo, hi) s. The paper's 1.5-4 s puts the bar's
+    # edge (TTC 1.5 s) at the edge of training, where one ensemble in three bumps at 10-12 km/h; a lower bound below
+    # 1.5 makes it interior (docs/results/chae/, "A margin below the bar's TTC"). Evaluation keeps its own TTCs
+    chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
@@ -537,6 +541,13 @@ class AgentConfig(DDPGConfig):
                 "kim_impact_offset_spread",
                 self.kim_impact_offset_spread,
                 f"it must be in [0, {KIM_CAR_LENGTH / 2:g}] m (half the ego)",
+            )
+        ttcs = [float(t) for t in self.chae_ttc_range]
+        if len(ttcs) != 2 or not 0.0 < ttcs[0] < ttcs[1] <= 5.0:
+            yield ConfigValueError(
+                "chae_ttc_range",
+                list(self.chae_ttc_range),
+                "use [lo, hi] with 0 < lo < hi <= 5 s (beyond 5 s the trigger would lie behind the ego)",
             )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")

@@ -34,6 +34,7 @@ from envs.chae import (
     BRAKE_LEVELS,
     SAFETY_LINE_M,
     STEP_S,
+    TTC_RANGE,
     V_INIT_RANGE,
     V_PED_RANGE,
     BrakeAtTrigger,
@@ -128,11 +129,11 @@ def dqn_config(cfg):
 
 
 # ----------------------------------------------------------------------------- training
-def episode_scenario(seed: int, episode: int) -> tuple[ChaeSpec, int]:
-    """Training episode ``episode``'s scenario and observation-noise seed: a function of (seed, episode) only, so a
-    resumed run draws what an uninterrupted one would."""
+def episode_scenario(seed: int, episode: int, ttc_range=TTC_RANGE) -> tuple[ChaeSpec, int]:
+    """Training episode ``episode``'s scenario and observation-noise seed: a function of (seed, episode) and the
+    TTC range (``agent.chae_ttc_range``) only, so a resumed run draws what an uninterrupted one would."""
     rng = np.random.default_rng([int(seed), 1717, int(episode)])
-    return sample_chae(rng), int(rng.integers(2**31))
+    return sample_chae(rng, ttc_range=(float(ttc_range[0]), float(ttc_range[1]))), int(rng.integers(2**31))
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
@@ -171,7 +172,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     loss = None
     with tqdm(total=episodes, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
         while episode < episodes and not run_.stop.requested:
-            spec, view_seed = episode_scenario(int(cfg.seed), episode)
+            spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
             obs, _ = env.reset(options={"scenario": spec})
             see.reset(view_seed)
             x, ret = see(env, obs), 0.0
