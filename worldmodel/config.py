@@ -494,9 +494,10 @@ class AgentConfig(DDPGConfig):
     # path crosses the ego uniformly within this many metres of the middle of its flank (envs.kim.sample), the
     # placement the paper leaves unstated; 0 keeps the middle. Evaluate it there: evaluate.kim.impact_offset_spread
     kim_impact_offset_spread: float = 0.0
-    # family chae's training TTCs (the dqn learner's episodes), U(lo, hi) s. The paper's 1.5-4 s puts the bar's
-    # edge (TTC 1.5 s) at the edge of training, where one ensemble in three bumps at 10-12 km/h; a lower bound below
-    # 1.5 makes it interior (docs/results/chae/, "A margin below the bar's TTC"). Evaluation keeps its own TTCs
+    # family chae's training TTCs (the dqn learner's episodes), U(lo, hi) s; evaluation keeps its own TTCs. The
+    # paper's 1.5-4 s puts the bar's edge (TTC 1.5 s) at the edge of training, where one ensemble in three bumps at
+    # 10-12 km/h. 1.3-4 s removed those bumps but made two ensembles in three stop needlessly at 10-30 km/h: not
+    # adopted (docs/results/chae/settings_validation.md, eleventh session)
     chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
