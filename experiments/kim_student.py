@@ -3,6 +3,7 @@
     python -m experiments.kim_student labels [--episodes 60] OVERRIDES...
     python -m experiments.kim_student collect --student ddpg_kim_dag [--episodes 400] [--out FILE] OVERRIDES...
     python -m experiments.kim_student fit [--input lidar|state] [--steer-weight 1] [--data FILE] OVERRIDES...
+    python -m experiments.kim_student drive [--input lidar|state] [--data FILE] evaluate.kim.seed=77 OVERRIDES...
 
 ``labels``: the planner drives training-distribution episodes (the demonstrations' stream) and, at every step, a
 second planner plans from scratch, as a DAgger label does; counts the labels that go straight on, steer now, or
@@ -18,6 +19,10 @@ writes an ``.npz``.
 episodes, from the LIDAR view or from the true state, and reports on the last 20 %: the mean squared error, and
 where the label steers, how often the actor steers the same way. Settles whether the view or the teacher limits
 the student: a student that sees the true state does no better if the teacher's choices are what it cannot copy.
+
+``drive``: the same fit on all the collected episodes, then the fitted actor drives the evaluation's bank
+(``evaluate.kim.*``; give the validation draw's seed, 77) in closed loop, beside straight-line braking: whether a
+student with perfect perception, taught the same way, avoids more than one that sees the LIDAR.
 """
 
 from __future__ import annotations
@@ -149,10 +154,11 @@ def agreement(who: str, actions: np.ndarray, targets: np.ndarray) -> None:
     )
 
 
-def fit(cfg, data: Path, source: str, steer_weight: float, steps: int = 6000) -> None:
+def fit(cfg, data: Path, source: str, steer_weight: float, steps: int = 6000, held_out_share: float = HELD_OUT):
+    """A fresh actor cloned on the episodes before the last ``held_out_share``, reporting on those (if any)."""
     d = np.load(data)
     x, y, ep = d["view" if source == "lidar" else "state"], d["label"], d["episode"]
-    held_out = ep >= np.quantile(np.unique(ep), 1.0 - HELD_OUT)
+    held_out = ep >= np.quantile(np.unique(ep), 1.0 - held_out_share) if held_out_share else np.zeros(len(ep), bool)
     hp = kim.ddpg_config(cfg)
     if source == "state":
         hp = dataclasses.replace(hp, lidar_scans=0)  # the true state goes straight into the MLP
@@ -164,20 +170,67 @@ def fit(cfg, data: Path, source: str, steer_weight: float, steps: int = 6000) ->
     for k in range(steps):
         idx = torch.from_numpy(rng.integers(0, len(xs), size=hp.batch_size))
         agent.clone(xs[idx], ys[idx], weights[idx])
-        if (k + 1) % (steps // 4) == 0:
+        if held_out.any() and (k + 1) % (steps // 4) == 0:
             with torch.no_grad():
                 a = agent.actor(torch.from_numpy(x[held_out])).numpy()
             mse = ((a - y[held_out]) ** 2).sum(-1).mean()
             agreement(f"after {k + 1} minibatches (held-out squared error {mse:.3f})", a, y[held_out])
+    return agent
+
+
+class TrueStatePolicy:
+    """A fitted actor that reads ``true_state``: the student with perfect perception, behind the policy interface."""
+
+    def __init__(self, name: str, agent):
+        self.name, self.agent = name, agent
+
+    def reset(self, seed=None) -> None:
+        pass
+
+    def bind(self, env) -> None:
+        self.env = env
+
+    def act(self, obs, info) -> np.ndarray:
+        return kim_action(self.agent.act(true_state(self.env), explore=False), self.env.ego.v)
+
+
+def drive(cfg, data: Path, source: str, steer_weight: float) -> None:
+    from envs import StraightLineBraking
+
+    agent = fit(cfg, data, source, steer_weight, held_out_share=0.0)
+    name = f"student_{source}_seed{int(cfg.seed)}"
+    if source == "state":
+        policy = TrueStatePolicy(name, agent)
+    else:
+        see = kim.observer(cfg, "kim_unaware")
+        stored = np.load(data)["view"].shape[1]
+        if see.dim != stored:
+            raise SystemExit(f"{data} holds views of {stored} numbers, agent.* gives {see.dim}: match the student's")
+        policy = kim.LidarPolicy(name, agent, see, int(cfg.seed))
+    specs, env = kim.bank(cfg.evaluate.kim), kim.family_env(cfg, "kim_unaware")
+    rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), policy)}
+    env.close()
+    iss = {name: np.array([r["iss_kmh"] for r in rs]) for name, rs in rows.items()}
+    for name, rs in rows.items():
+        avoided = sum(r["avoided"] for r in rs)
+        low, high = kim.wilson(avoided, len(rs))
+        print(
+            f"{name}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
+            f"(draw {cfg.evaluate.kim.seed}); injury {-iss[name].mean():.2f}"
+        )
+    print(f"paired p on per-trial ISS against braking: {kim.paired_permutation_p(iss[name], iss['braking']):.3f}")
+    out = data.with_name(f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv")
+    np.savetxt(out, np.c_[[r["avoided"] for r in rows[name]], iss[name]], delimiter=",", header="avoided,iss_kmh")
+    print(f"wrote {out}")
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=("labels", "collect", "fit"))
+    parser.add_argument("command", choices=("labels", "collect", "fit", "drive"))
     parser.add_argument("--episodes", type=int, default=None, help="labels: 60; collect: 400")
     parser.add_argument("--student", default="ddpg_kim_dag", help="collect: the cloned student's agent.variant")
     parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_student/steps.npz"))
-    parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit: what the actor sees")
+    parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit, drive: what it sees")
     parser.add_argument("--steer-weight", type=float, default=1.0, help="fit: as agent.bc_steer_weight")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=kimfd scale=quick seed=0")
     args = parser.parse_intermixed_args(argv)  # options may follow the overrides
@@ -190,8 +243,10 @@ def main(argv=None) -> None:
         labels(cfg, args.episodes or 60)
     elif args.command == "collect":
         collect(cfg, args.episodes or 400, args.data)
-    else:
+    elif args.command == "fit":
         fit(cfg, args.data, args.input, args.steer_weight)
+    else:
+        drive(cfg, args.data, args.input, args.steer_weight)
 
 
 if __name__ == "__main__":
