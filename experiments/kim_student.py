@@ -4,6 +4,7 @@
     python -m experiments.kim_student collect --student ddpg_kim_dag [--episodes 400] [--out FILE] OVERRIDES...
     python -m experiments.kim_student fit [--input lidar|state] [--steer-weight 1] [--data FILE] OVERRIDES...
     python -m experiments.kim_student drive [--input lidar|state] [--data FILE] evaluate.kim.seed=77 OVERRIDES...
+    python -m experiments.kim_student dagger [--input lidar|state] [--rounds 2] [--episodes 150] evaluate.kim.seed=77
 
 ``labels``: the planner drives training-distribution episodes (the demonstrations' stream) and, at every step, a
 second planner plans from scratch, as a DAgger label does; counts the labels that go straight on, steer now, or
@@ -23,6 +24,9 @@ the student: a student that sees the true state does no better if the teacher's 
 ``drive``: the same fit on all the collected episodes, then the fitted actor drives the evaluation's bank
 (``evaluate.kim.*``; give the validation draw's seed, 77) in closed loop, beside straight-line braking: whether a
 student with perfect perception, taught the same way, avoids more than one that sees the LIDAR.
+
+``dagger``: from the collected episodes, ``--rounds`` DAgger rounds of the fitted student (each drives
+``--episodes`` fresh episodes, labelled by the planner), then the last fit drives the bank as ``drive`` does.
 """
 
 from __future__ import annotations
@@ -91,26 +95,26 @@ def labels(cfg, episodes: int) -> None:
     print(f"the planner avoided {100 * avoided / episodes:.1f} % of {episodes} episodes")
 
 
-def collect(cfg, episodes: int, out: Path) -> None:
-    policy, _ = kim.load_policy(cfg, AgentId.of(cfg))
+def record(cfg, agent, source: str, see, stream: tuple, episodes: int, desc: str = "student episodes") -> dict:
+    """The student (``agent``, reading the LIDAR ``see`` or ``true_state`` by ``source``) drives ``episodes``
+    training-distribution episodes of ``stream``; at every step the planner labels the state from scratch. Both
+    views are recorded, whichever the student reads."""
     env = kim.family_env(cfg, "kim_unaware")
     planner = kim.teacher(cfg)
     view, state, label, action, episode, collided = [], [], [], [], [], []
-    for e in tqdm(range(episodes), desc="student episodes", unit="episode"):
-        env.reset(options={"scenario": kim.training_scenario(cfg, STUDENT_STREAM, e)})
+    for e in tqdm(range(episodes), desc=desc, unit="episode"):
+        env.reset(options={"scenario": kim.training_scenario(cfg, *stream, e)})
         planner.reset()
         planner.bind(env)
-        policy.reset()
-        policy.bind(env)
+        see.reset(None)
         n = 0
         while True:
             planner.plan = None
             label.append(kim_action_for(planner.act(None, None), env.ego.v))
-            x = policy.see(env)
-            a = policy.agent.act(x, explore=False)
-            policy.see.note_action(a)
-            view.append(x)
+            view.append(see(env))
             state.append(true_state(env))
+            a = agent.act(view[-1] if source == "lidar" else state[-1], explore=False)
+            see.note_action(a)
             action.append(a)
             n += 1
             _, _, terminated, truncated, _ = env.step(kim_action(a, env.ego.v))
@@ -118,7 +122,8 @@ def collect(cfg, episodes: int, out: Path) -> None:
                 break
         episode += [e] * n
         collided += [bool(env.collisions)] * n
-    data = {
+    env.close()
+    return {
         "view": np.asarray(view, np.float32),
         "state": np.asarray(state, np.float32),
         "label": np.asarray(label, np.float32),
@@ -126,6 +131,11 @@ def collect(cfg, episodes: int, out: Path) -> None:
         "episode": np.asarray(episode),
         "collided": np.asarray(collided),
     }
+
+
+def collect(cfg, episodes: int, out: Path) -> None:
+    policy, _ = kim.load_policy(cfg, AgentId.of(cfg))
+    data = record(cfg, policy.agent, "lidar", policy.see, (STUDENT_STREAM,), episodes)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez(out, **data)
     agreement("the student", data["action"], data["label"])
@@ -154,10 +164,9 @@ def agreement(who: str, actions: np.ndarray, targets: np.ndarray) -> None:
     )
 
 
-def fit(cfg, data: Path, source: str, steer_weight: float, steps: int = 6000, held_out_share: float = HELD_OUT):
+def fit(cfg, data: dict, source: str, steer_weight: float, steps: int = 6000, held_out_share: float = HELD_OUT):
     """A fresh actor cloned on the episodes before the last ``held_out_share``, reporting on those (if any)."""
-    d = np.load(data)
-    x, y, ep = d["view" if source == "lidar" else "state"], d["label"], d["episode"]
+    x, y, ep = data["view" if source == "lidar" else "state"], data["label"], data["episode"]
     held_out = ep >= np.quantile(np.unique(ep), 1.0 - held_out_share) if held_out_share else np.zeros(len(ep), bool)
     hp = kim.ddpg_config(cfg)
     if source == "state":
@@ -194,44 +203,67 @@ class TrueStatePolicy:
         return kim_action(self.agent.act(true_state(self.env), explore=False), self.env.ego.v)
 
 
-def drive(cfg, data: Path, source: str, steer_weight: float) -> None:
+def lidar_observer(cfg, data: dict):
+    see = kim.observer(cfg, "kim_unaware")
+    if see.dim != data["view"].shape[1]:
+        raise SystemExit(f"the data holds views of {data['view'].shape[1]} numbers, agent.* gives {see.dim}")
+    return see
+
+
+def drive(cfg, agent, source: str, name: str, out_dir: Path) -> None:
+    """``agent`` drives the evaluation's bank beside straight-line braking; prints both and writes the student's
+    per-trial avoidance and ISS."""
     from envs import StraightLineBraking
 
-    agent = fit(cfg, data, source, steer_weight, held_out_share=0.0)
-    name = f"student_{source}_seed{int(cfg.seed)}"
-    if source == "state":
-        policy = TrueStatePolicy(name, agent)
-    else:
-        see = kim.observer(cfg, "kim_unaware")
-        stored = np.load(data)["view"].shape[1]
-        if see.dim != stored:
-            raise SystemExit(f"{data} holds views of {stored} numbers, agent.* gives {see.dim}: match the student's")
-        policy = kim.LidarPolicy(name, agent, see, int(cfg.seed))
+    see = kim.observer(cfg, "kim_unaware")
+    student = TrueStatePolicy(name, agent) if source == "state" else kim.LidarPolicy(name, agent, see, int(cfg.seed))
     specs, env = kim.bank(cfg.evaluate.kim), kim.family_env(cfg, "kim_unaware")
-    rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), policy)}
+    rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), student)}
     env.close()
-    iss = {name: np.array([r["iss_kmh"] for r in rs]) for name, rs in rows.items()}
-    for name, rs in rows.items():
+    iss = {policy: np.array([r["iss_kmh"] for r in rs]) for policy, rs in rows.items()}
+    for policy, rs in rows.items():
         avoided = sum(r["avoided"] for r in rs)
         low, high = kim.wilson(avoided, len(rs))
         print(
-            f"{name}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
-            f"(draw {cfg.evaluate.kim.seed}); injury {-iss[name].mean():.2f}"
+            f"{policy}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
+            f"(draw {cfg.evaluate.kim.seed}); injury {-iss[policy].mean():.2f}"
         )
     print(f"paired p on per-trial ISS against braking: {kim.paired_permutation_p(iss[name], iss['braking']):.3f}")
-    out = data.with_name(f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv")
+    out = out_dir / f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv"
     np.savetxt(out, np.c_[[r["avoided"] for r in rows[name]], iss[name]], delimiter=",", header="avoided,iss_kmh")
     print(f"wrote {out}")
 
 
+def dagger(cfg, data: dict, source: str, steer_weight: float, rounds: int, episodes: int, out_dir: Path) -> None:
+    """DAgger from the collected episodes: ``rounds`` times, fit on everything so far, let that student drive
+    ``episodes`` fresh episodes (a stream per round, apart from the collection's) and add the planner's labels;
+    then fit once more and drive the bank. Shows whether a student of either view gains from its own states."""
+    see = lidar_observer(cfg, data) if source == "lidar" else kim.observer(cfg, "kim_unaware")
+    for r in range(1, rounds + 1):
+        agent = fit(cfg, data, source, steer_weight, held_out_share=0.0)
+        more = record(cfg, agent, source, see, (STUDENT_STREAM, int(cfg.seed), r), episodes, f"round {r}")
+        more["episode"] = more["episode"] + int(data["episode"].max()) + 1
+        print(f"round {r}: the student avoided {100 * (1 - np.mean(_ends(more))):.1f} % of its {episodes} episodes")
+        data = {k: np.concatenate([data[k], more[k]]) for k in data}
+    agent = fit(cfg, data, source, steer_weight, held_out_share=0.0)
+    drive(cfg, agent, source, f"dagger{rounds}_{source}_seed{int(cfg.seed)}", out_dir)
+
+
+def _ends(data: dict) -> np.ndarray:
+    """Per episode, whether it ended in a collision."""
+    ep = data["episode"]
+    return np.array([data["collided"][ep == e][0] for e in np.unique(ep)])
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=("labels", "collect", "fit", "drive"))
-    parser.add_argument("--episodes", type=int, default=None, help="labels: 60; collect: 400")
+    parser.add_argument("command", choices=("labels", "collect", "fit", "drive", "dagger"))
+    parser.add_argument("--episodes", type=int, default=None, help="labels: 60; collect: 400; dagger: 150 per round")
     parser.add_argument("--student", default="ddpg_kim_dag", help="collect: the cloned student's agent.variant")
     parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_student/steps.npz"))
-    parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit, drive: what it sees")
-    parser.add_argument("--steer-weight", type=float, default=1.0, help="fit: as agent.bc_steer_weight")
+    parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit, drive, dagger: its view")
+    parser.add_argument("--steer-weight", type=float, default=1.0, help="as agent.bc_steer_weight")
+    parser.add_argument("--rounds", type=int, default=2, help="dagger: rounds before the last fit")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=kimfd scale=quick seed=0")
     args = parser.parse_intermixed_args(argv)  # options may follow the overrides
     overrides = ["agent=ddpg_kim", *args.overrides]
@@ -241,12 +273,20 @@ def main(argv=None) -> None:
     set_threads(1)
     if args.command == "labels":
         labels(cfg, args.episodes or 60)
-    elif args.command == "collect":
+        return
+    if args.command == "collect":
         collect(cfg, args.episodes or 400, args.data)
-    elif args.command == "fit":
-        fit(cfg, args.data, args.input, args.steer_weight)
+        return
+    data = dict(np.load(args.data))
+    if args.input == "lidar":
+        lidar_observer(cfg, data)  # fail before any fitting if the views do not match
+    if args.command == "fit":
+        fit(cfg, data, args.input, args.steer_weight)
+    elif args.command == "drive":
+        agent = fit(cfg, data, args.input, args.steer_weight, held_out_share=0.0)
+        drive(cfg, agent, args.input, f"student_{args.input}_seed{int(cfg.seed)}", args.data.parent)
     else:
-        drive(cfg, args.data, args.input, args.steer_weight)
+        dagger(cfg, data, args.input, args.steer_weight, args.rounds, args.episodes or 150, args.data.parent)
 
 
 if __name__ == "__main__":
