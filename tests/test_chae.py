@@ -30,6 +30,26 @@ def env():
     return UrbanCollisionEnv(camera=False, step_s=0.1, reward="chae")
 
 
+def smoke_dqn_chae(root, *extra):
+    """agent=dqn_chae at smoke scale under ``root``, learning from step 40, so that the network changes within
+    smoke's 12 episodes (and between validations)."""
+    from worldmodel.config import compose
+
+    return compose(
+        "train_agent",
+        [
+            f"paths.data_root={root}/data",
+            f"paths.runs_root={root}/runs",
+            "experiment=t",
+            "scale=smoke",
+            "threads=1",
+            "agent=dqn_chae",
+            "agent.dqn.warmup_steps=40",
+            *extra,
+        ],
+    )
+
+
 def test_specs_validate_and_round_trip():
     spec = sample_chae(np.random.default_rng(0))
     assert spec_from_dict(spec.to_dict()) == spec and spec.to_dict()["family"] == "chae"
@@ -177,24 +197,9 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.config import compose
     from worldmodel.peers.chae import load_policy
 
-    def cfg(root, *extra):
-        return compose(
-            "train_agent",
-            [
-                f"paths.data_root={root}/data",
-                f"paths.runs_root={root}/runs",
-                "experiment=t",
-                "scale=smoke",
-                "threads=1",
-                "agent=dqn_chae",
-                "agent.dqn.warmup_steps=40",  # so that the network learns between validations
-                *extra,
-            ],
-        )
-
+    cfg = smoke_dqn_chae
     chosen, plain = cfg(tmp_path / "chosen"), cfg(tmp_path / "plain", "agent.select.every=0")
     train_agent.run(chosen)
     train_agent.run(plain)
@@ -315,24 +320,11 @@ def test_the_training_ttc_range_reaches_the_episodes_and_its_default_is_the_pape
     from worldmodel import artifacts, train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.config import compose, validate
+    from worldmodel.config import validate
     from worldmodel.peers.chae import episode_scenario
 
     def cfg(root, *extra):
-        return compose(
-            "train_agent",
-            [
-                f"paths.data_root={root}/data",
-                f"paths.runs_root={root}/runs",
-                "experiment=t",
-                "scale=smoke",
-                "threads=1",
-                "agent=dqn_chae",
-                "agent.select.every=0",
-                "agent.dqn.warmup_steps=40",  # so that the network learns within smoke's 12 episodes
-                *extra,
-            ],
-        )
+        return smoke_dqn_chae(root, "agent.select.every=0", *extra)
 
     for episode in range(50):
         (paper, _), (wide, _) = episode_scenario(3, episode), episode_scenario(3, episode, [1.3, 4.0])
