@@ -5,6 +5,7 @@
     python -m experiments.kim_student fit [--input lidar|state] [--steer-weight 1] [--data FILE] OVERRIDES...
     python -m experiments.kim_student drive [--input lidar|state] [--data FILE] evaluate.kim.seed=77 OVERRIDES...
     python -m experiments.kim_student dagger [--input lidar|state] [--rounds 2] [--episodes 150] evaluate.kim.seed=77
+    python -m experiments.kim_student compare [--students student|dagger2] evaluate.kim.seed=77
 
 ``labels``: the planner drives training-distribution episodes (the demonstrations' stream) and, at every step, a
 second planner plans from scratch, as a DAgger label does; counts the labels that go straight on, steer now, or
@@ -27,6 +28,9 @@ student with perfect perception, taught the same way, avoids more than one that 
 
 ``dagger``: from the collected episodes, ``--rounds`` DAgger rounds of the fitted student (each drives
 ``--episodes`` fresh episodes, labelled by the planner), then the last fit drives the bank as ``drive`` does.
+
+``compare``: the seeds of ``drive`` (``--students student``) or ``dagger`` (``dagger2``) pooled per view, from the
+per-trial files they wrote beside ``--data``, and the paired test between the two views.
 """
 
 from __future__ import annotations
@@ -249,6 +253,31 @@ def dagger(cfg, data: dict, source: str, steer_weight: float, rounds: int, episo
     drive(cfg, agent, source, f"dagger{rounds}_{source}_seed{int(cfg.seed)}", out_dir)
 
 
+def compare(cfg, students: str, out_dir: Path) -> None:
+    draw = cfg.evaluate.kim.seed
+    pooled = {}
+    for source in ("state", "lidar"):
+        files = sorted(out_dir.glob(f"drive_{students}_{source}_seed*_draw{draw}.csv"))
+        if not files:
+            raise SystemExit(
+                f"no drive_{students}_{source}_seed*_draw{draw}.csv in {out_dir}: run drive or dagger first"
+            )
+        pooled[source] = np.concatenate([np.loadtxt(f, delimiter=",", ndmin=2) for f in files])
+        avoided, iss = pooled[source][:, 0], pooled[source][:, 1]
+        low, high = kim.wilson(int(avoided.sum()), len(avoided))
+        print(
+            f"{students} {source}, {len(files)} seeds pooled: avoided {100 * avoided.mean():.1f} % [{low:.0f}, "
+            f"{high:.0f}] of {len(avoided)}; injury {-iss.mean():.2f}"
+        )
+    state, lidar = pooled["state"], pooled["lidar"]
+    p = kim.paired_permutation_p(state[:, 1], lidar[:, 1])
+    print(
+        f"paired by seed and trial, ISS state against LIDAR: p = {p:.4f}; only the state student avoids "
+        f"{100 * np.mean((state[:, 0] == 1) & (lidar[:, 0] == 0)):.1f} %, only the LIDAR one "
+        f"{100 * np.mean((state[:, 0] == 0) & (lidar[:, 0] == 1)):.1f} %"
+    )
+
+
 def _ends(data: dict) -> np.ndarray:
     """Per episode, whether it ended in a collision."""
     ep = data["episode"]
@@ -257,13 +286,14 @@ def _ends(data: dict) -> np.ndarray:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=("labels", "collect", "fit", "drive", "dagger"))
+    parser.add_argument("command", choices=("labels", "collect", "fit", "drive", "dagger", "compare"))
     parser.add_argument("--episodes", type=int, default=None, help="labels: 60; collect: 400; dagger: 150 per round")
     parser.add_argument("--student", default="ddpg_kim_dag", help="collect: the cloned student's agent.variant")
     parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_student/steps.npz"))
     parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit, drive, dagger: its view")
     parser.add_argument("--steer-weight", type=float, default=1.0, help="as agent.bc_steer_weight")
     parser.add_argument("--rounds", type=int, default=2, help="dagger: rounds before the last fit")
+    parser.add_argument("--students", default="student", help="compare: student (drive) or dagger<rounds>")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=kimfd scale=quick seed=0")
     args = parser.parse_intermixed_args(argv)  # options may follow the overrides
     overrides = ["agent=ddpg_kim", *args.overrides]
@@ -276,6 +306,9 @@ def main(argv=None) -> None:
         return
     if args.command == "collect":
         collect(cfg, args.episodes or 400, args.data)
+        return
+    if args.command == "compare":
+        compare(cfg, args.students, args.data.parent)
         return
     data = dict(np.load(args.data))
     if args.input == "lidar":
