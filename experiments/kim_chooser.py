@@ -4,6 +4,7 @@
     python -m experiments.kim_chooser labels --bank --out runs/kim_chooser/bank77.npz evaluate.kim.seed=77
     python -m experiments.kim_chooser fit [--data FILE] [--bank FILE] [--margin 0.0] seed=0
     python -m experiments.kim_chooser drive [--data FILE] [--margin 0.0] evaluate.kim.seed=77 seed=0
+    python -m experiments.kim_chooser compare evaluate.kim.seed=77
 
 The cloned LIDAR students stop at straight-line braking because the planner's choices, rare swerves that flicker
 from step to step, are what they cannot copy (docs/results/kim/README.md). The chooser (``envs/chooser.py``,
@@ -23,7 +24,8 @@ and the exact-cost chooser (the same rule on the true costs: the ceiling of thes
 episodes and, with ``--bank``, on the bank's labels.
 
 ``drive``: the fitted chooser drives the bank in closed loop beside straight-line braking (the offline numbers of
-``fit --bank`` must come out the same: the LIDAR is noise-free) and writes its per-trial avoidance and ISS.
+``fit --bank`` must come out the same: the LIDAR is noise-free) and writes both policies' per-trial avoidance and
+ISS beside ``--data``. ``compare``: the seeds of ``drive`` pooled, and the paired test against braking.
 """
 
 from __future__ import annotations
@@ -204,14 +206,34 @@ def drive(cfg, scorer: Scorer, decide_steps: int, margin: float, out_dir: Path) 
             f"(draw {cfg.evaluate.kim.seed}); injury {-iss[policy].mean():.2f}"
         )
     print(f"paired p on per-trial ISS against braking: {kim.paired_permutation_p(iss[name], iss['braking']):.4f}")
-    out = out_dir / f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv"
-    np.savetxt(out, np.c_[[r["avoided"] for r in rows[name]], iss[name]], delimiter=",", header="avoided,iss_kmh")
-    print(f"wrote {out}")
+    for policy, rs in rows.items():
+        out = out_dir / f"drive_{policy}_draw{cfg.evaluate.kim.seed}.csv"
+        np.savetxt(out, np.c_[[r["avoided"] for r in rs], iss[policy]], delimiter=",", header="avoided,iss_kmh")
+        print(f"wrote {out}")
+
+
+def compare(cfg, out_dir: Path) -> None:
+    """The seeds of ``drive`` pooled, and the paired test against braking on the same trials, seed by seed."""
+    draw = cfg.evaluate.kim.seed
+    files = sorted(out_dir.glob(f"drive_chooser_seed*_draw{draw}.csv"))
+    braking_file = out_dir / f"drive_braking_draw{draw}.csv"
+    if not files or not braking_file.exists():
+        raise SystemExit(f"no drive_chooser_seed*_draw{draw}.csv or {braking_file.name} in {out_dir}: run drive first")
+    chooser = np.concatenate([np.loadtxt(f, delimiter=",", ndmin=2) for f in files])
+    braking = np.tile(np.loadtxt(braking_file, delimiter=",", ndmin=2), (len(files), 1))
+    for who, rows in (("braking", braking[: len(braking) // len(files)]), (f"chooser, {len(files)} seeds", chooser)):
+        low, high = kim.wilson(int(rows[:, 0].sum()), len(rows))
+        print(
+            f"{who}: avoided {100 * rows[:, 0].mean():.1f} % [{low:.0f}, {high:.0f}] of {len(rows)}; "
+            f"injury {-rows[:, 1].mean():.2f}"
+        )
+    p = kim.paired_permutation_p(chooser[:, 1], braking[:, 1])
+    print(f"paired by seed and trial, ISS chooser against braking: p = {p:.4f}")
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=("labels", "fit", "drive"))
+    parser.add_argument("command", choices=("labels", "fit", "drive", "compare"))
     parser.add_argument("--episodes", type=int, default=1500, help="labels: training-distribution episodes")
     parser.add_argument("--bank", nargs="?", const=True, default=None, help="labels: the bank; fit: its labels")
     parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_chooser/train.npz"))
@@ -232,6 +254,9 @@ def main(argv=None) -> None:
         np.savez(args.data, **data)
         report("these labels", data, data["cost"], 0.0)
         print(f"wrote {args.data}: {len(data['view'])} decision states of {len(specs)} episodes")
+        return
+    if args.command == "compare":
+        compare(cfg, args.data.parent)
         return
     train = dict(np.load(args.data))
     scorer = fit(train, decide_steps, int(cfg.seed), args.margin)
