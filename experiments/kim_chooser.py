@@ -184,16 +184,21 @@ class LidarScores:
         self.see.note_action(kim_action_for(action, self.env.ego.v))
 
 
+def chooser_policy(cfg, scorer: Scorer, decide_steps: int, margin: float, step_s: float) -> ManoeuvreChooser:
+    """The fitted scorer as a policy of the evaluation's interface."""
+    scores = LidarScores(scorer, kim.observer(cfg, REWARD), decide_steps)
+    return ManoeuvreChooser(
+        candidates(step_s), scores, decide_steps, margin, f"chooser_seed{int(cfg.seed)}",
+        reset_scorer=scores.reset, note_action=scores.note_action,
+    )  # fmt: skip
+
+
 def drive(cfg, scorer: Scorer, decide_steps: int, margin: float, out_dir: Path) -> None:
     from envs import StraightLineBraking
 
     env = kim.family_env(cfg, REWARD)
-    scores = LidarScores(scorer, kim.observer(cfg, REWARD), decide_steps)
-    name = f"chooser_seed{int(cfg.seed)}"
-    chooser = ManoeuvreChooser(
-        candidates(env.step_s), scores, decide_steps, margin, name, reset_scorer=scores.reset,
-        note_action=scores.note_action,
-    )  # fmt: skip
+    chooser = chooser_policy(cfg, scorer, decide_steps, margin, env.step_s)
+    name = chooser.name
     specs = kim.bank(cfg.evaluate.kim)
     rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), chooser)}
     env.close()
