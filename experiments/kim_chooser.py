@@ -39,7 +39,7 @@ from torch import nn
 from tqdm import tqdm
 
 from envs.chooser import BRAKE, ManoeuvreChooser, decide_steps_for, switch_choice
-from envs.kim import kim_action_for
+from envs.kim import SCENARIOS, kim_action_for
 from envs.planner import Manoeuvre, _Plan, plan_cost
 from worldmodel.common import set_threads
 from worldmodel.config import compose
@@ -226,11 +226,16 @@ def compare(cfg, out_dir: Path) -> None:
         raise SystemExit(f"no drive_chooser_seed*_draw{draw}.csv or {braking_file.name} in {out_dir}: run drive first")
     chooser = np.concatenate([np.loadtxt(f, delimiter=",", ndmin=2) for f in files])
     braking = np.tile(np.loadtxt(braking_file, delimiter=",", ndmin=2), (len(files), 1))
+    trials = int(cfg.evaluate.kim.trials)  # the bank holds each scenario's trials in a block, in SCENARIOS' order
+    if len(braking) != len(files) * trials * len(SCENARIOS):
+        raise SystemExit(f"the files hold {len(braking) // len(files)} trials, evaluate.kim.trials={trials} says more")
     for who, rows in (("braking", braking[: len(braking) // len(files)]), (f"chooser, {len(files)} seeds", chooser)):
         low, high = kim.wilson(int(rows[:, 0].sum()), len(rows))
+        scenario = np.arange(len(rows)) // trials % len(SCENARIOS)
+        each = " / ".join(f"{100 * rows[scenario == k, 0].mean():.1f}" for k in range(len(SCENARIOS)))
         print(
-            f"{who}: avoided {100 * rows[:, 0].mean():.1f} % [{low:.0f}, {high:.0f}] of {len(rows)}; "
-            f"injury {-rows[:, 1].mean():.2f}"
+            f"{who}: avoided {100 * rows[:, 0].mean():.1f} % [{low:.0f}, {high:.0f}] of {len(rows)} "
+            f"({' / '.join(SCENARIOS)}: {each}); injury {-rows[:, 1].mean():.2f}"
         )
     p = kim.paired_permutation_p(chooser[:, 1], braking[:, 1])
     print(f"paired by seed and trial, ISS chooser against braking: p = {p:.4f}")
