@@ -3,6 +3,7 @@ the physics band of PEERS' calculation."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -253,6 +254,16 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert chosen == ((q0 + q1) / 2).argmax(1).tolist()
     assert chosen != q0.argmax(1).tolist() or chosen != q1.argmax(1).tolist()  # not simply one member
     assert chae.ensembles(agents, members, 3) == []  # seed 2 missing: no partial ensemble
+    # ensemble_pool: of seeds 0-2, the two that the selection draw ranks first join, in its order
+    pooled_ids = [*agents, dataclasses.replace(agents[0], seed=2)]
+    ranks = {0: (0.0, 9.0), 1: (0.0, 1.0), 2: (5.0, 0.0)}  # (bumps, stops): seed 2 outside the bump bar
+    scores = {a: {"max_bump_rate": ranks[a.seed][0], "unnecessary_stop_rate": ranks[a.seed][1]} for a in pooled_ids}
+    (best_two,) = chae.ensembles(pooled_ids, [*members, members[0]], 2, pool=3, scores=scores)
+    assert (best_two.name, best_two.policy_seed) == ("agent_chae_dqn_chae_ensemble2of3", 0)
+    assert [m for m in best_two.agent.members] == [members[1].agent, members[0].agent]
+    assert (
+        chae.selection_score(ev, agents[0]) == json.loads((agents[0].dir(ev) / "metrics.json").read_text())["selected"]
+    )
 
     summary = chae.evaluate(ev)
     rows = list(csv.DictReader(open(tmp_path / "runs/e/eval_chae/results.csv")))
@@ -266,8 +277,30 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert alone["policies"]["agent_chae_dqn_chae_ensemble2"] == summary["policies"]["agent_chae_dqn_chae_ensemble2"]
     with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=1"))
+    for pool in ("2", "1"):  # a pool must hold more runs than an ensemble takes
+        with pytest.raises(StageError, match="evaluate.chae.ensemble_pool"):
+            validate(
+                cfg(
+                    "evaluate",
+                    "evaluate.family=chae",
+                    "evaluate.chae.ensemble=2",
+                    f"evaluate.chae.ensemble_pool={pool}",
+                )
+            )
     with pytest.raises(StageError, match="evaluate.chae.singles"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.singles=false"))
+
+
+def test_the_best_runs_of_a_pool_rank_as_checkpoint_selection_ranks_checkpoints():
+    """evaluate.chae.ensemble_pool ranks runs by their selection scores: inside the bump bar (1 %) first, by fewest
+    needless stops; then by fewest bumps; the earlier seed on a tie."""
+    from worldmodel.peers.chae import best_selected
+
+    s = lambda bumps, stops: {"max_bump_rate": bumps, "unnecessary_stop_rate": stops}  # noqa: E731
+    scores = {0: s(0.0, 4.5), 1: s(4.5, 7.0), 2: s(0.0, 0.0), 3: s(15.5, 0.0), 4: s(0.0, 5.5)}
+    assert best_selected(scores, 3) == [2, 0, 4]
+    assert best_selected(scores, 5) == [2, 0, 4, 1, 3]
+    assert best_selected({5: s(1.0, 1.0), 6: s(0.5, 1.0), 7: s(2.0, 0.0)}, 2) == [5, 6]
 
 
 def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():

@@ -711,6 +711,9 @@ class ChaeEvalConfig(Checked):
     # 3, chosen on the validation draw: two ensembles in three inside both of the bars, single runs three in
     # nine (docs/results/chae/settings_validation.md)
     ensemble: int = 3
+    # n > ensemble: each ensemble is the `ensemble` runs, of n consecutive seeds, whose chosen checkpoints scored best
+    # on the selection draw, in the order checkpoint selection uses (chae.selected); 0 = `ensemble` consecutive seeds
+    ensemble_pool: int = 0
     # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
     # 1,000 trials per TTC, where each run alone would cost as much again per seed
     singles: bool = True
@@ -725,6 +728,12 @@ class ChaeEvalConfig(Checked):
             yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
         if self.ensemble == 1 or self.ensemble < 0:
             yield ConfigValueError("chae.ensemble", self.ensemble, "give 0 (none) or the members per ensemble, >= 2")
+        if self.ensemble_pool and (self.ensemble < 2 or self.ensemble_pool <= self.ensemble):
+            yield ConfigValueError(
+                "chae.ensemble_pool",
+                self.ensemble_pool,
+                f"give 0 (consecutive seeds) or more runs than chae.ensemble={self.ensemble} members to choose from",
+            )
 
 
 @dataclass

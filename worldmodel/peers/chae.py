@@ -309,25 +309,60 @@ class QEnsemble:
         return int(np.argmax(self.q_values(obs)))
 
 
-def ensembles(agents: list[AgentId], policies: list[DQNPolicy], k: int) -> list[DQNPolicy]:
+def ensembles(
+    agents: list[AgentId], policies: list[DQNPolicy], k: int, pool: int = 0, scores: dict | None = None
+) -> list[DQNPolicy]:
     """``evaluate.chae.ensemble``: per policy name (variant and observation), one ``QEnsemble`` of each ``k``
     consecutive seeds 0..k-1, k..2k-1, ..., named ``<policy>_ensemble<k>`` with the group's index as its seed.
-    A group with a seed missing is left out (logged), so an ensemble is always the same runs."""
-    by_name: dict[str, dict[int, DQNPolicy]] = {}
+    With ``pool`` n > k (``evaluate.chae.ensemble_pool``), of each n consecutive seeds the k whose chosen checkpoints
+    scored best on the selection draw (``scores``: agent -> its ``selected`` record), in ``selected``'s order,
+    named ``<policy>_ensemble<k>of<n>``. A group with a seed missing is left out (logged), so an ensemble is always
+    the same runs."""
+    n = pool or k
+    by_name: dict[str, dict[int, tuple[AgentId, DQNPolicy]]] = {}
     for agent, policy in zip(agents, policies, strict=True):
-        by_name.setdefault(agent.policy, {})[agent.seed] = policy
+        by_name.setdefault(agent.policy, {})[agent.seed] = (agent, policy)
     out = []
     for name, seeds in by_name.items():
-        for group in range(max(seeds) // k + 1):
-            wanted = list(range(group * k, (group + 1) * k))
+        for group in range(max(seeds) // n + 1):
+            wanted = list(range(group * n, (group + 1) * n))
             missing = [s for s in wanted if s not in seeds]
             if missing:
                 log.info("[eval chae] no %s_ensemble%d over seeds %s: seeds %s not trained", name, k, wanted, missing)
                 continue
-            members = [seeds[s] for s in wanted]
+            suffix = f"ensemble{k}"
+            if pool:
+                wanted = best_selected({s: scores[seeds[s][0]] for s in wanted}, k)
+                suffix += f"of{n}"
+                log.info("[eval chae] %s_%s %d: seeds %s, the best on the selection draw", name, suffix, group, wanted)
+            members = [seeds[s][1] for s in wanted]
             see = members[0].see  # the members' observers are alike; one makes the ensemble's input
-            out.append(DQNPolicy(f"{name}_ensemble{k}", QEnsemble(m.agent for m in members), see, group))
+            out.append(DQNPolicy(f"{name}_{suffix}", QEnsemble(m.agent for m in members), see, group))
     return out
+
+
+def selection_score(cfg, agent: AgentId) -> dict:
+    """The run's chosen checkpoint's score on the selection draw (``metrics.json``'s ``selected``)."""
+    path = agent.dir(cfg) / "metrics.json"
+    chosen = json.loads(path.read_text()).get("selected") if path.exists() else None
+    if not chosen:
+        raise StageError(
+            f"{agent.dir(cfg)} has no checkpoint chosen on a selection draw (metrics.json: 'selected'), which "
+            "evaluate.chae.ensemble_pool ranks runs by; retrain it with agent.select on, or set ensemble_pool=0"
+        )
+    return chosen
+
+
+def best_selected(scores: dict[int, dict], k: int) -> list[int]:
+    """The ``k`` seeds whose selection scores rank first in ``selected``'s order (the earlier seed on a tie)."""
+    ranked = []
+    rest = dict(scores)
+    for _ in range(k):
+        best = selected(list(rest.values()), BAR_BUMP)
+        seed = next(s for s, v in rest.items() if v is best)
+        ranked.append(seed)
+        del rest[seed]
+    return ranked
 
 
 class TTCBraking:
@@ -486,7 +521,8 @@ def evaluate(cfg) -> dict:
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
     if int(c.ensemble):
-        grouped = ensembles(agents, learned, int(c.ensemble))
+        scores = {a: selection_score(cfg, a) for a in agents} if c.ensemble_pool else None
+        grouped = ensembles(agents, learned, int(c.ensemble), int(c.ensemble_pool), scores)
         learned = learned + grouped if c.singles else grouped
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
