@@ -709,7 +709,8 @@ class ChaeEvalConfig(Checked):
     # run alone. Successive checkpoints of one run swing between bumping and needless stops, and the runs' swings
     # are out of phase (docs/results/chae/); averaging Q over independent runs damps what one run gets wrong.
     # 3, chosen on the validation draw: two ensembles in three inside both of the issue's bars, single runs three in
-    # nine (docs/results/chae/settings_validation.md)
+    # nine (docs/results/chae/settings_validation.md); with fifteen seeds, two in five on two fresh draws. Ensembles
+    # of five, and the best three of five (ensemble_pool=5), did no better there: not adopted
     ensemble: int = 3
     # n > ensemble: each ensemble is the `ensemble` runs, of n consecutive seeds, whose chosen checkpoints scored best
     # on the selection draw, in the order checkpoint selection uses (chae.selected); 0 = `ensemble` consecutive seeds
