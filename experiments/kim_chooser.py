@@ -45,9 +45,12 @@ from worldmodel.common import set_threads
 from worldmodel.config import compose
 from worldmodel.peers import kim
 
+from .kim_student import beside_braking
+
 LABEL_STREAM = 7778  # the chooser's labelled episodes: neither the training's, the demonstrations' nor the students'
 HELD_OUT = 0.15
 REWARD = "kim_unaware"
+STEP_S = 0.1  # the family's steps (kim.family_env)
 
 
 def candidates(step_s: float = 0.1) -> list[Manoeuvre]:
@@ -194,27 +197,7 @@ def chooser_policy(cfg, scorer: Scorer, decide_steps: int, margin: float, step_s
 
 
 def drive(cfg, scorer: Scorer, decide_steps: int, margin: float, out_dir: Path) -> None:
-    from envs import StraightLineBraking
-
-    env = kim.family_env(cfg, REWARD)
-    chooser = chooser_policy(cfg, scorer, decide_steps, margin, env.step_s)
-    name = chooser.name
-    specs = kim.bank(cfg.evaluate.kim)
-    rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), chooser)}
-    env.close()
-    iss = {policy: np.array([r["iss_kmh"] for r in rs]) for policy, rs in rows.items()}
-    for policy, rs in rows.items():
-        avoided = sum(r["avoided"] for r in rs)
-        low, high = kim.wilson(avoided, len(rs))
-        print(
-            f"{policy}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
-            f"(draw {cfg.evaluate.kim.seed}); injury {-iss[policy].mean():.2f}"
-        )
-    print(f"paired p on per-trial ISS against braking: {kim.paired_permutation_p(iss[name], iss['braking']):.4f}")
-    for policy, rs in rows.items():
-        out = out_dir / f"drive_{policy}_draw{cfg.evaluate.kim.seed}.csv"
-        np.savetxt(out, np.c_[[r["avoided"] for r in rs], iss[policy]], delimiter=",", header="avoided,iss_kmh")
-        print(f"wrote {out}")
+    beside_braking(cfg, chooser_policy(cfg, scorer, decide_steps, margin, STEP_S), out_dir)
 
 
 def compare(cfg, out_dir: Path) -> None:
@@ -253,7 +236,7 @@ def main(argv=None) -> None:
     args = parser.parse_intermixed_args(argv)
     cfg = compose("train_agent", ["agent=ddpg_kim", *args.overrides])
     set_threads(1)
-    decide_steps = decide_steps_for(args.decide_s, 0.1)
+    decide_steps = decide_steps_for(args.decide_s, STEP_S)
     if args.command == "labels":
         if args.bank:
             specs = kim.bank(cfg.evaluate.kim)

@@ -215,27 +215,34 @@ def lidar_observer(cfg, data: dict):
 
 
 def drive(cfg, agent, source: str, name: str, out_dir: Path) -> None:
-    """``agent`` drives the evaluation's bank beside straight-line braking; prints both and writes the student's
-    per-trial avoidance and ISS."""
-    from envs import StraightLineBraking
-
+    """``agent`` drives the evaluation's bank beside straight-line braking (``beside_braking``)."""
     see = kim.observer(cfg, "kim_unaware")
     student = TrueStatePolicy(name, agent) if source == "state" else kim.LidarPolicy(name, agent, see, int(cfg.seed))
+    beside_braking(cfg, student, out_dir)
+
+
+def beside_braking(cfg, policy, out_dir: Path) -> None:
+    """``policy`` and straight-line braking drive the evaluation's bank (``evaluate.kim.*``); prints both and the
+    paired test, and writes each one's per-trial avoidance and ISS to ``drive_<name>_draw<seed>.csv``."""
+    from envs import StraightLineBraking
+
     specs, env = kim.bank(cfg.evaluate.kim), kim.family_env(cfg, "kim_unaware")
-    rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), student)}
+    rows = {p.name: kim.run_policy(env, p, specs, int(cfg.seed)) for p in (StraightLineBraking(), policy)}
     env.close()
-    iss = {policy: np.array([r["iss_kmh"] for r in rs]) for policy, rs in rows.items()}
-    for policy, rs in rows.items():
+    iss = {name: np.array([r["iss_kmh"] for r in rs]) for name, rs in rows.items()}
+    for name, rs in rows.items():
         avoided = sum(r["avoided"] for r in rs)
         low, high = kim.wilson(avoided, len(rs))
         print(
-            f"{policy}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
-            f"(draw {cfg.evaluate.kim.seed}); injury {-iss[policy].mean():.2f}"
+            f"{name}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
+            f"(draw {cfg.evaluate.kim.seed}); injury {-iss[name].mean():.2f}"
         )
-    print(f"paired p on per-trial ISS against braking: {kim.paired_permutation_p(iss[name], iss['braking']):.3f}")
-    out = out_dir / f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv"
-    np.savetxt(out, np.c_[[r["avoided"] for r in rows[name]], iss[name]], delimiter=",", header="avoided,iss_kmh")
-    print(f"wrote {out}")
+    p = kim.paired_permutation_p(iss[policy.name], iss["braking"])
+    print(f"paired p on per-trial ISS against braking: {p:.4f}")
+    for name, rs in rows.items():
+        out = out_dir / f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv"
+        np.savetxt(out, np.c_[[r["avoided"] for r in rs], iss[name]], delimiter=",", header="avoided,iss_kmh")
+        print(f"wrote {out}")
 
 
 def dagger(cfg, data: dict, source: str, steer_weight: float, rounds: int, episodes: int, out_dir: Path) -> None:
