@@ -114,9 +114,11 @@ def outcomes(cost: np.ndarray, scores: np.ndarray, episode: np.ndarray, margin: 
     return np.asarray(out)
 
 
-def report(name: str, data: dict, predicted: np.ndarray, margin: float) -> None:
+def report(name: str, data: dict, predicted: np.ndarray | None, margin: float = 0.0) -> None:
+    """Braking, the chooser on ``predicted`` costs (if given) and on the exact ones, from the labels alone."""
     c, ep = data["cost"].astype(np.float64), data["episode"]
-    for who, scores in (("braking", np.zeros_like(c)), ("learned chooser", predicted), ("exact-cost chooser", c)):
+    rules = [("braking", np.zeros_like(c)), ("learned chooser", predicted), ("exact-cost chooser", c)]
+    for who, scores in [(who, s) for who, s in rules if s is not None]:
         res = outcomes(c, scores, ep, margin if who == "learned chooser" else 0.0)
         low, high = kim.wilson(int((res == 0).sum()), len(res))
         print(
@@ -245,7 +247,7 @@ def main(argv=None) -> None:
         data = labels(cfg, specs, decide_steps)
         args.data.parent.mkdir(parents=True, exist_ok=True)
         np.savez(args.data, **data)
-        report("these labels", data, data["cost"], 0.0)
+        report("these labels", data, None)
         print(f"wrote {args.data}: {len(data['view'])} decision states of {len(specs)} episodes")
         return
     if args.command == "compare":
