@@ -5,6 +5,7 @@
     python -m experiments.kim_chooser fit [--data FILE] [--bank FILE] [--margin 0.0] seed=0
     python -m experiments.kim_chooser drive [--data FILE] [--margin 0.0] evaluate.kim.seed=77 seed=0
     python -m experiments.kim_chooser compare evaluate.kim.seed=77
+    python -m experiments.kim_chooser ceiling --data runs/kim_chooser/bank77_decide1.0.npz
 
 The cloned LIDAR students stop at straight-line braking because the planner's choices, rare swerves that flicker
 from step to step, are what they cannot copy (docs/results/kim/README.md). The chooser (``envs/chooser.py``,
@@ -26,6 +27,7 @@ episodes and, with ``--bank``, on the bank's labels.
 ``drive``: the fitted chooser drives the bank in closed loop beside straight-line braking (the offline numbers of
 ``fit --bank`` must come out the same: the LIDAR is noise-free) and writes both policies' per-trial avoidance and
 ISS beside ``--data``. ``compare``: the seeds of ``drive`` pooled, and the paired test against braking.
+``ceiling``: on labels of a long window (``labels --decide-s 1.0``), the exact-cost chooser kept to each shorter one.
 """
 
 from __future__ import annotations
@@ -202,6 +204,16 @@ def drive(cfg, scorer: Scorer, decide_steps: int, margin: float, out_dir: Path) 
     beside_braking(cfg, chooser_policy(cfg, scorer, decide_steps, margin, STEP_S), out_dir)
 
 
+def ceiling(data: dict) -> None:
+    """The exact-cost chooser on labels of a long window, kept to each shorter window: how the ceiling grows with
+    the time the chooser may take to switch."""
+    c, ep, step = data["cost"].astype(np.float64), data["episode"], data["step"]
+    for last in range(1, int(step.max()) + 2):
+        keep = step < last
+        avoided = np.mean(outcomes(c[keep], c[keep], ep[keep], 0.0) == 0)
+        print(f"may switch within {last * STEP_S:.1f} s: the exact-cost chooser avoids {100 * avoided:.1f} %")
+
+
 def compare(cfg, out_dir: Path) -> None:
     """The seeds of ``drive`` pooled, and the paired test against braking on the same trials, seed by seed."""
     draw = cfg.evaluate.kim.seed
@@ -228,7 +240,7 @@ def compare(cfg, out_dir: Path) -> None:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("command", choices=("labels", "fit", "drive", "compare"))
+    parser.add_argument("command", choices=("labels", "fit", "drive", "compare", "ceiling"))
     parser.add_argument("--episodes", type=int, default=1500, help="labels: training-distribution episodes")
     parser.add_argument("--bank", nargs="?", const=True, default=None, help="labels: the bank; fit: its labels")
     parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_chooser/train.npz"))
@@ -252,6 +264,9 @@ def main(argv=None) -> None:
         return
     if args.command == "compare":
         compare(cfg, args.data.parent)
+        return
+    if args.command == "ceiling":
+        ceiling(dict(np.load(args.data)))
         return
     train = dict(np.load(args.data))
     scorer = fit(train, decide_steps, int(cfg.seed), args.margin)
