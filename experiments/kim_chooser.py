@@ -96,6 +96,15 @@ def labels(cfg, specs: list, decide_steps: int) -> dict:
     }
 
 
+def window(data: dict, decide_steps: int) -> dict:
+    """Labels of a longer decision window cut to the first ``decide_steps`` steps; a shorter one is refused."""
+    longest = int(data["step"].max()) + 1
+    if longest < decide_steps:
+        raise SystemExit(f"these labels hold {longest} decision steps, --decide-s asks for {decide_steps}: relabel")
+    keep = data["step"] < decide_steps
+    return {k: v[keep] for k, v in data.items()}
+
+
 def features(data: dict, decide_steps: int) -> np.ndarray:
     return np.concatenate([data["view"], np.eye(decide_steps, dtype=np.float32)[data["step"]]], 1)
 
@@ -268,10 +277,10 @@ def main(argv=None) -> None:
     if args.command == "ceiling":
         ceiling(dict(np.load(args.data)))
         return
-    train = dict(np.load(args.data))
+    train = window(dict(np.load(args.data)), decide_steps)
     scorer = fit(train, decide_steps, int(cfg.seed), args.margin)
     if args.command == "fit" and isinstance(args.bank, str):
-        bank = dict(np.load(args.bank))
+        bank = window(dict(np.load(args.bank)), decide_steps)
         with torch.no_grad():
             report(
                 f"bank {args.bank}", bank, scorer(torch.from_numpy(features(bank, decide_steps))).numpy(), args.margin
