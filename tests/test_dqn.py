@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from worldmodel.common import ConfigValueError
-from worldmodel.models.dqn import DQN, DQNConfig, QNetwork, TransitionBuffer
+from worldmodel.models.dqn import DQN, DQNConfig, QNetwork, TransitionBuffer, squash, unsquash
 
 torch.set_num_threads(1)
 
@@ -74,6 +74,38 @@ def test_advantage_learning_lowers_the_target_of_non_greedy_actions_only():
         agent.td_targets(torch.tensor([0.5, 0.5]), s, torch.tensor([1.0, 1.0]))
     with pytest.raises(ConfigValueError, match="advantage_alpha"):
         DQNConfig(advantage_alpha=1.0)
+
+
+def h_inverse_by_bisection(y: float) -> float:
+    """Solves sign(x) (sqrt(|x| + 1) - 1) + 0.001 x = y without the closed form the code uses."""
+    lo, hi = -1e6, 1e6
+    for _ in range(200):
+        mid = (lo + hi) / 2
+        h = np.sign(mid) * (np.sqrt(abs(mid) + 1) - 1) + 1e-3 * mid
+        lo, hi = (mid, hi) if h < y else (lo, mid)
+    return (lo + hi) / 2
+
+
+def test_value_rescaling_takes_the_bellman_step_in_returns_and_squashes_it():
+    """The same nets, now holding h(Q). DQN: a' = argmax Q'(s', .) = 1 (h is increasing), its return is
+    h^-1(2.5) ~ 11.2, so y = h(0.5 + 0.9 h^-1(2.5)); a terminal transition is h(r). A collision's -100 is stored
+    as -(sqrt(101) - 1) - 0.1, and q_values answers in returns."""
+    cfg = DQNConfig(hidden=[2], leaky_slope=0.01, gamma=0.9, value_rescale=True, batch_size=2, buffer_size=2)
+    agent = DQN(obs_dim=2, n_actions=2, cfg=cfg, seed=0)
+    set_weights(agent.target_network, [[1, 0], [0, -1]], [0, 0], [[1, 0], [0, -100]], [0, 0.5])
+
+    def h(x):
+        return np.sign(x) * (np.sqrt(abs(x) + 1) - 1) + 1e-3 * x
+
+    next_obs = torch.tensor([[1.0, 2.0], [1.0, 2.0]])
+    y = agent.td_targets(torch.tensor([0.5, -1.0]), next_obs, torch.tensor([0.0, 1.0]))
+    assert y.tolist() == pytest.approx([h(0.5 + 0.9 * h_inverse_by_bisection(2.5)), h(-1.0)], abs=1e-5)
+    assert squash(torch.tensor(-100.0)).item() == pytest.approx(-(101**0.5 - 1) - 0.1, abs=1e-5)
+    returns = torch.tensor([-103.0, -0.3, 0.0, 0.3, 40.0])
+    assert unsquash(squash(returns)).tolist() == pytest.approx(returns.tolist(), abs=1e-3)
+    set_weights(agent.q_network, [[1, 0], [0, -1]], [0, 0], [[1, 0], [0, -100]], [0, 0.5])
+    q = agent.q_values(np.array([1.0, 2.0], np.float32))
+    assert q.tolist() == pytest.approx([h_inverse_by_bisection(1.0), h_inverse_by_bisection(2.5)], abs=1e-4)
 
 
 def test_the_dueling_head_adds_the_value_to_the_advantages_less_their_mean():

@@ -254,6 +254,7 @@ ADDED_DEFAULTS = {
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
 DQN_OPTIONS_OFF = {
     "advantage_alpha": 0.0,
+    "value_rescale": False,
     "dueling": False,
     "trauma_weight_final": None,
     "trauma_weight_hold": 0.0,
