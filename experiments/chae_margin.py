@@ -1,0 +1,74 @@
+"""How thin the gap is that Chae's agents decide on: an ensemble's greedy decisions with its "no brake" value raised
+by a margin, on a validation draw.
+
+    python -m experiments.chae_margin runs/NAME --seeds 9 10 11 --margins -0.05 0 0.05 [--draw 99] [--trials 200]
+
+Loads the runs' chosen checkpoints (``runs/NAME/agent_chae_dqn_chae/seedK``) as ``evaluate.chae.ensemble`` does,
+drives the draw (``peers.chae.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scenario 2) once per margin and prints a
+markdown table of the highest bump rate and the needless stops (docs/results/chae/settings_validation.md,
+thirteenth session). A margin m > 0 brakes only when braking's mean Q beats not braking's by more than m.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+TTCS = [1.5, 1.7, 1.9]
+NO_BRAKE = 3  # the index of 0 m/s^2 in envs.chae.BRAKE_LEVELS
+
+
+class MarginEnsemble:
+    """The mean-Q ensemble, greedy after adding ``margin`` to the "no brake" action's value."""
+
+    def __init__(self, ensemble, margin: float):
+        self.ensemble, self.margin = ensemble, float(margin)
+
+    def act(self, obs, step=None, explore: bool = False) -> int:
+        q = self.ensemble.q_values(obs).copy()
+        q[NO_BRAKE] += self.margin
+        return int(np.argmax(q))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
+    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the ensemble's members")
+    parser.add_argument("--margins", type=float, nargs="+", required=True)
+    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
+    parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
+    args = parser.parse_args(argv)
+
+    import torch
+
+    from worldmodel import artifacts
+    from worldmodel.config import compose
+    from worldmodel.peers import chae
+
+    torch.set_num_threads(1)
+    run = args.run.resolve()
+    cfg = compose("evaluate", [f"experiment={run.name}", f"paths.runs={run}", "evaluate.family=chae"])
+    agents = {a.seed: a for a in artifacts.trained_agents(cfg, family="chae") if a.variant == "dqn_chae"}
+    missing = [s for s in args.seeds if s not in agents]
+    if missing:
+        raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
+    members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
+    ensemble = chae.QEnsemble(m.agent for m in members)
+    entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=TTCS))
+    env = chae.family_env(cfg, camera=False, end_on_bump=False)
+    print(f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2\n")
+    print("| margin | bumps % at TTC 1.5 / 1.7 / 1.9 s | needless stops % |\n|---:|---|---:|")
+    for m in args.margins:
+        policy = chae.DQNPolicy(f"margin{m:+g}", MarginEnsemble(ensemble, m), members[0].see, 0)
+        rows = chae.run_policy(env, policy, entries, leave=False)
+        s = chae.summarise(rows, TTCS)["policies"][policy.name]
+        bumps = " / ".join(f"{s['bump_rate'][t]:.1f}" for t in TTCS)
+        print(f"| {m:+g} | {bumps} | {s['unnecessary_stop_rate']:.1f} |", flush=True)
+    env.close()
+
+
+if __name__ == "__main__":
+    main()
