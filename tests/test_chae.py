@@ -17,6 +17,7 @@ from envs.chae import (
     LAMBDA,
     V_INIT_RANGE,
     ChaeSpec,
+    ClosingSpeedBraking,
     LatestSafeBraking,
     PedestrianHistory,
     brake_action,
@@ -147,6 +148,39 @@ def test_braking_at_the_trigger_lands_in_the_physics_band(env):
             rate = 100 * bumps / n
             slack = 100 * 2.5 * np.sqrt(max(lo, 1) / 100 * (1 - max(lo, 1) / 100) / n)  # sampling noise
             assert lo - slack <= rate <= hi + slack, (policy.name, ttc, rate)
+
+
+def test_the_closing_speed_rule_reads_the_agents_state_and_brakes_only_for_a_walking_pedestrian(env):
+    """``ClosingSpeedBraking`` sees what dqn_chae sees. Its slope by hand: |dy| 3.0, 2.7, ..., 1.8 m at 0.1 s steps
+    is 3 m/s closing; without noise it never brakes for a pedestrian who stays, and for one who walks it brakes
+    within the readings a 1 m/s threshold needs (the line over 5 readings passes 1 m/s at the 2nd moving one)."""
+    rule = ClosingSpeedBraking(threshold_ms=1.0, readings=5, noise_m=0.0)
+    rule.bind(env)
+    history = np.array([[20.0 - k, -(3.0 - 0.3 * k), 8.0] for k in range(5)]).ravel()  # on the right, closing
+    assert rule.closing_speed(history) == pytest.approx(3.0)
+    assert rule.closing_speed(np.tile([20.0, 3.0, 8.0], 5)) == pytest.approx(0.0, abs=1e-12)
+
+    stays = ChaeSpec(seed=3, ttc=1.5, v_init=10 / 3.6, crosses=False)
+    o = rollout(env, rule, stays).outcome
+    assert o["end"] == "pass" and not o["bumped"]
+
+    walks = ChaeSpec(seed=3, ttc=1.5, v_init=10 / 3.6, v_ped=2.0)  # the corner the learned ensembles bump in
+    trace = []  # (the pedestrian has started after the step, the step's pedal)
+
+    def record(obs, action, reward, info):
+        trace.append((env.family_state.started, action[1]))
+
+    rollout(env, rule, walks, on_step=record)
+    first_started = next(k for k, (started, _) in enumerate(trace) if started)
+    first_brake = next(k for k, (_, pedal) in enumerate(trace) if pedal < 0)
+    assert 0 < first_brake - first_started <= 3, (first_started, first_brake)
+    assert all(pedal == -1.0 for _, pedal in trace[first_brake:])  # braking fully, to the stop
+    assert rollout(env, rule, walks).outcome["end"] == "stop"
+
+    with pytest.raises(ValueError, match="readings"):
+        ClosingSpeedBraking(readings=1)
+    with pytest.raises(ValueError, match="threshold_ms"):
+        ClosingSpeedBraking(threshold_ms=0.0)
 
 
 def test_evaluation_records_the_bump_and_runs_on_to_measure_contact():

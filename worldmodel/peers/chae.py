@@ -16,7 +16,8 @@ Evaluation (``evaluate.family=chae``): Table I's layout, Scenario-1 bump rate at
 over ``evaluate.chae.trials`` seeded trials (the same scenarios for every policy), Scenario 2's unnecessary stops,
 the stopping distance to the pedestrian (their Fig. 7), and, since "bump" is only Chae's proxy, footprint contact,
 impact speed and Rosen pedestrian injury. Policies: straight-line braking from the pedestrian's start, TTC-threshold
-braking, the privileged latest-safe braking, every dqn agent of the experiment and, with ``evaluate.chae.ensemble``
+braking, the privileged latest-safe braking, a hand-written closing-speed rule on the agent's own noisy state
+(``closing_braking``, not privileged), every dqn agent of the experiment and, with ``evaluate.chae.ensemble``
 k, the greedy mean-Q ensemble of each k consecutive seeds of a variant. Writes ``runs/NAME/eval_chae/``.
 """
 
@@ -39,6 +40,7 @@ from envs.chae import (
     V_PED_RANGE,
     BrakeAtTrigger,
     ChaeSpec,
+    ClosingSpeedBraking,
     LatestSafeBraking,
     PedestrianHistory,
     brake_action,
@@ -395,7 +397,13 @@ class StraightBraking(BrakeAtTrigger):
     name = "braking"
 
 
-SCRIPTED = {"braking": StraightBraking, "ttc_braking": TTCBraking, "latest_safe_braking": LatestSafeBraking}
+# closing_braking is the one not privileged: it reads the agent's own noisy state (envs.chae.ClosingSpeedBraking)
+SCRIPTED = {
+    "braking": StraightBraking,
+    "ttc_braking": TTCBraking,
+    "latest_safe_braking": LatestSafeBraking,
+    "closing_braking": ClosingSpeedBraking,
+}
 
 
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
