@@ -153,7 +153,7 @@ def test_braking_at_the_trigger_lands_in_the_physics_band(env):
 def test_the_closing_speed_rule_reads_the_agents_state_and_brakes_only_for_a_walking_pedestrian(env):
     """``ClosingSpeedBraking`` sees what dqn_chae sees. Its slope by hand: |dy| 3.0, 2.7, ..., 1.8 m at 0.1 s steps
     is 3 m/s closing; without noise it never brakes for a pedestrian who stays, and for one who walks it brakes
-    within the readings a 1 m/s threshold needs (the line over 5 readings passes 1 m/s at the 2nd moving one)."""
+    within the readings a 1 m/s threshold needs (the line over 5 readings passes 1 m/s at the 2nd or 3rd moving one)."""
     rule = ClosingSpeedBraking(threshold_ms=1.0, readings=5, noise_m=0.0)
     rule.bind(env)
     history = np.array([[20.0 - k, -(3.0 - 0.3 * k), 8.0] for k in range(5)]).ravel()  # on the right, closing
