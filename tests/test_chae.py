@@ -304,11 +304,22 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     per_policy = {p: sum(r["policy"] == p for r in rows) for p in {r["policy"] for r in rows}}
     assert per_policy["agent_chae_dqn_chae_ensemble2"] == per_policy["braking"] == 12  # 3 TTCs + Scenario 2, 3 each
     assert per_policy["agent_chae_dqn_chae"] == 24  # the two seeds alone, as before
+    assert set(summary["policies"]) >= set(chae.SCRIPTED)
+    # the ensembles alone, with one scripted policy (evaluate.chae.policies): the same trials give the same rows
     alone = chae.evaluate(
-        cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=2", "evaluate.chae.singles=false")
+        cfg(
+            "evaluate",
+            "evaluate.family=chae",
+            "evaluate.chae.ensemble=2",
+            "evaluate.chae.singles=false",
+            "evaluate.chae.policies=[braking]",
+        )
     )
-    assert set(alone["policies"]) == {*chae.SCRIPTED, "agent_chae_dqn_chae_ensemble2"}
-    assert alone["policies"]["agent_chae_dqn_chae_ensemble2"] == summary["policies"]["agent_chae_dqn_chae_ensemble2"]
+    assert set(alone["policies"]) == {"braking", "agent_chae_dqn_chae_ensemble2"}
+    for name in alone["policies"]:
+        assert alone["policies"][name] == summary["policies"][name]
+    with pytest.raises(StageError, match="evaluate.chae.policies.*closing_braking"):
+        validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.policies=[braking,aeb3m]"))
     with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=1"))
     for pool in ("2", "1"):  # a pool must hold more runs than an ensemble takes
@@ -323,6 +334,13 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
             )
     with pytest.raises(StageError, match="evaluate.chae.singles"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.singles=false"))
+
+
+def test_the_configs_scripted_names_are_the_ones_evaluation_builds():
+    from worldmodel.config import CHAE_SCRIPTED_POLICIES
+    from worldmodel.peers import chae
+
+    assert tuple(chae.SCRIPTED) == CHAE_SCRIPTED_POLICIES
 
 
 def test_the_best_runs_of_a_pool_rank_as_checkpoint_selection_ranks_checkpoints():

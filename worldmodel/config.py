@@ -693,6 +693,8 @@ def teacher_settings(cfg) -> dict:
 
 
 SCRIPTED_POLICIES = ("braking", "oracle")
+# family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae.py SCRIPTED)
+CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
 BANKS = ("test", "validation")
 
 
@@ -718,6 +720,9 @@ class ChaeEvalConfig(Checked):
     # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
     # 1,000 trials per TTC, where each run alone would cost as much again per seed
     singles: bool = True
+    # scripted policies beside every dqn agent (CHAE_SCRIPTED_POLICIES; peers.chae.SCRIPTED builds them). Fewer for
+    # a large draw whose scripted rows are already known: they are deterministic, the same trials give the same rows
+    policies: list[str] = field(default_factory=lambda: list(CHAE_SCRIPTED_POLICIES))
 
     def problems(self):
         yield from _positive(self, "trials")
@@ -727,6 +732,10 @@ class ChaeEvalConfig(Checked):
             )
         if not self.ttcs or any(t <= 0 for t in self.ttcs):
             yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
+        if any(p not in CHAE_SCRIPTED_POLICIES for p in self.policies):
+            yield ConfigValueError(
+                "chae.policies", list(self.policies), f"use some of {', '.join(CHAE_SCRIPTED_POLICIES)}"
+            )
         if self.ensemble == 1 or self.ensemble < 0:
             yield ConfigValueError("chae.ensemble", self.ensemble, "give 0 (none) or the members per ensemble, >= 2")
         if self.ensemble_pool and (self.ensemble < 2 or self.ensemble_pool <= self.ensemble):

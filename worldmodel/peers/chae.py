@@ -17,7 +17,7 @@ over ``evaluate.chae.trials`` seeded trials (the same scenarios for every policy
 the stopping distance to the pedestrian (their Fig. 7), and, since "bump" is only Chae's proxy, footprint contact,
 impact speed and Rosen pedestrian injury. Policies: straight-line braking from the pedestrian's start, TTC-threshold
 braking, the privileged latest-safe braking, a hand-written closing-speed rule on the agent's own noisy state
-(``closing_braking``, not privileged), every dqn agent of the experiment and, with ``evaluate.chae.ensemble``
+(``closing_braking``, not privileged; ``evaluate.chae.policies`` picks among these four), every dqn agent of the experiment and, with ``evaluate.chae.ensemble``
 k, the greedy mean-Q ensemble of each k consecutive seeds of a variant. Writes ``runs/NAME/eval_chae/``.
 """
 
@@ -534,7 +534,7 @@ def evaluate(cfg) -> dict:
         learned = learned + grouped if c.singles else grouped
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
-    for name in SCRIPTED:
+    for name in c.policies:
         rows += run_policy(plain, SCRIPTED[name](), entries)
     plain.close()
     for policy in learned:
@@ -562,7 +562,7 @@ def evaluate(cfg) -> dict:
     log.info(
         "[eval chae] %d trials x %d policies in %.0f s: %s",
         len(entries),
-        len(SCRIPTED) + len(learned),
+        len(c.policies) + len(learned),
         summary["wall_s"],
         out / "tables.md",
     )
