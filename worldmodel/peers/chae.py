@@ -17,8 +17,9 @@ over ``evaluate.chae.trials`` seeded trials (the same scenarios for every policy
 the stopping distance to the pedestrian (their Fig. 7), and, since "bump" is only Chae's proxy, footprint contact,
 impact speed and Rosen pedestrian injury. Policies: straight-line braking from the pedestrian's start, TTC-threshold
 braking, the privileged latest-safe braking, a hand-written closing-speed rule on the agent's own noisy state
-(``closing_braking``, not privileged; ``evaluate.chae.policies`` picks among these four), every dqn agent of the experiment and, with ``evaluate.chae.ensemble``
-k, the greedy mean-Q ensemble of each k consecutive seeds of a variant. Writes ``runs/NAME/eval_chae/``.
+(``closing_braking``, not privileged; ``evaluate.chae.policies`` picks among these four), every dqn agent of the
+experiment and, with ``evaluate.chae.ensemble`` k, the greedy mean-Q ensemble of each k consecutive seeds of a
+variant. Writes ``runs/NAME/eval_chae/``.
 """
 
 from __future__ import annotations
