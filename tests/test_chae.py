@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -305,6 +306,8 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert per_policy["agent_chae_dqn_chae_ensemble2"] == per_policy["braking"] == 12  # 3 TTCs + Scenario 2, 3 each
     assert per_policy["agent_chae_dqn_chae"] == 24  # the two seeds alone, as before
     assert set(summary["policies"]) >= set(chae.SCRIPTED)
+    first = tmp_path / "first"
+    shutil.copytree(tmp_path / "runs/e/eval_chae", first)
     # the ensembles alone, with one scripted policy (evaluate.chae.policies): the same trials give the same rows
     alone = chae.evaluate(
         cfg(
@@ -318,6 +321,13 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert set(alone["policies"]) == {"braking", "agent_chae_dqn_chae_ensemble2"}
     for name in alone["policies"]:
         assert alone["policies"][name] == summary["policies"][name]
+    # experiments.chae_tables: the rows read back give the evaluation's tables; a run given twice is refused
+    from experiments import chae_tables
+
+    chae_tables.main([str(first / "results.csv"), "--out", str(tmp_path / "joined.md")])
+    assert (tmp_path / "joined.md").read_text() == (first / "tables.md").read_text()
+    with pytest.raises(SystemExit, match="braking seed 0 is in both"):
+        chae_tables.join([first / "results.csv", tmp_path / "runs/e/eval_chae/results.csv"])
     with pytest.raises(StageError, match="evaluate.chae.policies.*closing_braking"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.policies=[braking,aeb3m]"))
     with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
