@@ -497,7 +497,8 @@ class AgentConfig(DDPGConfig):
     # family chae's training TTCs (the dqn learner's episodes), U(lo, hi) s; evaluation keeps its own TTCs. The
     # paper's 1.5-4 s puts the bar's edge (TTC 1.5 s) at the edge of training, where one ensemble in three bumps at
     # 10-12.5 km/h. 1.3-4 s removed those bumps but made two ensembles in three stop needlessly at 10-30 km/h: not
-    # adopted (docs/results/chae/settings_validation.md, eleventh session)
+    # adopted (docs/results/chae/settings_validation.md, eleventh session); with agent.dqn.value_rescale (fifteenth),
+    # two ensembles in three inside both bars: not adopted
     chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
