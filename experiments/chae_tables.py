@@ -62,11 +62,8 @@ def main(argv=None) -> None:
 
     rows = join(args.results)
     ttcs = sorted({r["ttc"] for r in rows if r["scenario"] == 1})
-    trials = sum(
-        1
-        for r in rows
-        if r["scenario"] == 2 and (r["policy"], r["policy_seed"]) == (rows[0]["policy"], rows[0]["policy_seed"])
-    )
+    first_run = trial_keys(rows)[rows[0]["policy"], rows[0]["policy_seed"]]
+    trials = sum(scenario == 2 for scenario, *_ in first_run)  # Scenario 2 has as many trials as each TTC
     args.out.write_text(chae.tables(chae.summarise(rows, ttcs), trials))
     print(f"{len(rows)} rows from {len(args.results)} files: {args.out}")
 
