@@ -77,9 +77,9 @@ def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
     collect.run(again)
     assert dataset_content(root) == dataset_content(artifacts.rollouts_dir(again))
     # Worker count does not change the data.
-    single = stage_cfg("collect", "collect.num_workers=1", root=tmp_path / "third")
-    collect.run(single)
-    assert dataset_content(root) == dataset_content(artifacts.rollouts_dir(single))
+    two = stage_cfg("collect", "collect.num_workers=2", root=tmp_path / "third")
+    collect.run(two)
+    assert dataset_content(root) == dataset_content(artifacts.rollouts_dir(two))
 
 
 def test_sigkill_then_resume_gives_exactly_the_uninterrupted_data(tmp_path, stage_cfg):

@@ -69,21 +69,26 @@ def run_policy(
     return rows
 
 
-_WORKER: dict = {}
+_WORKER: dict = {}  # a pool worker's env and policy, built once: the pool lives for one evaluate_policy call
 
 
-def _run_chunk(task) -> list[dict]:
-    """Worker side: (config, policy name, entries) -> rows. Env and policy are built once per process."""
+def _build(cfg_dict, name: str):
+    """(env, policy, seed, models) for policy ``name``, on one torch thread."""
     import torch
     from omegaconf import OmegaConf
 
-    cfg_dict, name, entries = task
     torch.set_num_threads(1)
+    cfg = OmegaConf.create(cfg_dict)
+    camera = name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER)
+    policy, seed, models = policy_for(cfg, name)
+    return make_env(cfg, camera=camera, **env_overrides(policy)), policy, seed, models
+
+
+def _run_chunk(task) -> list[dict]:
+    """Pool worker side: (config, policy name, entries) -> rows."""
+    cfg_dict, name, entries = task
     if name not in _WORKER:
-        cfg = OmegaConf.create(cfg_dict)
-        camera = name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER)
-        policy, seed, models = policy_for(cfg, name)
-        _WORKER[name] = (make_env(cfg, camera=camera, **env_overrides(policy)), policy, seed, models)
+        _WORKER[name] = _build(cfg_dict, name)
     env, policy, seed, models = _WORKER[name]
     return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
 
@@ -101,9 +106,15 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
     rows: list[dict] = []
     with tqdm(total=len(entries), desc=name, unit="scenario") as bar:
         if workers <= 1:
-            for t in tasks:
-                rows += _run_chunk(t)
-                bar.update(len(t[2]))
+            # built afresh on every call, never cached in this process: a checkpoint may have been replaced
+            # (retrained, or rebuilt by the pipeline) since the last evaluation here
+            env, policy, seed, models = _build(cfg_dict, name)
+            try:
+                for _, _, part in tasks:
+                    rows += run_policy(env, policy, part, desc=False, policy_seed=seed, models=models)
+                    bar.update(len(part))
+            finally:
+                env.close()
         else:
             with mp.get_context("spawn").Pool(workers) as pool:
                 for part in pool.imap(_run_chunk, tasks):
