@@ -224,29 +224,45 @@ def test_checkpoint_selection_by_chaes_metrics():
     assert selected([], 1.0) is None
 
 
-def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_chosen_one(tmp_path):
+@pytest.fixture(scope="module")
+def kept_run(tmp_path_factory):
+    """A smoke dqn_chae run that validated every 4 episodes and kept each validated checkpoint
+    (agent.select.keep)."""
+    from worldmodel import train_agent
+
+    chosen = smoke_dqn_chae(tmp_path_factory.mktemp("chosen"), "agent.select.keep=true")
+    train_agent.run(chosen)
+    return chosen
+
+
+def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_chosen_one(kept_run, tmp_path):
     """Validating greedily between episodes draws nothing from the learner's RNG, so last.pt is what a run without
-    selection ends with; best.pt holds the chosen episode's network, and load_policy returns it. Choosing on the
-    evaluation's own draw is refused."""
+    selection ends with; best.pt holds the chosen episode's network, and load_policy returns it; every validated
+    checkpoint is kept when asked. Choosing on the evaluation's own draw is refused."""
     import torch
 
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.peers.chae import load_policy
+    from worldmodel.peers.chae import load_policy, validated_path
 
     cfg = smoke_dqn_chae
-    chosen, plain = cfg(tmp_path / "chosen"), cfg(tmp_path / "plain", "agent.select.every=0")
-    train_agent.run(chosen)
+    chosen, plain = kept_run, cfg(tmp_path / "plain", "agent.select.every=0")
     train_agent.run(plain)
     agent = AgentId.of(chosen)
     load = lambda c, which: torch.load(agent.dir(c) / f"{which}.pt", weights_only=False)  # noqa: E731
     last, last_plain, best = load(chosen, "last"), load(plain, "last"), load(chosen, "best")
-    assert not (agent.dir(plain) / "best.pt").exists()
+    assert not (agent.dir(plain) / "best.pt").exists() and not (agent.dir(plain) / "validated").exists()
     for name, w in last["agent"]["q_network"].items():
         assert torch.equal(w, last_plain["agent"]["q_network"][name]), name
     scores = last["curve"]["validation"]
     assert [s["episode"] for s in scores] == [4, 8, 12]  # smoke: every 4 episodes from a quarter of 12
+    assert sorted(p.name for p in (agent.dir(chosen) / "validated").iterdir()) == [
+        f"episode{e:05d}.pt" for e in (4, 8, 12)
+    ]
+    kept = torch.load(validated_path(agent.dir(chosen), best["episode"]), weights_only=False)
+    for name, w in best["agent"]["q_network"].items():
+        assert torch.equal(w, kept["agent"]["q_network"][name]), name
     metrics = json.loads((agent.dir(chosen) / "metrics.json").read_text())
     assert best["episode"] == metrics["selected"]["episode"] in (4, 8, 12)
     policy = load_policy(chosen, agent)
@@ -257,6 +273,62 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
         assert last["episode"] == 12 and any(moved)
     with pytest.raises(StageError, match="evaluate.chae.seed"):
         train_agent.run(cfg(tmp_path / "clash", "agent.select.seed=2017"))
+
+
+def test_reselection_keeps_the_checkpoint_with_the_most_room_under_both_bars():
+    """experiments.chae_reselect's rule: candidates inside both bars on training's draw, the fewest bumps at TTC 1.5 s
+    first; then the smallest max(bumps / 1 %, stops / 5 %) on the larger draw, the later on a tie."""
+    from experiments.chae_reselect import choose, room, shortlist
+
+    def trained(episode, corner, worst, stops):
+        return {"episode": episode, "bump_rate": {"1.5": corner}, "max_bump_rate": worst, "unnecessary_stop_rate": stops}
+
+    scores = [trained(1500, 0.0, 0.0, 6.0), trained(1750, 0.5, 0.5, 1.0), trained(2000, 0.0, 1.0, 2.0)]
+    scores += [trained(2250, 1.5, 1.5, 0.0), trained(2500, 0.0, 0.5, 2.0), trained(2750, 1.0, 1.0, 0.0)]
+    # 1500 stops too often and 2250 bumps too often; among the rest, 0 % at the corner first, fewer stops, later
+    assert [s["episode"] for s in shortlist(scores, 3)] == [2500, 2000, 1750]
+    assert shortlist(scores[:1], 3) == []
+    assert room({"bump_rate": 0.6, "unnecessary_stop_rate": 4.0}) == pytest.approx(0.8)
+
+    def rescored(episode, bumps, stops):
+        return {"episode": episode, "bump_rate": bumps, "unnecessary_stop_rate": stops}
+
+    assert choose([rescored(1750, 0.4, 4.5), rescored(2000, 0.8, 1.0), rescored(2500, 0.6, 0.0)])["episode"] == 2500
+    assert choose([rescored(1750, 0.4, 0.0), rescored(2000, 0.0, 2.0)])["episode"] == 2000  # 0.4 each: the later
+
+
+def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, tmp_path):
+    """On a run whose training-time scores are all inside both bars, the shortlisted kept checkpoints drive the new
+    draw, the chosen one becomes the copy's best.pt, and the evaluation's loader reads it; the judging draws are
+    refused."""
+    import torch
+
+    from experiments import chae_reselect
+    from worldmodel.artifacts import AgentId
+    from worldmodel.peers.chae import load_policy, validated_path
+
+    run = tmp_path / "t"
+    shutil.copytree(kept_run.paths.runs, run)
+    agent_dir = run / "agent_chae_dqn_chae/seed0"
+    last = torch.load(agent_dir / "last.pt", weights_only=False)
+    for s in last["curve"]["validation"]:  # smoke's 12 episodes never learn to pass: call them inside the bars
+        s.update(bump_rate={"1.5": 0.0}, max_bump_rate=0.0, unnecessary_stop_rate=0.0)
+    torch.save(last, agent_dir / "last.pt")
+    with pytest.raises(SystemExit, match="judging draw"):
+        chae_reselect.main([str(run), "--seeds", "0", "--out", str(tmp_path / "no"), "--draw", "102"])
+    out = tmp_path / "t_reselected"
+    chae_reselect.main([str(run), "--seeds", "0", "--out", str(out), "--shortlist", "2", "--trials", "3"])
+    record = json.loads((out / "agent_chae_dqn_chae/seed0/reselection.json").read_text())
+    assert [r["episode"] for r in record["rescored"]] == [12, 8]  # all tie on training's draw: later first
+    for r in record["rescored"]:
+        assert r["bump_rate"] * 3 / 100 == pytest.approx(round(r["bump_rate"] * 3 / 100))  # counts out of 3
+    assert record["chosen"] == chae_reselect.choose(record["rescored"])
+    cfg = smoke_dqn_chae(tmp_path).copy()
+    cfg.paths.runs = str(out)
+    policy = load_policy(cfg, AgentId.of(cfg))
+    kept = torch.load(validated_path(agent_dir, record["chosen"]["episode"]), weights_only=False)
+    for name, w in policy.agent.q_network.state_dict().items():
+        assert torch.equal(w, kept["agent"]["q_network"][name]), name
 
 
 def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp_path):

@@ -429,6 +429,9 @@ class SelectConfig(Checked):
     trials: int = 200
     ttcs: list[float] = field(default_factory=lambda: [1.5, 1.7, 1.9])
     max_bump: float = 1.0  # %, at each TTC
+    # keep every validated checkpoint as validated/episodeNNNNN.pt (2 MB each), so that checkpoints can be chosen
+    # again afterwards on a larger draw (experiments/chae_reselect.py) without retraining
+    keep: bool = False
 
     def problems(self):
         yield from _positive(self, "trials")

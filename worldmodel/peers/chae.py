@@ -50,7 +50,7 @@ from envs.chae import (
 
 from .. import artifacts
 from ..artifacts import AgentId
-from ..common import StageError, make_env
+from ..common import StageError, atomic_torch_save, make_env
 from .common import dqn_checkpoint, resume_dqn, seal, write_rows
 
 log = logging.getLogger(__name__)
@@ -165,8 +165,10 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     first_validation = int(np.ceil(float(sel.start) * episodes))
     validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
 
-    def snapshot(best: bool = False):
+    def snapshot(best: bool = False, keep: bool = False):
         state = dqn_checkpoint(agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward)
+        if keep:
+            atomic_torch_save(state, validated_path(run_.dir, episode))
         run_.save(state, best=best)
 
     writer = run_.writer
@@ -209,7 +211,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 curve["validation"].append(score)
                 writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
                 writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
-                snapshot(best=improved)
+                snapshot(best=improved, keep=bool(sel.keep))
             elif episode % CHECKPOINT_EPISODES == 0:
                 snapshot()
     snapshot()
@@ -232,6 +234,11 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
 
 
 # ----------------------------------------------------------------------------- checkpoint selection
+def validated_path(run_dir, episode: int):
+    """Where ``agent.select.keep`` keeps the checkpoint validated after ``episode`` episodes."""
+    return run_dir / "validated" / f"episode{int(episode):05d}.pt"
+
+
 class Validation:
     """``agent.select``'s validation draw (``bank`` on its own seed), driven greedily by a checkpoint."""
 
@@ -410,17 +417,22 @@ SCRIPTED = {
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
     """A trained dqn agent, built with the hyperparameters it was trained with: the checkpoint ``agent.select``
     chose on its validation draw (``best.pt``) when the run validated, else the last one."""
-    from omegaconf import OmegaConf
-
-    from ..config import agent_preset
-    from ..models.dqn import DQN, DQNConfig
-
     state = artifacts.load_agent_state(cfg, agent_id, "last")
     # last.pt says whether the run validated (a best.pt alone could be left from another run's settings); a chae
     # checkpoint is small, so reading best.pt after it costs little
     if state.get("curve", {}).get("validation"):
         state = artifacts.load_agent_state(cfg, agent_id, "best")
         log.info("[eval chae] %s: best.pt, episode %d, chosen on the validation draw", agent_id.key, state["episode"])
+    return policy_from_state(cfg, agent_id, state)
+
+
+def policy_from_state(cfg, agent_id: AgentId, state: dict) -> DQNPolicy:
+    """The greedy policy of one dqn checkpoint of run ``agent_id`` (``last.pt``, ``best.pt`` or a kept one)."""
+    from omegaconf import OmegaConf
+
+    from ..config import agent_preset
+    from ..models.dqn import DQN, DQNConfig
+
     if state.get("learner") != "dqn":
         raise StageError(
             f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
