@@ -38,9 +38,8 @@ def shortlist(scores: list[dict], k: int) -> list[dict]:
     """Training's validation scores inside both bars, the ``k`` bumping least at TTC 1.5 s (then fewer stops, then
     later checkpoints first)."""
     inside = [s for s in scores if s["max_bump_rate"] <= BAR_BUMP and s["unnecessary_stop_rate"] <= BAR_STOP]
-    return sorted(
-        inside, key=lambda s: (s["bump_rate"][str(CORNER_TTC)], s["unnecessary_stop_rate"], -s["episode"])
-    )[:k]
+    order = sorted(inside, key=lambda s: (s["bump_rate"][str(CORNER_TTC)], s["unnecessary_stop_rate"], -s["episode"]))
+    return order[:k]
 
 
 def room(score: dict) -> float:

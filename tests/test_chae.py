@@ -281,7 +281,8 @@ def test_reselection_keeps_the_checkpoint_with_the_most_room_under_both_bars():
     from experiments.chae_reselect import choose, room, shortlist
 
     def trained(episode, corner, worst, stops):
-        return {"episode": episode, "bump_rate": {"1.5": corner}, "max_bump_rate": worst, "unnecessary_stop_rate": stops}
+        bumps = {"bump_rate": {"1.5": corner}, "max_bump_rate": worst}
+        return {"episode": episode, **bumps, "unnecessary_stop_rate": stops}
 
     scores = [trained(1500, 0.0, 0.0, 6.0), trained(1750, 0.5, 0.5, 1.0), trained(2000, 0.0, 1.0, 2.0)]
     scores += [trained(2250, 1.5, 1.5, 0.0), trained(2500, 0.0, 0.5, 2.0), trained(2750, 1.0, 1.0, 0.0)]
