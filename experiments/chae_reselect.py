@@ -6,8 +6,8 @@
 Training's own selection (``agent.select``) scores every validated checkpoint on 200 trials per TTC and keeps the
 one inside both bars with the fewest needless stops. At 200 trials a bump is 0.5 %, so checkpoints whose true rate
 at TTC 1.5 s is anywhere from 0 to 2 % pass alike, and ensembles of such members miss the 1 % bar on fresh draws
-(docs/results/chae/settings_validation.md, sixteenth session). Here, for each run trained with
-``agent.select.keep=true``:
+(docs/results/chae/settings_validation.md, sixteenth session). For runs trained with ``agent.select.keep=true``
+this applies ``agent.select.rescore``'s rule afterwards (``peers.chae.rescore_kept``):
 
 1. the candidates are the kept checkpoints inside both bars on training's selection draw (if none, the run keeps
    its ``best.pt``);
@@ -29,27 +29,6 @@ import json
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
-
-BAR_BUMP, BAR_STOP = 1.0, 5.0  # the issue's bars, %
-CORNER_TTC = 1.5  # where every ensemble that missed the bump bar missed it
-
-
-def shortlist(scores: list[dict], k: int) -> list[dict]:
-    """Training's validation scores inside both bars, the ``k`` bumping least at TTC 1.5 s (then fewer stops, then
-    later checkpoints first)."""
-    inside = [s for s in scores if s["max_bump_rate"] <= BAR_BUMP and s["unnecessary_stop_rate"] <= BAR_STOP]
-    order = sorted(inside, key=lambda s: (s["bump_rate"][str(CORNER_TTC)], s["unnecessary_stop_rate"], -s["episode"]))
-    return order[:k]
-
-
-def room(score: dict) -> float:
-    """How close a checkpoint comes to the bars: max(bumps / 1 %, stops / 5 %); below 1 is inside both."""
-    return max(score["bump_rate"] / BAR_BUMP, score["unnecessary_stop_rate"] / BAR_STOP)
-
-
-def choose(rescored: list[dict]) -> dict:
-    """The rescored checkpoint with the most room under the bars, the later on a tie."""
-    return min(rescored, key=lambda s: (room(s), -s["episode"]))
 
 
 def main(argv=None) -> None:
@@ -77,47 +56,37 @@ def main(argv=None) -> None:
     missing = [s for s in args.seeds if s not in agents]
     if missing:
         raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
-    entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=[CORNER_TTC]))
-    env = chae.family_env(cfg, camera=False, end_on_bump=False)
-    print(f"draw {args.draw}, {args.trials} trials at TTC {CORNER_TTC} s and in Scenario 2\n")
+    sel = SimpleNamespace(
+        ttcs=[1.5],
+        max_bump=chae.BAR_BUMP,
+        max_stops=chae.BAR_STOPS,
+        rescore=args.shortlist,
+        rescore_seed=args.draw,
+        rescore_trials=args.trials,
+    )
+    print(f"draw {args.draw}, {args.trials} trials at TTC 1.5 s and in Scenario 2\n")
     print("| seed | training's choice | rescored (episode: bumps % / stops %) | chosen |\n|---:|---|---|---|")
     for seed in args.seeds:
         agent = agents[seed]
         src = agent.dir(cfg)
         last = torch.load(src / "last.pt", map_location="cpu", weights_only=False)
-        trained = chae.selected(last["curve"]["validation"], BAR_BUMP)
-        rescored = []
-        for score in shortlist(last["curve"]["validation"], args.shortlist):
-            path = chae.validated_path(src, score["episode"])
-            if not path.exists():
-                raise SystemExit(f"{path} is missing: train the run with agent.select.keep=true")
-            state = torch.load(path, map_location="cpu", weights_only=False)
-            policy = chae.policy_from_state(cfg, agent, state)
-            rows = chae.run_policy(env, policy, entries, leave=False)
-            s = chae.summarise(rows, [CORNER_TTC])["policies"][policy.name]
-            rescored.append(
-                {
-                    "episode": score["episode"],
-                    "bump_rate": s["bump_rate"][CORNER_TTC],
-                    "unnecessary_stop_rate": s["unnecessary_stop_rate"],
-                }
-            )
-        chosen = choose(rescored) if rescored else None
+        trained = chae.selected(last["curve"]["validation"], chae.BAR_BUMP)
+        record = chae.rescore_kept(cfg, agent, src, last["curve"]["validation"], sel)
+        chosen = record["chosen"]
         dst = out / src.relative_to(run)
         dst.mkdir(parents=True, exist_ok=True)
         for name in ("last.pt", "metrics.json", "provenance.json"):
             shutil.copy2(src / name, dst / name)
-        best = chae.validated_path(src, chosen["episode"]) if chosen else src / "best.pt"
-        shutil.copy2(best, dst / "best.pt")
-        record = {"draw": args.draw, "trials": args.trials, "training_choice": trained, "rescored": rescored}
-        (dst / "reselection.json").write_text(json.dumps({**record, "chosen": chosen}, indent=1))
-        listed = ", ".join(f"{r['episode']}: {r['bump_rate']:.1f} / {r['unnecessary_stop_rate']:.1f}" for r in rescored)
+        shutil.copy2(chae.validated_path(src, chosen["episode"]) if chosen else src / "best.pt", dst / "best.pt")
+        (dst / "reselection.json").write_text(json.dumps({**record, "training_choice": trained}, indent=1))
+        listed = ", ".join(
+            f"{r['episode']}: {r['bump_rate']:.1f} / {r['unnecessary_stop_rate']:.1f}" for r in record["rescored"]
+        )
         print(
             f"| {seed} | {trained['episode']} | {listed or 'none inside both bars'} | "
             f"{chosen['episode'] if chosen else 'best.pt (kept)'} |",
             flush=True,
         )
-    env.close()
 
 
 if __name__ == "__main__":

@@ -275,10 +275,11 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
         train_agent.run(cfg(tmp_path / "clash", "agent.select.seed=2017"))
 
 
-def test_reselection_keeps_the_checkpoint_with_the_most_room_under_both_bars():
-    """experiments.chae_reselect's rule: candidates inside both bars on training's draw, the fewest bumps at TTC 1.5 s
-    first; then the smallest max(bumps / 1 %, stops / 5 %) on the larger draw, the later on a tie."""
-    from experiments.chae_reselect import choose, room, shortlist
+def test_rescoring_keeps_the_checkpoint_with_the_most_room_under_both_bars():
+    """agent.select.rescore's rule (and experiments.chae_reselect's): candidates inside both bars on training's draw,
+    the fewest bumps at TTC 1.5 s first; then the smallest max(bumps / 1 %, stops / 5 %) on the larger draw, the
+    later on a tie."""
+    from worldmodel.peers.chae import rescore_choice, rescore_shortlist, room
 
     def trained(episode, corner, worst, stops):
         bumps = {"bump_rate": {"1.5": corner}, "max_bump_rate": worst}
@@ -287,15 +288,48 @@ def test_reselection_keeps_the_checkpoint_with_the_most_room_under_both_bars():
     scores = [trained(1500, 0.0, 0.0, 6.0), trained(1750, 0.5, 0.5, 1.0), trained(2000, 0.0, 1.0, 2.0)]
     scores += [trained(2250, 1.5, 1.5, 0.0), trained(2500, 0.0, 0.5, 2.0), trained(2750, 1.0, 1.0, 0.0)]
     # 1500 stops too often and 2250 bumps too often; among the rest, 0 % at the corner first, fewer stops, later
-    assert [s["episode"] for s in shortlist(scores, 3)] == [2500, 2000, 1750]
-    assert shortlist(scores[:1], 3) == []
-    assert room({"bump_rate": 0.6, "unnecessary_stop_rate": 4.0}) == pytest.approx(0.8)
+    assert [s["episode"] for s in rescore_shortlist(scores, 3, 1.0, 5.0, 1.5)] == [2500, 2000, 1750]
+    assert rescore_shortlist(scores[:1], 3, 1.0, 5.0, 1.5) == []
+    assert [s["episode"] for s in rescore_shortlist(scores[:1], 3, 1.0, 10.0, 1.5)] == [1500]
+    assert room({"bump_rate": 0.6, "unnecessary_stop_rate": 4.0}, 1.0, 5.0) == pytest.approx(0.8)
 
     def rescored(episode, bumps, stops):
         return {"episode": episode, "bump_rate": bumps, "unnecessary_stop_rate": stops}
 
-    assert choose([rescored(1750, 0.4, 4.5), rescored(2000, 0.8, 1.0), rescored(2500, 0.6, 0.0)])["episode"] == 2500
-    assert choose([rescored(1750, 0.4, 0.0), rescored(2000, 0.0, 2.0)])["episode"] == 2000  # 0.4 each: the later
+    three = [rescored(1750, 0.4, 4.5), rescored(2000, 0.8, 1.0), rescored(2500, 0.6, 0.0)]
+    assert rescore_choice(three, 1.0, 5.0)["episode"] == 2500
+    two = [rescored(1750, 0.4, 0.0), rescored(2000, 0.0, 2.0)]
+    assert rescore_choice(two, 1.0, 5.0)["episode"] == 2000  # 0.4 each: the later
+    assert rescore_choice([], 1.0, 5.0) is None
+
+
+def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(tmp_path):
+    """agent.select.rescore: the shortlisted kept checkpoints drive the rescoring draw after the last episode, and
+    best.pt is the chosen one's file; without keep, or on the evaluation's draw, it is refused."""
+    from worldmodel import train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+    from worldmodel.peers.chae import validated_path
+
+    # smoke's 12 episodes learn neither bar: let every checkpoint be a candidate
+    bars = ("agent.select.max_bump=100", "agent.select.max_stops=100")
+    rescore = ("agent.select.keep=true", *bars, "agent.select.rescore=2")
+    cfg = smoke_dqn_chae(tmp_path, *rescore, "agent.select.rescore_trials=3")
+    train_agent.run(cfg)
+    run = AgentId.of(cfg).dir(cfg)
+    metrics = json.loads((run / "metrics.json").read_text())
+    record = metrics["rescored"]
+    assert (record["seed"], record["trials"], record["ttc"]) == (98, 3, 1.5)
+    assert len(record["rescored"]) == 2 and record["chosen"] in record["rescored"]
+    for r in record["rescored"]:
+        assert r["bump_rate"] * 3 / 100 == pytest.approx(round(r["bump_rate"] * 3 / 100))  # counts out of 3
+    assert metrics["selected"]["episode"] == record["chosen"]["episode"]
+    chosen = validated_path(run, record["chosen"]["episode"]).read_bytes()
+    assert (run / "best.pt").read_bytes() == chosen
+    with pytest.raises(StageError, match="keep=true"):
+        train_agent.run(smoke_dqn_chae(tmp_path / "no_keep", "agent.select.rescore=2"))
+    with pytest.raises(StageError, match="rescore_seed"):
+        train_agent.run(smoke_dqn_chae(tmp_path / "clash", *rescore, "agent.select.rescore_seed=2017"))
 
 
 def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, tmp_path):
@@ -306,7 +340,7 @@ def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, t
 
     from experiments import chae_reselect
     from worldmodel.artifacts import AgentId
-    from worldmodel.peers.chae import load_policy, validated_path
+    from worldmodel.peers.chae import load_policy, rescore_choice, validated_path
 
     run = tmp_path / "t"
     shutil.copytree(kept_run.paths.runs, run)
@@ -321,9 +355,7 @@ def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, t
     chae_reselect.main([str(run), "--seeds", "0", "--out", str(out), "--shortlist", "2", "--trials", "3"])
     record = json.loads((out / "agent_chae_dqn_chae/seed0/reselection.json").read_text())
     assert [r["episode"] for r in record["rescored"]] == [12, 8]  # all tie on training's draw: later first
-    for r in record["rescored"]:
-        assert r["bump_rate"] * 3 / 100 == pytest.approx(round(r["bump_rate"] * 3 / 100))  # counts out of 3
-    assert record["chosen"] == chae_reselect.choose(record["rescored"])
+    assert record["chosen"] == rescore_choice(record["rescored"], 1.0, 5.0)
     cfg = smoke_dqn_chae(tmp_path).copy()
     cfg.paths.runs = str(out)
     policy = load_policy(cfg, AgentId.of(cfg))

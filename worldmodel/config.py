@@ -429,9 +429,16 @@ class SelectConfig(Checked):
     trials: int = 200
     ttcs: list[float] = field(default_factory=lambda: [1.5, 1.7, 1.9])
     max_bump: float = 1.0  # %, at each TTC
+    max_stops: float = 5.0  # %, needless stops: with max_bump, the bars that rescoring's candidates are inside
     # keep every validated checkpoint as validated/episodeNNNNN.pt (2 MB each), so that checkpoints can be chosen
-    # again afterwards on a larger draw (experiments/chae_reselect.py) without retraining
+    # again afterwards on a larger draw (rescore below, or experiments/chae_reselect.py) without retraining
     keep: bool = False
+    # after the run, the ``rescore`` kept checkpoints inside both bars that bump least at ttcs[0] drive a larger
+    # draw there (``rescore_trials`` Scenario-1 trials and as many in Scenario 2, seeded by ``rescore_seed``), and
+    # best.pt becomes the one with the most room under both bars; 0 = off (docs/results/chae/, sixteenth session)
+    rescore: int = 0
+    rescore_seed: int = 98
+    rescore_trials: int = 500
 
     def problems(self):
         yield from _positive(self, "trials")
@@ -445,6 +452,19 @@ class SelectConfig(Checked):
             yield ConfigValueError("select.ttcs", list(self.ttcs), "use a non-empty list of TTCs in (0, 5) s")
         if not 0.0 <= self.max_bump <= 100.0:
             yield ConfigValueError("select.max_bump", self.max_bump, "it must be a rate in [0, 100] %")
+        if not 0.0 <= self.max_stops <= 100.0:
+            yield ConfigValueError("select.max_stops", self.max_stops, "it must be a rate in [0, 100] %")
+        if self.rescore < 0:
+            yield ConfigValueError("select.rescore", self.rescore, "it must be >= 0 checkpoints (0 = off)")
+        if self.rescore and not self.keep:
+            yield ConfigValueError(
+                "select.rescore", self.rescore, "it reads the kept checkpoints back: set agent.select.keep=true too"
+            )
+        if self.rescore and self.rescore_seed == self.seed:
+            yield ConfigValueError(
+                "select.rescore_seed", self.rescore_seed, "it must differ from agent.select.seed (a new draw)"
+            )
+        yield from _positive(self, "rescore_trials")
 
 
 @dataclass

@@ -50,7 +50,7 @@ from envs.chae import (
 
 from .. import artifacts
 from ..artifacts import AgentId
-from ..common import StageError, atomic_torch_save, make_env
+from ..common import StageError, atomic_torch_save, atomic_write_bytes, make_env
 from .common import dqn_checkpoint, resume_dqn, seal, write_rows
 
 log = logging.getLogger(__name__)
@@ -151,11 +151,12 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         )
     episodes = int(cfg.agent.episodes)
     sel = cfg.agent.select
-    if sel.every and int(sel.seed) == int(cfg.evaluate.chae.seed):
-        raise StageError(
-            f"agent.select.seed={sel.seed} is the evaluation's draw (evaluate.chae.seed): checkpoints must be chosen "
-            "on other trials; give agent.select.seed another value"
-        )
+    for key in ("seed", "rescore_seed") if sel.rescore else ("seed",):
+        if sel.every and int(sel[key]) == int(cfg.evaluate.chae.seed):
+            raise StageError(
+                f"agent.select.{key}={sel[key]} is the evaluation's draw (evaluate.chae.seed): checkpoints must be "
+                f"chosen on other trials; give agent.select.{key} another value"
+            )
     see = observer(cfg, str(cfg.agent.obs))
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
@@ -220,6 +221,13 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         validation.env.close()
     if run_.stop.requested:
         return run_.stopped(agent.steps)
+    chosen, rescored = selected(curve["validation"], float(sel.max_bump)), None
+    if validation is not None and sel.rescore:
+        rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"])
+        if rescored["chosen"] is not None:
+            episode_chosen = rescored["chosen"]["episode"]
+            atomic_write_bytes(run_.best, validated_path(run_.dir, episode_chosen).read_bytes())
+            chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
     last = curve["end"][-ROLLING:]
     return {
         "reward": agent_id.reward,
@@ -228,7 +236,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         "steps": agent.steps,
         "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
         "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
-        "selected": selected(curve["validation"], float(sel.max_bump)),
+        "selected": chosen,
+        "rescored": rescored,
         "curve": curve,
     }
 
@@ -270,6 +279,60 @@ def selected(scores: list[dict], max_bump: float) -> dict | None:
         return (0, s["unnecessary_stop_rate"]) if safe else (1, s["max_bump_rate"], s["unnecessary_stop_rate"])
 
     return min(scores, key=key) if scores else None
+
+
+def rescore_shortlist(scores: list[dict], k: int, max_bump: float, max_stops: float, ttc: float) -> list[dict]:
+    """Training's validation scores inside both bars (bumps <= ``max_bump`` % at every TTC, needless stops <=
+    ``max_stops`` %), the ``k`` bumping least at ``ttc`` (then fewer stops, then later checkpoints first)."""
+    inside = [s for s in scores if s["max_bump_rate"] <= max_bump and s["unnecessary_stop_rate"] <= max_stops]
+    return sorted(inside, key=lambda s: (s["bump_rate"][str(ttc)], s["unnecessary_stop_rate"], -s["episode"]))[:k]
+
+
+def room(score: dict, max_bump: float, max_stops: float) -> float:
+    """How close a checkpoint comes to the bars: max(bumps / max_bump, stops / max_stops); below 1 is inside both."""
+    return max(score["bump_rate"] / max_bump, score["unnecessary_stop_rate"] / max_stops)
+
+
+def rescore_choice(rescored: list[dict], max_bump: float, max_stops: float) -> dict | None:
+    """The rescored checkpoint with the most room under the bars, the later on a tie."""
+    key = lambda s: (room(s, max_bump, max_stops), -s["episode"])  # noqa: E731
+    return min(rescored, key=key) if rescored else None
+
+
+def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None) -> dict:
+    """``agent.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
+    (``sel``: the run's select settings, default ``cfg.agent.select``). Returns the draw, every shortlisted
+    checkpoint's bumps at ``sel.ttcs[0]`` and needless stops, and the chosen one (None: no candidate)."""
+    import torch
+
+    sel = sel or cfg.agent.select
+    ttc, max_bump, max_stops = float(sel.ttcs[0]), float(sel.max_bump), float(sel.max_stops)
+    entries = bank(SimpleNamespace(seed=int(sel.rescore_seed), trials=int(sel.rescore_trials), ttcs=[ttc]))
+    env, rescored = None, []
+    for score in rescore_shortlist(scores, int(sel.rescore), max_bump, max_stops, ttc):
+        path = validated_path(run_dir, score["episode"])
+        if not path.exists():
+            raise StageError(f"{path} is missing: rescoring reads the checkpoints agent.select.keep=true keeps")
+        policy = policy_from_state(cfg, agent_id, torch.load(path, map_location="cpu", weights_only=False))
+        env = env or family_env(cfg, camera=policy.see.camera, end_on_bump=False)
+        s = summarise(run_policy(env, policy, entries, leave=False), [ttc])["policies"][policy.name]
+        rescored.append(
+            {
+                "episode": score["episode"],
+                "bump_rate": s["bump_rate"][ttc],
+                "unnecessary_stop_rate": s["unnecessary_stop_rate"],
+            }
+        )
+    if env is not None:
+        env.close()
+    chosen = rescore_choice(rescored, max_bump, max_stops)
+    return {
+        "seed": int(sel.rescore_seed),
+        "trials": int(sel.rescore_trials),
+        "ttc": ttc,
+        "rescored": rescored,
+        "chosen": chosen,
+    }
 
 
 def summary(metrics: dict) -> str:
