@@ -328,7 +328,7 @@ def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(
     chosen = validated_path(run, record["chosen"]["episode"]).read_bytes()
     assert (run / "best.pt").read_bytes() == chosen
     with pytest.raises(StageError, match="keep=true"):
-        train_agent.run(smoke_dqn_chae(tmp_path / "no_keep", "agent.select.rescore=2"))
+        train_agent.run(smoke_dqn_chae(tmp_path / "no_keep", "agent.select.keep=false", "agent.select.rescore=2"))
     with pytest.raises(StageError, match="rescore_seed"):
         train_agent.run(smoke_dqn_chae(tmp_path / "clash", *rescore, "agent.select.rescore_seed=2017"))
 
