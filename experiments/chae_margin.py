@@ -40,6 +40,7 @@ def main(argv=None) -> None:
     parser.add_argument("--margins", type=float, nargs="+", required=True)
     parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
+    parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
     args = parser.parse_args(argv)
 
     import torch
@@ -57,15 +58,16 @@ def main(argv=None) -> None:
         raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
     members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
     ensemble = chae.QEnsemble(m.agent for m in members)
-    entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=TTCS))
+    entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False, end_on_bump=False)
     print(f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2\n")
-    print("| margin | bumps % at TTC 1.5 / 1.7 / 1.9 s | needless stops % |\n|---:|---|---:|")
+    at = " / ".join(f"{t:g}" for t in args.ttcs)
+    print(f"| margin | bumps % at TTC {at} s | needless stops % |\n|---:|---|---:|")
     for m in args.margins:
         policy = chae.DQNPolicy(f"margin{m:+g}", MarginEnsemble(ensemble, m), members[0].see, 0)
         rows = chae.run_policy(env, policy, entries, leave=False)
-        s = chae.summarise(rows, TTCS)["policies"][policy.name]
-        bumps = " / ".join(f"{s['bump_rate'][t]:.1f}" for t in TTCS)
+        s = chae.summarise(rows, args.ttcs)["policies"][policy.name]
+        bumps = " / ".join(f"{s['bump_rate'][t]:.1f}" for t in args.ttcs)
         print(f"| {m:+g} | {bumps} | {s['unnecessary_stop_rate']:.1f} |", flush=True)
     env.close()
 

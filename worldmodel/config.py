@@ -435,7 +435,9 @@ class SelectConfig(Checked):
     keep: bool = False
     # after the run, the ``rescore`` kept checkpoints inside both bars that bump least at ttcs[0] drive a larger
     # draw there (``rescore_trials`` Scenario-1 trials and as many in Scenario 2, seeded by ``rescore_seed``), and
-    # best.pt becomes the one with the most room under both bars; 0 = off (docs/results/chae/, sixteenth session)
+    # best.pt becomes the one with the most room under both bars; 0 = off. Tried with value_rescale and TTCs from
+    # 1.3 s (docs/results/chae/settings_validation.md, sixteenth session): the corner's bumps went, and one ensemble
+    # in three bumped at TTC 2.7-3.5 s instead, which a draw at ttcs[0] alone does not see; not adopted
     rescore: int = 0
     rescore_seed: int = 98
     rescore_trials: int = 500
@@ -519,10 +521,10 @@ class AgentConfig(DDPGConfig):
     kim_impact_offset_spread: float = 0.0
     # family chae's training TTCs (the dqn learner's episodes), U(lo, hi) s; evaluation keeps its own TTCs. The
     # paper's 1.5-4 s puts the bar's edge (TTC 1.5 s) at the edge of training, where one ensemble in three bumps at
-    # 10-12.5 km/h. 1.3-4 s removed those bumps but made two ensembles in three stop needlessly at 10-30 km/h
-    # (docs/results/chae/settings_validation.md, eleventh session); with agent.dqn.value_rescale (fifteenth) two
-    # ensembles in three were inside both bars, and with agent.select.rescore as well (sixteenth) all three: the
-    # dqn_chae preset sets [1.3, 4.0]. This default stays the paper's for every other preset
+    # 10-12.5 km/h. 1.3-4 s removed those bumps but made two ensembles in three stop needlessly at 10-30 km/h: not
+    # adopted (docs/results/chae/settings_validation.md, eleventh session); with agent.dqn.value_rescale (fifteenth),
+    # two ensembles in three inside both bars: not adopted; with agent.select.rescore as well (sixteenth), bumps at
+    # TTC 2.7-3.5 s instead: not adopted
     chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
@@ -737,8 +739,7 @@ class ChaeEvalConfig(Checked):
     # are out of phase (docs/results/chae/); averaging Q over independent runs damps what one run gets wrong.
     # 3, chosen on the validation draw: two ensembles in three inside both of the bars, single runs three in
     # nine (docs/results/chae/settings_validation.md); with fifteen seeds, two in five on two fresh draws. Ensembles
-    # of five, and the best three of five (ensemble_pool=5), did no better there: not adopted. With the preset's
-    # h(Q), training TTCs from 1.3 s and rescored checkpoints (sixteenth session), three in three on two fresh draws
+    # of five, and the best three of five (ensemble_pool=5), did no better there: not adopted
     ensemble: int = 3
     # n > ensemble: each ensemble is the `ensemble` runs, of n consecutive seeds, whose chosen checkpoints scored best
     # on the selection draw, in the order checkpoint selection uses (chae.selected); 0 = `ensemble` consecutive seeds
