@@ -38,7 +38,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, required=True, help="a new runs/NAME2 for the rechosen runs")
     parser.add_argument("--shortlist", type=int, default=4)
     parser.add_argument("--draw", type=int, default=98, help="bank seed: not 99 (training's), 102/103, 2017")
-    parser.add_argument("--trials", type=int, default=500, help="at TTC 1.5 s and in Scenario 2")
+    parser.add_argument("--trials", type=int, default=500, help="per TTC and in Scenario 2")
+    parser.add_argument("--ttcs", type=float, nargs="+", default=[1.5], help="the TTCs rescored, s")
     args = parser.parse_args(argv)
     if args.draw in (99, 102, 103, 2017):
         raise SystemExit(f"--draw {args.draw} is training's selection draw or a judging draw; choose another seed")
@@ -63,9 +64,10 @@ def main(argv=None) -> None:
         rescore=args.shortlist,
         rescore_seed=args.draw,
         rescore_trials=args.trials,
+        rescore_ttcs=args.ttcs,
     )
-    print(f"draw {args.draw}, {args.trials} trials at TTC 1.5 s and in Scenario 2\n")
-    print("| seed | training's choice | rescored (episode: bumps % / stops %) | chosen |\n|---:|---|---|---|")
+    print(f"draw {args.draw}, {args.trials} trials at each TTC of {args.ttcs} s and in Scenario 2\n")
+    print("| seed | training's choice | rescored (episode: highest bumps % / stops %) | chosen |\n|---:|---|---|---|")
     for seed in args.seeds:
         agent = agents[seed]
         src = agent.dir(cfg)

@@ -314,20 +314,24 @@ def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(
     # smoke's 12 episodes learn neither bar: let every checkpoint be a candidate
     bars = ("agent.select.max_bump=100", "agent.select.max_stops=100")
     rescore = ("agent.select.keep=true", *bars, "agent.select.rescore=2")
-    cfg = smoke_dqn_chae(tmp_path, *rescore, "agent.select.rescore_trials=3")
+    cfg = smoke_dqn_chae(tmp_path, *rescore, "agent.select.rescore_trials=3", "agent.select.rescore_ttcs=[1.5,3.1]")
     train_agent.run(cfg)
     run = AgentId.of(cfg).dir(cfg)
     metrics = json.loads((run / "metrics.json").read_text())
     record = metrics["rescored"]
-    assert (record["seed"], record["trials"], record["ttc"]) == (98, 3, 1.5)
+    assert (record["seed"], record["trials"], record["ttc"], record["ttcs"]) == (98, 3, 1.5, [1.5, 3.1])
     assert len(record["rescored"]) == 2 and record["chosen"] in record["rescored"]
     for r in record["rescored"]:
-        assert r["bump_rate"] * 3 / 100 == pytest.approx(round(r["bump_rate"] * 3 / 100))  # counts out of 3
+        assert set(r["bump_rates"]) == {"1.5", "3.1"} and r["bump_rate"] == max(r["bump_rates"].values())
+        for rate in r["bump_rates"].values():
+            assert rate * 3 / 100 == pytest.approx(round(rate * 3 / 100))  # counts out of 3
     assert metrics["selected"]["episode"] == record["chosen"]["episode"]
     chosen = validated_path(run, record["chosen"]["episode"]).read_bytes()
     assert (run / "best.pt").read_bytes() == chosen
     with pytest.raises(StageError, match="keep=true"):
         train_agent.run(smoke_dqn_chae(tmp_path / "no_keep", "agent.select.keep=false", "agent.select.rescore=2"))
+    with pytest.raises(StageError, match="select.rescore_ttcs"):
+        train_agent.run(smoke_dqn_chae(tmp_path / "bad_ttcs", *rescore, "agent.select.rescore_ttcs=[]"))
     with pytest.raises(StageError, match="rescore_seed"):
         train_agent.run(smoke_dqn_chae(tmp_path / "clash", *rescore, "agent.select.rescore_seed=2017"))
 

@@ -279,7 +279,7 @@ def _drop_added_defaults(settings: dict) -> dict:
         agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
     select = agent.get("select") if isinstance(agent, dict) else None
     if isinstance(select, dict) and not select.get("rescore"):
-        for key in ("keep", "rescore", "rescore_seed", "rescore_trials", "max_stops"):
+        for key in ("keep", "rescore", "rescore_seed", "rescore_trials", "rescore_ttcs", "max_stops"):
             select.pop(key, None)  # no rescoring: best.pt chosen as before the option (keeping files changes nothing)
     chooser = agent.get("chooser") if isinstance(agent, dict) else None
     for key in ("min_brake_cost", "static_penalty"):

@@ -440,7 +440,10 @@ class SelectConfig(Checked):
     # in three bumped at TTC 2.7-3.5 s instead, which a draw at ttcs[0] alone does not see; not adopted
     rescore: int = 0
     rescore_seed: int = 98
-    rescore_trials: int = 500
+    rescore_trials: int = 500  # per TTC
+    # the TTCs the rescoring draw drives, the highest bump rate over them weighed; null = ttcs[0] alone. The
+    # checkpoints chosen at 1.5 s alone crept over the safety line at 2.5-3.7 s (sixteenth session)
+    rescore_ttcs: list[float] | None = None
 
     def problems(self):
         yield from _positive(self, "trials")
@@ -467,6 +470,12 @@ class SelectConfig(Checked):
                 "select.rescore_seed", self.rescore_seed, "it must differ from agent.select.seed (a new draw)"
             )
         yield from _positive(self, "rescore_trials")
+        if self.rescore_ttcs is not None and (
+            not self.rescore_ttcs or any(not 0.0 < float(t) < 5.0 for t in self.rescore_ttcs)
+        ):
+            yield ConfigValueError(
+                "select.rescore_ttcs", list(self.rescore_ttcs), "use null or a non-empty list of TTCs in (0, 5) s"
+            )
 
 
 @dataclass

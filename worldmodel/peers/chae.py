@@ -301,25 +301,28 @@ def rescore_choice(rescored: list[dict], max_bump: float, max_stops: float) -> d
 
 def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None) -> dict:
     """``agent.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
-    (``sel``: the run's select settings, default ``cfg.agent.select``). Returns the draw, every shortlisted
-    checkpoint's bumps at ``sel.ttcs[0]`` and needless stops, and the chosen one (None: no candidate)."""
+    (``sel``: the run's select settings, default ``cfg.agent.select``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
+    Returns the draw, every shortlisted checkpoint's bumps per TTC, their highest and the needless stops, and the
+    chosen one (None: no candidate)."""
     import torch
 
     sel = sel or cfg.agent.select
-    ttc, max_bump, max_stops = float(sel.ttcs[0]), float(sel.max_bump), float(sel.max_stops)
-    entries = bank(SimpleNamespace(seed=int(sel.rescore_seed), trials=int(sel.rescore_trials), ttcs=[ttc]))
+    corner, max_bump, max_stops = float(sel.ttcs[0]), float(sel.max_bump), float(sel.max_stops)
+    ttcs = [float(t) for t in (getattr(sel, "rescore_ttcs", None) or [corner])]
+    entries = bank(SimpleNamespace(seed=int(sel.rescore_seed), trials=int(sel.rescore_trials), ttcs=ttcs))
     env, rescored = None, []
-    for score in rescore_shortlist(scores, int(sel.rescore), max_bump, max_stops, ttc):
+    for score in rescore_shortlist(scores, int(sel.rescore), max_bump, max_stops, corner):
         path = validated_path(run_dir, score["episode"])
         if not path.exists():
             raise StageError(f"{path} is missing: rescoring reads the checkpoints agent.select.keep=true keeps")
         policy = policy_from_state(cfg, agent_id, torch.load(path, map_location="cpu", weights_only=False))
         env = env or family_env(cfg, camera=policy.see.camera, end_on_bump=False)
-        s = summarise(run_policy(env, policy, entries, leave=False), [ttc])["policies"][policy.name]
+        s = summarise(run_policy(env, policy, entries, leave=False), ttcs)["policies"][policy.name]
         rescored.append(
             {
                 "episode": score["episode"],
-                "bump_rate": s["bump_rate"][ttc],
+                "bump_rate": max(s["bump_rate"].values()),  # the highest over the TTCs: what room() weighs
+                "bump_rates": {str(t): s["bump_rate"][t] for t in ttcs},
                 "unnecessary_stop_rate": s["unnecessary_stop_rate"],
             }
         )
@@ -329,7 +332,8 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None) 
     return {
         "seed": int(sel.rescore_seed),
         "trials": int(sel.rescore_trials),
-        "ttc": ttc,
+        "ttc": corner,
+        "ttcs": ttcs,
         "rescored": rescored,
         "chosen": chosen,
     }
