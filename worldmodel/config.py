@@ -442,7 +442,8 @@ class SelectConfig(Checked):
     rescore_seed: int = 98
     rescore_trials: int = 500  # per TTC
     # the TTCs the rescoring draw drives, the highest bump rate over them weighed; null = ttcs[0] alone. The
-    # checkpoints chosen at 1.5 s alone crept over the safety line at 2.5-3.7 s (sixteenth session)
+    # checkpoints chosen at 1.5 s alone crept over the safety line at 2.5-3.7 s (sixteenth session); with 1.5 and
+    # 2.5-3.5 s, nine fresh seeds (seventeenth) gave no ensemble inside both bars: not adopted
     rescore_ttcs: list[float] | None = None
 
     def problems(self):
