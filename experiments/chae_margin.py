@@ -2,11 +2,13 @@
 by a margin, on a validation draw.
 
     python -m experiments.chae_margin runs/NAME --seeds 9 10 11 --margins -0.05 0 0.05 [--draw 99] [--trials 200]
+        [--average q|h]
 
 Loads the runs' chosen checkpoints (``runs/NAME/agent_chae_dqn_chae/seedK``) as ``evaluate.chae.ensemble`` does,
 drives the draw (``peers.chae.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scenario 2) once per margin and prints a
 markdown table of the highest bump rate and the needless stops (docs/results/chae/settings_validation.md,
 thirteenth session). A margin m > 0 brakes only when braking's mean Q beats not braking's by more than m.
+``--average h`` averages the members' h(Q) (the value_rescale squashing) instead of Q (seventeenth session).
 """
 
 from __future__ import annotations
@@ -33,6 +35,22 @@ class MarginEnsemble:
         return int(np.argmax(q))
 
 
+class SquashedMeanEnsemble:
+    """Greedy on the mean of the members' h(Q) rather than of Q. h is increasing, so a single member acts as before;
+    for several, a member's very negative Q (a feared bump) weighs less against the others than in the mean of Q."""
+
+    def __init__(self, members):
+        self.members = list(members)
+
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        import torch
+
+        from worldmodel.models.dqn import squash
+
+        values = torch.as_tensor(np.stack([m.q_values(obs) for m in self.members]))
+        return squash(values).mean(dim=0).numpy()
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
@@ -41,6 +59,7 @@ def main(argv=None) -> None:
     parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
+    parser.add_argument("--average", choices=("q", "h"), default="q", help="average Q (as evaluate does) or h(Q)")
     args = parser.parse_args(argv)
 
     import torch
@@ -57,10 +76,14 @@ def main(argv=None) -> None:
     if missing:
         raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
     members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
-    ensemble = chae.QEnsemble(m.agent for m in members)
+    average = chae.QEnsemble if args.average == "q" else SquashedMeanEnsemble
+    ensemble = average(m.agent for m in members)
     entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False, end_on_bump=False)
-    print(f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2\n")
+    print(
+        f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2, mean of "
+        f"{'Q' if args.average == 'q' else 'h(Q)'}\n"
+    )
     at = " / ".join(f"{t:g}" for t in args.ttcs)
     print(f"| margin | bumps % at TTC {at} s | needless stops % |\n|---:|---|---:|")
     for m in args.margins:
