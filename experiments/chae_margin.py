@@ -2,13 +2,14 @@
 by a margin, on a validation draw.
 
     python -m experiments.chae_margin runs/NAME --seeds 9 10 11 --margins -0.05 0 0.05 [--draw 99] [--trials 200]
-        [--average q|h]
+        [--average q|h|vote]
 
 Loads the runs' chosen checkpoints (``runs/NAME/agent_chae_dqn_chae/seedK``) as ``evaluate.chae.ensemble`` does,
 drives the draw (``peers.chae.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scenario 2) once per margin and prints a
 markdown table of the highest bump rate and the needless stops (docs/results/chae/settings_validation.md,
 thirteenth session). A margin m > 0 brakes only when braking's mean Q beats not braking's by more than m.
-``--average h`` averages the members' h(Q) (the value_rescale squashing) instead of Q (seventeenth session).
+``--average h`` averages the members' h(Q) (the value_rescale squashing) instead of Q; ``--average vote`` takes the
+members' majority action (seventeenth session).
 """
 
 from __future__ import annotations
@@ -51,6 +52,21 @@ class SquashedMeanEnsemble:
         return squash(values).mean(dim=0).numpy()
 
 
+class VoteEnsemble:
+    """Each member's greedy action as one vote; the most voted action wins, and a tie goes to the mean-Q choice
+    among the tied actions. ``q_values`` returns the votes (plus the mean Q scaled to break ties), so that
+    ``MarginEnsemble`` can wrap it with margin 0."""
+
+    def __init__(self, members):
+        self.members = list(members)
+
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        values = np.stack([m.q_values(obs) for m in self.members])
+        votes = np.bincount(values.argmax(axis=1), minlength=values.shape[1]).astype(float)
+        mean = values.mean(axis=0)
+        return votes + 1e-3 * (mean - mean.min()) / (np.ptp(mean) + 1e-12)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
@@ -59,7 +75,9 @@ def main(argv=None) -> None:
     parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
-    parser.add_argument("--average", choices=("q", "h"), default="q", help="average Q (as evaluate does) or h(Q)")
+    parser.add_argument(
+        "--average", choices=("q", "h", "vote"), default="q", help="average Q (as evaluate does) or h(Q), or vote"
+    )
     args = parser.parse_args(argv)
 
     import torch
@@ -76,13 +94,13 @@ def main(argv=None) -> None:
     if missing:
         raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
     members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
-    average = chae.QEnsemble if args.average == "q" else SquashedMeanEnsemble
+    average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": VoteEnsemble}[args.average]
     ensemble = average(m.agent for m in members)
     entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False, end_on_bump=False)
     print(
         f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2, mean of "
-        f"{'Q' if args.average == 'q' else 'h(Q)'}\n"
+        f"{ {'q': 'Q', 'h': 'h(Q)', 'vote': 'votes'}[args.average] }\n"
     )
     at = " / ".join(f"{t:g}" for t in args.ttcs)
     print(f"| margin | bumps % at TTC {at} s | needless stops % |\n|---:|---|---:|")
