@@ -9,7 +9,7 @@ drives the draw (``peers.chae.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scen
 markdown table of the highest bump rate and the needless stops (docs/results/chae/settings_validation.md,
 thirteenth session). A margin m > 0 brakes only when braking's mean Q beats not braking's by more than m.
 ``--average h`` averages the members' h(Q) (the value_rescale squashing) instead of Q; ``--average vote`` takes the
-members' majority action (seventeenth session).
+members' majority action (seventeenth session; ``peers.chae.VoteEnsemble``, as ``evaluate.chae.ensemble_vote``).
 """
 
 from __future__ import annotations
@@ -52,21 +52,6 @@ class SquashedMeanEnsemble:
         return squash(values).mean(dim=0).numpy()
 
 
-class VoteEnsemble:
-    """Each member's greedy action as one vote; the most voted action wins, and a tie goes to the mean-Q choice
-    among the tied actions. ``q_values`` returns the votes (plus the mean Q scaled to break ties), so that
-    ``MarginEnsemble`` can wrap it with margin 0."""
-
-    def __init__(self, members):
-        self.members = list(members)
-
-    def q_values(self, obs: np.ndarray) -> np.ndarray:
-        values = np.stack([m.q_values(obs) for m in self.members])
-        votes = np.bincount(values.argmax(axis=1), minlength=values.shape[1]).astype(float)
-        mean = values.mean(axis=0)
-        return votes + 1e-3 * (mean - mean.min()) / (np.ptp(mean) + 1e-12)
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
@@ -94,7 +79,7 @@ def main(argv=None) -> None:
     if missing:
         raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
     members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
-    average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": VoteEnsemble}[args.average]
+    average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": chae.VoteEnsemble}[args.average]
     ensemble = average(m.agent for m in members)
     entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False, end_on_bump=False)

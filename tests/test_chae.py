@@ -398,6 +398,19 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert chosen == ((q0 + q1) / 2).argmax(1).tolist()
     assert chosen != q0.argmax(1).tolist() or chosen != q1.argmax(1).tolist()  # not simply one member
     assert chae.ensembles(agents, members, 3) == []  # seed 2 missing: no partial ensemble
+    # evaluate.chae.ensemble_vote: the majority of the members' greedy levels; a tie, the higher mean Q of the tied
+    (voting,) = chae.ensembles(agents, members, 2, vote=True)
+    assert voting.name == "agent_chae_dqn_chae_ensemble2vote"
+    voted = [voting.agent.act(o) for o in obs]
+    mean_q = (q0 + q1) / 2
+    tied = np.stack([q0.argmax(1), q1.argmax(1)], axis=1)  # two members: agreement, or a tie between their levels
+    assert voted == [pair[np.argmax(mean_q[i, pair])] for i, pair in enumerate(tied)]
+    assert all(v in pair for v, pair in zip(voted, tied, strict=True))  # never a level no member chose
+    assert len(set(voted)) > 1 and (tied[:, 0] != tied[:, 1]).any()  # the states test both the votes and the ties
+    twice = chae.VoteEnsemble([members[0].agent, members[1].agent, members[0].agent])
+    assert [twice.act(o) for o in obs] == q0.argmax(1).tolist()  # two votes of three always win
+    assert (twice.q_values(obs).argmax(1) == q0.argmax(1)).all()  # the batched scores say the same
+    assert (((2 * q0 + q1) / 3).argmax(1) != q0.argmax(1)).any()  # where the mean of the three would not
     # ensemble_pool: of seeds 0-2, the two that the selection draw ranks first join, in its order
     pooled_ids = [*agents, dataclasses.replace(agents[0], seed=2)]
     ranks = {0: (0.0, 9.0), 1: (0.0, 1.0), 2: (5.0, 0.0)}  # (bumps, stops): seed 2 outside the bump bar
@@ -418,18 +431,20 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     first = tmp_path / "first"
     shutil.copytree(tmp_path / "runs/e/eval_chae", first)
     # the ensembles alone, with one scripted policy (evaluate.chae.policies): the same trials give the same rows
-    alone = chae.evaluate(
-        cfg(
-            "evaluate",
-            "evaluate.family=chae",
-            "evaluate.chae.ensemble=2",
-            "evaluate.chae.singles=false",
-            "evaluate.chae.policies=[braking]",
-        )
+    alone_args = (
+        "evaluate",
+        "evaluate.family=chae",
+        "evaluate.chae.ensemble=2",
+        "evaluate.chae.singles=false",
+        "evaluate.chae.policies=[braking]",
     )
+    alone = chae.evaluate(cfg(*alone_args))
     assert set(alone["policies"]) == {"braking", "agent_chae_dqn_chae_ensemble2"}
     for name in alone["policies"]:
         assert alone["policies"][name] == summary["policies"][name]
+    by_vote = chae.evaluate(cfg(*alone_args, "evaluate.chae.ensemble_vote=true"))
+    assert set(by_vote["policies"]) == {"braking", "agent_chae_dqn_chae_ensemble2vote"}
+    assert by_vote["policies"]["braking"] == summary["policies"]["braking"]
     # experiments.chae_tables: the rows read back give the evaluation's tables; a run given twice is refused
     from experiments import chae_tables
 
@@ -453,6 +468,10 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
             )
     with pytest.raises(StageError, match="evaluate.chae.singles"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.singles=false"))
+    with pytest.raises(StageError, match="evaluate.chae.ensemble_vote"):
+        validate(
+            cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.ensemble_vote=true")
+        )
 
 
 def test_the_configs_scripted_names_are_the_ones_evaluation_builds():

@@ -754,6 +754,11 @@ class ChaeEvalConfig(Checked):
     # n > ensemble: each ensemble is the `ensemble` runs, of n consecutive seeds, whose chosen checkpoints scored best
     # on the selection draw, in the order checkpoint selection uses (chae.selected); 0 = `ensemble` consecutive seeds
     ensemble_pool: int = 0
+    # true: each ensemble acts by majority vote of its members' greedy brake levels (a tie: the highest mean Q among
+    # the tied levels) instead of greedily on the mean of Q, which can choose a level that no member would. A pilot
+    # on one draw put one ensemble in three inside both bars against none (docs/results/chae/settings_validation.md,
+    # seventeenth and eighteenth sessions)
+    ensemble_vote: bool = False
     # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
     # 1,000 trials per TTC, where each run alone would cost as much again per seed
     singles: bool = True
@@ -775,6 +780,10 @@ class ChaeEvalConfig(Checked):
             )
         if self.ensemble == 1 or self.ensemble < 0:
             yield ConfigValueError("chae.ensemble", self.ensemble, "give 0 (none) or the members per ensemble, >= 2")
+        if self.ensemble_vote and not self.ensemble:
+            yield ConfigValueError(
+                "chae.ensemble_vote", self.ensemble_vote, "a vote needs ensembles: set chae.ensemble"
+            )
         if self.ensemble_pool and (self.ensemble < 2 or self.ensemble_pool <= self.ensemble):
             yield ConfigValueError(
                 "chae.ensemble_pool",
