@@ -9,7 +9,8 @@ drives the draw (``peers.chae.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scen
 markdown table of the highest bump rate and the needless stops (docs/results/chae/settings_validation.md,
 thirteenth session). A margin m > 0 brakes only when braking's mean Q beats not braking's by more than m.
 ``--average h`` averages the members' h(Q) (the value_rescale squashing) instead of Q; ``--average vote`` takes the
-members' majority action (seventeenth session; ``peers.chae.VoteEnsemble``, as ``evaluate.chae.ensemble_vote``).
+members' majority action (seventeenth session; ``peers.chae.VoteEnsemble``, as ``evaluate.chae.ensemble_vote``),
+``--average cautious`` the hardest level any member chooses (eighteenth session).
 """
 
 from __future__ import annotations
@@ -52,6 +53,20 @@ class SquashedMeanEnsemble:
         return squash(values).mean(dim=0).numpy()
 
 
+class CautiousEnsemble:
+    """The hardest brake level that any member chooses greedily (levels are ordered hardest first), so that one
+    member's fear at the corner is never outvoted; ``q_values`` scores that level 1 and the others 0."""
+
+    def __init__(self, members):
+        self.members = list(members)
+
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        values = np.stack([m.q_values(obs) for m in self.members])
+        scores = np.zeros(values.shape[-1])
+        scores[values.argmax(axis=-1).min()] = 1.0
+        return scores
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
@@ -61,7 +76,10 @@ def main(argv=None) -> None:
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
     parser.add_argument(
-        "--average", choices=("q", "h", "vote"), default="q", help="average Q (as evaluate does) or h(Q), or vote"
+        "--average",
+        choices=("q", "h", "vote", "cautious"),
+        default="q",
+        help="average Q (as evaluate does) or h(Q), or vote",
     )
     args = parser.parse_args(argv)
 
@@ -79,13 +97,15 @@ def main(argv=None) -> None:
     if missing:
         raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
     members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
-    average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": chae.VoteEnsemble}[args.average]
+    average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": chae.VoteEnsemble, "cautious": CautiousEnsemble}[
+        args.average
+    ]
     ensemble = average(m.agent for m in members)
     entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False, end_on_bump=False)
     print(
         f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2, mean of "
-        f"{ {'q': 'Q', 'h': 'h(Q)', 'vote': 'votes'}[args.average] }\n"
+        f"{ {'q': 'Q', 'h': 'h(Q)', 'vote': 'votes', 'cautious': 'the hardest level'}[args.average] }\n"
     )
     at = " / ".join(f"{t:g}" for t in args.ttcs)
     print(f"| margin | bumps % at TTC {at} s | needless stops % |\n|---:|---|---:|")
