@@ -67,6 +67,24 @@ class CautiousEnsemble:
         return scores
 
 
+def load_members(run: Path, seeds: list[int]):
+    """The evaluate config for ``runs/NAME`` and its dqn_chae runs' chosen checkpoints for ``seeds``, on one thread."""
+    import torch
+
+    from worldmodel import artifacts
+    from worldmodel.config import compose
+    from worldmodel.peers import chae
+
+    torch.set_num_threads(1)
+    run = run.resolve()
+    cfg = compose("evaluate", [f"experiment={run.name}", f"paths.runs={run}", "evaluate.family=chae"])
+    agents = {a.seed: a for a in artifacts.trained_agents(cfg, family="chae") if a.variant == "dqn_chae"}
+    missing = [s for s in seeds if s not in agents]
+    if missing:
+        raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
+    return cfg, [chae.load_policy(cfg, agents[s]) for s in seeds]
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
@@ -83,20 +101,9 @@ def main(argv=None) -> None:
     )
     args = parser.parse_args(argv)
 
-    import torch
-
-    from worldmodel import artifacts
-    from worldmodel.config import compose
     from worldmodel.peers import chae
 
-    torch.set_num_threads(1)
-    run = args.run.resolve()
-    cfg = compose("evaluate", [f"experiment={run.name}", f"paths.runs={run}", "evaluate.family=chae"])
-    agents = {a.seed: a for a in artifacts.trained_agents(cfg, family="chae") if a.variant == "dqn_chae"}
-    missing = [s for s in args.seeds if s not in agents]
-    if missing:
-        raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
-    members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
+    cfg, members = load_members(args.run, args.seeds)
     average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": chae.VoteEnsemble, "cautious": CautiousEnsemble}[
         args.average
     ]

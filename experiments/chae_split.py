@@ -49,20 +49,10 @@ def main(argv=None) -> None:
     parser.add_argument("--average", choices=("q", "vote"), default="vote")
     args = parser.parse_args(argv)
 
-    import torch
-
-    from worldmodel import artifacts
-    from worldmodel.config import compose
+    from experiments.chae_margin import load_members
     from worldmodel.peers import chae
 
-    torch.set_num_threads(1)
-    run = args.run.resolve()
-    cfg = compose("evaluate", [f"experiment={run.name}", f"paths.runs={run}", "evaluate.family=chae"])
-    agents = {a.seed: a for a in artifacts.trained_agents(cfg, family="chae") if a.variant == "dqn_chae"}
-    missing = [s for s in args.seeds if s not in agents]
-    if missing:
-        raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
-    members = [chae.load_policy(cfg, agents[s]) for s in args.seeds]
+    cfg, members = load_members(args.run, args.seeds)
     combine = chae.VoteEnsemble if args.average == "vote" else chae.QEnsemble
     recording = Recording(combine(m.agent for m in members))
     policy = chae.DQNPolicy("split", recording, members[0].see, 0)
