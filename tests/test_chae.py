@@ -575,3 +575,49 @@ def test_the_training_ttc_range_reaches_the_episodes_and_its_default_is_the_pape
         torch.load(AgentId.of(c).dir(c) / "last.pt", weights_only=False)["agent"]["q_network"] for c in (default, wide)
     ]
     assert any(not torch.equal(w, nets[1][name]) for name, w in nets[0].items())
+
+
+def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluation(tmp_path):
+    """agent.chae_noise_m: the default leaves provenance as before the option; a run trained without noise records
+    it, and the policy evaluation loads from that checkpoint sees the exact relative position (the same reading
+    whatever the observer's seed), where the default's readings differ by seed. A negative noise is refused."""
+    import torch
+
+    from envs.chae import ChaeSpec
+    from worldmodel import artifacts, train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+    from worldmodel.config import validate
+    from worldmodel.peers.chae import family_env, load_policy, observer
+
+    def cfg(root, *extra):
+        return smoke_dqn_chae(root, "agent.select.every=0", *extra)
+
+    default, exact = cfg(tmp_path / "paper"), cfg(tmp_path / "exact", "agent.chae_noise_m=0")
+    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_noise_m=0.1"), "agent") == (
+        artifacts.provenance(default, "agent")
+    )
+    assert artifacts.provenance(exact, "agent") != artifacts.provenance(default, "agent")
+    with pytest.raises(StageError, match="agent.chae_noise_m"):
+        validate(cfg(tmp_path / "bad", "agent.chae_noise_m=-0.1"))
+    train_agent.run(exact)
+    agent_id = AgentId.of(exact)
+    assert torch.load(agent_id.dir(exact) / "last.pt", weights_only=False)["noise_m"] == 0.0
+
+    policy = load_policy(exact, agent_id)
+    assert policy.see.view.noise_m == 0.0  # the checkpoint's record, not the evaluating config's default
+    spec = ChaeSpec(seed=0, ttc=2.0, v_init=8.0, v_ped=3.0)
+    env = family_env(exact, camera=False)
+
+    def readings(see):
+        out = []
+        for seed in (1, 2):
+            obs, _ = env.reset(options={"scenario": spec})
+            see.reset(seed)
+            out.append(see(env, obs))
+        return out
+
+    exact_readings, noisy_readings = readings(policy.see), readings(observer(default, "pedestrian_history"))
+    env.close()
+    np.testing.assert_array_equal(exact_readings[0], exact_readings[1])
+    assert not np.array_equal(noisy_readings[0], noisy_readings[1])

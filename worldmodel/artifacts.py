@@ -249,6 +249,7 @@ ADDED_DEFAULTS = {
         "kim_impact_offset_spread": 0.0,
         "bc_steer_weight": 1.0,
         "chae_ttc_range": [1.5, 4.0],
+        "chae_noise_m": 0.1,
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.

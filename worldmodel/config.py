@@ -536,6 +536,10 @@ class AgentConfig(DDPGConfig):
     # two ensembles in three inside both bars: not adopted; with agent.select.rescore as well (sixteenth), bumps at
     # TTC 2.7-3.5 s instead: not adopted
     chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
+    # family chae: the standard deviation (m) of the noise on the pedestrian's relative position in Chae's state
+    # (envs.chae.PedestrianHistory), for the dqn learner's training and checkpoint selection. The paper says only
+    # "slight noise"; 0.1 is our documented default. A checkpoint records its value and is evaluated with it
+    chae_noise_m: float = 0.1
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
@@ -586,6 +590,10 @@ class AgentConfig(DDPGConfig):
                 "chae_ttc_range",
                 list(self.chae_ttc_range),
                 "use [lo, hi] with 0 < lo < hi <= 5 s (beyond 5 s the trigger would lie behind the ego)",
+            )
+        if not 0.0 <= self.chae_noise_m <= 1.0:
+            yield ConfigValueError(
+                "chae_noise_m", self.chae_noise_m, "it must be in [0, 1] m (0: the exact relative position)"
             )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")

@@ -109,9 +109,10 @@ class WorldModelObserver:
         self.encoder.note_action(action)
 
 
-def observer(cfg, obs: str):
+def observer(cfg, obs: str, noise_m: float | None = None):
+    """What a dqn agent sees; Chae's state with ``noise_m`` (default: ``agent.chae_noise_m``, training's)."""
     if obs == "pedestrian_history":
-        return HistoryObserver()
+        return HistoryObserver(float(cfg.agent.chae_noise_m) if noise_m is None else noise_m)
     return WorldModelObserver(artifacts.load_world_model(cfg, use_speed=True, frame_view=False))
 
 
@@ -158,6 +159,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 f"chosen on other trials; give agent.select.{key} another value"
             )
     see = observer(cfg, str(cfg.agent.obs))
+    see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
     agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
@@ -167,7 +169,9 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
 
     def snapshot(best: bool = False, keep: bool = False):
-        state = dqn_checkpoint(agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward)
+        state = dqn_checkpoint(
+            agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward, noise_m=see_noise
+        )
         if keep:
             atomic_torch_save(state, validated_path(run_.dir, episode))
         run_.save(state, best=best)
@@ -531,7 +535,8 @@ def policy_from_state(cfg, agent_id: AgentId, state: dict) -> DQNPolicy:
         raise StageError(
             f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
         )
-    see = observer(cfg, state["obs"])
+    # checkpoints from before agent.chae_noise_m were all trained at the default 0.1 m
+    see = observer(cfg, state["obs"], noise_m=state.get("noise_m") if "noise_m" in state else 0.1)
     if see.dim != state["obs_dim"]:
         raise StageError(
             f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the observation "
