@@ -99,6 +99,12 @@ def main(argv=None) -> None:
         default="q",
         help="average Q (as evaluate does) or h(Q), or vote",
     )
+    parser.add_argument(
+        "--noise-m",
+        type=float,
+        default=None,
+        help="drive with this noise (m) on Chae's state instead of the one the members were trained with",
+    )
     args = parser.parse_args(argv)
 
     from worldmodel.peers import chae
@@ -108,16 +114,18 @@ def main(argv=None) -> None:
         args.average
     ]
     ensemble = average(m.agent for m in members)
+    see = members[0].see if args.noise_m is None else chae.HistoryObserver(args.noise_m)
     entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False, end_on_bump=False)
     print(
         f"seeds {args.seeds}, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2, mean of "
-        f"{ {'q': 'Q', 'h': 'h(Q)', 'vote': 'votes', 'cautious': 'the hardest level'}[args.average] }\n"
+        f"{ {'q': 'Q', 'h': 'h(Q)', 'vote': 'votes', 'cautious': 'the hardest level'}[args.average] }, state noise "
+        f"{getattr(getattr(see, 'view', None), 'noise_m', 'n/a')} m\n"
     )
     at = " / ".join(f"{t:g}" for t in args.ttcs)
     print(f"| margin | bumps % at TTC {at} s | needless stops % |\n|---:|---|---:|")
     for m in args.margins:
-        policy = chae.DQNPolicy(f"margin{m:+g}", MarginEnsemble(ensemble, m), members[0].see, 0)
+        policy = chae.DQNPolicy(f"margin{m:+g}", MarginEnsemble(ensemble, m), see, 0)
         rows = chae.run_policy(env, policy, entries, leave=False)
         s = chae.summarise(rows, args.ttcs)["policies"][policy.name]
         bumps = " / ".join(f"{s['bump_rate'][t]:.1f}" for t in args.ttcs)
