@@ -10,7 +10,9 @@ markdown table of the highest bump rate and the needless stops (docs/results/cha
 thirteenth session). A margin m > 0 brakes only when braking's mean Q beats not braking's by more than m.
 ``--average h`` averages the members' h(Q) (the value_rescale squashing) instead of Q; ``--average vote`` takes the
 members' majority action (seventeenth session; ``peers.chae.VoteEnsemble``, as ``evaluate.chae.ensemble_vote``),
-``--average cautious`` the hardest level any member chooses (eighteenth session).
+``--average cautious`` the hardest level any member chooses (eighteenth session). ``--noise-m`` drives with another
+noise on Chae's state than the members' checkpoints record (nineteenth session: trained on the exact state, acting
+on the noisy one, and the reverse).
 """
 
 from __future__ import annotations
@@ -97,7 +99,7 @@ def main(argv=None) -> None:
         "--average",
         choices=("q", "h", "vote", "cautious"),
         default="q",
-        help="average Q (as evaluate does) or h(Q), or vote",
+        help="average Q (as evaluate does) or h(Q), vote, or take the hardest level any member chooses",
     )
     parser.add_argument(
         "--noise-m",
