@@ -536,7 +536,7 @@ def policy_from_state(cfg, agent_id: AgentId, state: dict) -> DQNPolicy:
             f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
         )
     # checkpoints from before agent.chae_noise_m were all trained at the default 0.1 m
-    see = observer(cfg, state["obs"], noise_m=state.get("noise_m") if "noise_m" in state else 0.1)
+    see = observer(cfg, state["obs"], noise_m=state.get("noise_m", 0.1))
     if see.dim != state["obs_dim"]:
         raise StageError(
             f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the observation "
