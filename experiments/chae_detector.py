@@ -3,7 +3,7 @@ ClosingSpeedBraking`` (a hand-written rule on exactly what ``dqn_chae`` sees) at
 privileged scripted policies and, if asked, seed ensembles of trained runs, on one validation draw.
 
     python -m experiments.chae_detector --thresholds 1.0 1.25 1.5 [--readings 5] [--draw 99] [--trials 200] \
-        [--run runs/NAME --ensembles 0,1,2 3,4,5]
+        [--run runs/NAME --ensembles 0,1,2 3,4,5 [--noise-m 0.1]] [--ttcs 1.5 1.7 1.9] [--save returns.npz]
 
 The rule fits a line to the pedestrian's lateral distance over the last ``--readings`` readings of the agent's
 view (0.1 m noise) and brakes fully, from then on, once the pedestrian closes in faster than the threshold (m/s).
@@ -11,7 +11,10 @@ Every policy drives the same trials (``peers.chae.bank``; draw 99 is checkpoint 
 do not choose on it) in the training env, which ends at the first bump. Prints per policy the bump rate at TTC
 1.5, 1.7, 1.9 s, Scenario 2's needless stops, and the mean Eq. 8 return per trial as training counts it, so that
 a rule inside the bars can be set beside what the learner is paid to do. ``evaluate.family=chae`` drives the
-chosen threshold as ``closing_braking`` (docs/results/chae/README.md).
+chosen threshold as ``closing_braking`` (docs/results/chae/README.md). ``--noise-m`` makes the ensembles act on
+another noise than their checkpoints record (twentieth session: does Eq. 8 on the noisy state prefer what the
+exact-trained ensembles do there?); ``--save`` keeps every policy's per-trial returns, in bank order, for paired
+comparisons across runs on the same draw.
 """
 
 from __future__ import annotations
@@ -25,30 +28,37 @@ import numpy as np
 TTCS = [1.5, 1.7, 1.9]
 
 
-def drive(env, policy, entries) -> dict:
-    """Bump % per TTC, needless stops % and the mean Eq. 8 return of ``policy`` over ``entries``."""
+def drive(env, policy, entries, ttcs=TTCS) -> dict:
+    """Bump % per TTC, needless stops %, the per-trial Eq. 8 returns of ``policy`` over ``entries`` and their mean,
+    both scenarios weighted equally as in training (each TTC of Scenario 1 equally within it)."""
     from tqdm import tqdm
 
     from envs.rollout import rollout
 
-    bumps: dict[float, list[int]] = {t: [] for t in TTCS}
-    stops, returns = [], []
+    bumps: dict[float, list[int]] = {t: [] for t in ttcs}
+    stops, returns, scenarios = [], [], []
     for scenario, spec in tqdm(entries, desc=policy.name, unit="trial", leave=False):
         o = rollout(env, policy, spec).outcome
         returns.append(o["return_chae"])
+        scenarios.append(scenario)
         if scenario == 1:
-            bumps[min(TTCS, key=lambda t: abs(t - spec.ttc))].append(int(o["bumped"]))
+            bumps[min(ttcs, key=lambda t: abs(t - spec.ttc))].append(int(o["bumped"]))
         else:
             stops.append(o["end"] == "stop")
+    returns, scenarios = np.asarray(returns), np.asarray(scenarios)
+    by_scenario = [float(returns[scenarios == k].mean()) for k in (1, 2)]
     return {
-        "bump": [100 * float(np.mean(bumps[t])) for t in TTCS],
+        "bump": [100 * float(np.mean(bumps[t])) for t in ttcs],
         "stops": 100 * float(np.mean(stops)),
-        "return": float(np.mean(returns)),
+        "return": float(np.mean(by_scenario)),
+        "return_by_scenario": by_scenario,
+        "returns": returns,
     }
 
 
-def trained_ensembles(run: Path, groups: list[str]) -> list:
-    """The mean-Q ensembles of ``run``'s dqn_chae seeds, one per comma-separated group, at their chosen checkpoints."""
+def trained_ensembles(run: Path, groups: list[str], noise_m: float | None = None) -> list:
+    """The mean-Q ensembles of ``run``'s dqn_chae seeds, one per comma-separated group, at their chosen checkpoints,
+    acting on the noise their checkpoints record or on ``noise_m``."""
     import torch
 
     from worldmodel import artifacts
@@ -66,18 +76,24 @@ def trained_ensembles(run: Path, groups: list[str]) -> list:
         if missing:
             raise SystemExit(f"{run} has no dqn_chae runs for seeds {missing}; it has {sorted(agents)}")
         members = [chae.load_policy(cfg, agents[s]) for s in seeds]
-        out.append(chae.DQNPolicy(f"ensemble {group}", chae.QEnsemble(m.agent for m in members), members[0].see, 0))
+        see = members[0].see if noise_m is None else chae.HistoryObserver(noise_m)
+        name = f"{run.name} ensemble {group}" + ("" if noise_m is None else f" acting at {noise_m:g} m")
+        out.append(chae.DQNPolicy(name, chae.QEnsemble(m.agent for m in members), see, 0))
     return out
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--thresholds", type=float, nargs="+", required=True, help="closing speeds, m/s")
+    parser.add_argument("--thresholds", type=float, nargs="*", default=[], help="closing speeds, m/s")
     parser.add_argument("--readings", type=int, default=5, help="readings the line is fitted to (2..5)")
     parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--run", type=Path, help="runs/NAME holding agent_chae_dqn_chae/seedK, for --ensembles")
     parser.add_argument("--ensembles", nargs="*", default=[], help="seed groups such as 0,1,2 (with --run)")
+    parser.add_argument("--noise-m", type=float, default=None, help="the ensembles act on this state noise, m")
+    parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
+    parser.add_argument("--scripted", nargs="*", default=["braking", "latest_safe_braking"], help="scripted policies")
+    parser.add_argument("--save", type=Path, help="write every policy's per-trial returns here (.npz)")
     args = parser.parse_args(argv)
     if args.ensembles and args.run is None:
         raise SystemExit("--ensembles needs --run runs/NAME")
@@ -92,19 +108,25 @@ def main(argv=None) -> None:
         raise SystemExit(str(e)) from None
     for rule in rules:
         rule.name = f"closing speed > {rule.threshold_ms:g} m/s"
-    policies = [chae.SCRIPTED[name]() for name in ("braking", "latest_safe_braking")] + rules
-    policies += trained_ensembles(args.run, args.ensembles) if args.ensembles else []
+    policies = [chae.SCRIPTED[name]() for name in args.scripted] + rules
+    policies += trained_ensembles(args.run, args.ensembles, args.noise_m) if args.ensembles else []
     cfg = compose("evaluate", ["evaluate.family=chae"])
-    entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=TTCS))
+    entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False)  # ends at the first bump, as in training: Eq. 8's return as learnt
     print(f"{args.readings} readings, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2\n")
-    print("| policy | bumps % at TTC 1.5 / 1.7 / 1.9 s | needless stops % | mean Eq. 8 return |")
+    at = " / ".join(f"{t:g}" for t in args.ttcs)
+    print(f"| policy | bumps % at TTC {at} s | needless stops % | mean Eq. 8 return (Scenario 1 / 2) |")
     print("|---|---|---:|---:|")
+    saved = {}
     for policy in policies:
-        s = drive(env, policy, entries)
+        s = drive(env, policy, entries, args.ttcs)
+        saved[policy.name] = s["returns"]
         bumps = " / ".join(f"{b:.1f}" for b in s["bump"])
-        print(f"| {policy.name} | {bumps} | {s['stops']:.1f} | {s['return']:.3f} |", flush=True)
+        one, two = s["return_by_scenario"]
+        print(f"| {policy.name} | {bumps} | {s['stops']:.1f} | {s['return']:.3f} ({one:.3f} / {two:.3f}) |", flush=True)
     env.close()
+    if args.save:
+        np.savez(args.save, scenario=np.array([k for k, _ in entries]), **saved)
 
 
 if __name__ == "__main__":
