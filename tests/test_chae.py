@@ -621,3 +621,40 @@ def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluatio
     env.close()
     np.testing.assert_array_equal(exact_readings[0], exact_readings[1])
     assert not np.array_equal(noisy_readings[0], noisy_readings[1])
+
+
+def test_a_noise_curriculum_ramps_the_training_noise_and_records_the_full_one(tmp_path):
+    """agent.chae_noise_ramp: the training episodes' noise (logged to TensorBoard) starts exact, rises linearly over
+    the ramp's share of the episodes and then holds agent.chae_noise_m, which the checkpoint records. A ramp of 1
+    or one on the camera's observation is refused, naming the key; the default leaves provenance as it was."""
+    import torch
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from worldmodel import artifacts, train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+    from worldmodel.config import validate
+
+    def cfg(root, *extra):
+        return smoke_dqn_chae(root, "agent.select.every=0", *extra)
+
+    plain = cfg(tmp_path / "plain")
+    assert artifacts.provenance(cfg(tmp_path / "plain", "agent.chae_noise_ramp=0"), "agent") == (
+        artifacts.provenance(plain, "agent")
+    )
+    for bad in (("agent.chae_noise_ramp=1.0",), ("agent.chae_noise_ramp=0.5", "obs=worldmodel")):
+        with pytest.raises(StageError, match="agent.chae_noise_ramp"):
+            validate(cfg(tmp_path / "bad", *bad))
+
+    ramped = cfg(tmp_path / "ramped", "agent.chae_noise_ramp=0.5", "agent.chae_noise_m=0.2")
+    train_agent.run(ramped)
+    run_dir = AgentId.of(ramped).dir(ramped)
+    assert torch.load(run_dir / "last.pt", weights_only=False)["noise_m"] == 0.2
+    events = EventAccumulator(str(run_dir))
+    events.Reload()
+    noise = [e.value for e in sorted(events.Scalars("train/state_noise_m"), key=lambda e: e.step)]
+    episodes = int(ramped.agent.episodes)
+    ramp = 0.5 * episodes
+    expected = [0.2 * min(1.0, k / ramp) for k in range(episodes)]
+    np.testing.assert_allclose(noise, expected, atol=1e-6)
+    assert noise[0] == 0.0 and noise[-1] == pytest.approx(0.2)

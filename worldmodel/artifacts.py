@@ -250,6 +250,7 @@ ADDED_DEFAULTS = {
         "bc_steer_weight": 1.0,
         "chae_ttc_range": [1.5, 4.0],
         "chae_noise_m": 0.1,
+        "chae_noise_ramp": 0.0,
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.

@@ -542,6 +542,11 @@ class AgentConfig(DDPGConfig):
     # decides the bar: trained exact, two ensembles of three had no bump and no needless stop on two fresh draws, at
     # 0.05 one ensemble was inside both bars, at 0.1 two in three (docs/results/chae/, nineteenth session)
     chae_noise_m: float = 0.1
+    # family chae: a noise curriculum. Over the first chae_noise_ramp of agent.episodes the training episodes' noise
+    # rises linearly from 0 to chae_noise_m; every later episode, every checkpoint validation and the checkpoint's
+    # record use chae_noise_m. 0: no curriculum. Keep it <= agent.select.start so that every selectable checkpoint
+    # has learnt on the full noise since (docs/results/chae/settings_validation.md, twentieth session)
+    chae_noise_ramp: float = 0.0
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
@@ -596,6 +601,16 @@ class AgentConfig(DDPGConfig):
         if not 0.0 <= self.chae_noise_m <= 1.0:
             yield ConfigValueError(
                 "chae_noise_m", self.chae_noise_m, "it must be in [0, 1] m (0: the exact relative position)"
+            )
+        if not 0.0 <= self.chae_noise_ramp < 1.0:
+            yield ConfigValueError(
+                "chae_noise_ramp", self.chae_noise_ramp, "it must be in [0, 1): a fraction of agent.episodes"
+            )
+        elif self.chae_noise_ramp > 0 and self.obs != "pedestrian_history":
+            yield ConfigValueError(
+                "chae_noise_ramp",
+                self.chae_noise_ramp,
+                "only Chae's state (obs=pedestrian_history) has a noise to ramp",
             )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")

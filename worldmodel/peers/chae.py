@@ -160,6 +160,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             )
     see = observer(cfg, str(cfg.agent.obs))
     see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
+    ramp_episodes = float(cfg.agent.chae_noise_ramp) * episodes
+    judge = observer(cfg, str(cfg.agent.obs)) if ramp_episodes else see  # validation sees the full noise
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
     agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
@@ -183,6 +185,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     with tqdm(total=episodes, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
         while episode < episodes and not run_.stop.requested:
             spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
+            if ramp_episodes:
+                see.view.noise_m = see_noise * min(1.0, episode / ramp_episodes)
             obs, _ = env.reset(options={"scenario": spec})
             see.reset(view_seed)
             x, ret = see(env, obs), 0.0
@@ -208,10 +212,12 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             writer.add_scalar("episode/return", ret, episode)
             writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
             writer.add_scalar("train/epsilon", agent.epsilon(), episode)
+            if ramp_episodes:
+                writer.add_scalar("train/state_noise_m", see.view.noise_m, episode)
             if loss is not None:
                 writer.add_scalar("train/loss", loss, episode)
             if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
-                score = validation.score(DQNPolicy("validation", agent, see, int(cfg.seed)), episode)
+                score = validation.score(DQNPolicy("validation", agent, judge, int(cfg.seed)), episode)
                 improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
                 curve["validation"].append(score)
                 writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
