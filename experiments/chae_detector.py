@@ -14,7 +14,13 @@ a rule inside the bars can be set beside what the learner is paid to do. ``evalu
 chosen threshold as ``closing_braking`` (docs/results/chae/README.md). ``--noise-m`` makes the ensembles act on
 another noise than their checkpoints record (twentieth session: does Eq. 8 on the noisy state prefer what the
 exact-trained ensembles do there?); ``--save`` keeps every policy's per-trial returns, in bank order, for paired
-comparisons across runs on the same draw.
+comparisons across runs on the same draw:
+
+    python -m experiments.chae_detector --compare runs/a.npz runs/b.npz --group "chaeexact*" --against "chaevote*"
+
+prints the scenario-weighted mean return of every saved policy, and the paired difference between the mean of
+the policies matching ``--group`` and the mean of those matching ``--against`` (per trial, so the same pedestrian
+and the same noise), with a 95 % bootstrap interval resampling trials within each scenario.
 """
 
 from __future__ import annotations
@@ -56,6 +62,39 @@ def drive(env, policy, entries, ttcs=TTCS) -> dict:
     }
 
 
+def weighted_mean(returns: np.ndarray, scenario: np.ndarray) -> float:
+    """Scenario 1 and Scenario 2 weighted equally, as training draws them."""
+    return float(np.mean([returns[scenario == k].mean() for k in (1, 2)]))
+
+
+def compare(paths: list[Path], group: str, against: str, resamples: int = 10_000) -> None:
+    """Print every saved policy's weighted mean return and the paired group difference with its bootstrap interval."""
+    from fnmatch import fnmatch
+
+    scenario, returns = None, {}
+    for path in paths:
+        with np.load(path) as saved:
+            if scenario is not None and not np.array_equal(scenario, saved["scenario"]):
+                raise SystemExit(f"{path} holds another bank than {paths[0]}: compare runs on the same draw and trials")
+            scenario = saved["scenario"]
+            returns.update({k: saved[k] for k in saved.files if k != "scenario"})
+    print("| policy | mean Eq. 8 return |\n|---|---:|")
+    for name, r in returns.items():
+        print(f"| {name} | {weighted_mean(r, scenario):.3f} |")
+    chosen = {side: [n for n in returns if fnmatch(n, pattern)] for side, pattern in (("a", group), ("b", against))}
+    if not chosen["a"] or not chosen["b"]:
+        raise SystemExit(f"no saved policy matches {group!r} or {against!r}; saved: {sorted(returns)}")
+    diff = np.mean([returns[n] for n in chosen["a"]], axis=0) - np.mean([returns[n] for n in chosen["b"]], axis=0)
+    rng = np.random.default_rng(0)
+    strata = [np.flatnonzero(scenario == k) for k in (1, 2)]
+    boot = [np.mean([diff[rng.choice(idx, idx.size)].mean() for idx in strata]) for _ in range(int(resamples))]
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    print(
+        f"\n{group} minus {against} ({len(chosen['a'])} against {len(chosen['b'])} policies): "
+        f"{weighted_mean(diff, scenario):+.3f} [{lo:+.3f}, {hi:+.3f}] (95 %, {resamples} resamples)"
+    )
+
+
 def trained_ensembles(run: Path, groups: list[str], noise_m: float | None = None) -> list:
     """The mean-Q ensembles of ``run``'s dqn_chae seeds, one per comma-separated group, at their chosen checkpoints,
     acting on the noise their checkpoints record or on ``noise_m``."""
@@ -94,7 +133,12 @@ def main(argv=None) -> None:
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
     parser.add_argument("--scripted", nargs="*", default=["braking", "latest_safe_braking"], help="scripted policies")
     parser.add_argument("--save", type=Path, help="write every policy's per-trial returns here (.npz)")
+    parser.add_argument("--compare", type=Path, nargs="+", help="saved .npz files: compare them instead of driving")
+    parser.add_argument("--group", default="*exact*", help="with --compare: the policies whose mean is compared")
+    parser.add_argument("--against", default="*vote*", help="with --compare: the policies it is compared against")
     args = parser.parse_args(argv)
+    if args.compare:
+        return compare(args.compare, args.group, args.against)
     if args.ensembles and args.run is None:
         raise SystemExit("--ensembles needs --run runs/NAME")
 
