@@ -6,7 +6,8 @@ privileged scripted policies and, if asked, seed ensembles of trained runs, on o
         [--run runs/NAME --ensembles 0,1,2 3,4,5 [--noise-m 0.1]] [--ttcs 1.5 1.7 1.9] [--save returns.npz]
 
 The rule fits a line to the pedestrian's lateral distance over the last ``--readings`` readings of the agent's
-view (0.1 m noise) and brakes fully, from then on, once the pedestrian closes in faster than the threshold (m/s).
+view (``--rule-noise-m``, default 0.1 m) and brakes fully, from then on, once the pedestrian closes in faster
+than the threshold (m/s).
 Every policy drives the same trials (``peers.chae.bank``; draw 99 is checkpoint selection's, 2017 the test draw:
 do not choose on it) in the training env, which ends at the first bump. Prints per policy the bump rate at TTC
 1.5, 1.7, 1.9 s, Scenario 2's needless stops, and the mean Eq. 8 return per trial as training counts it, so that
@@ -130,6 +131,7 @@ def main(argv=None) -> None:
     parser.add_argument("--run", type=Path, help="runs/NAME holding agent_chae_dqn_chae/seedK, for --ensembles")
     parser.add_argument("--ensembles", nargs="*", default=[], help="seed groups such as 0,1,2 (with --run)")
     parser.add_argument("--noise-m", type=float, default=None, help="the ensembles act on this state noise, m")
+    parser.add_argument("--rule-noise-m", type=float, default=0.1, help="the closing-speed rules' state noise, m")
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
     parser.add_argument("--scripted", nargs="*", default=["braking", "latest_safe_braking"], help="scripted policies")
     parser.add_argument("--save", type=Path, help="write every policy's per-trial returns here (.npz)")
@@ -147,17 +149,17 @@ def main(argv=None) -> None:
     from worldmodel.peers import chae
 
     try:
-        rules = [ClosingSpeedBraking(t, args.readings) for t in args.thresholds]
+        rules = [ClosingSpeedBraking(t, args.readings, args.rule_noise_m) for t in args.thresholds]
     except ValueError as e:
         raise SystemExit(str(e)) from None
     for rule in rules:
-        rule.name = f"closing speed > {rule.threshold_ms:g} m/s"
+        rule.name = f"closing > {rule.threshold_ms:g} m/s, {args.readings} readings, {args.rule_noise_m:g} m"
     policies = [chae.SCRIPTED[name]() for name in args.scripted] + rules
     policies += trained_ensembles(args.run, args.ensembles, args.noise_m) if args.ensembles else []
     cfg = compose("evaluate", ["evaluate.family=chae"])
     entries = chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=args.ttcs))
     env = chae.family_env(cfg, camera=False)  # ends at the first bump, as in training: Eq. 8's return as learnt
-    print(f"{args.readings} readings, draw {args.draw}, {args.trials} trials per TTC and in Scenario 2\n")
+    print(f"draw {args.draw}, {args.trials} trials per TTC and in Scenario 2\n")
     at = " / ".join(f"{t:g}" for t in args.ttcs)
     print(f"| policy | bumps % at TTC {at} s | needless stops % | mean Eq. 8 return (Scenario 1 / 2) |")
     print("|---|---|---:|---:|")
