@@ -395,7 +395,7 @@ V_DES_MAX, STEER_ANGLE_MAX = 60.0 / 3.6, 0.6
 def kim_action(action, speed: float) -> np.ndarray:
     """Kim's action (desired speed, steering angle), given as two numbers in [-1, 1] (an actor's tanh outputs),
     as our [steer, pedal]: v_des = (a0 + 1) / 2 * 16.67 m/s, alpha = 0.6 a1 rad, steer = alpha / 0.6 and
-    pedal = clip(0.5 (v_des - v), -1, 1) (PEERS defaults: a proportional speed controller)."""
+    pedal = clip(0.5 (v_des - v), -1, 1) (our default, docs/design.md §10: a proportional speed controller)."""
     a = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
     v_des = 0.5 * (a[0] + 1.0) * V_DES_MAX
     return np.array([a[1], min(1.0, max(-1.0, 0.5 * (v_des - speed)))], dtype=np.float32)

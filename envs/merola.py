@@ -15,9 +15,9 @@ crash imminent:
 Episodes are 60 steps of 0.1 s (``env.step_s`` = 0.1, which ``conf/agent/ddqn_merola.yaml`` sets) and end at the
 first crash. The paper spawns its scenarios at 5 points, 3 on straight road and 2 at an intersection; ours puts the
 street's junction in view (15-50 m ahead, or at the crossing car's path) in every ``crossing`` episode and in
-``AT_JUNCTION_P`` of the others, so that the junction is in view in 40 % of all episodes, as PEERS.md's default
-says. The street (buildings, poles, parked furniture) is the one the camera draws, so the family runs with the
-camera on.
+``AT_JUNCTION_P`` of the others, so that the junction is in view in 40 % of all episodes, our default (docs/design.md
+§10). The street (buildings, poles, parked furniture) is the one the camera draws, so the family runs with the camera
+on.
 """
 
 from __future__ import annotations
@@ -95,7 +95,8 @@ SPEC = MerolaSpec
 
 
 def sample(rng: np.random.Generator, scenario: str | None = None) -> MerolaSpec:
-    """The training distribution: the three scenarios equally likely (or ``scenario``), the rest as PEERS.md says."""
+    """The training distribution: the three scenarios equally likely (or ``scenario``), the rest as
+    docs/design.md §10 says."""
     name = str(SCENARIOS[int(rng.integers(len(SCENARIOS)))]) if scenario is None else scenario
     ttc_range = {"lead_brake": HEADWAY_RANGE, "crossing": CROSSING_TTC_RANGE, "drift": DRIFT_TTC_RANGE}[name]
     return MerolaSpec(

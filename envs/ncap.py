@@ -12,7 +12,7 @@ does at constant car speed, 4 s after the start (TTC 4 s). The episode ends on c
 (``impact``), when the car stands still (``stop``) or when its front bumper has passed the pedestrian's path
 (``pass``); at the latest 7 s after the start.
 
-Our choices where the protocol is not at hand (PEERS.md marks them unverified; every result is labelled
+Our choices where the protocol is not at hand (docs/design.md §10 lists them as unverified; every result is labelled
 approximate): the pedestrian accelerates over its first 1 m; we model that as standing still for 1/v_p s and then
 walking at v_p, which reaches the impact point at the same instant (positions differ by at most 0.25 m, while the
 pedestrian is still outside the carriageway). Our pedestrian has one body size, so the child is an adult-sized
@@ -22,7 +22,7 @@ elsewhere.
 
 Car-to-car rear tests (``CAR_TESTS``): a target car ahead in the ego's lane, offset sideways so that the two cars'
 fronts overlap by ``overlap_pct`` of the width (positive: the target is offset to the ego's right, the kerb side;
-our choice, PEERS.md does not say):
+our choice, the sources at hand do not say):
 
 | test | target | test-car speeds | variants |
 |---|---|---|---|
@@ -33,7 +33,7 @@ our choice, PEERS.md does not say):
 CCRs and CCRm start at TTC 4 s (bumper gap = closing speed × 4 s); CCRb starts as the target begins to brake. A
 run ends when the cars touch (``crash``), when the test car stands still (``stop``) or becomes slower than the
 target (``slower``); at the latest 7 s after the start. Points per impact-speed band (``car_points``) are confirmed
-by PEERS.md only for CCRs at 50 km/h and for full avoidance at 20 km/h and below; elsewhere the same bands are
+only for CCRs at 50 km/h and for full avoidance at 20 km/h and below; elsewhere the same bands are
 applied and labelled approximate.
 """
 
@@ -66,7 +66,8 @@ CAR_TESTS = {
 }
 OVERLAPS_PCT = (-75.0, -50.0, 50.0, 75.0, 100.0)
 CCRB_VARIANTS = ((2.0, 12.0), (2.0, 40.0), (6.0, 12.0), (6.0, 40.0))  # (target deceleration m/s², gap m)
-# points per impact (relative) speed band, km/h (PEERS.md: CCRs at 50 km/h; full avoidance at 20 km/h and below)
+# points per impact (relative) speed band, km/h (confirmed for CCRs at 50 km/h and full avoidance at 20 km/h and
+# below; docs/design.md §10)
 POINT_BANDS = ((5.0, 1.0), (15.0, 0.75), (30.0, 0.5), (40.0, 0.25))
 START_TTC_S = 4.0
 ACCELERATION_M = 1.0
@@ -283,7 +284,7 @@ def build(spec: NcapSpec, ego_front: float, **options):
 def car_points(speed_kmh: float, impact_kmh: float | None) -> tuple[float, bool]:
     """(points in [0, 1], confirmed) for one car-to-car run by its relative impact speed: full avoidance scores 1;
     at 20 km/h and below only avoidance scores; above, the bands of CCRs at 50 km/h (< 5 km/h: 1, < 15: 0.75,
-    < 30: 0.5, < 40: 0.25). Confirmed by PEERS.md at 50 km/h and at 20 km/h and below; elsewhere approximate."""
+    < 30: 0.5, < 40: 0.25). Confirmed at 50 km/h and at 20 km/h and below; elsewhere approximate."""
     confirmed = speed_kmh <= 20.0 or speed_kmh == 50.0
     if impact_kmh is None:
         return 1.0, confirmed

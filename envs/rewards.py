@@ -92,7 +92,7 @@ def kim_aware(ctx: StepContext) -> float:
     return float(ctx.family.get("goal_progress", 0.0))
 
 
-# Merola et al. 2022 §3.1 and §4, with PEERS.md's defaults where the paper gives no number
+# Merola et al. 2022 §3.1 and §4, with our defaults where the paper gives no number (docs/design.md §10)
 MEROLA_V_MIN, MEROLA_V_MAX, MEROLA_PHI_MAX = 2.0, 60.0 / 3.6, math.radians(10.0)
 MEROLA_IMPACT_FULL_MS = 60.0 / 3.6  # a crash at this ego delta-v (pedestrian: impact speed) costs the full 100
 

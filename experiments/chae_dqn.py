@@ -4,11 +4,11 @@
         [--set double=true loss='"huber"' ...] [--no-ablation]
 
 Trains ``DQN`` (worldmodel/models/dqn.py; Chae's FC [15, 100, 70, 50, 70, 100, 4], leaky ReLU, RMSProp 5e-4, replay
-10,000 / batch 32, trauma memory 1,000 / batch 10, the sum loss of Eq. 9) on family ``chae`` (envs/chae.py: 0.1 s
-steps, the four brake levels, reward Eq. 8) with PEERS' defaults where the paper is silent (gamma 0.99, target copy
-every 500 updates, epsilon 1 -> 0.05 over the first half of the steps, 1,000 warm-up steps; a trauma is a transition
-whose next state is a bump). Then it scores the greedy policy the way Table I does: Scenario 1 bump rate at TTC
-0.9-3.9 s in steps of 0.2 (``--trials`` per TTC), and Scenario 2's rate of unnecessary stops, beside the privileged
+10,000 / batch 32, trauma memory 1,000 / batch 10, the sum loss of Eq. 9) on family ``chae`` (envs/chae.py: 0.1 s steps,
+the four brake levels, reward Eq. 8) with our defaults where the paper is silent (docs/design.md §10: gamma 0.99, target
+copy every 500 updates, epsilon 1 -> 0.05 over the first half of the steps, 1,000 warm-up steps; a trauma is a
+transition whose next state is a bump). Then it scores the greedy policy the way Table I does: Scenario 1 bump rate at
+TTC 0.9-3.9 s in steps of 0.2 (``--trials`` per TTC), and Scenario 2's rate of unnecessary stops, beside the privileged
 latest-safe braking policy. Writes ``results.json``, ``table.md`` and ``learning_curves.png`` to ``--out``.
 
 The trials here are drawn from seed 99 (the validation draw); the stage's evaluation (``python -m worldmodel.evaluate

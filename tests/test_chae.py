@@ -1,5 +1,5 @@
 """Scenario family ``chae`` (envs/chae.py) on the real simulator: replay, trigger, termination, reward, state and
-the physics band of PEERS' calculation."""
+the physics band of issue 13's calculation."""
 
 from __future__ import annotations
 
@@ -134,9 +134,9 @@ def test_pedestrian_history_is_15_values_oldest_first(env):
 
 
 def test_braking_at_the_trigger_lands_in_the_physics_band(env):
-    """PEERS §1: full braking exactly at the trigger bumps in 37.3 / 3.1 / 0 / 0 % at TTC 0.9 / 1.1 / 1.3 / 1.5 s
-    (v ~ U(10, 60) km/h), and in 76.5 / 12.1 / 0.46 / 0 % a step of 0.1 s later. Deciding once per step, the
-    privileged policies react 0-0.1 s late, so they must land inside that band."""
+    """Issue 13's physics check: full braking exactly at the trigger bumps in 37.3 / 3.1 / 0 / 0 % at TTC 0.9 /
+    1.1 / 1.3 / 1.5 s (v ~ U(10, 60) km/h), and in 76.5 / 12.1 / 0.46 / 0 % a step of 0.1 s later. Deciding once per
+    step, the privileged policies react 0-0.1 s late, so they must land inside that band."""
     band = {0.9: (37.3, 76.5), 1.1: (3.1, 12.1), 1.3: (0.0, 0.46), 1.5: (0.0, 0.0)}
     for policy in (LatestSafeBraking(),):
         for ttc, (lo, hi) in band.items():

@@ -20,8 +20,8 @@ for the experiment, each at its own step length:
 Writes ``runs/NAME/eval_ncap/`` (``eval_ncap_takeover<T>/`` for another takeover TTC): ``results.csv`` (one row
 per run), ``tables.md`` (the headline per policy; then per policy, per test and speed: avoided, or the impact
 speed; pedestrian tests with Euro NCAP's 2015 aim, avoid up to 40 km/h and hit below 40 km/h above it; car tests
-with points per impact-speed band, approximate where PEERS.md does not confirm them), ``ncap.png`` (one panel per
-policy) and ``summary.json`` (last: it marks the run complete).
+with points per impact-speed band, approximate where they are not confirmed, docs/design.md §10), ``ncap.png``
+(one panel per policy) and ``summary.json`` (last: it marks the run complete).
 """
 
 from __future__ import annotations
@@ -287,7 +287,7 @@ def tables(rows: list[dict], summary: dict) -> str:
         f"Paper-family policies take over at TTC {summary['takeover_ttc_s']:g} s (the car holds its speed until "
         "then); the peers' policies drive from the test's start. Pedestrian aim (Euro NCAP 2015): avoid up to "
         "40 km/h, hit below 40 km/h from 40 to 60 km/h. Car points: 1 for avoidance, else by the relative impact "
-        "speed (< 5 km/h 1, < 15 0.75, < 30 0.5, < 40 0.25; none at 20 km/h and below), confirmed by PEERS.md for "
+        "speed (< 5 km/h 1, < 15 0.75, < 30 0.5, < 40 0.25; none at 20 km/h and below), confirmed for "
         "CCRs at 50 km/h and at 20 km/h and below, approximate elsewhere. n/a: the policy does not run these "
         "tests. Other collisions: runs that also hit a parked car, a pole or the street; clean runs: the target "
         "avoided and nothing else hit, over every test the policy ran.",

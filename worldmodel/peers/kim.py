@@ -582,8 +582,9 @@ def tables(summary: dict, trials: int, paper_trials: int) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        "The paper's footnote (PEERS.md): its 'all' column is not the mean of the three scenarios, and 87.00 / 31.50 / "
-        "5.30 are not multiples of 1/30; its human row is a driving-simulator study, not reproduced here.",
+        "The paper's inconsistencies (docs/design.md §10): its 'all' column is not the mean of the three scenarios, "
+        "and 87.00 / 31.50 / 5.30 are not multiples of 1/30; its human row is a driving-simulator study, not "
+        "reproduced here.",
         "",
         f"## {trials} trials per scenario, with 95 % Wilson intervals",
         "",

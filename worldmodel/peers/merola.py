@@ -7,8 +7,8 @@ Training (``train_agent`` with ``agent.variant=ddqn_merola``): ``agent.peer_tota
 from
 ``envs.merola.sample`` (lead car braking, junction crossing, oncoming drift; 60 steps of 0.1 s), reward ``merola``,
 nine actions {brake, none, throttle} × {left, straight, right} (pedal -1 / 0 / +1, steer -0.5 / 0 / +0.5), Double
-DQN from ``worldmodel/models/dqn.py`` with one update per step. The observation (PEERS.md deviation: our camera
-gives class maps, not RGB, and ImageNet weights are not at hand):
+DQN from ``worldmodel/models/dqn.py`` with one update per step. The observation (a deviation, docs/design.md
+§10: our camera gives class maps, not RGB, and ImageNet weights are not at hand):
 
 * ``frames_vae`` (default): the frozen VAE's means of the last 4 frames (4 × 128), the first frame repeated at the
   start of an episode;
