@@ -539,8 +539,9 @@ class AgentConfig(DDPGConfig):
     # family chae: the standard deviation (m) of the noise on the pedestrian's relative position in Chae's state
     # (envs.chae.PedestrianHistory), for the dqn learner's training and checkpoint selection. The paper says only
     # "slight noise"; 0.1 is our documented default. A checkpoint records its value and is evaluated with it. It
-    # decides the bar: trained exact, two ensembles of three had no bump and no needless stop on two fresh draws, at
-    # 0.05 one ensemble was inside both bars, at 0.1 two in three (docs/results/chae/, nineteenth session)
+    # decides the corner's bumps: in the eighteenth session's configuration, two exact and two 0.05 m ensembles were
+    # inside both bars on fresh draws, against two in three at 0.1; the preset at 0.05 stopped needlessly instead
+    # (one in three; docs/results/chae/, nineteenth and twentieth sessions)
     chae_noise_m: float = 0.1
     # family chae: a noise curriculum. Over the first chae_noise_ramp of agent.episodes the training episodes' noise
     # rises linearly from 0 to chae_noise_m; every later episode, every checkpoint validation and the checkpoint's
