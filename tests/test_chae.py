@@ -391,7 +391,9 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     members = [chae.load_policy(ev, a) for a in agents]
     (ensemble,) = chae.ensembles(agents, members, 2)
     assert (ensemble.name, ensemble.policy_seed) == ("agent_chae_dqn_chae_ensemble2", 0)
-    obs = np.random.default_rng(0).normal(size=(300, members[0].see.dim)).astype(np.float32)
+    obs = (np.random.default_rng(0).normal(size=(300, members[0].see.dim)) * 5).astype(
+        np.float32
+    )  # metres and m/s: states at the scale of real ones, where the members disagree
     q0, q1 = (m.agent.q_values(obs) for m in members)
     np.testing.assert_allclose(ensemble.agent.q_values(obs), (q0 + q1) / 2, rtol=1e-6)
     chosen = [ensemble.agent.act(o) for o in obs]
@@ -534,16 +536,16 @@ def test_the_bars_are_judged_run_by_run():
     assert bars_per_run(rows, [1.3]) == []
 
 
-def test_the_training_ttc_range_reaches_the_episodes_and_its_default_is_the_papers(tmp_path):
-    """agent.chae_ttc_range: the default draws the paper's episodes exactly (and leaves provenance as before the
-    option); a lower bound of 1.3 s rescales only the TTC of the same draws, and it reaches the training loop (the
-    trained network differs). An empty or inverted range is refused, naming the key."""
+def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_papers(tmp_path):
+    """agent.chae_ttc_range: the schema's default draws the paper's episodes exactly; the preset's lower bound of
+    1.3 s rescales only the TTC of the same draws, and it reaches the training loop (the trained network differs).
+    An empty or inverted range is refused, naming the key."""
     import torch
 
     from worldmodel import artifacts, train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.config import validate
+    from worldmodel.config import AgentConfig, validate
     from worldmodel.peers.chae import episode_scenario
 
     def cfg(root, *extra):
@@ -561,10 +563,9 @@ def test_the_training_ttc_range_reaches_the_episodes_and_its_default_is_the_pape
         assert wide.ttc == pytest.approx(1.3 + (paper.ttc - 1.5) * 2.7 / 2.5)
     assert min(episode_scenario(3, e, [1.3, 4.0])[0].ttc for e in range(50)) < 1.5
 
-    default, wide = cfg(tmp_path / "paper"), cfg(tmp_path / "wide", "agent.chae_ttc_range=[1.3,4.0]")
-    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_ttc_range=[1.5,4.0]"), "agent") == (
-        artifacts.provenance(default, "agent")
-    )
+    assert AgentConfig().chae_ttc_range == [1.5, 4.0]  # the schema's
+    default, wide = cfg(tmp_path / "paper", "agent.chae_ttc_range=[1.5,4.0]"), cfg(tmp_path / "wide")
+    assert list(wide.agent.chae_ttc_range) == [1.3, 4.0]  # the preset's, since the twenty-first session
     assert artifacts.provenance(wide, "agent") != artifacts.provenance(default, "agent")
     for bad in ("[2.0,1.5]", "[1.5]", "[0.0,4.0]", "[1.5,6.0]"):
         with pytest.raises(StageError, match="agent.chae_ttc_range"):
@@ -578,9 +579,10 @@ def test_the_training_ttc_range_reaches_the_episodes_and_its_default_is_the_pape
 
 
 def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluation(tmp_path):
-    """agent.chae_noise_m: the default leaves provenance as before the option; a run trained without noise records
-    it, and the policy evaluation loads from that checkpoint sees the exact relative position (the same reading
-    whatever the observer's seed), where the default's readings differ by seed. A negative noise is refused."""
+    """agent.chae_noise_m: the preset's 0.05 m and any other value are different runs; a run trained without noise
+    records it, and the policy evaluation loads from that checkpoint sees the exact relative position (the same
+    reading whatever the observer's seed), where the default's readings differ by seed. A negative noise is
+    refused."""
     import torch
 
     from envs.chae import ChaeSpec
@@ -594,10 +596,12 @@ def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluatio
         return smoke_dqn_chae(root, "agent.select.every=0", *extra)
 
     default, exact = cfg(tmp_path / "paper"), cfg(tmp_path / "exact", "agent.chae_noise_m=0")
-    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_noise_m=0.1"), "agent") == (
+    assert default.agent.chae_noise_m == 0.05  # the preset's, since the twenty-first session
+    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_noise_m=0.05"), "agent") == (
         artifacts.provenance(default, "agent")
     )
-    assert artifacts.provenance(exact, "agent") != artifacts.provenance(default, "agent")
+    for other in (exact, cfg(tmp_path / "first_twenty", "agent.chae_noise_m=0.1")):
+        assert artifacts.provenance(other, "agent") != artifacts.provenance(default, "agent")
     with pytest.raises(StageError, match="agent.chae_noise_m"):
         validate(cfg(tmp_path / "bad", "agent.chae_noise_m=-0.1"))
     train_agent.run(exact)
