@@ -391,9 +391,8 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     members = [chae.load_policy(ev, a) for a in agents]
     (ensemble,) = chae.ensembles(agents, members, 2)
     assert (ensemble.name, ensemble.policy_seed) == ("agent_chae_dqn_chae_ensemble2", 0)
-    obs = (np.random.default_rng(0).normal(size=(300, members[0].see.dim)) * 5).astype(
-        np.float32
-    )  # metres and m/s: states at the scale of real ones, where the members disagree
+    # metres and m/s: states at the scale of real ones, where the smoke-trained members disagree
+    obs = (5.0 * np.random.default_rng(0).normal(size=(300, members[0].see.dim))).astype(np.float32)
     q0, q1 = (m.agent.q_values(obs) for m in members)
     np.testing.assert_allclose(ensemble.agent.q_values(obs), (q0 + q1) / 2, rtol=1e-6)
     chosen = [ensemble.agent.act(o) for o in obs]

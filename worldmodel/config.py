@@ -544,7 +544,8 @@ class AgentConfig(DDPGConfig):
     # twenty sessions, kept so that their runs stay current; the dqn_chae preset sets 0.05 since the twenty-first,
     # where Chae's Table I at TTC 1.1 and 1.3 s points (docs/design.md §10, docs/results/chae/). It decides the
     # corner's bumps: in the preset's configuration two exact and two 0.05 m ensembles were inside both bars on
-    # fresh draws, against two in three at 0.1
+    # fresh draws, against two in three at 0.1. On the test draw nine fresh seeds at 0.05 m gave two in three, the
+    # third stopping needlessly instead of bumping
     chae_noise_m: float = 0.1
     # family chae: a noise curriculum. Over the first chae_noise_ramp of agent.episodes the training episodes' noise
     # rises linearly from 0 to chae_noise_m; every later episode, every checkpoint validation and the checkpoint's
