@@ -336,6 +336,44 @@ def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(
         train_agent.run(smoke_dqn_chae(tmp_path / "clash", *rescore, "agent.select.rescore_seed=2017"))
 
 
+def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_both_bars(tmp_path):
+    """agent.select.extend: after the planned episodes, a run whose rescoring chose nothing inside both bars trains
+    another block, validating and keeping as before, and is rescored again, until a member is found or the blocks
+    run out; with bars everything passes, the run ends at its planned length. Bad settings are refused."""
+    from worldmodel import train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.common import StageError
+
+    def trained(root, *bars):
+        cfg = smoke_dqn_chae(root, "agent.select.rescore=2", "agent.select.rescore_trials=2", *bars)
+        assert (cfg.agent.select.extend, cfg.agent.select.extend_blocks) == (4, 2)  # smoke's block, the preset's cap
+        train_agent.run(cfg)
+        run = AgentId.of(cfg).dir(cfg)
+        return json.loads((run / "metrics.json").read_text()), run
+
+    metrics, run = trained(tmp_path / "strict", "agent.select.max_bump=0", "agent.select.max_stops=0")
+    gates = metrics["gates"]
+    assert 1 <= len(gates) <= 3 and not any(g["member"] for g in gates[:-1])
+    assert gates[-1]["member"] or len(gates) == 3  # stopped by a member, or after the last block
+    assert metrics["episodes"] == 12 + 4 * (len(gates) - 1) == gates[-1]["episode"] == 12 + metrics["extended"]
+    assert [g["episode"] for g in gates] == list(range(12, metrics["episodes"] + 1, 4))
+    validated = [s["episode"] for s in metrics["curve"]["validation"]]
+    assert validated == list(range(4, metrics["episodes"] + 1, 4)) and len(metrics["curve"]["end"]) == validated[-1]
+    assert sorted(p.name for p in (run / "validated").iterdir()) == [f"episode{e:05d}.pt" for e in validated]
+    if metrics["rescored"]["chosen"] is not None:
+        assert (run / "best.pt").read_bytes() == (
+            run / "validated" / f"episode{metrics['selected']['episode']:05d}.pt"
+        ).read_bytes()
+
+    loose, _ = trained(tmp_path / "loose", "agent.select.max_bump=100", "agent.select.max_stops=100")
+    assert loose["gates"] == [{"episode": 12, "member": True}] and loose["episodes"] == 12 and loose["extended"] == 0
+
+    with pytest.raises(StageError, match="select.extend"):
+        train_agent.run(smoke_dqn_chae(tmp_path / "no_rescore", "agent.select.rescore=0"))
+    with pytest.raises(StageError, match="select.extend"):
+        train_agent.run(smoke_dqn_chae(tmp_path / "odd_block", "agent.select.extend=6"))
+
+
 def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, tmp_path):
     """On a run whose training-time scores are all inside both bars, the shortlisted kept checkpoints drive the new
     draw, the chosen one becomes the copy's best.pt, and the evaluation's loader reads it; the judging draws are

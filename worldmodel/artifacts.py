@@ -280,6 +280,9 @@ def _drop_added_defaults(settings: dict) -> dict:
     if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
         agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
     select = agent.get("select") if isinstance(agent, dict) else None
+    if isinstance(select, dict) and not (select.get("extend") and select.get("extend_blocks")):
+        select.pop("extend", None)  # off: the run's length as before the option
+        select.pop("extend_blocks", None)
     if isinstance(select, dict) and not select.get("rescore"):
         for key in ("keep", "rescore", "rescore_seed", "rescore_trials", "rescore_ttcs", "max_stops"):
             select.pop(key, None)  # no rescoring: best.pt chosen as before the option (keeping files changes nothing)

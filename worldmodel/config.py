@@ -447,6 +447,13 @@ class SelectConfig(Checked):
     # 2.5-3.5 s, nine fresh seeds (seventeenth) gave no ensemble inside both bars at 0.1 m of noise; the dqn_chae
     # preset's since the twenty-first session, at 0.05 m
     rescore_ttcs: list[float] | None = None
+    # after the run and its rescoring, if the chosen checkpoint is not inside both bars on the rescoring draw (or
+    # there is no candidate), train ``extend`` more episodes, validate and rescore again, at most ``extend_blocks``
+    # times; 0 blocks = off. The runs swing between bumping and stopping to the end, so a run cut at a fixed length
+    # without a good checkpoint has stopped drawing them, not run out (docs/results/chae/settings_validation.md,
+    # twenty-second session). The block is left to the scale (smoke: 4), the number of blocks to the preset
+    extend: int = 1000
+    extend_blocks: int = 0
 
     def problems(self):
         yield from _positive(self, "trials")
@@ -473,6 +480,20 @@ class SelectConfig(Checked):
                 "select.rescore_seed", self.rescore_seed, "it must differ from agent.select.seed (a new draw)"
             )
         yield from _positive(self, "rescore_trials")
+        if self.extend < 0:
+            yield ConfigValueError("select.extend", self.extend, "it must be >= 0 episodes per block (0 = off)")
+        if self.extend_blocks < 0:
+            yield ConfigValueError("select.extend_blocks", self.extend_blocks, "it must be >= 0 blocks")
+        if self.extend and self.extend_blocks and not self.rescore:
+            yield ConfigValueError(
+                "select.extend",
+                self.extend,
+                "it trains on until the rescoring finds a member: set agent.select.rescore too",
+            )
+        if self.extend and self.extend_blocks and self.every and self.extend % self.every:
+            yield ConfigValueError(
+                "select.extend", self.extend, f"use a multiple of agent.select.every ({self.every}) episodes"
+            )
         if self.rescore_ttcs is not None and (
             not self.rescore_ttcs or any(not 0.0 < float(t) < 5.0 for t in self.rescore_ttcs)
         ):

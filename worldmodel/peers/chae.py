@@ -182,62 +182,90 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     recent: deque = deque(maxlen=ROLLING)
     recent.extend(e == "bump" for e in curve["end"][-ROLLING:])
     loss = None
-    with tqdm(total=episodes, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
-        while episode < episodes and not run_.stop.requested:
-            spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
-            if ramp_episodes:
-                see.view.noise_m = see_noise * min(1.0, episode / ramp_episodes)
-            obs, _ = env.reset(options={"scenario": spec})
-            see.reset(view_seed)
-            x, ret = see(env, obs), 0.0
-            while True:
-                a = agent.act(x)
-                action = brake_action(a)
-                obs, reward, terminated, truncated, info = env.step(action)
-                see.note_action(action)
-                x_next = see(env, obs)
-                bump = terminated and info["outcome"]["end"] == "bump"
-                agent.remember(x, a, reward, x_next, terminated, trauma=bump, episode_end=terminated or truncated)
-                stats = agent.update()
-                loss = stats["loss"] if stats else loss
-                x, ret = x_next, ret + reward
-                if terminated or truncated:
-                    break
-            end = info["outcome"]["end"]
-            curve["return"].append(float(ret))
-            curve["end"].append(end)
-            recent.append(end == "bump")
-            episode += 1
-            bar.update(1)
-            writer.add_scalar("episode/return", ret, episode)
-            writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
-            writer.add_scalar("train/epsilon", agent.epsilon(), episode)
-            if ramp_episodes:
-                writer.add_scalar("train/state_noise_m", see.view.noise_m, episode)
-            if loss is not None:
-                writer.add_scalar("train/loss", loss, episode)
-            if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
-                score = validation.score(DQNPolicy("validation", agent, judge, int(cfg.seed)), episode)
-                improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
-                curve["validation"].append(score)
-                writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
-                writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
-                snapshot(best=improved, keep=bool(sel.keep))
-            elif episode % CHECKPOINT_EPISODES == 0:
-                snapshot()
-    snapshot()
+
+    def play_episode():
+        """One training episode, logged; a validation (or a checkpoint) when it falls due."""
+        nonlocal episode, loss
+        spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
+        if ramp_episodes:
+            see.view.noise_m = see_noise * min(1.0, episode / ramp_episodes)
+        obs, _ = env.reset(options={"scenario": spec})
+        see.reset(view_seed)
+        x, ret = see(env, obs), 0.0
+        while True:
+            a = agent.act(x)
+            action = brake_action(a)
+            obs, reward, terminated, truncated, info = env.step(action)
+            see.note_action(action)
+            x_next = see(env, obs)
+            bump = terminated and info["outcome"]["end"] == "bump"
+            agent.remember(x, a, reward, x_next, terminated, trauma=bump, episode_end=terminated or truncated)
+            stats = agent.update()
+            loss = stats["loss"] if stats else loss
+            x, ret = x_next, ret + reward
+            if terminated or truncated:
+                break
+        end = info["outcome"]["end"]
+        curve["return"].append(float(ret))
+        curve["end"].append(end)
+        recent.append(end == "bump")
+        episode += 1
+        writer.add_scalar("episode/return", ret, episode)
+        writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
+        writer.add_scalar("train/epsilon", agent.epsilon(), episode)
+        if ramp_episodes:
+            writer.add_scalar("train/state_noise_m", see.view.noise_m, episode)
+        if loss is not None:
+            writer.add_scalar("train/loss", loss, episode)
+        if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
+            score = validation.score(DQNPolicy("validation", agent, judge, int(cfg.seed)), episode)
+            improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
+            curve["validation"].append(score)
+            writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
+            writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
+            snapshot(best=improved, keep=bool(sel.keep))
+        elif episode % CHECKPOINT_EPISODES == 0:
+            snapshot()
+
+    rescore_cache: dict = {}  # episode -> its rescoring: the draw is fixed, so a checkpoint is scored once
+
+    def choose() -> tuple[dict | None, dict | None]:
+        """The validation score best.pt holds and, with rescoring, the rescoring (best.pt then its choice)."""
+        chosen, rescored = selected(curve["validation"], float(sel.max_bump)), None
+        if validation is not None and sel.rescore:
+            rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"], cache=rescore_cache)
+            if rescored["chosen"] is not None:
+                episode_chosen = rescored["chosen"]["episode"]
+                atomic_write_bytes(run_.best, validated_path(run_.dir, episode_chosen).read_bytes())
+                chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
+        return chosen, rescored
+
+    block, blocks = int(sel.extend), int(sel.extend_blocks)
+    # the planned episodes, then (agent.select.extend) whole blocks until the rescoring finds a member inside both
+    # bars; a run resumed inside a block finishes that block first
+    target = episodes + (int(np.ceil((episode - episodes) / block)) * block if block and episode > episodes else 0)
+    gates: list[dict] = []  # each rescoring's verdict: did it find a member inside both bars?
+    with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
+        while True:
+            while episode < target and not run_.stop.requested:
+                play_episode()
+                bar.update(1)
+            snapshot()
+            if run_.stop.requested:
+                break
+            chosen, rescored = choose()
+            gates.append({"episode": episode, "member": member_found(rescored, sel)})
+            if not block or target >= episodes + blocks * block or gates[-1]["member"]:
+                break
+            log.info("[%s] no rescored member inside both bars at episode %d: %d more", run_.name, episode, block)
+            target += block
+            bar.total = target
+            bar.refresh()
     env.close()
     if validation is not None:
         validation.env.close()
     if run_.stop.requested:
         return run_.stopped(agent.steps)
-    chosen, rescored = selected(curve["validation"], float(sel.max_bump)), None
-    if validation is not None and sel.rescore:
-        rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"])
-        if rescored["chosen"] is not None:
-            episode_chosen = rescored["chosen"]["episode"]
-            atomic_write_bytes(run_.best, validated_path(run_.dir, episode_chosen).read_bytes())
-            chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
     last = curve["end"][-ROLLING:]
     return {
         "reward": agent_id.reward,
@@ -248,6 +276,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
         "selected": chosen,
         "rescored": rescored,
+        "extended": max(0, episode - episodes),
+        "gates": gates,
         "curve": curve,
     }
 
@@ -309,11 +339,17 @@ def rescore_choice(rescored: list[dict], max_bump: float, max_stops: float) -> d
     return min(rescored, key=key) if rescored else None
 
 
-def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None) -> dict:
+def member_found(rescored: dict | None, sel) -> bool:
+    """Whether the rescoring chose a checkpoint inside both bars on its draw (``agent.select.extend`` stops)."""
+    chosen = (rescored or {}).get("chosen")
+    return chosen is not None and room(chosen, float(sel.max_bump), float(sel.max_stops)) <= 1.0
+
+
+def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, cache: dict | None = None) -> dict:
     """``agent.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
     (``sel``: the run's select settings, default ``cfg.agent.select``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
     Returns the draw, every shortlisted checkpoint's bumps per TTC, their highest and the needless stops, and the
-    chosen one (None: no candidate)."""
+    chosen one (None: no candidate). ``cache`` (episode -> entry) holds checkpoints already rescored on this draw."""
     import torch
 
     sel = sel or cfg.agent.select
@@ -321,21 +357,24 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None) 
     ttcs = [float(t) for t in (getattr(sel, "rescore_ttcs", None) or [corner])]
     entries = bank(SimpleNamespace(seed=int(sel.rescore_seed), trials=int(sel.rescore_trials), ttcs=ttcs))
     env, rescored = None, []
+    cache = {} if cache is None else cache
     for score in rescore_shortlist(scores, int(sel.rescore), max_bump, max_stops, corner):
+        if score["episode"] in cache:
+            rescored.append(cache[score["episode"]])
+            continue
         path = validated_path(run_dir, score["episode"])
         if not path.exists():
             raise StageError(f"{path} is missing: rescoring reads the checkpoints agent.select.keep=true keeps")
         policy = policy_from_state(cfg, agent_id, torch.load(path, map_location="cpu", weights_only=False))
         env = env or family_env(cfg, camera=policy.see.camera, end_on_bump=False)
         s = summarise(run_policy(env, policy, entries, leave=False), ttcs)["policies"][policy.name]
-        rescored.append(
-            {
-                "episode": score["episode"],
-                "bump_rate": max(s["bump_rate"].values()),  # the highest over the TTCs: what room() weighs
-                "bump_rates": {str(t): s["bump_rate"][t] for t in ttcs},
-                "unnecessary_stop_rate": s["unnecessary_stop_rate"],
-            }
-        )
+        cache[score["episode"]] = {
+            "episode": score["episode"],
+            "bump_rate": max(s["bump_rate"].values()),  # the highest over the TTCs: what room() weighs
+            "bump_rates": {str(t): s["bump_rate"][t] for t in ttcs},
+            "unnecessary_stop_rate": s["unnecessary_stop_rate"],
+        }
+        rescored.append(cache[score["episode"]])
     if env is not None:
         env.close()
     chosen = rescore_choice(rescored, max_bump, max_stops)
