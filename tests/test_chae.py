@@ -343,6 +343,7 @@ def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_bo
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
+    from worldmodel.peers.chae import first_target
 
     def trained(root, *bars):
         cfg = smoke_dqn_chae(root, "agent.select.rescore=2", "agent.select.rescore_trials=2", *bars)
@@ -367,6 +368,18 @@ def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_bo
 
     loose, _ = trained(tmp_path / "loose", "agent.select.max_bump=100", "agent.select.max_stops=100")
     assert loose["gates"] == [{"episode": 12, "member": True}] and loose["episodes"] == 12 and loose["extended"] == 0
+
+    # a finished run without the extension, resumed with it, trains on exactly as one that had it from the start
+    strict = ("agent.select.rescore=2", "agent.select.rescore_trials=2", "agent.select.max_bump=0")
+    cfg = smoke_dqn_chae(tmp_path / "later", *strict, "agent.select.max_stops=0", "agent.select.extend_blocks=0")
+    train_agent.run(cfg)
+    train_agent.run(smoke_dqn_chae(tmp_path / "later", *strict, "agent.select.max_stops=0", "resume=true"))
+    later = json.loads((AgentId.of(cfg).dir(cfg) / "metrics.json").read_text())
+    assert later["curve"] == metrics["curve"] and later["gates"] == metrics["gates"]
+    # a run resumed inside a block finishes it before it is rescored
+    assert [first_target(e, 12, 4) for e in (0, 12, 13, 16, 17)] == [12, 12, 16, 16, 20] and first_target(
+        13, 12, 0
+    ) == 12
 
     with pytest.raises(StageError, match="select.extend"):
         train_agent.run(smoke_dqn_chae(tmp_path / "no_rescore", "agent.select.rescore=0"))

@@ -242,8 +242,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
 
     block, blocks = int(sel.extend), int(sel.extend_blocks)
     # the planned episodes, then (agent.select.extend) whole blocks until the rescoring finds a member inside both
-    # bars; a run resumed inside a block finishes that block first
-    target = episodes + (int(np.ceil((episode - episodes) / block)) * block if block and episode > episodes else 0)
+    # bars
+    target = first_target(episode, episodes, block)
     gates: list[dict] = []  # each rescoring's verdict: did it find a member inside both bars?
     with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
         while True:
@@ -280,6 +280,14 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         "gates": gates,
         "curve": curve,
     }
+
+
+def first_target(episode: int, episodes: int, block: int) -> int:
+    """The episode a run at ``episode`` trains to before its next rescoring: the planned ``episodes``, or, for a run
+    resumed inside an extension block of ``block`` episodes, that block's end."""
+    if not block or episode <= episodes:
+        return episodes
+    return episodes + -(-(episode - episodes) // block) * block
 
 
 # ----------------------------------------------------------------------------- checkpoint selection
