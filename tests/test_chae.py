@@ -227,10 +227,10 @@ def test_checkpoint_selection_by_chaes_metrics():
 @pytest.fixture(scope="module")
 def kept_run(tmp_path_factory):
     """A smoke dqn_chae run that validated every 4 episodes and kept each validated checkpoint
-    (agent.select.keep)."""
+    (agent.select.keep), at its planned 12 episodes (no extension)."""
     from worldmodel import train_agent
 
-    chosen = smoke_dqn_chae(tmp_path_factory.mktemp("chosen"), "agent.select.keep=true")
+    chosen = smoke_dqn_chae(tmp_path_factory.mktemp("chosen"), "agent.select.keep=true", "agent.select.extend_blocks=0")
     train_agent.run(chosen)
     return chosen
 

@@ -240,7 +240,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
         return chosen, rescored
 
-    block, blocks = int(sel.extend), int(sel.extend_blocks)
+    # training on needs the rescoring's verdict: without validation (agent.select.every=0) there is none
+    block, blocks = (int(sel.extend), int(sel.extend_blocks)) if validation is not None and sel.rescore else (0, 0)
     # the planned episodes, then (agent.select.extend) whole blocks until the rescoring finds a member inside both
     # bars
     target = first_target(episode, episodes, block)
