@@ -227,7 +227,9 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         elif episode % CHECKPOINT_EPISODES == 0:
             snapshot()
 
-    rescore_cache: dict = {}  # episode -> its rescoring: the draw is fixed, so a checkpoint is scored once
+    # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
+    draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {list(sel.rescore_ttcs or [sel.ttcs[0]])}"
+    rescore_cache: dict = curve.setdefault("rescored", {}).setdefault(draw, {})
 
     def choose() -> tuple[dict | None, dict | None]:
         """The validation score best.pt holds and, with rescoring, the rescoring (best.pt then its choice)."""
@@ -255,6 +257,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             if run_.stop.requested:
                 break
             chosen, rescored = choose()
+            snapshot()  # with the rescoring in the curve, so that a resumed run need not drive it again
             gates.append({"episode": episode, "member": member_found(rescored, sel)})
             if not block or target >= episodes + blocks * block or gates[-1]["member"]:
                 break
@@ -358,7 +361,8 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
     """``agent.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
     (``sel``: the run's select settings, default ``cfg.agent.select``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
     Returns the draw, every shortlisted checkpoint's bumps per TTC, their highest and the needless stops, and the
-    chosen one (None: no candidate). ``cache`` (episode -> entry) holds checkpoints already rescored on this draw."""
+    chosen one (None: no candidate). ``cache`` (str(episode) -> entry) holds checkpoints already rescored on this
+    draw, and takes the new ones."""
     import torch
 
     sel = sel or cfg.agent.select
@@ -368,8 +372,8 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
     env, rescored = None, []
     cache = {} if cache is None else cache
     for score in rescore_shortlist(scores, int(sel.rescore), max_bump, max_stops, corner):
-        if score["episode"] in cache:
-            rescored.append(cache[score["episode"]])
+        if str(score["episode"]) in cache:
+            rescored.append(cache[str(score["episode"])])
             continue
         path = validated_path(run_dir, score["episode"])
         if not path.exists():
@@ -377,13 +381,13 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
         policy = policy_from_state(cfg, agent_id, torch.load(path, map_location="cpu", weights_only=False))
         env = env or family_env(cfg, camera=policy.see.camera, end_on_bump=False)
         s = summarise(run_policy(env, policy, entries, leave=False), ttcs)["policies"][policy.name]
-        cache[score["episode"]] = {
+        cache[str(score["episode"])] = {
             "episode": score["episode"],
             "bump_rate": max(s["bump_rate"].values()),  # the highest over the TTCs: what room() weighs
             "bump_rates": {str(t): s["bump_rate"][t] for t in ttcs},
             "unnecessary_stop_rate": s["unnecessary_stop_rate"],
         }
-        rescored.append(cache[score["episode"]])
+        rescored.append(cache[str(score["episode"])])
     if env is not None:
         env.close()
     chosen = rescore_choice(rescored, max_bump, max_stops)
