@@ -247,18 +247,21 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     # the planned episodes, then (agent.select.extend) whole blocks until the rescoring finds a member inside both
     # bars
     target = first_target(episode, episodes, block)
-    gates: list[dict] = []  # each rescoring's verdict: did it find a member inside both bars?
+    gates = curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
     with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
         while True:
             while episode < target and not run_.stop.requested:
                 play_episode()
                 bar.update(1)
-            snapshot()
             if run_.stop.requested:
+                snapshot()
                 break
             chosen, rescored = choose()
-            snapshot()  # with the rescoring in the curve, so that a resumed run need not drive it again
-            gates.append({"episode": episode, "member": member_found(rescored, sel)})
+            verdict = {"episode": episode, "member": member_found(rescored, sel)}
+            if gates and gates[-1]["episode"] == episode:  # a finished run resumed: the same verdict again
+                gates.pop()
+            gates.append(verdict)
+            snapshot()  # with the rescoring and its verdict in the curve: a resumed run need not drive it again
             if not block or target >= episodes + blocks * block or gates[-1]["member"]:
                 break
             log.info("[%s] no rescored member inside both bars at episode %d: %d more", run_.name, episode, block)
