@@ -229,7 +229,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
 
     # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
     draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {list(sel.rescore_ttcs or [sel.ttcs[0]])}"
-    rescore_cache: dict = curve.setdefault("rescored", {}).setdefault(draw, {})
+    rescore_cache: dict = curve.setdefault("rescorings", {}).setdefault(draw, {})
 
     def choose() -> tuple[dict | None, dict | None]:
         """The validation score best.pt holds and, with rescoring, the rescoring (best.pt then its choice)."""
@@ -244,8 +244,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
 
     # training on needs the rescoring's verdict: without validation (agent.select.every=0) there is none
     block, blocks = (int(sel.extend), int(sel.extend_blocks)) if validation is not None and sel.rescore else (0, 0)
-    # the planned episodes, then (agent.select.extend) whole blocks until the rescoring finds a member inside both
-    # bars
+    # the planned episodes, then whole blocks until the rescoring finds a member inside both bars
     target = first_target(episode, episodes, block)
     gates = curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
     with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
