@@ -12,8 +12,10 @@ harm), truncated ``env.horizon_after_ttc_s`` after the TTC. The reward is 0 exce
 Writes ``runs/NAME/agent_r1/seed0/`` (reward, then training seed): ``last.pt`` (actor, critic, targets,
 optimisers, replay buffer, step, RNG, provenance) every ``agent.checkpoint_every`` steps, ``best.pt`` (best
 rolling return), TensorBoard (episodic return, collision rate by kind, injury sums, losses, Q, steps/s) and
-``metrics.json`` when finished. A resumed run starts a fresh episode at the saved step; the buffer and all
-optimiser state carry over.
+``metrics.json`` when finished. A checkpoint taken inside an episode keeps that episode's start and actions, its
+n-step window and the latest losses, so a resumed run replays the episode to the saved step and goes on exactly as
+an uninterrupted run would: the same replay buffer, weights, optimiser and random states, episode count and
+TensorBoard steps.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from .common import StageError, check_finite, make_env, seed_everything, set_thr
 from .config import hydra_main, validate
 from .imitation import clone, cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
 from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
-from .training import TrainingRun
+from .training import EpisodeInProgress, TrainingRun
 
 log = logging.getLogger(__name__)
 ROLLING = 100
@@ -93,6 +95,8 @@ def run(cfg) -> dict:
         log.info("[%s] %d demonstration transitions from %d planner episodes", name, len(demos), demo_info["episodes"])
     window = NStepWindow(hp.n_step, hp.gamma)
     scale = float(hp.reward_scale)
+    current = EpisodeInProgress(env)
+    losses: dict = {}
 
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), artifacts.provenance(cfg, "agent"), name=name) as run_:
         step, episode, best_return = 0, 0, -float("inf")
@@ -151,6 +155,12 @@ def run(cfg) -> dict:
                     "use_speed": bool(cfg.agent.use_speed),
                     "frame_view": bool(cfg.agent.frame_view),
                     "reward": agent_id.reward,
+                    "in_progress": {
+                        **current.state_dict(),
+                        "return": ep_return,
+                        "window": window.state_dict(),
+                        "losses": dict(losses),
+                    },
                 },
                 best=best,
             )
@@ -158,14 +168,20 @@ def run(cfg) -> dict:
         from tqdm import tqdm
 
         writer = run_.writer
-        obs, info = env.reset(**reset_options(cfg, episode))
-        ep_return, ep_len = 0.0, 0
+        progress = run_.state.get("in_progress") if run_.state is not None else None
+        if progress and len(progress["actions"]):
+            obs, info = current.resume(progress, run_.last)
+            ep_return = progress["return"]
+            window.load_state_dict(progress["window"])
+            losses = dict(progress["losses"])
+        else:
+            obs, info = current.reset(**reset_options(cfg, episode))
+            ep_return = 0.0
         t0, steps_this_run = time.perf_counter(), 0
-        losses = {}
         with tqdm(total=hp.total_steps, initial=step, desc=f"agent {agent_id.reward}", unit="step") as bar:
             while step < hp.total_steps:
                 action = agent.random_action() if step < hp.warmup_steps else agent.act(obs, explore=True)
-                next_obs, r, terminated, truncated, info = env.step(action)
+                next_obs, r, terminated, truncated, info = current.step(action)
                 for transition in window.push(obs, action, r * scale, next_obs, terminated):
                     buffer.add(*transition)
                 if truncated and not terminated:
@@ -173,7 +189,6 @@ def run(cfg) -> dict:
                         buffer.add(*transition)
                 obs = next_obs
                 ep_return += r
-                ep_len += 1
                 step += 1
                 steps_this_run += 1
                 bar.update(1)
@@ -187,13 +202,14 @@ def run(cfg) -> dict:
                 if terminated or truncated:
                     o = info["outcome"]
                     history.append({k: o[k] for k in OUTCOME_KEYS} | {"return": ep_return, "hazard": o["hazard"]})
-                    rolling = log_episode(writer, history, o, ep_return, ep_len, step)
+                    rolling = log_episode(writer, history, o, ep_return, len(current), step)
                     episode += 1
+                    # the next episode starts before any save, so that a checkpoint here holds no finished one
+                    obs, info = current.reset(**reset_options(cfg, episode))
+                    ep_return = 0.0
                     if step > hp.warmup_steps and len(history) >= min(ROLLING, 20) and rolling > best_return:
                         best_return = rolling
                         snapshot(best=True)
-                    obs, info = env.reset(**reset_options(cfg, episode))
-                    ep_return, ep_len = 0.0, 0
 
                 if losses and step % 50 == 0:
                     for k, v in losses.items():

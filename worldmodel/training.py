@@ -15,6 +15,8 @@ import logging
 import signal
 from pathlib import Path
 
+import numpy as np
+
 from . import artifacts
 from .common import (
     StageError,
@@ -186,3 +188,63 @@ class TrainingRun:
         """Write the completion marker: the run is done."""
         atomic_write_text(self.marker, json.dumps(metrics, indent=2))
         return metrics
+
+
+class EpisodeInProgress:
+    """The training episode under way, kept so that a checkpoint taken inside it resumes exactly.
+
+    The simulator is deterministic given how an episode started and the actions taken since, so a checkpoint
+    keeps only those: ``resume`` starts the episode again and replays the actions, which rebuilds the simulator,
+    any recurrent view of it (the world model's LSTM state, a frame history) and the observation as they were.
+    The learner's own state (its random generators, replay memory, n-step window) travels in the checkpoint beside
+    it. Replaying draws from no random generator, so restoring them before or after makes no difference.
+    """
+
+    def __init__(self, env):
+        self.env = env
+        self.start: dict = {}
+        self.actions: list[np.ndarray] = []
+        self.obs = None
+
+    def reset(self, **start):
+        """``env.reset(**start)``, remembered as this episode's start."""
+        self.start, self.actions = dict(start), []
+        self.obs, info = self.env.reset(**start)
+        return self.obs, info
+
+    def step(self, action):
+        out = self.env.step(action)
+        self.actions.append(np.array(action, copy=True))  # its own dtype: the replay must feed the same bits
+        self.obs = out[0]
+        return out
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+    def state_dict(self) -> dict:
+        return {"start": self.start, "actions": list(self.actions), "obs": self.obs}
+
+    def resume(self, state: dict, where: Path):
+        """Start the saved episode again and replay its actions; returns ``(obs, info)`` at the saved step."""
+        obs, info = self.reset(**state["start"])
+        for k, action in enumerate(state["actions"]):
+            obs, _, terminated, truncated, info = self.step(action)
+            if (terminated or truncated) and k + 1 < len(state["actions"]):
+                raise StageError(
+                    f"the episode in progress in {where} ended after {k + 1} of its {len(state['actions'])} replayed "
+                    "actions: this simulator does not replay it as the one that saved it did (another pybullet or "
+                    "numpy build?). Resume on the machine that wrote it, or delete the run folder to start over."
+                )
+        if not same_observation(obs, state["obs"]):
+            log.warning(
+                "the episode in progress in %s replayed to a different observation (another torch build or thread "
+                "count?): the run goes on from the replayed one, no longer bit-identical to an uninterrupted run",
+                where,
+            )
+        return obs, info
+
+
+def same_observation(a, b) -> bool:
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_observation(a[k], b[k]) for k in a)
+    return np.array_equal(np.asarray(a), np.asarray(b))

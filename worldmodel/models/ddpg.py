@@ -260,6 +260,13 @@ class NStepWindow:
             out.append(self._emit(len(self.pending)))
         return out
 
+    def state_dict(self) -> list[tuple]:
+        """The transitions still waiting for their n steps: a checkpoint inside an episode keeps them."""
+        return list(self.pending)
+
+    def load_state_dict(self, pending: list[tuple]) -> None:
+        self.pending = list(pending)
+
 
 class ReplayBuffer(CircularStore):
     """The DDPG replay memory: continuous actions, and ``steps``, the k of an n-step transition (the target
