@@ -100,6 +100,8 @@ def run(cfg) -> dict:
 
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), artifacts.provenance(cfg, "agent"), name=name) as run_:
         step, episode, best_return = 0, 0, -float("inf")
+        rounds = hp.dagger_rounds + 1 if hp.bc_pretrain_steps > 0 else 0  # cloning rounds before the first step
+        cloned, cloning_set = 0, None
         if run_.state is not None:
             state = run_.state
             if state["obs_dim"] != obs_dim:
@@ -112,33 +114,10 @@ def run(cfg) -> dict:
             buffer.load_state_dict(state["buffer"])
             step, episode, best_return = state["step"], state["episode"], state["best_return"]
             history.extend(state["history"])
-            run_.resumed(f"step {step}, episode {episode}")
-        elif hp.bc_pretrain_steps > 0:
-            inputs, targets = demos.obs[: len(demos)], demos.actions[: len(demos)]
-            for round_ in range(hp.dagger_rounds + 1):
-                if round_:
-                    x, y, outcome = dagger_labels(cfg, agent, encoder, action_map, round_)
-                    inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])
-                    log.info(
-                        "[%s] DAgger round %d: %d planner labels on the student's states; its episodes: %s",
-                        name,
-                        round_,
-                        len(x),
-                        outcome,
-                    )
-                    demo_info[f"dagger_round{round_}"] = {"labels": len(x), "student": outcome}
-                loss = clone(agent, inputs, targets, hp, run_.writer, round_, held_out)
-                demo_info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)
-                log.info(
-                    "[%s] cloned the planner (round %d, %d examples, %d minibatches): training loss %.4f; held-out %s",
-                    name,
-                    round_,
-                    len(inputs),
-                    hp.bc_pretrain_steps,
-                    loss,
-                    demo_info[f"after_cloning_round{round_}"],
-                )
-            agent.sync_targets()
+            cloned, cloning_set = state.get("cloned_rounds", rounds), state.get("cloning_set")
+            demo_info = state.get("demonstrations", demo_info)
+            cloning = f", {cloned} of {rounds} cloning rounds" if rounds else ""
+            run_.resumed(f"step {step}, episode {episode}{cloning}")
 
         def snapshot(best=False):
             run_.save(
@@ -155,6 +134,10 @@ def run(cfg) -> dict:
                     "use_speed": bool(cfg.agent.use_speed),
                     "frame_view": bool(cfg.agent.frame_view),
                     "reward": agent_id.reward,
+                    "demonstrations": demo_info,
+                    "cloned_rounds": cloned,
+                    # the examples the next cloning round fits, DAgger's labels among them; dropped once cloned
+                    "cloning_set": cloning_set if cloned < rounds else None,
                     "in_progress": {
                         **current.state_dict(),
                         "return": ep_return,
@@ -164,6 +147,19 @@ def run(cfg) -> dict:
                 },
                 best=best,
             )
+
+        ep_return = 0.0
+        if cloned < rounds:  # a stop waits for the round to end: each round is saved, and resumes after it
+            if cloning_set is None:
+                cloning_set = (demos.obs[: len(demos)], demos.actions[: len(demos)])
+            while cloned < rounds and not run_.stop.requested:
+                cloning_set = cloning_round(
+                    cfg, agent, encoder, action_map, cloning_set, held_out, cloned, run_, demo_info
+                )
+                cloned += 1
+                if cloned == rounds:
+                    agent.sync_targets()
+                snapshot()
 
         from tqdm import tqdm
 
@@ -179,7 +175,7 @@ def run(cfg) -> dict:
             ep_return = 0.0
         t0, steps_this_run = time.perf_counter(), 0
         with tqdm(total=hp.total_steps, initial=step, desc=f"agent {agent_id.reward}", unit="step") as bar:
-            while step < hp.total_steps:
+            while step < hp.total_steps and not run_.stop.requested:
                 action = agent.random_action() if step < hp.warmup_steps else agent.act(obs, explore=True)
                 next_obs, r, terminated, truncated, info = current.step(action)
                 for transition in window.push(obs, action, r * scale, next_obs, terminated):
@@ -217,8 +213,6 @@ def run(cfg) -> dict:
                     writer.add_scalar("speed/steps_per_s", steps_this_run / (time.perf_counter() - t0), step)
                 if step % hp.checkpoint_every == 0:
                     snapshot()
-                if run_.stop.requested:
-                    break
         snapshot()
         env.close()
         if run_.stop.requested:
@@ -247,6 +241,36 @@ def run(cfg) -> dict:
             run_.dir,
         )
         return run_.finish(metrics)
+
+
+def cloning_round(cfg, agent, encoder, action_map, cloning_set, held_out, round_: int, run_, demo_info: dict):
+    """Cloning round ``round_`` (0: the planner's demonstrations; from 1, DAgger: its labels on the student's own
+    states join them first). Returns the examples the round fitted; ``demo_info`` gains the round's figures."""
+    inputs, targets = cloning_set
+    name, hp = run_.name, agent.cfg
+    if round_:
+        x, y, outcome = dagger_labels(cfg, agent, encoder, action_map, round_)
+        inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])
+        log.info(
+            "[%s] DAgger round %d: %d planner labels on the student's states; its episodes: %s",
+            name,
+            round_,
+            len(x),
+            outcome,
+        )
+        demo_info[f"dagger_round{round_}"] = {"labels": len(x), "student": outcome}
+    loss = clone(agent, inputs, targets, hp, run_.writer, round_, held_out)
+    demo_info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)
+    log.info(
+        "[%s] cloned the planner (round %d, %d examples, %d minibatches): training loss %.4f; held-out %s",
+        name,
+        round_,
+        len(inputs),
+        hp.bc_pretrain_steps,
+        loss,
+        demo_info[f"after_cloning_round{round_}"],
+    )
+    return inputs, targets
 
 
 def run_chooser(cfg, agent_id) -> dict:

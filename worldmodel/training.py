@@ -117,7 +117,9 @@ class TrainingRun:
             set_rng_state(self.state["rng"])
         self.dir.mkdir(parents=True, exist_ok=True)
         artifacts.write_provenance(self.dir, self.record)
-        self.writer = tensorboard(self.dir, purge_step=self.state["step"] + 1 if self.state else None)
+        # "log_step": the x-axis of a stage whose curves count episodes rather than steps
+        logged = self.state.get("log_step", self.state["step"]) if self.state else None
+        self.writer = tensorboard(self.dir, purge_step=logged + 1 if self.state else None)
         self.stop.__enter__()
         return self
 

@@ -36,6 +36,7 @@ def dqn_checkpoint(agent, hp, episode: int, curve: dict, obs: str, obs_dim: int,
         "agent": agent.state_dict(),
         "episode": episode,
         "step": agent.steps,
+        "log_step": episode,  # its TensorBoard curves count episodes: a resumed run purges what came after this
         "curve": curve,
         "obs": obs,
         "obs_dim": obs_dim,

@@ -1,0 +1,187 @@
+"""Every learner, stopped and resumed, ends bit for bit where an uninterrupted run of the same config ends.
+
+A run is stopped the way a cluster's time limit stops it: a real SIGTERM, delivered to this process from a
+torch optimiser step hook (``torch.optim.optimizer.register_optimizer_step_pre_hook``) at a chosen update, so
+it lands in the middle of an episode, while the learner is busy. The stage's own signal handler turns it into a
+checkpoint and a clean return; ``resume=true`` then finishes the run. The DDPG agent is also stopped by a shorter
+``agent.total_steps``, which ends it mid-episode at an exact step.
+
+"The same result" is everything the run leaves: every tensor, array and counter of ``last.pt`` (weights,
+optimiser state, replay buffer and trauma memory, random generators, episode count), ``metrics.json`` but for
+its wall-clock speed, and every TensorBoard scalar with its step but for the ``speed/`` curves.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch.optim.optimizer import register_optimizer_step_pre_hook
+
+from worldmodel import artifacts, train_agent, train_rnn
+from worldmodel.config import compose
+
+# metrics.json keys that describe one invocation, not the run: the machine's speed, and whether this invocation
+# (re)encoded the latents or found them encoded
+INVOCATION = ("steps_per_s", "seconds", "wall_s", "reencoded_latents")
+
+
+def smoke(root: Path, stage: str, *overrides: str):
+    return compose(
+        stage,
+        [
+            f"paths.data_root={root}/data",
+            f"paths.runs_root={root}/runs",
+            "experiment=t",
+            "scale=smoke",
+            "threads=1",
+            *overrides,
+        ],
+    )
+
+
+@contextlib.contextmanager
+def sigterm_at_update(n: int):
+    """Send this process SIGTERM just before the ``n``-th optimiser step of any torch optimiser (1-based)."""
+    count = 0
+
+    def hook(optimizer, args, kwargs):
+        nonlocal count
+        count += 1
+        if count == n:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    handle = register_optimizer_step_pre_hook(hook)
+    try:
+        yield
+    finally:
+        handle.remove()
+    assert count >= n, f"the run made {count} optimiser steps, fewer than the {n} the stop was planned at"
+
+
+def assert_same(a, b, where: str = "") -> None:
+    """Bit-for-bit equality of two checkpoints (nested dicts, lists, tensors, arrays, numbers)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys {sorted(a)} != {sorted(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), f"{where}: lengths differ"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert torch.equal(a, b), f"{where}: tensors differ (max {float((a.double() - b.double()).abs().max())})"
+    elif isinstance(a, np.ndarray):
+        assert np.array_equal(a, b), f"{where}: arrays differ"
+    elif isinstance(a, float) and np.isnan(a):
+        assert isinstance(b, float) and np.isnan(b), where
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every TensorBoard scalar of a run, as its reader sees it (events a resumed run purged are gone)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {
+        tag: [(e.step, e.value) for e in acc.Scalars(tag)]
+        for tag in acc.Tags()["scalars"]
+        if not tag.startswith("speed/")
+    }
+
+
+def metrics(run_dir: Path) -> dict:
+    root = Path(*run_dir.parts[: run_dir.parts.index("runs")])  # the copy's own folder, which paths name
+    out = json.loads((run_dir / "metrics.json").read_text().replace(str(root), "<root>"))
+    for key in INVOCATION:
+        out.pop(key, None)
+    return out
+
+
+def assert_same_run(straight: Path, resumed: Path) -> None:
+    assert_same(
+        torch.load(straight / "last.pt", weights_only=False), torch.load(resumed / "last.pt", weights_only=False)
+    )
+    assert metrics(straight) == metrics(resumed)
+    a, b = scalars(straight), scalars(resumed)
+    assert a.keys() == b.keys()
+    for tag in a:
+        assert a[tag] == b[tag], f"TensorBoard {tag} differs"
+
+
+def stopped_then_resumed(root: Path, run, stage: str, overrides: tuple, stop_at_update: int) -> dict:
+    """Run a stage stopped by SIGTERM at an update, check it stopped, and return its checkpoint at the stop."""
+    with sigterm_at_update(stop_at_update):
+        out = run(smoke(root, stage, *overrides))
+    assert out.get("stopped"), "the SIGTERM should have stopped the run before its end"
+    return out
+
+
+@pytest.fixture
+def two_roots(experiment_copy, tmp_path):
+    """Two private copies of the smoke world model: one for the uninterrupted run, one for the interrupted one."""
+
+    def make(level: str = "rnn") -> tuple[Path, Path]:
+        straight = experiment_copy(level)
+        other = tmp_path.parent / f"{tmp_path.name}-resumed"
+        import shutil
+
+        shutil.copytree(straight, other)
+        return straight, other
+
+    return make
+
+
+# ----------------------------------------------------------------------------- the paper's DDPG agent
+def test_ddpg_stopped_by_a_shorter_total_resumes_bit_for_bit(two_roots):
+    """The example a user hits first: stop at 150 steps (mid-episode), resume to 300."""
+    a, b = two_roots()
+    train_agent.run(smoke(a, "train_agent", "reward=r1"))
+    train_agent.run(smoke(b, "train_agent", "reward=r1", "agent.total_steps=150"))
+    state = torch.load(artifacts.agent_dir(smoke(b, "train_agent", "reward=r1")) / "last.pt", weights_only=False)
+    assert state["step"] == 150 and len(state["in_progress"]["actions"]) > 0, "the stop should land mid-episode"
+    train_agent.run(smoke(b, "train_agent", "reward=r1", "resume=true"))
+    cfg = smoke(a, "train_agent", "reward=r1")
+    assert_same_run(artifacts.agent_dir(cfg), artifacts.agent_dir(smoke(b, "train_agent", "reward=r1")))
+
+
+def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots):
+    """TD3's options and 3-step returns: the stop leaves transitions waiting in the n-step window."""
+    a, b = two_roots()
+    variant = (
+        "reward=r2",
+        "agent.twin_critics=true",
+        "agent.policy_delay=2",
+        "agent.target_noise=0.2",
+        "agent.n_step=3",
+    )
+    train_agent.run(smoke(a, "train_agent", *variant))
+    # the warm-up ends at step 100; each step after it makes two optimiser steps (actor and critic) or one
+    stopped_then_resumed(b, train_agent.run, "train_agent", variant, stop_at_update=61)
+    state = torch.load(artifacts.agent_dir(smoke(b, "train_agent", *variant)) / "last.pt", weights_only=False)
+    assert 100 < state["step"] < 300
+    assert len(state["in_progress"]["actions"]) > 0 and len(state["in_progress"]["window"]) > 0
+    train_agent.run(smoke(b, "train_agent", *variant, "resume=true"))
+    assert_same_run(
+        artifacts.agent_dir(smoke(a, "train_agent", *variant)), artifacts.agent_dir(smoke(b, "train_agent", *variant))
+    )
+
+
+# ----------------------------------------------------------------------------- the world model's LSTM
+def test_lstm_sigterm_mid_epoch_resumes_bit_for_bit(two_roots):
+    a, b = two_roots("vae")
+    epochs = ("rnn.epochs=2",)
+    train_rnn.run(smoke(a, "train_rnn", *epochs))
+    stopped_then_resumed(b, train_rnn.run, "train_rnn", epochs, stop_at_update=3)
+    train_rnn.run(smoke(b, "train_rnn", *epochs, "resume=true"))
+    assert_same_run(
+        artifacts.runs_root(smoke(a, "train_rnn")) / "rnn", artifacts.runs_root(smoke(b, "train_rnn")) / "rnn"
+    )
