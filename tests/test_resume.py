@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 from pathlib import Path
 
@@ -86,16 +87,18 @@ def assert_same(a, b, where: str = "") -> None:
 
 
 def scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
-    """Every TensorBoard scalar of a run, as its reader sees it (events a resumed run purged are gone)."""
+    """Every TensorBoard scalar of a run and of its side folders (pre-training), as a reader sees it: events a
+    resumed run purged are gone."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
-    acc.Reload()
-    return {
-        tag: [(e.step, e.value) for e in acc.Scalars(tag)]
-        for tag in acc.Tags()["scalars"]
-        if not tag.startswith("speed/")
-    }
+    out = {}
+    for folder in sorted({p.parent for p in run_dir.rglob("events.out.tfevents.*")}):
+        acc = EventAccumulator(str(folder), size_guidance={"scalars": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            if not tag.startswith("speed/"):
+                out[f"{folder.relative_to(run_dir)}:{tag}"] = [(e.step, e.value) for e in acc.Scalars(tag)]
+    return out
 
 
 def metrics(run_dir: Path) -> dict:
@@ -132,8 +135,6 @@ def two_roots(experiment_copy, tmp_path):
     def make(level: str = "rnn") -> tuple[Path, Path]:
         straight = experiment_copy(level)
         other = tmp_path.parent / f"{tmp_path.name}-resumed"
-        import shutil
-
         shutil.copytree(straight, other)
         return straight, other
 
@@ -184,4 +185,72 @@ def test_lstm_sigterm_mid_epoch_resumes_bit_for_bit(two_roots):
     train_rnn.run(smoke(b, "train_rnn", *epochs, "resume=true"))
     assert_same_run(
         artifacts.runs_root(smoke(a, "train_rnn")) / "rnn", artifacts.runs_root(smoke(b, "train_rnn")) / "rnn"
+    )
+
+
+# ----------------------------------------------------------------------------- cloning and DAgger
+def test_cloning_and_dagger_sigterm_mid_round_resume_bit_for_bit(two_roots):
+    """The planner cloned, one DAgger round, then DDPG from demonstrations: a stop inside the first cloning round
+    waits for the round's end, which is saved; the resumed run labels, clones and trains on exactly as before."""
+    from worldmodel import demonstrate
+
+    a, b = two_roots()
+    demos = ("demos.episodes=3", "demos.episodes_per_shard=1", "demos.num_workers=1")
+    student = (
+        *("agent.anchor=brake", "agent.steer=grip", "agent.use_speed=true", "agent.actor_final_bound=0"),
+        *("agent.bc_pretrain_steps=30", "agent.dagger_rounds=1", "agent.dagger_episodes=1"),
+        *("agent.demo_share=0.25", "agent.total_steps=150", "reward=r2", *demos),
+    )
+    demonstrate.run(smoke(a, "demonstrate", *demos))
+    shutil.copytree(a / "data/t/demos", b / "data/t/demos")
+    train_agent.run(smoke(a, "train_agent", *student))
+    stopped_then_resumed(b, train_agent.run, "train_agent", student, stop_at_update=10)
+    state = torch.load(artifacts.agent_dir(smoke(b, "train_agent", *student)) / "last.pt", weights_only=False)
+    assert state["cloned_rounds"] == 1 and state["step"] == 0 and state["cloning_set"] is not None
+    train_agent.run(smoke(b, "train_agent", *student, "resume=true"))
+    assert_same_run(
+        artifacts.agent_dir(smoke(a, "train_agent", *student)), artifacts.agent_dir(smoke(b, "train_agent", *student))
+    )
+
+
+# ----------------------------------------------------------------------------- the chooser's scorer
+def test_chooser_sigterm_mid_fit_resumes_bit_for_bit(two_roots):
+    """The scorer's fit stopped halfway: the resumed run refits it from the kept labels to the same weights."""
+    a, b = two_roots()
+    chooser = (
+        *("reward=r2", "agent=chooser", "agent.chooser.episodes=4", "agent.chooser.steers=[1.0]"),
+        *("agent.chooser.lane_change_s=[0.3]", "agent.chooser.decide_s=0.5", "agent.chooser.steps=100"),
+        *("agent.chooser.batch_size=16", "agent.chooser.num_workers=1"),
+    )
+    train_agent.run(smoke(a, "train_agent", *chooser))
+    stopped_then_resumed(b, train_agent.run, "train_agent", chooser, stop_at_update=40)
+    train_agent.run(smoke(b, "train_agent", *chooser, "resume=true"))
+    assert_same_run(
+        artifacts.agent_dir(smoke(a, "train_agent", *chooser)), artifacts.agent_dir(smoke(b, "train_agent", *chooser))
+    )
+
+
+# ----------------------------------------------------------------------------- the peers' learners
+# Each peer's loop checks for a stop between episodes, so a SIGTERM mid-episode ends the episode first; the
+# checkpoint then holds whole episodes, and the resumed run starts the next one where the uninterrupted run does.
+PEERS = {
+    # Chae's braking DQN with its trauma memory, validations and rescoring, learning from step 40
+    "chae": ("agent=dqn_chae", "agent.dqn.warmup_steps=40"),
+    # Merola's Double DQN on the VAE's view of two frames, learning from step 40
+    "merola": ("agent=ddqn_merola", "agent.dqn.warmup_steps=40"),
+    # Kim's LIDAR DDPG with 3-step returns
+    "kim": ("agent=ddpg_kim",),
+}
+
+
+@pytest.mark.parametrize("peer", sorted(PEERS))
+def test_peer_sigterm_mid_episode_resumes_bit_for_bit(peer, two_roots):
+    a, b = two_roots("vae")
+    overrides = PEERS[peer]
+    train_agent.run(smoke(a, "train_agent", *overrides))
+    stopped_then_resumed(b, train_agent.run, "train_agent", overrides, stop_at_update=30)
+    train_agent.run(smoke(b, "train_agent", *overrides, "resume=true"))
+    assert_same_run(
+        artifacts.agent_dir(smoke(a, "train_agent", *overrides)),
+        artifacts.agent_dir(smoke(b, "train_agent", *overrides)),
     )

@@ -514,6 +514,8 @@ def train(cfg, run_, agent_id) -> dict:
         "action_map": ActionMap().to_dict(),
         "reward": agent_id.reward,
         "step": int(c.steps),
+        # a stopped fit is refitted from its first minibatch on resume: its curves are then purged from there
+        "log_step": -1 if run_.stop.requested else int(c.steps),
     }
     run_.save(state)
     return {

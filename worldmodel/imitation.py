@@ -61,7 +61,9 @@ def clone(
     """Up to ``hp.bc_pretrain_steps`` minibatches of behaviour cloning on (inputs, targets), stopped early: the
     actor kept is the one with the best fit on the held-out demonstrations, checked every 250 minibatches (the
     student overfits a few hundred episodes within a few thousand minibatches). ``weights``: one per sample, on its
-    squared error (None: all alike). Returns the last training loss."""
+    squared error (None: all alike). Curves go to ``writer`` at the minibatch's count over all rounds. Returns the
+    last training loss."""
+    offset = round_ * hp.bc_pretrain_steps
     loss, best, best_state = float("nan"), math.inf, None
     weights = None if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
     for k in range(hp.bc_pretrain_steps):
@@ -69,10 +71,10 @@ def clone(
         w = None if weights is None else weights[idx]
         loss = agent.clone(torch.from_numpy(inputs[idx]), torch.from_numpy(targets[idx]), w)
         if k % 50 == 0:
-            writer.add_scalar(f"pretrain/bc_loss_round{round_}", loss, k)
+            writer.add_scalar(f"pretrain/bc_loss_round{round_}", loss, offset + k)
         if (k + 1) % 250 == 0 or k + 1 == hp.bc_pretrain_steps:
             fit = cloning_fit(agent, held_out)["actor"]
-            writer.add_scalar(f"pretrain/bc_held_out_round{round_}", fit, k)
+            writer.add_scalar(f"pretrain/bc_held_out_round{round_}", fit, offset + k)
             if fit < best:
                 best, best_state = fit, copy.deepcopy(agent.actor.state_dict())
     if best_state is not None and len(held_out):

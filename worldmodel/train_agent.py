@@ -152,9 +152,11 @@ def run(cfg) -> dict:
         if cloned < rounds:  # a stop waits for the round to end: each round is saved, and resumes after it
             if cloning_set is None:
                 cloning_set = (demos.obs[: len(demos)], demos.actions[: len(demos)])
+            resumed_at = cloned * hp.bc_pretrain_steps if run_.state is not None else None
+            pretrain_writer = run_.side_writer("pretrain", purge_step=resumed_at)
             while cloned < rounds and not run_.stop.requested:
                 cloning_set = cloning_round(
-                    cfg, agent, encoder, action_map, cloning_set, held_out, cloned, run_, demo_info
+                    cfg, agent, encoder, action_map, cloning_set, held_out, cloned, run_, pretrain_writer, demo_info
                 )
                 cloned += 1
                 if cloned == rounds:
@@ -243,7 +245,7 @@ def run(cfg) -> dict:
         return run_.finish(metrics)
 
 
-def cloning_round(cfg, agent, encoder, action_map, cloning_set, held_out, round_: int, run_, demo_info: dict):
+def cloning_round(cfg, agent, encoder, action_map, cloning_set, held_out, round_: int, run_, writer, demo_info: dict):
     """Cloning round ``round_`` (0: the planner's demonstrations; from 1, DAgger: its labels on the student's own
     states join them first). Returns the examples the round fitted; ``demo_info`` gains the round's figures."""
     inputs, targets = cloning_set
@@ -259,7 +261,7 @@ def cloning_round(cfg, agent, encoder, action_map, cloning_set, held_out, round_
             outcome,
         )
         demo_info[f"dagger_round{round_}"] = {"labels": len(x), "student": outcome}
-    loss = clone(agent, inputs, targets, hp, run_.writer, round_, held_out)
+    loss = clone(agent, inputs, targets, hp, writer, round_, held_out)
     demo_info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)
     log.info(
         "[%s] cloned the planner (round %d, %d examples, %d minibatches): training loss %.4f; held-out %s",
@@ -297,6 +299,7 @@ def run_peer(cfg, agent_id, family: str) -> dict:
     import importlib
 
     peer = importlib.import_module(f".peers.{family}", __package__)
+    seed_everything(int(cfg.seed))  # the process-wide generators too, which a checkpoint saves and restores
     record = artifacts.provenance(cfg, "agent")
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
         metrics = peer.train(cfg, run_, agent_id)

@@ -95,6 +95,7 @@ class TrainingRun:
         self.state: dict | None = None
         self.stop = GracefulStop()
         self.writer = None
+        self._side_writers: list = []
 
     # ------------------------------------------------------------------ life cycle
     def __enter__(self) -> TrainingRun:
@@ -125,9 +126,18 @@ class TrainingRun:
 
     def __exit__(self, *exc):
         self.stop.__exit__(*exc)
-        if self.writer is not None:
-            self.writer.close()
+        for writer in [self.writer, *self._side_writers]:
+            if writer is not None:
+                writer.close()
         return False
+
+    def side_writer(self, name: str, purge_step: int | None = None):
+        """TensorBoard curves on an x-axis of their own (pre-training minibatches), in ``<run>/<name>/``: the main
+        writer's purge on resume, which counts environment steps, leaves them alone. ``purge_step``: where a resumed
+        run's own count starts again."""
+        writer = tensorboard(self.dir / name, purge_step=purge_step)
+        self._side_writers.append(writer)
+        return writer
 
     def _check_resumed_inputs(self) -> None:
         recorded = artifacts.read_provenance(self.dir)
@@ -178,6 +188,12 @@ class TrainingRun:
             "best_val": best_val,
         }
         self.save({**state, **extras}, best=best)
+
+    def restore_random_state(self) -> None:
+        """Put the process-wide generators back as the checkpoint left them (a fresh run: leave them). For a stage
+        that builds networks or views after entering, which draw from them: call it once they are built."""
+        if self.state is not None:
+            set_rng_state(self.state["rng"])
 
     def resumed(self, where: str) -> None:
         log.info("[%s] resuming from %s: %s", self.name, self.last, where)

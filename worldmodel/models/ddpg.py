@@ -424,16 +424,20 @@ class DDPG:
         """One supervised step of the actor towards ``actions`` (behaviour-cloning pre-training), each sample's squared
         error weighted by ``weights`` (None: all alike); returns the loss."""
         if getattr(self, "_clone_optimizer", None) is None:
-            # its own optimiser: pre-training ends before RL starts, and the actor's Adam state stays fresh
-            self._clone_optimizer = torch.optim.AdamW(
-                self.actor.parameters(), lr=self.cfg.bc_lr, weight_decay=self.cfg.bc_weight_decay
-            )
+            self._new_clone_optimizer()
         squared = ((self.actor(obs) - actions) ** 2).sum(-1)
         loss = squared.mean() if weights is None else (weights * squared).sum() / weights.sum()
         self._clone_optimizer.zero_grad()
         loss.backward()
         self._clone_optimizer.step()
         return loss.item()
+
+    def _new_clone_optimizer(self) -> torch.optim.Optimizer:
+        # its own optimiser: pre-training ends before RL starts, and the actor's Adam state stays fresh
+        self._clone_optimizer = torch.optim.AdamW(
+            self.actor.parameters(), lr=self.cfg.bc_lr, weight_decay=self.cfg.bc_weight_decay
+        )
+        return self._clone_optimizer
 
     def sync_targets(self) -> None:
         """Targets := online networks (after pre-training, so the targets start from what was learnt)."""
@@ -467,6 +471,8 @@ class DDPG:
         }
         if self.critic2 is not None:
             state.update(critic2=self.critic2.state_dict(), critic2_target=self.critic2_target.state_dict())
+        if getattr(self, "_clone_optimizer", None) is not None:  # cloning rounds share it: a resumed round goes on
+            state["clone_optimizer"] = self._clone_optimizer.state_dict()
         return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
@@ -483,3 +489,5 @@ class DDPG:
         if "torch_rng" in state:  # absent from checkpoints made before TD3's options
             self.torch_rng.set_state(state["torch_rng"])
             self.updates = int(state["updates"])
+        if "clone_optimizer" in state:
+            self._new_clone_optimizer().load_state_dict(state["clone_optimizer"])

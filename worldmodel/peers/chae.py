@@ -247,6 +247,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     # the planned episodes, then whole blocks until the rescoring finds a member inside both bars
     target = first_target(episode, episodes, block)
     gates = curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
+    run_.restore_random_state()  # building the networks and views drew from them
     with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
         while True:
             while episode < target and not run_.stop.requested:

@@ -264,7 +264,9 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         run_.resumed(f"step {step}, episode {episode}")
     demos, demo_info = None, {}
     if hp.demo_share > 0 or (hp.bc_pretrain_steps > 0 and run_.state is None):  # resumed: cloned already
-        demos, demo_info = learn_from_planner(cfg, env, see, agent, hp, run_.writer, cloned=run_.state is not None)
+        demos, demo_info = learn_from_planner(
+            cfg, env, see, agent, hp, run_.side_writer("pretrain"), cloned=run_.state is not None
+        )
 
     def snapshot():
         run_.save(
@@ -289,6 +291,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     recent: deque = deque((not c for c in curve["crash"][-ROLLING:]), maxlen=ROLLING)
     scale = float(hp.reward_scale)
     losses: dict = {}
+    run_.restore_random_state()  # building the networks and views drew from them
     with tqdm(total=total, initial=step, desc=f"ddpg kim ({agent_id.reward})", unit="step") as bar:
         while step < total and not run_.stop.requested:
             env.reset(options={"scenario": training_scenario(cfg, EPISODE_STREAM, episode)})

@@ -164,6 +164,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     recent: deque = deque(curve["return"][-ROLLING:], maxlen=ROLLING)
     crashes: deque = deque(curve["collision"][-ROLLING:], maxlen=ROLLING)
     loss = None
+    run_.restore_random_state()  # building the networks and views drew from them
     with tqdm(total=total, initial=agent.steps, desc=f"ddqn merola ({cfg.agent.obs})", unit="step") as bar:
         while agent.steps < total and not run_.stop.requested:
             obs, _ = env.reset(options={"scenario": episode_scenario(int(cfg.seed), episode)})
