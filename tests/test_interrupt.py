@@ -229,6 +229,25 @@ def agent_runs(world_model: Path, tmp_path: Path) -> Path:
     return runs
 
 
+@pytest.fixture(scope="module")
+def uninterrupted_agent(rollouts, world_model, tmp_path_factory) -> dict:
+    """last.pt of the smoke R1 agent trained for its 300 steps without interruption."""
+    runs = agent_runs(world_model, tmp_path_factory.mktemp("straight-agent"))
+    train_agent.run(smoke("train_agent", rollouts, runs, "reward=r1"))
+    return load(artifacts.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1")) / "last.pt")
+
+
+def check_same_agent(final: dict, straight: dict) -> None:
+    """Every replay row, weight and optimiser state equals the uninterrupted run's (tests/test_resume.py checks
+    the rest of the checkpoint, the metrics and the curves)."""
+    for name in ("obs", "actions", "rewards", "next_obs", "terminated", "steps"):
+        assert np.array_equal(final["buffer"][name], straight["buffer"][name]), name
+    for net in ("actor", "critic", "actor_target", "critic_target"):
+        for key, value in straight["agent"][net].items():
+            assert torch.equal(final["agent"][net][key], value), f"{net}.{key}"
+    assert final["episode"] == straight["episode"]
+
+
 def check_agent_checkpoint(state: dict, step: int) -> None:
     """A checkpoint at ``step``: one transition per step in the buffer, one optimiser step per step after warm-up."""
     assert state["step"] == step
@@ -237,7 +256,7 @@ def check_agent_checkpoint(state: dict, step: int) -> None:
         assert adam_steps(state["agent"][opt]) == step - WARMUP, opt
 
 
-def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model, tmp_path):
+def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model, uninterrupted_agent, tmp_path):
     runs = agent_runs(world_model, tmp_path)
     out = artifacts.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1"))
     # No periodic checkpoint within the run: every last.pt below was written by the stop itself.
@@ -275,9 +294,10 @@ def test_agent_sigterm_and_sigint_save_and_resume_finishes(rollouts, world_model
     check_agent_checkpoint(final, 300)
     for name in ("obs", "actions", "rewards"):
         assert np.array_equal(final["buffer"][name][:n2], second["buffer"][name][:n2]), name
+    check_same_agent(final, uninterrupted_agent)  # two stops in other processes change nothing
 
 
-def test_agent_sigkill_resumes_from_the_last_periodic_checkpoint(rollouts, world_model, tmp_path):
+def test_agent_sigkill_resumes_from_the_last_periodic_checkpoint(rollouts, world_model, uninterrupted_agent, tmp_path):
     runs = agent_runs(world_model, tmp_path)
     out = artifacts.agent_dir(smoke("train_agent", rollouts, runs, "reward=r1"))
     every = 50
@@ -307,6 +327,7 @@ def test_agent_sigkill_resumes_from_the_last_periodic_checkpoint(rollouts, world
     check_agent_checkpoint(final, 300)
     for name in ("obs", "actions", "rewards", "next_obs", "terminated"):
         assert np.array_equal(final["buffer"][name][:killed_at], state["buffer"][name]), name
+    check_same_agent(final, uninterrupted_agent)  # a periodic checkpoint, inside an episode or not, loses nothing
 
 
 # ----------------------------------------------------------------------------- checkpoint files
