@@ -12,6 +12,7 @@ ego's front bumper reaches at TTC.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
@@ -31,6 +32,11 @@ _LIMITS = {
     "pedestrian_speed": (0.0, 10.0),
     "hazard_car_speed": (0.0, 30.0),
 }
+
+
+def _whole(value) -> bool:
+    """A finite whole number (int() of inf or nan would raise before the field could be named)."""
+    return math.isfinite(value) and int(value) == value
 
 
 @dataclass(frozen=True)
@@ -60,7 +66,7 @@ class ScenarioSpec:
                 raise ValueError(f"scenario field {name}={value!r} is out of range: it must be in ({lo}, {hi}]")
         for name in ("n_cars", "n_pedestrians"):
             value = getattr(self, name)
-            if int(value) != value or not 0 <= value <= MAX_OTHERS:
+            if not _whole(value) or not 0 <= value <= MAX_OTHERS:
                 raise ValueError(
                     f"scenario field {name}={value!r} is out of range: it must be an integer in 0..{MAX_OTHERS}"
                 )
@@ -68,7 +74,7 @@ class ScenarioSpec:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"scenario field {name}={value!r} is out of range: it must be in [0, 1]")
-        if int(self.seed) != self.seed or self.seed < 0:
+        if not _whole(self.seed) or self.seed < 0:
             raise ValueError(f"scenario field seed={self.seed!r} must be a non-negative integer")
 
     @property

@@ -22,6 +22,7 @@ from envs import (
     sample_scenario,
     test_bank,
 )
+from envs.injury import plastic_delta_v
 from envs.policies import ConstantAction
 from envs.scene import PEDESTRIANS, VEHICLES
 
@@ -170,6 +171,33 @@ def test_vehicle_crash_delta_v_and_rewards():
     assert out["end"] == "crash" and out["vehicle_collision"] == 1
     assert out["return_r1"] == -2.0
     assert out["return_r2"] == pytest.approx(-2 * occupant_injury(rel / 2))
+
+
+def test_plastic_delta_v_gives_the_lighter_car_the_larger_change():
+    """Momentum conservation with equal final velocities: each car's change is the *other's* share of the total
+    mass times the closing speed, so the two changes are in the inverse ratio of the masses and sum to it."""
+    dv_ego, dv_other = plastic_delta_v(1000.0, 3000.0, 20.0)
+    assert dv_ego == pytest.approx(15.0) and dv_other == pytest.approx(5.0)
+    assert plastic_delta_v(3000.0, 1000.0, 20.0) == pytest.approx((5.0, 15.0))
+    # the momentum each car gains or loses is the same
+    assert 1000.0 * dv_ego == pytest.approx(3000.0 * dv_other)
+
+
+def test_a_light_ego_hitting_a_heavy_car_takes_most_of_the_delta_v():
+    """The env passes its own masses in the right order: a 1000 kg ego against a 3000 kg car changes velocity by
+    3/4 of the closing speed and the car by 1/4, and the injuries, rewards and outcome follow those changes."""
+    env = UrbanCollisionEnv(camera=False, reward="r2", ego_mass=1000.0, car_mass=3000.0)
+    spec = ScenarioSpec(seed=3, ttc=0.8, ego_speed=20.0, p_car=1.0, hazard_car_speed=8.0)
+    _, infos = run_episode(env, spec)
+    crash = [c for i in infos for c in i["collisions"] if c["kind"] == "vehicle"][0]
+    rel = crash["relative_speed"]
+    assert rel > 0.0
+    assert crash["delta_v_ego"] == pytest.approx(0.75 * rel) and crash["delta_v_other"] == pytest.approx(0.25 * rel)
+    assert crash["ego_occupant_injury"] == pytest.approx(occupant_injury(0.75 * rel))
+    out = infos[-1]["outcome"]
+    assert out["ego_occupant_injury"] == pytest.approx(occupant_injury(0.75 * rel))
+    assert out["return_r2"] == pytest.approx(-(occupant_injury(0.75 * rel) + occupant_injury(0.25 * rel)))
+    env.close()
 
 
 def _trace(env, spec, actions):

@@ -132,6 +132,23 @@ def test_merola_reward_by_hand():
     assert r((0.0, 0.0), hits=[{**crash, "delta_v_ego": 40.0}]) == pytest.approx(1.0 - 100.0)  # at most 100
 
 
+@pytest.mark.parametrize("side", [1.0, -1.0])  # pointing left (positive heading) or right
+def test_merola_heading_penalty_starts_beyond_10_degrees(side):
+    """Steering further off the road costs 1 only beyond 10°: at 9.9° (and at 10° itself) the step earns its full
+    +1 for the metre travelled, at 10.1° it earns 0. Steering back or holding the wheel straight never costs."""
+
+    def r(steer, degrees):
+        return merola(StepContext([], 10.0, 10.0, np.array([steer, 0.0]), 0.1, {}, math.radians(degrees)))
+
+    further = -0.5 * side  # a positive steer turns right, lowering the heading
+    assert r(further, 9.9 * side) == pytest.approx(1.0)
+    assert r(further, 10.0 * side) == pytest.approx(1.0)
+    assert r(further, 10.1 * side) == pytest.approx(0.0)
+    assert r(further, 60.0 * side) == pytest.approx(0.0)
+    assert r(-further, 10.1 * side) == pytest.approx(1.0)
+    assert r(0.0, 10.1 * side) == pytest.approx(1.0)
+
+
 def test_the_nine_actions_are_brake_none_throttle_by_left_straight_right():
     assert ACTIONS.shape == (9, 2) and len({tuple(a) for a in ACTIONS}) == 9
     assert set(ACTIONS[:, 1]) == {-1.0, 0.0, 1.0} and set(ACTIONS[:, 0]) == {-0.5, 0.0, 0.5}

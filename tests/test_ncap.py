@@ -4,6 +4,13 @@ off."""
 
 from __future__ import annotations
 
+import csv
+import io
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -22,7 +29,11 @@ from envs.ncap import (
     verdict,
 )
 from envs.scene import EGO_LANE_Y
+from worldmodel import ncap
+from worldmodel.config import compose
 from worldmodel.ncap import HOLD, Takeover, run_bank, takeover_step
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -161,3 +172,32 @@ def test_car_points_follow_the_impact_speed_bands():
     assert car_points(50.0, 41.0) == (0.0, True)
     assert car_points(20.0, 3.0) == (0.0, True)  # at 20 km/h and below only avoidance scores
     assert car_points(35.0, 3.0) == (1.0, False)  # the same bands, unconfirmed
+
+
+def test_the_ncap_stage_run_twice_writes_byte_identical_results(tmp_path):
+    """The bank is deterministic: two runs of the stage in one process (fresh envs, state left over from the first)
+    and one from the command line in a new process with another string-hash seed (set and dict orders) write the
+    same results.csv and tables.md byte for byte. Scripted policies only (no trained agents exist): braking and
+    the planner are left out to keep it quick; braking from takeover, Chae's two brakers and AEB-3m remain."""
+    overrides = ["experiment=t", "scale=smoke", "threads=1", "evaluate.policies=[braking]"]
+
+    def paths(root):
+        return [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs"]
+
+    def outputs(root):
+        out = root / "runs/t/eval_ncap"
+        return {name: (out / name).read_bytes() for name in ("results.csv", "tables.md")}
+
+    for name in ("a", "b"):
+        ncap.run(compose("ncap", [*paths(tmp_path / name), *overrides]))
+    cmd = [sys.executable, "-m", "worldmodel.ncap", *paths(tmp_path / "c"), *overrides]
+    env = {**os.environ, "PYTHONHASHSEED": "12345"}
+    done = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+    first = outputs(tmp_path / "a")
+    rows = list(csv.DictReader(io.StringIO(first["results.csv"].decode())))
+    assert {r["policy"] for r in rows} == {"braking", "ttc_braking", "latest_safe_braking", "aeb3m"}
+    assert any(r["avoided"] == "0" for r in rows)  # impact speeds, with all their digits, are compared too
+    assert outputs(tmp_path / "b") == first
+    assert outputs(tmp_path / "c") == first

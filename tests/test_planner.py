@@ -9,7 +9,7 @@ from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv, rollout
 from envs import test_bank as make_bank
 from envs.planner import Manoeuvre, PrivilegedPlanner, candidate_manoeuvres
 from worldmodel.common import StageError
-from worldmodel.config import compose, validate
+from worldmodel.config import compose, oracle_settings, validate
 
 
 def total_injury(outcome: dict) -> float:
@@ -42,25 +42,28 @@ def test_restore_continues_bit_identically():
     assert repr(twin.step(actions[0])) == repr(a[0])
 
 
-def test_planner_is_never_worse_than_braking_and_often_better():
-    bank = make_bank(
-        ttcs=(0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5),
-        speeds=(10.0, 20.0, 30.0),
-        hazards=("pedestrian", "car", "both"),
-        per_cell=1,
-        seed=2018,
-    )
-    sample = [bank[i] for i in np.random.default_rng(0).choice(len(bank), size=18, replace=False)]
+def test_the_evaluation_planner_is_never_worse_than_braking_where_braking_leaves_injury(tmp_path):
+    """Braking is the planner's first candidate and it only switches to a plan the exact re-simulation finds
+    strictly cheaper, so on every scenario its total injury is at most braking's. Checked one by one on every bank
+    scenario of the short-TTC, 20 m/s cells (all three hazards) where braking leaves some injury, with the planner
+    the evaluation builds from the config."""
+    cfg = compose("evaluate", [f"paths.data_root={tmp_path}", f"paths.runs_root={tmp_path}", "scale=smoke"])
+    planner = PrivilegedPlanner.from_settings(**oracle_settings(cfg))
     env = UrbanCollisionEnv(camera=False)
-    planner = PrivilegedPlanner(replan_every=3)
-    braking, planned = [], []
-    for entry in sample:
-        braking.append(total_injury(play(env, StraightLineBraking(), entry.spec)))
-        planned.append(total_injury(play(env, planner, entry.spec)))
-    braking, planned = np.array(braking), np.array(planned)
-    assert np.all(planned <= braking + 1e-9), np.flatnonzero(planned > braking + 1e-9)
-    # ...and it is a real ceiling, not braking again: it removes most of the injury risk braking leaves
-    assert braking.sum() > 0.5 and planned.sum() < 0.5 * braking.sum(), (braking.sum(), planned.sum())
+    assert planner.step_s == env.step_s
+    checked, improved, worse = 0, 0, []
+    for entry in make_bank(ttcs=(0.5, 0.75), speeds=(20.0,), per_cell=6, seed=2018):
+        braking = total_injury(play(env, StraightLineBraking(), entry.spec))
+        if braking <= 0.0:
+            continue
+        checked += 1
+        planned = total_injury(play(env, planner, entry.spec))
+        improved += planned < braking - 1e-9
+        if planned > braking + 1e-9:
+            worse.append((entry.scenario_id, entry.hazard, entry.ttc, entry.speed, braking, planned))
+    assert checked >= 30, checked
+    assert worse == []
+    assert improved > 0  # a planner that only ever braked would meet the bound above on every scenario
 
 
 def test_candidates_start_with_braking_and_config_is_checked():

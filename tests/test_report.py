@@ -474,3 +474,57 @@ def test_paired_bootstrap_by_hand():
     out = paired_bootstrap(half, "agent", n=500)
     assert out["share"] == pytest.approx(50.0) and out["difference_pts"] == pytest.approx(-15.0)
     assert out["difference_ci95"][1] < 0 and out["scenarios"] == 4
+
+
+def test_paired_bootstrap_share_has_the_sign_of_the_improvement(tmp_path):
+    """On a bank read back from the results CSV, with per-scenario risks where the planner beats braking: a policy
+    halfway between the two on every scenario keeps a share of exactly 50 % in every resample; one that adds a crash
+    to every braking outcome has a negative share whose whole interval lies below 0 (and a positive difference);
+    the planner itself has 100 %; one that is either braking or the planner per scenario stays within [0, 100]."""
+    # (pedestrian, occupant) injury per scenario
+    braking = [(0.6, 0.0), (0.3, 0.05), (0.0, 0.09), (0.8, 0.0), (0.2, 0.03), (0.5, 0.0)]
+    oracle = [(0.1, 0.01), (0.0, 0.0), (0.0, 0.02), (0.2, 0.0), (0.2, 0.0), (0.0, 0.0)]
+    extra = [0.05, 0.02, 0.01, 0.04, 0.03, 0.05]  # occupant injury a worse policy adds, e.g. from hitting a pole
+    hazards = ["pedestrian", "both", "car", "pedestrian", "both", "pedestrian"]
+
+    def rows(policy, risks):
+        return [
+            make_row(policy, sid, hazard, 0.5 + 0.25 * sid, 10 + 4 * sid, pedestrian_injury=p, occupant_injury=o)
+            for sid, (hazard, (p, o)) in enumerate(zip(hazards, risks))
+        ]
+
+    halfway = [((pb + po) / 2, (ob + oo) / 2) for (pb, ob), (po, oo) in zip(braking, oracle)]
+    worse = [(p, o + e) for (p, o), e in zip(braking, extra)]
+    mixed = [o if sid % 2 else b for sid, (b, o) in enumerate(zip(braking, oracle))]
+    written = rows("braking", braking) + rows("oracle", oracle) + rows("halfway", halfway) + rows("worse", worse)
+    written += rows("mixed", mixed) + rows("planner_again", oracle)
+    bank = report.read_results_csv(report.write_results_csv(written, tmp_path / "results.csv"))
+
+    total = lambda risks: sum(p + o for p, o in risks) / len(risks)  # noqa: E731
+    gain = total(braking) - total(oracle)
+    assert gain > report.MIN_ACHIEVABLE_GAIN  # else every share is n/a and nothing below is tested
+
+    half = report.paired_bootstrap(bank, "halfway", n=400)
+    assert half["scenarios"] == 6
+    assert half["share"] == pytest.approx(50.0)
+    lo, hi = half["share_ci95"]
+    assert 0.0 < lo <= 50.0 + 1e-9 and 50.0 - 1e-9 <= hi
+    assert half["difference_pts"] == pytest.approx(-50.0 * gain)
+    assert half["difference_ci95"][1] < 0.0
+
+    bad = report.paired_bootstrap(bank, "worse", n=400)
+    expected = -100.0 * (sum(extra) / len(extra)) / gain
+    assert bad["share"] == pytest.approx(expected) and expected < 0.0
+    assert bad["share"] == pytest.approx(report.overall_achievable_share(bank, "worse"))
+    assert bad["share_ci95"][0] <= bad["share_ci95"][1] < 0.0
+    assert bad["difference_pts"] == pytest.approx(100.0 * sum(extra) / len(extra))
+    assert bad["difference_ci95"][0] > 0.0
+
+    top = report.paired_bootstrap(bank, "planner_again", n=400)
+    assert top["share"] == pytest.approx(100.0)
+    assert top["share_ci95"] == pytest.approx([100.0, 100.0])
+
+    # between braking and the planner on every scenario, no resample can leave [0, 100]
+    either = report.paired_bootstrap(bank, "mixed", n=400)
+    assert -1e-9 <= either["share_ci95"][0] <= either["share_ci95"][1] <= 100.0 + 1e-9
+    assert 0.0 < either["share"] < 100.0

@@ -1,0 +1,199 @@
+"""Properties over generated inputs: scenario specs are accepted exactly inside their documented ranges, the
+injury-risk models never fall as the impact gets harder, and every step reward equals its published formula
+(constants typed in from the papers, docs/design.md §3 and §10)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from envs import ScenarioSpec
+from envs.injury import occupant_injury, pedestrian_injury
+from envs.rewards import REGISTRY, StepContext, chae, kim_aware, kim_unaware, merola, r1, r2, step_rewards
+
+# Fixed examples: the same inputs on every run and machine, and no example database written into the tree.
+PROPERTY = settings(max_examples=60, deadline=None, derandomize=True, database=None)
+
+# ----------------------------------------------------------------------------- scenario specs
+# (lo, hi] for the continuous fields, as envs/scenario.py documents them
+OPEN_CLOSED = {
+    "ttc": (0.0, 10.0),
+    "ego_speed": (0.0, 40.0),
+    "pedestrian_speed": (0.0, 10.0),
+    "hazard_car_speed": (0.0, 30.0),
+}
+MAX_OTHERS = 10
+
+
+def in_range(lo, hi):
+    return st.floats(min_value=lo, max_value=hi, exclude_min=True, allow_nan=False)
+
+
+valid_specs = st.fixed_dictionaries(
+    {
+        "seed": st.integers(0, 2**31 - 1),
+        **{name: in_range(lo, hi) for name, (lo, hi) in OPEN_CLOSED.items()},
+        "n_cars": st.integers(0, MAX_OTHERS),
+        "n_pedestrians": st.integers(0, MAX_OTHERS),
+        "p_pedestrian": st.floats(0.0, 1.0),
+        "p_car": st.floats(0.0, 1.0),
+    }
+)
+
+
+def not_integer(lo, hi):
+    return st.floats(lo, hi, allow_nan=False).filter(lambda x: x != int(x))
+
+
+def invalid_values(name: str):
+    """Values of one field that a spec must refuse; non-finite counts and seeds have their own test below."""
+    if name in OPEN_CLOSED:
+        lo, hi = OPEN_CLOSED[name]
+        return st.floats(max_value=lo) | st.floats(min_value=hi, exclude_min=True) | st.just(math.nan)
+    if name in ("n_cars", "n_pedestrians"):
+        outside = st.integers(max_value=-1) | st.integers(min_value=MAX_OTHERS + 1)
+        return outside | not_integer(-5.0, MAX_OTHERS + 5.0)
+    if name in ("p_pedestrian", "p_car"):
+        return (
+            st.floats(max_value=0.0, exclude_max=True) | st.floats(min_value=1.0, exclude_min=True) | st.just(math.nan)
+        )
+    assert name == "seed"
+    return st.integers(max_value=-1) | not_integer(0.0, 1e6)
+
+
+@PROPERTY
+@given(valid_specs)
+def test_a_spec_inside_every_range_is_accepted_and_round_trips(fields):
+    spec = ScenarioSpec(**fields)
+    assert ScenarioSpec.from_dict(spec.to_dict()) == spec
+    assert spec.pedestrian_hazard == (fields["p_pedestrian"] > 0.5) and spec.car_hazard == (fields["p_car"] > 0.5)
+
+
+FIELDS = [*OPEN_CLOSED, "n_cars", "n_pedestrians", "p_pedestrian", "p_car", "seed"]
+one_bad_field = st.sampled_from(FIELDS).flatmap(lambda name: st.tuples(st.just(name), invalid_values(name)))
+
+
+@PROPERTY
+@given(valid_specs, one_bad_field)
+def test_a_spec_with_one_field_out_of_range_is_refused_naming_the_field(fields, bad):
+    name, value = bad
+    with pytest.raises(ValueError, match=name):
+        ScenarioSpec(**{**fields, name: value})
+
+
+@pytest.mark.parametrize("name", ["seed", "n_cars", "n_pedestrians"])
+@pytest.mark.parametrize("value", [math.inf, -math.inf, math.nan])
+def test_a_non_finite_count_or_seed_is_refused_naming_the_field(name, value):
+    with pytest.raises(ValueError, match=name):
+        ScenarioSpec(**{"seed": 1, "ttc": 1.0, "ego_speed": 10.0, name: value})
+
+
+def test_unknown_fields_are_refused():
+    with pytest.raises(ValueError, match="speed_kmh"):
+        ScenarioSpec.from_dict({"seed": 1, "ttc": 1.0, "ego_speed": 10.0, "speed_kmh": 36.0})
+
+
+# ----------------------------------------------------------------------------- injury risks
+speeds = st.floats(0.0, 80.0)
+
+
+@PROPERTY
+@given(speeds, speeds)
+def test_injury_risk_never_falls_as_the_impact_speed_rises(a, b):
+    slow, fast = sorted((a, b))
+    for risk in (pedestrian_injury, occupant_injury):
+        assert 0.0 <= risk(slow) <= risk(fast) <= 1.0
+        assert risk(-fast) == risk(fast)  # a speed's sign (which way the cars moved) does not matter
+
+
+@PROPERTY
+@given(speeds)
+def test_injury_risks_are_the_published_curves(v):
+    kmh = 3.6 * v
+    assert pedestrian_injury(v) == pytest.approx(1.0 / (1.0 + math.exp(6.9 - 0.09 * kmh)), rel=1e-12)
+    assert occupant_injury(v) == pytest.approx(min(1.0, (0.621 * kmh / 71.0) ** 4), rel=1e-12)
+
+
+# ----------------------------------------------------------------------------- step rewards
+SOBHANI_ALPHA = {"near": 2.698, "far": 2.038, "rear": 1.991, "front": 1.991}  # Kim et al. 2020, Table 1
+
+
+@st.composite
+def hits(draw):
+    """One collision record as the env registers it: a pedestrian struck, or a crash with a car or an obstacle."""
+    kind = draw(st.sampled_from(["pedestrian", "vehicle", "static"]))
+    speed = draw(st.floats(0.0, 40.0))
+    dv = 0.0 if kind == "pedestrian" else draw(st.floats(0.0, 40.0))
+    n = 1 if kind == "pedestrian" else draw(st.integers(1, 4))
+    return {
+        "kind": kind,
+        "impact_speed": speed,
+        "delta_v_ego": dv,
+        "ego_side": "front" if kind == "pedestrian" else draw(st.sampled_from(sorted(SOBHANI_ALPHA))),
+        "n_involved": n,
+        "injury_sum": draw(st.floats(0.0, float(n))),
+    }
+
+
+@st.composite
+def steps(draw):
+    family = {}
+    if draw(st.booleans()):  # a Chae episode: the pedestrian's distance and whether the bumper passed the line
+        family = {"dx": draw(st.floats(0.0, 80.0)), "bump": draw(st.booleans())}
+    if draw(st.booleans()):
+        family["goal_progress"] = draw(st.floats(-2.0, 2.0))
+    return StepContext(
+        hits=draw(st.lists(hits(), max_size=3)),
+        speed_before=draw(st.floats(0.0, 30.0)),
+        speed_after=draw(st.floats(0.0, 30.0)),
+        action=np.array([draw(st.floats(-1.0, 1.0)), draw(st.floats(-1.0, 1.0))]),
+        step_s=draw(st.sampled_from([1.0 / 15.0, 0.1])),
+        family=family,
+        heading=draw(st.floats(-math.pi, math.pi)),
+    )
+
+
+def iss(hit) -> float:
+    kmh = 3.6 * hit["delta_v_ego"]
+    return math.exp(2.011e-7 * 0.5 * 1500.0 * kmh**2 + SOBHANI_ALPHA[hit["ego_side"]])
+
+
+def merola_by_hand(ctx: StepContext) -> float:
+    steer, pedal = ctx.action
+    r = 0.5 * (ctx.speed_before + ctx.speed_after) * ctx.step_s
+    for h in ctx.hits:
+        dv = h["impact_speed"] if h["kind"] == "pedestrian" else h["delta_v_ego"]
+        r -= min(100.0, max(1.0, 100.0 * dv / (60.0 / 3.6)))
+    if (pedal < 0 and ctx.speed_after < 2.0) or (pedal > 0 and ctx.speed_after > 60.0 / 3.6):
+        r -= 5.0
+    further_off = (ctx.heading > 0 and steer < 0) or (ctx.heading < 0 and steer > 0)
+    if abs(ctx.heading) > math.radians(10.0) and further_off:
+        r -= 1.0
+    return r
+
+
+@PROPERTY
+@given(steps())
+def test_every_step_reward_is_its_formula(ctx):
+    crashes = [h for h in ctx.hits if h["kind"] != "pedestrian"]
+    assert r1(ctx) == -sum(h["n_involved"] for h in ctx.hits)
+    assert r2(ctx) == pytest.approx(-sum(h["injury_sum"] for h in ctx.hits), abs=1e-12)
+    assert kim_unaware(ctx) == pytest.approx(-sum(iss(h) for h in crashes), rel=1e-12)
+    expected_aware = -sum(iss(h) for h in crashes) if crashes else ctx.family.get("goal_progress", 0.0)
+    assert kim_aware(ctx) == pytest.approx(expected_aware, rel=1e-12)
+    if "dx" in ctx.family:
+        dx, bump, v1 = ctx.family["dx"], ctx.family["bump"], ctx.speed_after
+        decel = ctx.speed_before - v1
+        expected_chae = -(0.001 * dx**2 + 0.1) * decel - (0.01 * v1**2 + 100.0) * bump
+    else:
+        expected_chae = 0.0  # another family's step
+    assert chae(ctx) == pytest.approx(expected_chae, rel=1e-12, abs=1e-12)
+    assert merola(ctx) == pytest.approx(merola_by_hand(ctx), rel=1e-12, abs=1e-12)
+    # what the env reports is the same numbers, one per registered reward
+    reported = step_rewards(ctx)
+    assert set(reported) == set(REGISTRY)
+    assert reported["r2"] == r2(ctx) and reported["merola"] == merola(ctx)
