@@ -247,6 +247,44 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
         train_agent.run(compose("train_agent", [*base, *OVERRIDES, "reward=r1", "agent.variant=chooserr1"]))
 
 
+def test_a_trained_chooser_that_switches_late_costs_offline_what_it_costs_live(trained):
+    """policy_cost on the labels is the exact R2 cost of a live episode also when the learned scorer switches after
+    its first frame. The margin is set halfway between the predicted gaps of two frames, so that the switch falls
+    on the later one, whatever the scorer learnt, and far from where the live and offline scores (equal to ~1e-5)
+    could disagree."""
+    _, base, cfg, _ = trained
+    from worldmodel.config import compose
+
+    agent = artifacts.AgentId.of(cfg)
+    ecfg = compose("evaluate", base)
+    policy, _, _ = policies.policy_for(ecfg, agent.key)
+    data = chooser.labels(cfg)
+    encoder = artifacts.load_world_model(cfg)
+    x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True, "tele")
+    with torch.no_grad():
+        pred = policy.scores.scorer(torch.from_numpy(x)).numpy().astype(np.float64)
+    gaps = pred[:, 0] - pred.min(1)  # how much cheaper than braking the cheapest candidate is predicted (switch_choice)
+    late = []  # (episode, frame, margin) where a margin lets the first switch fall on that frame, not before
+    for e in np.unique(data["episode"]):
+        rows = np.flatnonzero((data["episode"] == e) & (data["t"] < policy.decide_steps))
+        for j in range(1, len(rows)):
+            before = gaps[rows[:j]].max()
+            if gaps[rows[j]] - before > 1e-3:
+                late.append((int(e), int(data["t"][rows[j]]), (before + gaps[rows[j]]) / 2))
+    assert late, "no labelled frame is predicted a larger gap than every frame before it"
+    env = evaluate.make_env(ecfg, camera=True, **policies.env_overrides(policy))
+    for e, frame, margin in late[:3]:
+        rows = np.flatnonzero(data["episode"] == e)
+        window = {"t": data["t"][rows], "steps": policy.decide_steps}
+        _, at, _ = chooser.policy_choices(pred[rows], data["episode"][rows], margin, **window)
+        assert data["t"][rows][at[0]] == frame
+        offline = chooser.policy_cost(pred[rows], data["costs"][rows], data["episode"][rows], margin, **window)
+        policy.margin = margin
+        live = rollout(env, policy, chooser.label_scenario(int(cfg.seed), e, chooser.cfg_chooser(cfg))).outcome
+        assert policy.plan is not None and policy.plan.start == frame
+        assert offline[0] == pytest.approx(-live["return_r2"], abs=1e-5)
+
+
 def test_a_finished_chooser_resumed_with_a_new_floor_keeps_its_scorer(trained, tmp_path):
     """min_brake_cost is a decision-time rule: resuming a finished run with only it changed keeps the fitted scorer
     (same weights, same checks, same held-out predictions) and records the floor; any setting that shapes the fit
