@@ -503,3 +503,17 @@ def test_lidar_front_end_reads_scans_through_circular_convolutions():
     assert agent.act(np.ones((5, 146), np.float32), explore=False).shape == (5, 2)
     with pytest.raises(ValueError, match="lidar_scans"):
         DDPGConfig(lidar_scans=-1)
+
+
+def test_sampling_without_replacement_draws_each_transition_once():
+    """The trauma memory's draw (``replace=False``): a sample the size of the store is a permutation of it; an empty
+    store says what it is."""
+    buffer = ReplayBuffer(8, obs_dim=1, act_dim=1)
+    for i in range(5):
+        buffer.add(np.array([float(i)]), np.zeros(1), 0.0, np.zeros(1), False)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        drawn = buffer.sample(5, rng, replace=False)["obs"][:, 0].tolist()
+        assert sorted(drawn) == [0.0, 1.0, 2.0, 3.0, 4.0]
+    with pytest.raises(ValueError, match="cannot sample from an empty replay buffer"):
+        ReplayBuffer(4, obs_dim=1, act_dim=1).sample(2, rng)

@@ -197,3 +197,169 @@ def test_every_step_reward_is_its_formula(ctx):
     reported = step_rewards(ctx)
     assert set(reported) == set(REGISTRY)
     assert reported["r2"] == r2(ctx) and reported["merola"] == merola(ctx)
+
+
+# ----------------------------------------------------------------------------- Kim's injury severity score
+# Sobhani et al. 2011 as Kim et al. 2020 give it (Eq. 11, Table 1): constants typed in from the papers
+SOBHANI = {"near": 2.698, "far": 2.038, "rear": 1.991, "front": 1.991}
+
+
+@PROPERTY
+@given(st.floats(-30.0, 30.0), st.sampled_from(sorted(SOBHANI)), st.floats(800.0, 3000.0))
+def test_injury_severity_score_is_sobhanis_formula(dv, side, mass):
+    from envs.injury import injury_severity_score
+
+    kmh = abs(dv) * 3.6
+    assert injury_severity_score(dv, side, mass) == pytest.approx(
+        math.exp(2.011e-7 * 0.5 * mass * kmh**2 + SOBHANI[side])
+    )
+    assert injury_severity_score(dv, side, mass, units="ms") == pytest.approx(
+        math.exp(2.011e-7 * 0.5 * mass * dv**2 + SOBHANI[side])
+    )
+    # the defaults: a 1500 kg car, delta-v in km/h
+    assert injury_severity_score(dv, side) == injury_severity_score(dv, side, 1500.0, "kmh")
+
+
+def test_injury_severity_score_names_a_bad_side_or_unit():
+    from envs.injury import injury_severity_score
+
+    with pytest.raises(ValueError, match=r"side 'top': use one of near, far, rear, front"):
+        injury_severity_score(5.0, "top")
+    with pytest.raises(ValueError, match=r"units 'mph': use one of kmh, ms"):
+        injury_severity_score(5.0, "near", units="mph")
+
+
+def test_damaged_side_by_the_nearest_end_or_flank():
+    from envs.injury import damaged_side
+
+    hl, hw = 2.0, 1.0
+    cases = {
+        (1.9, 0.2): "front",
+        (0.5, 0.2): "front",  # nearer the front than a flank, relative to the half-extents
+        (-1.9, -0.2): "rear",
+        (0.5, 0.9): "near",  # the left flank
+        (-0.5, 0.5): "near",
+        (0.5, -0.9): "far",
+        (1.0, 0.5): "front",  # on the diagonal: an end
+        (-1.0, -0.5): "rear",
+    }
+    for (x, y), side in cases.items():
+        assert damaged_side(x, y, hl, hw) == side, (x, y)
+
+
+# ----------------------------------------------------------------------------- the crash penalties inside rewards
+def hit(kind: str, **values) -> dict:
+    return {"kind": kind, "n_involved": 1, "injury_sum": 0.0, **values}
+
+
+def test_kims_crash_iss_sums_car_and_object_crashes_only():
+    from envs.injury import injury_severity_score
+    from envs.rewards import crash_iss
+
+    hits = [
+        hit("pedestrian", delta_v_ego=0.5, ego_side="front", impact_speed=8.0),
+        hit("vehicle", delta_v_ego=6.0, ego_side="near"),
+        hit("static", delta_v_ego=3.0, ego_side="front"),
+    ]
+    for units in ("kmh", "ms"):
+        expected = injury_severity_score(6.0, "near", units=units) + injury_severity_score(3.0, "front", units=units)
+        assert crash_iss(hits, units=units) == pytest.approx(expected)
+    assert crash_iss(hits[:1]) == 0.0
+
+
+def test_merolas_impact_penalty_adds_every_crash_clipped_to_1_100():
+    from envs.rewards import merola_impact
+
+    full = 60.0 / 3.6
+    assert merola_impact([hit("vehicle", delta_v_ego=full / 2)]) == pytest.approx(50.0)
+    assert merola_impact([hit("pedestrian", impact_speed=full / 4, delta_v_ego=0.0)]) == pytest.approx(25.0)
+    assert merola_impact([hit("static", delta_v_ego=0.001)]) == 1.0  # a touch still costs 1
+    assert merola_impact([hit("vehicle", delta_v_ego=3 * full)]) == 100.0
+    two = [hit("vehicle", delta_v_ego=full / 2), hit("pedestrian", impact_speed=full / 4, delta_v_ego=0.0)]
+    assert merola_impact(two) == pytest.approx(75.0)
+
+
+def test_collision_rewards_and_the_registry():
+    from envs.rewards import REGISTRY, collision_rewards, register
+
+    hits = [hit("pedestrian", n_involved=1, injury_sum=0.4), hit("vehicle", n_involved=2, injury_sum=0.25)]
+    assert collision_rewards(hits) == (-3.0, pytest.approx(-0.65))
+    assert collision_rewards([]) == (0.0, 0.0)
+    for name, reward in REGISTRY.items():
+        assert reward.name == name and reward.doc and callable(reward.fn)
+    with pytest.raises(ValueError, match="reward 'r1' is registered twice"):
+        register("r1", "again")(lambda ctx: 0.0)
+
+
+# ----------------------------------------------------------------------------- the scenario distributions
+def test_sampled_scenarios_cover_the_papers_ranges_and_nothing_else():
+    """2,000 draws from a fixed generator: every field inside its documented range and reaching both ends of it
+    (every traffic count from 0 to 10, infraction draws near 0 and near 1, seeds beyond 2^30)."""
+    from envs.scenario import (
+        EGO_SPEED_RANGE,
+        HAZARD_CAR_SPEED_RANGE,
+        PEDESTRIAN_SPEED_RANGE,
+        TTC_RANGE,
+        sample_scenario,
+    )
+
+    rng = np.random.default_rng(7)
+    specs = [sample_scenario(rng) for _ in range(2000)]
+    for name, (lo, hi) in (
+        ("ttc", TTC_RANGE),
+        ("ego_speed", EGO_SPEED_RANGE),
+        ("pedestrian_speed", PEDESTRIAN_SPEED_RANGE),
+        ("hazard_car_speed", HAZARD_CAR_SPEED_RANGE),
+        ("p_pedestrian", (0.0, 1.0)),
+        ("p_car", (0.0, 1.0)),
+    ):
+        values = np.array([getattr(s, name) for s in specs])
+        span = hi - lo
+        assert lo <= values.min() < lo + 0.01 * span and hi - 0.01 * span < values.max() <= hi, name
+    for name in ("n_cars", "n_pedestrians"):
+        assert {getattr(s, name) for s in specs} == set(range(MAX_OTHERS + 1)), name
+    seeds = np.array([s.seed for s in specs])
+    assert seeds.min() >= 0 and seeds.max() > 2**30 and len(set(seeds)) == len(seeds)
+
+
+def test_the_focus_mix_draws_its_hazards_speeds_and_ttcs():
+    from envs.scenario import sample_focus_scenario
+
+    rng = np.random.default_rng(3)
+    specs = [sample_focus_scenario(rng, 0.75, (15.0, 30.0), (0.25, 1.1)) for _ in range(1200)]
+    hazards = [s.hazard for s in specs]
+    share = {h: hazards.count(h) / len(specs) for h in ("none", "pedestrian", "car", "both")}
+    assert abs(share["none"] - 0.25) < 0.05 and all(abs(share[h] - 0.25) < 0.05 for h in ("pedestrian", "car", "both"))
+    speeds, ttcs = np.array([s.ego_speed for s in specs]), np.array([s.ttc for s in specs])
+    assert 15.0 <= speeds.min() < 15.2 and 29.8 < speeds.max() <= 30.0
+    assert 0.25 <= ttcs.min() < 0.26 and 1.09 < ttcs.max() <= 1.1
+    assert {s.n_cars for s in specs} == set(range(MAX_OTHERS + 1)) and max(s.seed for s in specs) > 2**30
+    # the defaults: 85 % hazards, 15-30 m/s, TTC 0.25-1.1 s
+    default, explicit = np.random.default_rng(5), np.random.default_rng(5)
+    for _ in range(20):
+        assert sample_focus_scenario(default) == sample_focus_scenario(explicit, 0.85, (15.0, 30.0), (0.25, 1.1))
+    with pytest.raises(ValueError, match=r"focus hazard_share=1.5 must be in \[0, 1\]"):
+        sample_focus_scenario(rng, 1.5)
+    with pytest.raises(ValueError, match=r"focus speed_range=\(30.0, 15.0\) must satisfy 0 < low <= high"):
+        sample_focus_scenario(rng, 0.5, (30.0, 15.0))
+    with pytest.raises(ValueError, match=r"focus ttc_range=\(0.0, 1.0\) must satisfy 0 < low <= high"):
+        sample_focus_scenario(rng, 0.5, (15.0, 30.0), (0.0, 1.0))
+
+
+def test_the_test_bank_is_its_documented_grid():
+    from envs.scenario import BANK_HAZARDS, BANK_SPEEDS, BANK_TTCS
+    from envs.scenario import test_bank as make_bank
+
+    bank = make_bank()
+    assert len(bank) == len(BANK_HAZARDS) * len(BANK_TTCS) * len(BANK_SPEEDS) * 20  # 20 per cell by default
+    assert bank == make_bank(per_cell=20, seed=2018)  # the paper's year is the default seed
+    assert [e.scenario_id for e in bank] == list(range(len(bank)))
+    for e in bank[:: len(bank) // 50]:
+        assert (e.spec.ttc, e.spec.ego_speed, e.spec.hazard) == (e.ttc, e.speed, e.hazard)
+        assert isinstance(e.speed, float) and 0 <= e.index < 20
+    seeds = [e.spec.seed for e in bank]
+    assert len(set(seeds)) == len(seeds) and max(seeds) > 2**30
+    with pytest.raises(ValueError, match="per_cell=0 must be at least 1"):
+        make_bank(per_cell=0)
+    with pytest.raises(ValueError, match="hazard='none' must be one of"):
+        make_bank(hazards=("none",))
