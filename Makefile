@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 EXPERIMENT ?= quick
 
-.PHONY: setup run test lint bench preview clean-venv
+.PHONY: setup run test lint bench preview mutation clean-venv
 
 setup: $(VENV)/.installed
 
@@ -28,6 +28,11 @@ lint: setup
 
 bench: setup
 	$(PY) -m benchmarks.run
+
+# Mutation testing of the core numeric modules (tests/README.md): not part of CI, about 20 minutes on 2 cores.
+mutation: setup
+	$(PY) -m pip install -q -r requirements-mutation.lock
+	$(PY) tests/mutation.py
 
 preview: setup
 	$(PY) -m envs.preview --out runs/preview/episode.gif
