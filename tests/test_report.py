@@ -178,6 +178,98 @@ def test_summary_numbers_and_json():
     assert "braking" not in summary["improvement"]
 
 
+def test_summary_keys_hazard_breakdown_and_cell_order():
+    summary = report.summarize(bank())
+    assert set(summary) == {"schema", "grid", "baseline", "policies", "improvement"}  # no planner, no share
+    assert summary["schema"] == 1 and summary["baseline"] == "braking"
+    r2 = summary["policies"]["agent_r2"]
+    # agent_r2 hits the pedestrian in 4 of 16 scenarios and a pole in 8 of 16 car-involving ones; in "both" the two
+    # never happen in the same scenario, so 12 of 16 have some collision
+    assert [
+        (h["hazard"], h["count"], h["pedestrian_collision_rate"], h["static_collision_rate"], h["any_collision_rate"])
+        for h in r2["by_hazard"]
+    ] == [("pedestrian", 16, 0.25, 0.0, 0.25), ("car", 16, 0.0, 0.5, 0.5), ("both", 16, 0.25, 0.5, 0.75)]
+    # report order: hazards as in the paper, then TTC, then speed
+    assert [(c["hazard"], c["ttc"], c["speed"]) for c in r2["cells"]] == [
+        (h, t, s) for h in HAZARDS for t in (0.5, 1.5) for s in (10.0, 30.0)
+    ]
+    both = cell(summary, "braking", "both", 0.5, 10.0)  # pedestrian and occupants hurt in the same scenario
+    assert both["total_severe_injury"] == pytest.approx(inj(0.5, 10) + occ(10))
+
+    empty = report.summarize([])
+    assert empty["grid"]["scenarios_per_cell"] == {"min": 0, "max": 0} and empty["policies"] == {}
+
+
+def test_any_collision_counts_every_kind_once_and_empty_cells_are_skipped():
+    outcomes = [
+        dict(pedestrian_collision=1, steps=10),
+        dict(vehicle_collision=1, steps=20),
+        dict(static_collision=1, steps=30),
+        dict(pedestrian_collision=1, vehicle_collision=1, steps=40),  # two at once count once
+        dict(lane_departure=1, steps=50),  # leaving the lane is not a collision
+        dict(steps=None),  # an empty integer cell of the results CSV reads back as None
+    ]
+    rows = [make_row("braking", sid, "both", 0.5, 10, **o) for sid, o in enumerate(outcomes)]
+    each = [report.summarize([r])["policies"]["braking"]["overall"]["any_collision_rate"] for r in rows]
+    assert each == [1.0, 1.0, 1.0, 1.0, 0.0, 0.0]
+    overall = report.summarize(rows)["policies"]["braking"]["overall"]
+    assert overall["any_collision_rate"] == pytest.approx(4 / 6) and overall["count"] == 6
+    assert overall["mean_steps"] == 30.0  # the None is left out, not read as 0 (that would give 25)
+
+
+def test_seed_spread_and_share_against_a_baseline_of_any_name():
+    """The baseline is whichever policy the caller names, here "cautious" (no "braking" rows at all): improvement,
+    share and the per-seed spread must all be measured against it. Two seeds are enough for a spread."""
+    rows = []
+    for sid in range(2):
+        rows.append(make_row("cautious", sid, "pedestrian", 0.5, 10, pedestrian_collision=1, pedestrian_injury=0.4))
+        rows.append(make_row("oracle", sid, "pedestrian", 0.5, 10))
+    # seed 0 halves the baseline's risk (share 50 %), seed 1 misses one pedestrian and quarters it (share 75 %)
+    for seed, hits in ((0, (0.2, 0.2)), (1, (0.2, 0.0))):
+        for sid, injury in enumerate(hits):
+            rows.append(
+                make_row(
+                    "agent",
+                    sid,
+                    "pedestrian",
+                    0.5,
+                    10,
+                    policy_seed=seed,
+                    pedestrian_collision=int(injury > 0),
+                    pedestrian_injury=injury,
+                )
+            )
+    summary = report.summarize(rows, baseline="cautious")
+    assert summary["baseline"] == "cautious"
+    assert summary["improvement"]["agent"]["pedestrian_injury"]["values"] == [[pytest.approx(25.0)]]
+    share = summary["achievable_share"]
+    assert set(share) == {"ceiling", "definition", "policies"} and share["ceiling"] == "oracle"
+    assert share["policies"]["agent"]["overall"] == pytest.approx(62.5)  # pooled risk 0.15 of 0.4
+    assert share["policies"]["agent"]["cells"]["values"] == [[pytest.approx(62.5)]]
+    assert share["policies"]["oracle"]["overall"] == pytest.approx(100.0)
+
+    entry = summary["policies"]["agent"]
+    assert entry["seeds"] == [0, 1]
+    assert "seed_spread" not in summary["policies"]["cautious"]
+    spread = entry["seed_spread"]
+    assert spread["seeds"] == [0, 1]
+    assert spread["by_seed"]["0"]["achievable_share"] == pytest.approx(50.0)
+    assert spread["by_seed"]["1"]["achievable_share"] == pytest.approx(75.0)
+    assert spread["spread"]["achievable_share"] == {
+        "mean": pytest.approx(62.5),
+        "std": pytest.approx(25.0 / math.sqrt(2)),  # n - 1 in the denominator
+        "min": pytest.approx(50.0),
+        "max": pytest.approx(75.0),
+    }
+    assert spread["spread"]["pedestrian_collision_rate"] == {
+        "mean": 0.75,
+        "std": pytest.approx(0.5 / math.sqrt(2)),
+        "min": 0.5,
+        "max": 1.0,
+    }
+    assert spread["spread"]["pedestrian_severe_injury"]["mean"] == pytest.approx(0.15)
+
+
 # ----------------------------------------------------------------------------- tables
 def test_tables_values_layout_and_references():
     md = report.tables_markdown(bank())
@@ -528,3 +620,103 @@ def test_paired_bootstrap_share_has_the_sign_of_the_improvement(tmp_path):
     either = report.paired_bootstrap(bank, "mixed", n=400)
     assert -1e-9 <= either["share_ci95"][0] <= either["share_ci95"][1] <= 100.0 + 1e-9
     assert 0.0 < either["share"] < 100.0
+
+
+def test_cells_above_baseline_lists_small_excesses_but_not_float_noise():
+    cases = {  # (ttc, speed): (braking, agent) as (pedestrian, occupant) injury
+        (0.5, 10): ((0.2, 0.0), (0.205, 0.0)),  # half a point riskier: listed
+        (0.5, 30): ((0.3, 0.0), (0.1, 0.2)),  # the same 0.3, summed in another order: 0.30000000000000004
+        (1.5, 10): ((0.1, 0.0), (0.0, 0.0)),
+    }
+    rows = []
+    for sid, ((ttc, speed), risks) in enumerate(cases.items()):
+        for policy, (p, o) in zip(("braking", "agent"), risks):
+            rows.append(make_row(policy, sid, "pedestrian", ttc, speed, pedestrian_injury=p, occupant_injury=o))
+    (above,) = report.cells_above_baseline(rows, "agent")
+    assert (above["ttc"], above["speed"]) == (0.5, 10.0)
+    assert above["policy"] == pytest.approx(20.5) and above["baseline"] == pytest.approx(20.0)
+    assert math.isnan(above["planner_gain"])  # no planner rows, so no gain to show
+
+
+def risk_rows(policy, risks, seed=0, first_id=0):
+    """One pedestrian scenario per entry of ``risks``, a total risk or a (pedestrian, occupant) pair."""
+    rows = []
+    for sid, risk in enumerate(risks, start=first_id):
+        p, o = risk if isinstance(risk, tuple) else (risk, 0.0)
+        rows.append(
+            make_row(policy, sid, "pedestrian", 0.5, 10, policy_seed=seed, pedestrian_injury=p, occupant_injury=o)
+        )
+    return rows
+
+
+def test_paired_bootstrap_intervals_enumerated_on_two_scenarios():
+    """Two scenarios, so a resample is {0, 0}, {1, 1} (a quarter each) or one of each (half). Scenario 0: braking
+    0.4, planner 0, agent 0.2. Scenario 1: braking 0.2, planner 0.2 (nothing achievable), agent 0.2 + 0.1 occupant.
+    Shares: {0, 0} 50 %, mixed 25 %, {1, 1} undefined (no gain) and left out. Differences (points): {0, 0} -20,
+    mixed -5, {1, 1} +10. Each value covers at least a quarter of the resamples, so the 2.5 and 97.5 percentiles
+    are the extreme values for any seed."""
+    rows = risk_rows("braking", [0.4, 0.2]) + risk_rows("oracle", [0.0, 0.2]) + risk_rows("agent", [0.2, (0.2, 0.1)])
+    # scenarios that not all three policies ran are left out, whichever policy lacks them
+    rows += risk_rows("oracle", [0.0], first_id=7) + risk_rows("agent", [0.0], first_id=8)
+    out = report.paired_bootstrap(rows, "agent", n=1000)
+    assert out["scenarios"] == 2
+    assert out["share"] == pytest.approx(25.0)  # (0.3 - 0.25) / (0.3 - 0.1)
+    assert out["difference_pts"] == pytest.approx(-5.0)
+    assert out["share_ci95"] == pytest.approx([25.0, 50.0])
+    assert out["difference_ci95"] == pytest.approx([-20.0, 10.0])
+
+    with pytest.raises(ValueError, match="agent, braking and oracle"):
+        report.paired_bootstrap(risk_rows("braking", [0.4]) + risk_rows("oracle", [0.0]), "agent")
+
+
+def test_paired_bootstrap_interval_tails():
+    """Braking 0.5 and planner 0.1 on every scenario, so each resample's gain is 0.4 and its share is
+    -2.5 × its difference in points. A policy that changes the risk by ``k`` points on 3 of ``k`` scenarios moves a
+    resample by m points, m ~ Binomial(k, 3/k) draws of the changed scenarios. For k = 12, P(m = 0) = 3.2 % and
+    P(m <= 5) = 94.6 %, P(m <= 6) = 98.6 %: the 2.5th percentile of m is 0 (the 3.5th would be 1) and the 97.5th is
+    6. For k = 7, P(m = 0) = 2.0 % and P(m = 1) = 10.4 %: the 2.5th percentile is 1 (the 1.5th would be 0). Enough
+    resamples keep every count several standard errors from these edges."""
+    n = 50_000
+    base = risk_rows("braking", [0.5] * 12) + risk_rows("oracle", [0.1] * 12)
+
+    def run(k, step):
+        risks = [0.5] * (k - 3) + [0.5 + step * k / 100] * 3
+        return report.paired_bootstrap(base + risk_rows("agent", risks), "agent", n=n)
+
+    worse = run(12, +1)
+    assert worse["difference_ci95"] == pytest.approx([0.0, 6.0])
+    assert worse["share_ci95"] == pytest.approx([-15.0, 0.0])
+    better = run(12, -1)
+    assert better["difference_ci95"] == pytest.approx([-6.0, 0.0])
+    assert better["share_ci95"] == pytest.approx([0.0, 15.0])
+    # k = 7: only the ends near the 2 % bin; the other ends sit within 0.2 % of a bin edge
+    worse = run(7, +1)
+    assert worse["difference_ci95"][0] == pytest.approx(1.0) and worse["share_ci95"][1] == pytest.approx(-2.5)
+    better = run(7, -1)
+    assert better["difference_ci95"][1] == pytest.approx(-1.0) and better["share_ci95"][0] == pytest.approx(2.5)
+
+
+def test_paired_bootstrap_defaults_and_seed():
+    """experiments/ablation.py relies on the defaults: 2000 resamples drawn with seed 0, the same interval on every
+    call; another seed or count gives another interval on a bank whose resamples nearly all differ."""
+    braking = [0.6113, 0.3729, 0.0571, 0.8307, 0.2903, 0.4787, 0.7141, 0.1319]
+    agent = [0.3037, 0.3101, 0.0443, 0.2017, 0.2539, 0.1061, 0.5573, 0.0211]
+    rows = risk_rows("braking", braking) + risk_rows("oracle", [0.2 * b for b in braking]) + risk_rows("agent", agent)
+    default = report.paired_bootstrap(rows, "agent")
+    assert default == report.paired_bootstrap(rows, "agent", n=2000, seed=0)
+    for other in (report.paired_bootstrap(rows, "agent", seed=1), report.paired_bootstrap(rows, "agent", n=2001)):
+        assert other["share"] == default["share"] and other["difference_pts"] == default["difference_pts"]
+        assert other["share_ci95"] != default["share_ci95"]
+        assert other["difference_ci95"] != default["difference_ci95"]
+
+
+def test_a_bank_with_too_little_to_gain_has_no_share_and_no_interval():
+    """A planner 0.02 points better than braking leaves no share to speak of: the point estimate is n/a, and so is
+    its interval, rather than a ratio of two near-zero gaps (thousands of %)."""
+    rows = []
+    for sid, (b, o, a) in enumerate(((0.3, 0.2998, 0.31), (0.2, 0.2, 0.2))):
+        for name, risk in (("braking", b), ("oracle", o), ("agent", a)):
+            rows.append(make_row(name, sid, "pedestrian", 1.0, 10.0, pedestrian_injury=risk))
+    out = report.paired_bootstrap(rows, "agent", n=500)
+    assert math.isnan(out["share"]) and all(math.isnan(x) for x in out["share_ci95"])
+    assert out["difference_pts"] == pytest.approx(0.5)

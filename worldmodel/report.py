@@ -457,7 +457,7 @@ def improvement_grids(rows: Sequence[dict], baseline: str = "braking") -> dict[s
 
 def _share(base: float, policy: float, ceiling: float) -> float:
     gain = base - ceiling
-    return 100.0 * (base - policy) / gain if math.isfinite(gain) and gain > MIN_ACHIEVABLE_GAIN else math.nan
+    return 100.0 * (base - policy) / gain if math.isfinite(gain) and gain >= MIN_ACHIEVABLE_GAIN else math.nan
 
 
 def achievable_share_grids(
@@ -528,14 +528,18 @@ def paired_bootstrap(
     idx = np.random.default_rng(seed).integers(0, len(ids), size=(n, len(ids)))
     means = arr[idx].mean(axis=1)  # (n, 3)
     gain = means[:, 1] - means[:, 2]
+    # a resample with too little to gain has no share, as the point estimate has none (MIN_ACHIEVABLE_GAIN)
     with np.errstate(divide="ignore", invalid="ignore"):
-        shares = np.where(gain > 0, 100.0 * (means[:, 1] - means[:, 0]) / gain, np.nan)
+        shares = np.where(gain >= MIN_ACHIEVABLE_GAIN, 100.0 * (means[:, 1] - means[:, 0]) / gain, np.nan)
+    shares = shares[np.isfinite(shares)]
     diffs = 100.0 * (means[:, 0] - means[:, 1])
     m = arr.mean(axis=0)
+    share = _share(m[1], m[0], m[2])
+    share_ci = [float(np.percentile(shares, q)) for q in (2.5, 97.5)] if len(shares) and math.isfinite(share) else None
     return {
         "scenarios": len(ids),
-        "share": _share(m[1], m[0], m[2]),
-        "share_ci95": [float(np.nanpercentile(shares, 2.5)), float(np.nanpercentile(shares, 97.5))],
+        "share": share,
+        "share_ci95": share_ci or [math.nan, math.nan],
         "difference_pts": float(100.0 * (m[0] - m[1])),
         "difference_ci95": [float(np.percentile(diffs, 2.5)), float(np.percentile(diffs, 97.5))],
     }
