@@ -187,7 +187,7 @@ def test_vae_sigterm_mid_epoch_then_resume_equals_uninterrupted(rollouts, uninte
     ref = uninterrupted_vae(target)
     assert ref["step"] == resumed["step"]
     for k, v in ref["model"].items():
-        assert torch.allclose(v, resumed["model"][k], atol=1e-6), k
+        assert torch.equal(v, resumed["model"][k]), k  # bit for bit
 
 
 def test_vae_sigkill_loses_only_the_current_epoch_and_resume_equals_uninterrupted(
@@ -216,7 +216,7 @@ def test_vae_sigkill_loses_only_the_current_epoch_and_resume_equals_uninterrupte
     ref = uninterrupted_vae(target)
     assert ref["step"] == resumed["step"] > state["step"]
     for k, v in ref["model"].items():
-        assert torch.allclose(v, resumed["model"][k], atol=1e-6), k
+        assert torch.equal(v, resumed["model"][k]), k  # bit for bit
 
 
 # ----------------------------------------------------------------------------- agent

@@ -78,7 +78,8 @@ def test_other_traffic_is_where_braking_can_never_be_hit_from_behind(spec, draw)
     first_car, first_ped = int(spec.car_hazard), int(spec.pedestrian_hazard)
     cars = range(first_car, first_car + spec.n_cars)
     peds = range(first_ped, first_ped + spec.n_pedestrians)
-    assert actors.car_active.dtype == bool and actors.ped_active.dtype == bool
+    for name in ("car_active", "car_hazard", "ped_active", "ped_hazard"):  # boolean masks, combined with & and ~
+        assert getattr(actors, name).dtype == bool, name
     assert list(np.flatnonzero(actors.car_active)) == list(range(first_car + spec.n_cars))
     assert list(np.flatnonzero(actors.ped_active)) == list(range(first_ped + spec.n_pedestrians))
     same_lane = []
@@ -122,6 +123,7 @@ def test_a_crossing_pedestrian_stops_once_past_its_stop_and_traffic_moves_on():
         assert getattr(actors, name).dtype == bool and not getattr(actors, name).any(), name
     assert np.isnan(actors.ped_stop_y).all() and not actors.car_xy.any() and not actors.ped_vel.any()
     assert actors.car_xy.shape == (CAR_POOL, 2) and actors.ped_xy.shape == (PEDESTRIAN_POOL, 2)
+    assert actors.car_heading.shape == (CAR_POOL,) and not actors.car_heading.any()
     assert Actors.empty().collision_point is None
     actors.car_vel[0] = (3.0, -2.0)
     actors.ped_xy[0], actors.ped_vel[0], actors.ped_stop_y[0] = (5.0, -4.0), (0.5, 2.0), 1.0  # walking towards +y
@@ -137,3 +139,87 @@ def test_a_crossing_pedestrian_stops_once_past_its_stop_and_traffic_moves_on():
     assert actors.ped_xy[0].tolist() == [6.5, 2.0]  # standing still
     assert actors.ped_xy[1].tolist() == [0.0, 0.0] and actors.ped_vel[1].tolist() == [0.0, 0.0]
     assert np.isnan(actors.ped_stop_y[1]) and actors.car_xy[0].tolist() == [12.0, -8.0]
+
+
+def test_traffic_draws_span_their_documented_ranges():
+    """Over 300 seeded scenarios with full traffic, every random placement reaches the ends of its range and no
+    further, and every coin comes up both ways: the ranges above are the ranges drawn, not just bounds."""
+    draws: dict[str, list[float]] = {k: [] for k in ("first_same", "same_gap", "factor", "oncoming_x0", "oncoming_gap")}
+    draws |= {k: [] for k in ("oncoming_speed", "junction_x", "stroller_x", "stroller_y", "stroller_speed")}
+    signs: dict[str, set] = {"stroller_side": set(), "stroller_way": set()}
+    for draw in range(300):
+        spec = ScenarioSpec(seed=draw, ttc=1.0, ego_speed=10.0, n_cars=10, n_pedestrians=10)
+        actors, junction_x = place(spec, draw)
+        bumper = EGO_X0 + EGO_FRONT + spec.ego_speed * spec.ttc
+        draws["junction_x"].append(junction_x)
+        cars = range(spec.n_cars)
+        same = sorted(actors.car_xy[i, 0] for i in cars if actors.car_xy[i, 1] == EGO_LANE_Y)
+        oncoming = [actors.car_xy[i, 0] for i in cars if actors.car_xy[i, 1] == ONCOMING_LANE_Y]
+        if same:
+            draws["first_same"].append(same[0] - bumper)
+            draws["same_gap"] += [b - a - CAR_LENGTH for a, b in zip(same, same[1:])]
+            draws["factor"] += [
+                actors.car_vel[i, 0] / spec.ego_speed for i in cars if actors.car_xy[i, 1] == EGO_LANE_Y
+            ]
+        if oncoming:
+            assert oncoming == sorted(oncoming)  # placed one after the other, from behind the ego forwards
+            draws["oncoming_x0"].append(oncoming[0] - EGO_X0)
+            draws["oncoming_gap"] += [b - a - CAR_LENGTH for a, b in zip(oncoming, oncoming[1:])]
+            draws["oncoming_speed"] += [-actors.car_vel[i, 0] for i in cars if actors.car_xy[i, 1] == ONCOMING_LANE_Y]
+        for i in range(spec.n_pedestrians):
+            (x, y), vx = actors.ped_xy[i], actors.ped_vel[i, 0]
+            draws["stroller_x"].append(x - EGO_X0)
+            draws["stroller_y"].append(abs(y))
+            draws["stroller_speed"].append(abs(vx))
+            signs["stroller_side"].add(float(np.sign(y)))
+            signs["stroller_way"].add(float(np.sign(vx)))
+    ranges = {
+        "first_same": (15.0, 35.0),  # beyond the collision point
+        "same_gap": (8.0, 40.0),
+        "factor": (1.0, 1.2),  # never slower than the ego
+        "oncoming_x0": (-20.0, -5.0),
+        "oncoming_gap": (8.0, 40.0),
+        "oncoming_speed": (6.0, 14.0),
+        "junction_x": (30.0, 150.0),
+        "stroller_x": (-10.0, 150.0),
+        "stroller_y": (4.3, 6.0),
+        "stroller_speed": (0.8, 1.8),
+    }
+    for name, (lo, hi) in ranges.items():
+        values, tol = np.array(draws[name]), 0.01 * (hi - lo)
+        assert lo - 1e-9 <= values.min() < lo + tol and hi - tol < values.max() <= hi + 1e-9, (
+            name,
+            values.min(),
+            values.max(),
+        )
+    assert signs["stroller_side"] == signs["stroller_way"] == {-1.0, 1.0}
+
+
+def test_the_crossing_pedestrian_starts_from_the_near_sidewalk_half_the_time_when_the_walk_fits():
+    """The rule: from the right (the near side, -y) only when the start, reach metres back along the walk from the
+    meeting point, is no further out than 0.2 m inside the near sidewalk's outer edge; then a fair coin. Each draw's
+    would-be right start is rebuilt from where it meets the bumper and the angle it walks at."""
+    fits_right, fits_left, near_edge, near_edge_askew = 0, 0, [], []
+    for draw in range(600):
+        spec = ScenarioSpec(
+            seed=draw, ttc=1.5, ego_speed=10.0, pedestrian_speed=1.0 + 3.5 * (draw % 7) / 6, p_pedestrian=1.0
+        )
+        actors, _ = place(spec, draw)
+        xy, vel = actors.ped_xy[0], actors.ped_vel[0]
+        reach = spec.pedestrian_speed * spec.ttc
+        meet_y = xy[1] + vel[1] * spec.ttc
+        cos = math.sqrt(max(0.0, 1.0 - (vel[0] / spec.pedestrian_speed) ** 2))
+        right_start = meet_y - reach * cos
+        from_right = vel[1] > 0  # walking towards +y: it came from the right
+        if right_start >= -(SIDEWALK_OUTER - 0.2):
+            fits_right += from_right
+            fits_left += not from_right
+            if from_right:
+                near_edge.append(right_start)
+                if cos < math.cos(math.radians(20.0)):  # the rule measures the walk across, not along its path
+                    near_edge_askew.append(right_start)
+        else:
+            assert not from_right, (draw, right_start)
+    assert fits_right + fits_left > 200 and 0.4 < fits_right / (fits_right + fits_left) < 0.6
+    # right starts go all the way to the allowed edge, those walking at a slant too
+    assert min(near_edge) < -(SIDEWALK_OUTER - 0.2) + 0.3 and min(near_edge_askew) < -(SIDEWALK_OUTER - 0.2) + 0.3

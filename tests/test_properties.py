@@ -4,6 +4,7 @@ injury-risk models never fall as the impact gets harder, and every step reward e
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -90,6 +91,13 @@ def test_a_spec_with_one_field_out_of_range_is_refused_naming_the_field(fields, 
 def test_a_non_finite_count_or_seed_is_refused_naming_the_field(name, value):
     with pytest.raises(ValueError, match=name):
         ScenarioSpec(**{"seed": 1, "ttc": 1.0, "ego_speed": 10.0, name: value})
+
+
+def test_a_spec_is_written_as_json_with_sorted_keys():
+    spec = ScenarioSpec(seed=3, ttc=1.0, ego_speed=10.0, n_cars=2, p_car=1.0)
+    text = spec.to_json()
+    assert json.loads(text) == spec.to_dict() and list(json.loads(text)) == sorted(spec.to_dict())
+    assert ScenarioSpec.from_dict(json.loads(text)) == spec
 
 
 def test_unknown_fields_are_refused():
@@ -232,16 +240,17 @@ def test_injury_severity_score_names_a_bad_side_or_unit():
 def test_damaged_side_by_the_nearest_end_or_flank():
     from envs.injury import damaged_side
 
-    hl, hw = 2.0, 1.0
+    hl, hw = 2.0, 0.9  # not 1: dividing by the half-width and multiplying by it must differ
     cases = {
         (1.9, 0.2): "front",
         (0.5, 0.2): "front",  # nearer the front than a flank, relative to the half-extents
         (-1.9, -0.2): "rear",
-        (0.5, 0.9): "near",  # the left flank
+        (0.5, 0.85): "near",  # the left flank
         (-0.5, 0.5): "near",
-        (0.5, -0.9): "far",
-        (1.0, 0.5): "front",  # on the diagonal: an end
-        (-1.0, -0.5): "rear",
+        (0.5, -0.85): "far",
+        (1.0, 0.5): "near",  # half-way along, nearer the flank relative to the half-width
+        (1.0, 0.45): "front",  # on the diagonal: an end
+        (-1.0, -0.45): "rear",
     }
     for (x, y), side in cases.items():
         assert damaged_side(x, y, hl, hw) == side, (x, y)
@@ -319,7 +328,7 @@ def test_sampled_scenarios_cover_the_papers_ranges_and_nothing_else():
     for name in ("n_cars", "n_pedestrians"):
         assert {getattr(s, name) for s in specs} == set(range(MAX_OTHERS + 1)), name
     seeds = np.array([s.seed for s in specs])
-    assert seeds.min() >= 0 and seeds.max() > 2**30 and len(set(seeds)) == len(seeds)
+    assert seeds.min() >= 0 and 2**30 < seeds.max() < 2**31 - 1 and len(set(seeds)) == len(seeds)
 
 
 def test_the_focus_mix_draws_its_hazards_speeds_and_ttcs():
@@ -333,7 +342,12 @@ def test_the_focus_mix_draws_its_hazards_speeds_and_ttcs():
     speeds, ttcs = np.array([s.ego_speed for s in specs]), np.array([s.ttc for s in specs])
     assert 15.0 <= speeds.min() < 15.2 and 29.8 < speeds.max() <= 30.0
     assert 0.25 <= ttcs.min() < 0.26 and 1.09 < ttcs.max() <= 1.1
-    assert {s.n_cars for s in specs} == set(range(MAX_OTHERS + 1)) and max(s.seed for s in specs) > 2**30
+    assert {s.n_cars for s in specs} == {s.n_pedestrians for s in specs} == set(range(MAX_OTHERS + 1))
+    assert 2**30 < max(s.seed for s in specs) < 2**31 - 1
+    # the ends of every range are allowed: only hazards, never a hazard, one speed, one TTC
+    assert sample_focus_scenario(rng, 1.0).hazard != "none" and sample_focus_scenario(rng, 0.0).hazard == "none"
+    one = sample_focus_scenario(rng, 0.5, (20.0, 20.0), (0.5, 0.5))
+    assert (one.ego_speed, one.ttc) == (20.0, 0.5)
     # the defaults: 85 % hazards, 15-30 m/s, TTC 0.25-1.1 s
     default, explicit = np.random.default_rng(5), np.random.default_rng(5)
     for _ in range(20):

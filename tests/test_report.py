@@ -720,3 +720,22 @@ def test_a_bank_with_too_little_to_gain_has_no_share_and_no_interval():
     out = report.paired_bootstrap(rows, "agent", n=500)
     assert math.isnan(out["share"]) and all(math.isnan(x) for x in out["share_ci95"])
     assert out["difference_pts"] == pytest.approx(0.5)
+    # a bank whose mean gap falls short while some resamples' gaps do not: still no interval without a share
+    rows = []
+    for sid, (b, o) in enumerate(((0.009, 0.0), (0.2, 0.2))):
+        for name, risk in (("braking", b), ("oracle", o), ("agent", b)):
+            rows.append(make_row(name, sid, "pedestrian", 1.0, 10.0, pedestrian_injury=risk))
+    out = report.paired_bootstrap(rows, "agent", n=500)
+    assert math.isnan(out["share"]) and all(math.isnan(x) for x in out["share_ci95"])
+
+
+def test_a_gap_of_exactly_the_minimum_has_a_share():
+    """n/a only below MIN_ACHIEVABLE_GAIN: a planner exactly that much better than braking gives shares."""
+    gap = report.MIN_ACHIEVABLE_GAIN
+    rows = [
+        make_row(name, 0, "pedestrian", 1.0, 10.0, pedestrian_injury=risk)
+        for name, risk in (("braking", gap), ("oracle", 0.0), ("agent", gap / 2))
+    ]
+    assert report.overall_achievable_share(rows, "agent") == pytest.approx(50.0)
+    out = report.paired_bootstrap(rows, "agent", n=50)
+    assert out["share"] == pytest.approx(50.0) and out["share_ci95"] == pytest.approx([50.0, 50.0])
