@@ -26,7 +26,6 @@ import torch
 from torch.optim.optimizer import register_optimizer_step_pre_hook
 
 from worldmodel import artifacts, train_agent, train_rnn
-from worldmodel.config import compose
 
 # metrics.json keys that describe one invocation, not the run: the machine's speed (``*wall_s``, ``*per_s``), and
 # whether this invocation (re)encoded the latents or found them encoded
@@ -35,20 +34,6 @@ INVOCATION = ("reencoded_latents",)
 
 def invocation_key(key: str) -> bool:
     return key in INVOCATION or key.endswith(("wall_s", "per_s", "seconds"))
-
-
-def smoke(root: Path, stage: str, *overrides: str):
-    return compose(
-        stage,
-        [
-            f"paths.data_root={root}/data",
-            f"paths.runs_root={root}/runs",
-            "experiment=t",
-            "scale=smoke",
-            "threads=1",
-            *overrides,
-        ],
-    )
 
 
 @contextlib.contextmanager
@@ -122,10 +107,10 @@ def assert_same_run(straight: Path, resumed: Path) -> None:
         assert a[tag] == b[tag], f"TensorBoard {tag} differs"
 
 
-def stopped_then_resumed(root: Path, run, stage: str, overrides: tuple, stop_at_update: int) -> dict:
-    """Run a stage stopped by SIGTERM at an update, check it stopped, and return its checkpoint at the stop."""
+def stopped_then_resumed(stage_cfg, root: Path, run, stage: str, overrides: tuple, stop_at_update: int) -> dict:
+    """Run a stage that SIGTERM stops at an update, check that it stopped, and return what the stage returned."""
     with sigterm_at_update(stop_at_update):
-        out = run(smoke(root, stage, *overrides))
+        out = run(stage_cfg(stage, *overrides, root=root))
     assert out.get("stopped"), "the SIGTERM should have stopped the run before its end"
     return out
 
@@ -144,19 +129,21 @@ def two_roots(experiment_copy, tmp_path):
 
 
 # ----------------------------------------------------------------------------- the paper's DDPG agent
-def test_ddpg_stopped_by_a_shorter_total_resumes_bit_for_bit(two_roots):
+def test_ddpg_stopped_by_a_shorter_total_resumes_bit_for_bit(two_roots, stage_cfg):
     """The example a user hits first: stop at 150 steps (mid-episode), resume to 300."""
     a, b = two_roots()
-    train_agent.run(smoke(a, "train_agent", "reward=r1"))
-    train_agent.run(smoke(b, "train_agent", "reward=r1", "agent.total_steps=150"))
-    state = torch.load(artifacts.agent_dir(smoke(b, "train_agent", "reward=r1")) / "last.pt", weights_only=False)
+    train_agent.run(stage_cfg("train_agent", "reward=r1", root=a))
+    train_agent.run(stage_cfg("train_agent", "reward=r1", "agent.total_steps=150", root=b))
+    state = torch.load(
+        artifacts.agent_dir(stage_cfg("train_agent", "reward=r1", root=b)) / "last.pt", weights_only=False
+    )
     assert state["step"] == 150 and len(state["in_progress"]["actions"]) > 0, "the stop should land mid-episode"
-    train_agent.run(smoke(b, "train_agent", "reward=r1", "resume=true"))
-    cfg = smoke(a, "train_agent", "reward=r1")
-    assert_same_run(artifacts.agent_dir(cfg), artifacts.agent_dir(smoke(b, "train_agent", "reward=r1")))
+    train_agent.run(stage_cfg("train_agent", "reward=r1", "resume=true", root=b))
+    cfg = stage_cfg("train_agent", "reward=r1", root=a)
+    assert_same_run(artifacts.agent_dir(cfg), artifacts.agent_dir(stage_cfg("train_agent", "reward=r1", root=b)))
 
 
-def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots):
+def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots, stage_cfg):
     """TD3's options and 3-step returns: the stop leaves transitions waiting in the n-step window."""
     a, b = two_roots()
     variant = (
@@ -166,32 +153,34 @@ def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots):
         "agent.target_noise=0.2",
         "agent.n_step=3",
     )
-    train_agent.run(smoke(a, "train_agent", *variant))
+    train_agent.run(stage_cfg("train_agent", *variant, root=a))
     # the warm-up ends at step 100; each step after it makes two optimiser steps (actor and critic) or one
-    stopped_then_resumed(b, train_agent.run, "train_agent", variant, stop_at_update=61)
-    state = torch.load(artifacts.agent_dir(smoke(b, "train_agent", *variant)) / "last.pt", weights_only=False)
+    stopped_then_resumed(stage_cfg, b, train_agent.run, "train_agent", variant, stop_at_update=61)
+    state = torch.load(artifacts.agent_dir(stage_cfg("train_agent", *variant, root=b)) / "last.pt", weights_only=False)
     assert 100 < state["step"] < 300
     assert len(state["in_progress"]["actions"]) > 0 and len(state["in_progress"]["window"]) > 0
-    train_agent.run(smoke(b, "train_agent", *variant, "resume=true"))
+    train_agent.run(stage_cfg("train_agent", *variant, "resume=true", root=b))
     assert_same_run(
-        artifacts.agent_dir(smoke(a, "train_agent", *variant)), artifacts.agent_dir(smoke(b, "train_agent", *variant))
+        artifacts.agent_dir(stage_cfg("train_agent", *variant, root=a)),
+        artifacts.agent_dir(stage_cfg("train_agent", *variant, root=b)),
     )
 
 
 # ----------------------------------------------------------------------------- the world model's LSTM
-def test_lstm_sigterm_mid_epoch_resumes_bit_for_bit(two_roots):
+def test_lstm_sigterm_mid_epoch_resumes_bit_for_bit(two_roots, stage_cfg):
     a, b = two_roots("vae")
     epochs = ("rnn.epochs=2",)
-    train_rnn.run(smoke(a, "train_rnn", *epochs))
-    stopped_then_resumed(b, train_rnn.run, "train_rnn", epochs, stop_at_update=3)
-    train_rnn.run(smoke(b, "train_rnn", *epochs, "resume=true"))
+    train_rnn.run(stage_cfg("train_rnn", *epochs, root=a))
+    stopped_then_resumed(stage_cfg, b, train_rnn.run, "train_rnn", epochs, stop_at_update=3)
+    train_rnn.run(stage_cfg("train_rnn", *epochs, "resume=true", root=b))
     assert_same_run(
-        artifacts.runs_root(smoke(a, "train_rnn")) / "rnn", artifacts.runs_root(smoke(b, "train_rnn")) / "rnn"
+        artifacts.runs_root(stage_cfg("train_rnn", root=a)) / "rnn",
+        artifacts.runs_root(stage_cfg("train_rnn", root=b)) / "rnn",
     )
 
 
 # ----------------------------------------------------------------------------- cloning and DAgger
-def test_cloning_and_dagger_sigterm_mid_round_resume_bit_for_bit(two_roots):
+def test_cloning_and_dagger_sigterm_mid_round_resume_bit_for_bit(two_roots, stage_cfg):
     """The planner cloned, one DAgger round, then DDPG from demonstrations: a stop inside the first cloning round
     waits for the round's end, which is saved; the resumed run labels, clones and trains on exactly as before."""
     from worldmodel import demonstrate
@@ -203,20 +192,21 @@ def test_cloning_and_dagger_sigterm_mid_round_resume_bit_for_bit(two_roots):
         *("agent.bc_pretrain_steps=30", "agent.dagger_rounds=1", "agent.dagger_episodes=1"),
         *("agent.demo_share=0.25", "agent.total_steps=150", "reward=r2", *demos),
     )
-    demonstrate.run(smoke(a, "demonstrate", *demos))
+    demonstrate.run(stage_cfg("demonstrate", *demos, root=a))
     shutil.copytree(a / "data/t/demos", b / "data/t/demos")
-    train_agent.run(smoke(a, "train_agent", *student))
-    stopped_then_resumed(b, train_agent.run, "train_agent", student, stop_at_update=10)
-    state = torch.load(artifacts.agent_dir(smoke(b, "train_agent", *student)) / "last.pt", weights_only=False)
+    train_agent.run(stage_cfg("train_agent", *student, root=a))
+    stopped_then_resumed(stage_cfg, b, train_agent.run, "train_agent", student, stop_at_update=10)
+    state = torch.load(artifacts.agent_dir(stage_cfg("train_agent", *student, root=b)) / "last.pt", weights_only=False)
     assert state["cloned_rounds"] == 1 and state["step"] == 0 and state["cloning_set"] is not None
-    train_agent.run(smoke(b, "train_agent", *student, "resume=true"))
+    train_agent.run(stage_cfg("train_agent", *student, "resume=true", root=b))
     assert_same_run(
-        artifacts.agent_dir(smoke(a, "train_agent", *student)), artifacts.agent_dir(smoke(b, "train_agent", *student))
+        artifacts.agent_dir(stage_cfg("train_agent", *student, root=a)),
+        artifacts.agent_dir(stage_cfg("train_agent", *student, root=b)),
     )
 
 
 # ----------------------------------------------------------------------------- the chooser's scorer
-def test_chooser_sigterm_mid_fit_resumes_bit_for_bit(two_roots):
+def test_chooser_sigterm_mid_fit_resumes_bit_for_bit(two_roots, stage_cfg):
     """The scorer's fit stopped halfway: the resumed run refits it from the kept labels to the same weights."""
     a, b = two_roots()
     chooser = (
@@ -224,11 +214,12 @@ def test_chooser_sigterm_mid_fit_resumes_bit_for_bit(two_roots):
         *("agent.chooser.lane_change_s=[0.3]", "agent.chooser.decide_s=0.5", "agent.chooser.steps=100"),
         *("agent.chooser.batch_size=16", "agent.chooser.num_workers=1"),
     )
-    train_agent.run(smoke(a, "train_agent", *chooser))
-    stopped_then_resumed(b, train_agent.run, "train_agent", chooser, stop_at_update=40)
-    train_agent.run(smoke(b, "train_agent", *chooser, "resume=true"))
+    train_agent.run(stage_cfg("train_agent", *chooser, root=a))
+    stopped_then_resumed(stage_cfg, b, train_agent.run, "train_agent", chooser, stop_at_update=40)
+    train_agent.run(stage_cfg("train_agent", *chooser, "resume=true", root=b))
     assert_same_run(
-        artifacts.agent_dir(smoke(a, "train_agent", *chooser)), artifacts.agent_dir(smoke(b, "train_agent", *chooser))
+        artifacts.agent_dir(stage_cfg("train_agent", *chooser, root=a)),
+        artifacts.agent_dir(stage_cfg("train_agent", *chooser, root=b)),
     )
 
 
@@ -246,13 +237,13 @@ PEERS = {
 
 
 @pytest.mark.parametrize("peer", sorted(PEERS))
-def test_peer_sigterm_mid_episode_resumes_bit_for_bit(peer, two_roots):
+def test_peer_sigterm_mid_episode_resumes_bit_for_bit(peer, two_roots, stage_cfg):
     a, b = two_roots("vae")
     overrides = PEERS[peer]
-    train_agent.run(smoke(a, "train_agent", *overrides))
-    stopped_then_resumed(b, train_agent.run, "train_agent", overrides, stop_at_update=30)
-    train_agent.run(smoke(b, "train_agent", *overrides, "resume=true"))
+    train_agent.run(stage_cfg("train_agent", *overrides, root=a))
+    stopped_then_resumed(stage_cfg, b, train_agent.run, "train_agent", overrides, stop_at_update=30)
+    train_agent.run(stage_cfg("train_agent", *overrides, "resume=true", root=b))
     assert_same_run(
-        artifacts.agent_dir(smoke(a, "train_agent", *overrides)),
-        artifacts.agent_dir(smoke(b, "train_agent", *overrides)),
+        artifacts.agent_dir(stage_cfg("train_agent", *overrides, root=a)),
+        artifacts.agent_dir(stage_cfg("train_agent", *overrides, root=b)),
     )
