@@ -115,6 +115,17 @@ def stopped_then_resumed(stage_cfg, root: Path, run, stage: str, overrides: tupl
     return out
 
 
+def agent_resumes_bit_for_bit(stage_cfg, straight: Path, stopped: Path, overrides: tuple, stop_at_update: int):
+    """train_agent uninterrupted under ``straight``; stopped at an update, then resumed, under ``stopped``; the same."""
+    train_agent.run(stage_cfg("train_agent", *overrides, root=straight))
+    stopped_then_resumed(stage_cfg, stopped, train_agent.run, "train_agent", overrides, stop_at_update)
+    train_agent.run(stage_cfg("train_agent", *overrides, "resume=true", root=stopped))
+    assert_same_run(
+        artifacts.agent_dir(stage_cfg("train_agent", *overrides, root=straight)),
+        artifacts.agent_dir(stage_cfg("train_agent", *overrides, root=stopped)),
+    )
+
+
 @pytest.fixture
 def two_roots(experiment_copy, tmp_path):
     """Two private copies of the smoke world model: one for the uninterrupted run, one for the interrupted one."""
@@ -214,13 +225,7 @@ def test_chooser_sigterm_mid_fit_resumes_bit_for_bit(two_roots, stage_cfg):
         *("agent.chooser.lane_change_s=[0.3]", "agent.chooser.decide_s=0.5", "agent.chooser.steps=100"),
         *("agent.chooser.batch_size=16", "agent.chooser.num_workers=1"),
     )
-    train_agent.run(stage_cfg("train_agent", *chooser, root=a))
-    stopped_then_resumed(stage_cfg, b, train_agent.run, "train_agent", chooser, stop_at_update=40)
-    train_agent.run(stage_cfg("train_agent", *chooser, "resume=true", root=b))
-    assert_same_run(
-        artifacts.agent_dir(stage_cfg("train_agent", *chooser, root=a)),
-        artifacts.agent_dir(stage_cfg("train_agent", *chooser, root=b)),
-    )
+    agent_resumes_bit_for_bit(stage_cfg, a, b, chooser, stop_at_update=40)
 
 
 # ----------------------------------------------------------------------------- the peers' learners
@@ -239,11 +244,4 @@ PEERS = {
 @pytest.mark.parametrize("peer", sorted(PEERS))
 def test_peer_sigterm_mid_episode_resumes_bit_for_bit(peer, two_roots, stage_cfg):
     a, b = two_roots("vae")
-    overrides = PEERS[peer]
-    train_agent.run(stage_cfg("train_agent", *overrides, root=a))
-    stopped_then_resumed(stage_cfg, b, train_agent.run, "train_agent", overrides, stop_at_update=30)
-    train_agent.run(stage_cfg("train_agent", *overrides, "resume=true", root=b))
-    assert_same_run(
-        artifacts.agent_dir(stage_cfg("train_agent", *overrides, root=a)),
-        artifacts.agent_dir(stage_cfg("train_agent", *overrides, root=b)),
-    )
+    agent_resumes_bit_for_bit(stage_cfg, a, b, PEERS[peer], stop_at_update=30)

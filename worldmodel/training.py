@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import time
 from pathlib import Path
 
 import numpy as np
@@ -62,8 +63,24 @@ class GracefulStop:
 def tensorboard(directory: Path, purge_step: int | None = None):
     from torch.utils.tensorboard import SummaryWriter
 
+    if purge_step is not None:
+        wait_for_a_later_second(directory)
     # purge_step drops events logged after the checkpoint we resume from, so curves do not zig-zag.
     return SummaryWriter(log_dir=str(directory), purge_step=purge_step)
+
+
+def wait_for_a_later_second(directory: Path) -> None:
+    """TensorBoard reads a run's event files in the order of their names, which begin with the second the file was
+    opened in (then host, process id and a counter, compared as text). A resumed run's file that shared that second
+    with an earlier one could be read first, and its purge would then drop the earlier points. Waits (at most a
+    second, and only when resuming that fast) until the clock has passed every existing file's second."""
+    stamps = []
+    for path in Path(directory).glob("events.out.tfevents.*"):
+        field = path.name.split(".")[3]
+        if field.isdigit():
+            stamps.append(int(field))
+    while stamps and int(time.time()) <= max(stamps):
+        time.sleep(0.05)
 
 
 class TrainingRun:
