@@ -29,7 +29,7 @@ lint: setup
 bench: setup
 	$(PY) -m benchmarks.run
 
-# Mutation testing of the core numeric modules (tests/README.md): not part of CI, about 20 minutes on 2 cores.
+# Mutation testing of the core numeric modules (tests/README.md): not part of CI, 5-7 minutes on 2 cores.
 mutation: setup
 	$(PY) -m pip install -q -r requirements-mutation.lock
 	$(PY) tests/mutation.py
