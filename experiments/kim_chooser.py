@@ -43,6 +43,7 @@ from tqdm import tqdm
 from envs.chooser import BRAKE, ManoeuvreChooser, decide_steps_for, switch_choice
 from envs.kim import SCENARIOS, kim_action_for
 from envs.planner import Manoeuvre, _Plan, plan_cost
+from worldmodel import stats
 from worldmodel.common import set_threads
 from worldmodel.config import compose
 from worldmodel.peers import kim
@@ -131,7 +132,7 @@ def report(name: str, data: dict, predicted: np.ndarray | None, margin: float = 
     rules = [("braking", np.zeros_like(c)), ("learned chooser", predicted), ("exact-cost chooser", c)]
     for who, scores in [(who, s) for who, s in rules if s is not None]:
         res = outcomes(c, scores, ep, margin if who == "learned chooser" else 0.0)
-        low, high = kim.wilson(int((res == 0).sum()), len(res))
+        low, high = stats.wilson(int((res == 0).sum()), len(res))
         print(
             f"{name}: {who}: avoided {100 * np.mean(res == 0):.1f} % [{low:.0f}, {high:.0f}] of {len(res)}; "
             f"injury {-res.mean():.2f}"
@@ -236,14 +237,14 @@ def compare(cfg, out_dir: Path) -> None:
     if len(braking) != len(files) * trials * len(SCENARIOS):
         raise SystemExit(f"the files hold {len(braking) // len(files)} trials, evaluate.kim.trials={trials} says more")
     for who, rows in (("braking", braking[: len(braking) // len(files)]), (f"chooser, {len(files)} seeds", chooser)):
-        low, high = kim.wilson(int(rows[:, 0].sum()), len(rows))
+        low, high = stats.wilson(int(rows[:, 0].sum()), len(rows))
         scenario = np.arange(len(rows)) // trials % len(SCENARIOS)
         each = " / ".join(f"{100 * rows[scenario == k, 0].mean():.1f}" for k in range(len(SCENARIOS)))
         print(
             f"{who}: avoided {100 * rows[:, 0].mean():.1f} % [{low:.0f}, {high:.0f}] of {len(rows)} "
             f"({' / '.join(SCENARIOS)}: {each}); injury {-rows[:, 1].mean():.2f}"
         )
-    p = kim.paired_permutation_p(chooser[:, 1], braking[:, 1])
+    p = stats.paired_permutation_p(chooser[:, 1], braking[:, 1])
     print(f"paired by seed and trial, ISS chooser against braking: p = {p:.4f}")
 
 

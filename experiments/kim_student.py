@@ -45,6 +45,7 @@ import torch
 from tqdm import tqdm
 
 from envs.kim import SCENARIOS, kim_action, kim_action_for
+from worldmodel import stats
 from worldmodel.artifacts import AgentId
 from worldmodel.common import set_threads
 from worldmodel.config import compose
@@ -232,12 +233,12 @@ def beside_braking(cfg, policy, out_dir: Path) -> None:
     iss = {name: np.array([r["iss_kmh"] for r in rs]) for name, rs in rows.items()}
     for name, rs in rows.items():
         avoided = sum(r["avoided"] for r in rs)
-        low, high = kim.wilson(avoided, len(rs))
+        low, high = stats.wilson(avoided, len(rs))
         print(
             f"{name}: avoided {100 * avoided / len(rs):.1f} % [{low:.0f}, {high:.0f}] of {len(rs)} trials "
             f"(draw {cfg.evaluate.kim.seed}); injury {-iss[name].mean():.2f}"
         )
-    p = kim.paired_permutation_p(iss[policy.name], iss["braking"])
+    p = stats.paired_permutation_p(iss[policy.name], iss["braking"])
     print(f"paired p on per-trial ISS against braking: {p:.4f}")
     for name, rs in rows.items():
         out = out_dir / f"drive_{name}_draw{cfg.evaluate.kim.seed}.csv"
@@ -271,13 +272,13 @@ def compare(cfg, students: str, out_dir: Path) -> None:
             )
         pooled[source] = np.concatenate([np.loadtxt(f, delimiter=",", ndmin=2) for f in files])
         avoided, iss = pooled[source][:, 0], pooled[source][:, 1]
-        low, high = kim.wilson(int(avoided.sum()), len(avoided))
+        low, high = stats.wilson(int(avoided.sum()), len(avoided))
         print(
             f"{students} {source}, {len(files)} seeds pooled: avoided {100 * avoided.mean():.1f} % [{low:.0f}, "
             f"{high:.0f}] of {len(avoided)}; injury {-iss.mean():.2f}"
         )
     state, lidar = pooled["state"], pooled["lidar"]
-    p = kim.paired_permutation_p(state[:, 1], lidar[:, 1])
+    p = stats.paired_permutation_p(state[:, 1], lidar[:, 1])
     print(
         f"paired by seed and trial, ISS state against LIDAR: p = {p:.4f}; only the state student avoids "
         f"{100 * np.mean((state[:, 0] == 1) & (lidar[:, 0] == 0)):.1f} %, only the LIDAR one "

@@ -739,3 +739,21 @@ def test_a_gap_of_exactly_the_minimum_has_a_share():
     assert report.overall_achievable_share(rows, "agent") == pytest.approx(50.0)
     out = report.paired_bootstrap(rows, "agent", n=50)
     assert out["share"] == pytest.approx(50.0) and out["share_ci95"] == pytest.approx([50.0, 50.0])
+
+
+def test_wilson_intervals_and_paired_permutation_p_by_hand():
+    """worldmodel/stats.py against values computed by hand: the Wilson interval's closed form at z = 1.959964,
+    and a sign-flip test small enough that scipy enumerates all 2^6 flips."""
+    from worldmodel.stats import paired_permutation_p, wilson
+
+    z = 1.959963984540054
+    for k, n in ((0, 10), (5, 10), (37, 40)):
+        p = k / n
+        centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+        half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+        assert wilson(k, n) == pytest.approx((100 * (centre - half), 100 * (centre + half)), abs=1e-9)
+    assert all(math.isnan(x) for x in wilson(0, 0))
+    # differences +0.5, -0.5, +1, +1, +0.5, +1 (mean 0.583): 8 of the 64 sign patterns reach |mean| >= 0.583
+    a, b = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], [0.5, 2.5, 2.0, 3.0, 4.5, 5.0]
+    assert paired_permutation_p(a, b) == pytest.approx(8 / 64)
+    assert paired_permutation_p(b, a) == pytest.approx(8 / 64) and paired_permutation_p(a, a) == 1.0

@@ -41,6 +41,7 @@ from envs.rewards import crash_iss
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
+from ..stats import paired_permutation_p, wilson
 from .common import seal, world_model_step_s, write_rows
 
 log = logging.getLogger(__name__)
@@ -486,27 +487,6 @@ def run_policy(env, policy, specs, policy_seed: int = 0) -> list[dict]:
         )
         per[spec.scenario] += 1
     return rows
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95 % Wilson score interval of a proportion k / n, in %."""
-    if n == 0:
-        return (math.nan, math.nan)
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return 100 * (centre - half), 100 * (centre + half)
-
-
-def paired_permutation_p(a: np.ndarray, b: np.ndarray, flips: int = 10_000, seed: int = 0) -> float:
-    """Two-sided p of the mean paired difference a - b under random sign flips (the trials are shared)."""
-    d = np.asarray(a, float) - np.asarray(b, float)
-    if not np.any(d):
-        return 1.0
-    rng = np.random.default_rng(seed)
-    signs = rng.choice([-1.0, 1.0], size=(flips, len(d)))
-    null = np.abs((signs * d).mean(axis=1))
-    return float((1 + np.sum(null >= abs(d.mean()) - 1e-12)) / (flips + 1))
 
 
 def summarise(rows: list[dict], paper_trials: int) -> dict:

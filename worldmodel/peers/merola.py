@@ -44,9 +44,9 @@ from envs.merola import sample as sample_merola
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
+from ..stats import wilson
 from .chae import DQNPolicy, dqn_config
 from .common import dqn_checkpoint, resume_dqn, seal, world_model_step_s, write_rows
-from .kim import wilson
 
 log = logging.getLogger(__name__)
 PEDALS, STEERS = (-1.0, 0.0, 1.0), (-0.5, 0.0, 0.5)
