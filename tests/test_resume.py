@@ -238,6 +238,11 @@ PEERS = {
     "merola": ("agent=ddqn_merola", "agent.dqn.warmup_steps=40"),
     # Kim's LIDAR DDPG with 3-step returns
     "kim": ("agent=ddpg_kim",),
+    # and after cloning the planner with a DAgger round, demonstrations in its batches: stopped while cloning
+    "kim_fd": (
+        *("agent=ddpg_kim_fd", "demos.episodes=4", "agent.bc_pretrain_steps=60", "agent.dagger_rounds=1"),
+        "agent.dagger_episodes=1",
+    ),
 }
 
 

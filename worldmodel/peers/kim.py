@@ -268,6 +268,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         demos, demo_info = learn_from_planner(
             cfg, env, see, agent, hp, run_.side_writer("pretrain"), cloned=run_.state is not None
         )
+    if run_.state is not None:  # the cloning's figures, which only the run that cloned measured
+        demo_info = {**demo_info, **run_.state.get("demonstrations", {})}
 
     def snapshot():
         run_.save(
@@ -284,6 +286,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 "actor_hidden": list(hp.actor_hidden),
                 "ddpg_config": {f.name: getattr(hp, f.name) for f in dataclasses.fields(DDPGConfig)},
                 "reward": agent_id.reward,
+                "demonstrations": demo_info,
             }
         )
 
