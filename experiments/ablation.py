@@ -217,7 +217,8 @@ def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, plann
             b = paired_bootstrap(rows, policy)
             lo, hi = b["share_ci95"]
             dlo, dhi = b["difference_ci95"]
-            cells += [f"[{lo:.0f}, {hi:.0f}]", f"{b['difference_pts']:+.2f} [{dlo:+.2f}, {dhi:+.2f}]"]
+            interval = "n/a" if math.isnan(lo) else f"[{lo:.0f}, {hi:.0f}]"
+            cells += [interval, f"{b['difference_pts']:+.2f} [{dlo:+.2f}, {dhi:+.2f}]"]
         cells.append(f"{total:.2f}")
         cells += [
             f"{100 * _mean(prow, c):.1f}"

@@ -557,14 +557,14 @@ def test_paired_bootstrap_by_hand():
             for i, r in enumerate(risks)
         ]
 
-    braking = [0.2, 0.4, 0.0, 0.6]
+    braking = [0.2, 0.4, 0.2, 0.6]
     base = rows("braking", braking) + rows("oracle", [0.0] * 4)
     same = paired_bootstrap(base + rows("agent", braking), "agent", n=200)
     assert same["share"] == 0.0 and same["share_ci95"] == [0.0, 0.0] and same["difference_ci95"] == [0.0, 0.0]
     # two seeds that average to half of braking's risk
-    half = base + rows("agent", [0.0, 0.4, 0.0, 0.6], 0) + rows("agent", [0.2, 0.0, 0.0, 0.0], 1)
+    half = base + rows("agent", [0.0, 0.4, 0.2, 0.6], 0) + rows("agent", [0.2, 0.0, 0.0, 0.0], 1)
     out = paired_bootstrap(half, "agent", n=500)
-    assert out["share"] == pytest.approx(50.0) and out["difference_pts"] == pytest.approx(-15.0)
+    assert out["share"] == pytest.approx(50.0) and out["difference_pts"] == pytest.approx(-17.5)
     assert out["difference_ci95"][1] < 0 and out["scenarios"] == 4
 
 
@@ -652,9 +652,9 @@ def risk_rows(policy, risks, seed=0, first_id=0):
 def test_paired_bootstrap_intervals_enumerated_on_two_scenarios():
     """Two scenarios, so a resample is {0, 0}, {1, 1} (a quarter each) or one of each (half). Scenario 0: braking
     0.4, planner 0, agent 0.2. Scenario 1: braking 0.2, planner 0.2 (nothing achievable), agent 0.2 + 0.1 occupant.
-    Shares: {0, 0} 50 %, mixed 25 %, {1, 1} undefined (no gain) and left out. Differences (points): {0, 0} -20,
-    mixed -5, {1, 1} +10. Each value covers at least a quarter of the resamples, so the 2.5 and 97.5 percentiles
-    are the extreme values for any seed."""
+    Shares: {0, 0} 50 %, mixed 25 %, {1, 1} undefined (no gain): a quarter of the resamples have no share, so the
+    share has no interval either. Differences (points): {0, 0} -20, mixed -5, {1, 1} +10. Each value covers at
+    least a quarter of the resamples, so the 2.5 and 97.5 percentiles are the extreme values for any seed."""
     rows = risk_rows("braking", [0.4, 0.2]) + risk_rows("oracle", [0.0, 0.2]) + risk_rows("agent", [0.2, (0.2, 0.1)])
     # scenarios that not all three policies ran are left out, whichever policy lacks them
     rows += risk_rows("oracle", [0.0], first_id=7) + risk_rows("agent", [0.0], first_id=8)
@@ -662,8 +662,11 @@ def test_paired_bootstrap_intervals_enumerated_on_two_scenarios():
     assert out["scenarios"] == 2
     assert out["share"] == pytest.approx(25.0)  # (0.3 - 0.25) / (0.3 - 0.1)
     assert out["difference_pts"] == pytest.approx(-5.0)
-    assert out["share_ci95"] == pytest.approx([25.0, 50.0])
+    assert all(math.isnan(x) for x in out["share_ci95"])
     assert out["difference_ci95"] == pytest.approx([-20.0, 10.0])
+    # one scenario alone has a share (50 %) but cannot be resampled: no interval
+    alone = report.paired_bootstrap([r for r in rows if r["scenario_id"] == 0], "agent", n=200)
+    assert alone["share"] == pytest.approx(50.0) and all(math.isnan(x) for x in alone["share_ci95"])
 
     with pytest.raises(ValueError, match="agent, braking and oracle"):
         report.paired_bootstrap(risk_rows("braking", [0.4]) + risk_rows("oracle", [0.0]), "agent")
@@ -732,8 +735,9 @@ def test_a_bank_with_too_little_to_gain_has_no_share_and_no_interval():
 def test_a_gap_of_exactly_the_minimum_has_a_share():
     """n/a only below MIN_ACHIEVABLE_GAIN: a planner exactly that much better than braking gives shares."""
     gap = report.MIN_ACHIEVABLE_GAIN
-    rows = [
-        make_row(name, 0, "pedestrian", 1.0, 10.0, pedestrian_injury=risk)
+    rows = [  # two scenarios alike, so that the bootstrap has something to resample and every resample the same gap
+        make_row(name, sid, "pedestrian", 1.0, 10.0, pedestrian_injury=risk)
+        for sid in (0, 1)
         for name, risk in (("braking", gap), ("oracle", 0.0), ("agent", gap / 2))
     ]
     assert report.overall_achievable_share(rows, "agent") == pytest.approx(50.0)

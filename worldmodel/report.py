@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from worldmodel import stats
 from worldmodel.common import atomic_write_bytes, atomic_write_text
 
 # ----------------------------------------------------------------------------- row schema
@@ -510,8 +511,9 @@ def paired_bootstrap(
     """Paired bootstrap over scenarios of the whole-bank share of the achievable improvement and of the difference
     in mean total risk against ``baseline`` (policy − baseline, in points; negative = fewer injuries). Every
     policy's risk is first averaged over its training seeds per scenario; each resample draws scenarios with
-    replacement and uses the same draw for all three policies. Returns the point estimates and 95 % percentile
-    intervals."""
+    replacement and uses the same draw for all three policies (``stats.paired_bootstrap_ci``). Returns the point
+    estimates and 95 % percentile intervals; the share's is n/a where the share is, and where some resample has
+    too little to gain for one."""
 
     def per_scenario(name: str) -> dict:
         risk: dict = {}
@@ -524,24 +526,25 @@ def paired_bootstrap(
     ids = sorted(set(p) & set(b) & set(o))
     if not ids:
         raise ValueError(f"no scenario has rows of {policy}, {baseline} and {ceiling}")
-    arr = np.array([[p[i], b[i], o[i]] for i in ids])
-    idx = np.random.default_rng(seed).integers(0, len(ids), size=(n, len(ids)))
-    means = arr[idx].mean(axis=1)  # (n, 3)
-    gain = means[:, 1] - means[:, 2]
-    # a resample with too little to gain has no share, as the point estimate has none (MIN_ACHIEVABLE_GAIN)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shares = np.where(gain >= MIN_ACHIEVABLE_GAIN, 100.0 * (means[:, 1] - means[:, 0]) / gain, np.nan)
-    shares = shares[np.isfinite(shares)]
-    diffs = 100.0 * (means[:, 0] - means[:, 1])
-    m = arr.mean(axis=0)
-    share = _share(m[1], m[0], m[2])
-    share_ci = [float(np.percentile(shares, q)) for q in (2.5, 97.5)] if len(shares) and math.isfinite(share) else None
+    risks = [np.array([d[i] for i in ids]) for d in (p, b, o)]
+
+    def share(mine, base, top, axis=-1):
+        # a resample with too little to gain has no share, as the whole bank would have none (MIN_ACHIEVABLE_GAIN)
+        gain = base.mean(axis) - top.mean(axis)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(gain >= MIN_ACHIEVABLE_GAIN, 100.0 * (base.mean(axis) - mine.mean(axis)) / gain, np.nan)
+
+    def difference(mine, base, axis=-1):
+        return 100.0 * (mine.mean(axis) - base.mean(axis))
+
+    point = _share(*(float(r.mean()) for r in (risks[1], risks[0], risks[2])))
+    share_ci = stats.paired_bootstrap_ci(risks, share, n, seed) if math.isfinite(point) else (math.nan, math.nan)
     return {
         "scenarios": len(ids),
-        "share": share,
-        "share_ci95": share_ci or [math.nan, math.nan],
-        "difference_pts": float(100.0 * (m[0] - m[1])),
-        "difference_ci95": [float(np.percentile(diffs, 2.5)), float(np.percentile(diffs, 97.5))],
+        "share": point,
+        "share_ci95": list(share_ci),
+        "difference_pts": float(difference(risks[0], risks[1])),
+        "difference_ci95": list(stats.paired_bootstrap_ci(risks[:2], difference, n, seed)),
     }
 
 

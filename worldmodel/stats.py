@@ -2,12 +2,14 @@
 
 ``wilson``: the Wilson score interval of a rate (``scipy.stats.binomtest``). ``paired_permutation_p``: the two-sided
 p of a mean paired difference (``scipy.stats.permutation_test`` with the pairs' signs flipped; exact when the
-pairs are few enough to enumerate every flip).
+pairs are few enough to enumerate every flip). ``paired_bootstrap_ci``: a percentile interval over resamples that
+draw the same scenarios for every policy (``scipy.stats.bootstrap(paired=True)``).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -40,3 +42,30 @@ def paired_permutation_p(a, b, flips: int = 10_000, seed: int = 0) -> float:
         rng=np.random.default_rng(seed),
     )
     return float(result.pvalue)
+
+
+def paired_bootstrap_ci(samples, statistic, n: int = 2000, seed: int = 0, confidence: float = 0.95):
+    """Percentile interval of ``statistic(*samples, axis)`` over ``n`` paired resamples of the samples' common
+    axis (``scipy.stats.bootstrap(paired=True)``): each resample draws the same items from every sample, as the
+    policies of a bank share its scenarios. (nan, nan) when fewer than two items, or when the statistic is undefined
+    (nan) on some resample: an interval over only the resamples where it is defined would be too narrow."""
+    from scipy.stats import bootstrap
+
+    samples = [np.asarray(s, float) for s in samples]
+    if len(samples[0]) < 2:
+        return (math.nan, math.nan)
+    with warnings.catch_warnings():
+        # a degenerate resampling distribution (every resample the same) is a valid, zero-width interval here
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        result = bootstrap(
+            samples,
+            statistic,
+            paired=True,
+            vectorized=True,
+            n_resamples=n,
+            confidence_level=confidence,
+            method="percentile",
+            rng=np.random.default_rng(seed),
+        )
+    low, high = float(result.confidence_interval.low), float(result.confidence_interval.high)
+    return (low, high) if math.isfinite(low) and math.isfinite(high) else (math.nan, math.nan)
