@@ -761,3 +761,9 @@ def test_wilson_intervals_and_paired_permutation_p_by_hand():
     a, b = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], [0.5, 2.5, 2.0, 3.0, 4.5, 5.0]
     assert paired_permutation_p(a, b) == pytest.approx(8 / 64)
     assert paired_permutation_p(b, a) == pytest.approx(8 / 64) and paired_permutation_p(a, a) == 1.0
+    # too many pairs to enumerate: 10,000 random flips from seed 0 by default, the same on every call
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(0.1, 1.0, 40), rng.normal(0.0, 1.0, 40)
+    p = paired_permutation_p(x, y)
+    assert p == paired_permutation_p(x, y, flips=10_000, seed=0) and 0.0 < p < 1.0
+    assert p != paired_permutation_p(x, y, flips=10_001) and p != paired_permutation_p(x, y, seed=1)

@@ -13,14 +13,16 @@ import warnings
 
 import numpy as np
 
+CONFIDENCE = 0.95  # every interval the reports give
 
-def wilson(k: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+
+def wilson(k: int, n: int) -> tuple[float, float]:
     """Wilson score interval of the proportion ``k / n``, in %; (nan, nan) without trials."""
     from scipy.stats import binomtest
 
     if n == 0:
         return (math.nan, math.nan)
-    ci = binomtest(int(k), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
+    ci = binomtest(int(k), int(n)).proportion_ci(confidence_level=CONFIDENCE, method="wilson")
     return 100.0 * float(ci.low), 100.0 * float(ci.high)
 
 
@@ -44,7 +46,7 @@ def paired_permutation_p(a, b, flips: int = 10_000, seed: int = 0) -> float:
     return float(result.pvalue)
 
 
-def paired_bootstrap_ci(samples, statistic, n: int = 2000, seed: int = 0, confidence: float = 0.95):
+def paired_bootstrap_ci(samples, statistic, n: int, seed: int) -> tuple[float, float]:
     """Percentile interval of ``statistic(*samples, axis)`` over ``n`` paired resamples of the samples' common
     axis (``scipy.stats.bootstrap(paired=True)``): each resample draws the same items from every sample, as the
     policies of a bank share its scenarios. (nan, nan) when fewer than two items, or when the statistic is undefined
@@ -63,9 +65,8 @@ def paired_bootstrap_ci(samples, statistic, n: int = 2000, seed: int = 0, confid
             paired=True,
             vectorized=True,
             n_resamples=n,
-            confidence_level=confidence,
+            confidence_level=CONFIDENCE,
             method="percentile",
             rng=np.random.default_rng(seed),
         )
-    low, high = float(result.confidence_interval.low), float(result.confidence_interval.high)
-    return (low, high) if math.isfinite(low) and math.isfinite(high) else (math.nan, math.nan)
+    return float(result.confidence_interval.low), float(result.confidence_interval.high)
