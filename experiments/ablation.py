@@ -1,4 +1,4 @@
-"""Issue 11's ablation: one agent variant per lever, added in turn, trained and judged on the validation bank.
+"""The agent ablation: one agent variant per lever, added in turn, trained and judged on the validation bank.
 
     python -m experiments.ablation experiment=quick [seed=0] [--rows ddpg,speed,...] [--planners brake1,right,...]
 

@@ -1,4 +1,4 @@
-"""Issue 11's chooser on Kim's junction, from the LIDAR: learn what each manoeuvre would cost, not what the planner did.
+"""The chooser on Kim's junction, from the LIDAR: learn what each manoeuvre would cost, not what the planner did.
 
     python -m experiments.kim_chooser labels [--episodes 1500] [--out runs/kim_chooser/train.npz] OVERRIDES...
     python -m experiments.kim_chooser labels --bank --out runs/kim_chooser/bank77.npz evaluate.kim.seed=77

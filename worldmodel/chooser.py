@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
 TARGETS = ("cost", "advantage", "policy")
 LABEL_KEYS = ("seg", "speed", "costs", "state", "episode", "t")
-STATIC_KEY = "static"  # per candidate, whether it ends in a static object (labels made since 2026-11-24)
+STATIC_KEY = "static"  # per candidate, whether it ends in a static object (older labels lack it)
 TELE_KEY = "seg_tele"  # the narrow second camera's frames, in labels made with env.tele_fov_deg
 # the frame band the scorer's CNN reads, per camera (agent.chooser.mask_camera): the rows where road users from
 # ~4 m to the far end of the street appear; in the 30-degree camera the hazard pedestrians of the validation bank

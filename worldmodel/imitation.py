@@ -1,4 +1,4 @@
-"""Learning from the privileged planner through the frozen world model (issue 11; docs/design.md §5).
+"""Learning from the privileged planner through the frozen world model (docs/design.md §5).
 
 "Learning by cheating": the planner reads the true state; the student sees only what the camera gives, through the
 world model. This module turns the planner's recorded demonstrations (``worldmodel.demonstrate``) into agent

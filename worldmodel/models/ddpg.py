@@ -72,7 +72,7 @@ class DDPGConfig(Checked):
     """the actor's last layer starts uniform in +-bound (Lillicrap: 3e-3, so first actions are near 0). 0 makes the
     untrained actor output exactly 0: with ``agent.anchor=brake``, exactly straight-line braking"""
 
-    # ---- learner options (issue 11; all off by default, which is Lillicrap's DDPG above)
+    # ---- learner options (all off by default, which is Lillicrap's DDPG above)
     n_step: int = 1
     """n-step returns: the critic regresses onto r_t + ... + g^(k-1) r_(t+k-1) + g^k Q'(s_(t+k), mu'(s_(t+k))), k <= n
     (fewer at an episode's end). Sparse terminal rewards then reach the decision that caused them n times faster"""
