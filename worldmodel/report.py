@@ -456,9 +456,13 @@ def improvement_grids(rows: Sequence[dict], baseline: str = "braking") -> dict[s
     return out
 
 
-def _share(base: float, policy: float, ceiling: float) -> float:
-    gain = base - ceiling
-    return 100.0 * (base - policy) / gain if math.isfinite(gain) and gain >= MIN_ACHIEVABLE_GAIN else math.nan
+def _share(base, policy, ceiling):
+    """100 (base - policy) / (base - ceiling), NaN where the gap is under ``MIN_ACHIEVABLE_GAIN``: of numbers, a
+    float; of arrays (a bootstrap's resamples), an array."""
+    gain = np.asarray(base, dtype=float) - ceiling
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(np.isfinite(gain) & (gain >= MIN_ACHIEVABLE_GAIN), 100.0 * (base - policy) / gain, np.nan)
+    return float(out) if out.ndim == 0 else out
 
 
 def achievable_share_grids(
@@ -484,7 +488,7 @@ def achievable_share_grids(
         if policy == baseline:
             continue
         mine = totals(policy)
-        arr = np.vectorize(_share)(base, mine, top) if base.size else base
+        arr = _share(base, mine, top) if base.size else base
         out[policy] = (ttcs, speeds, np.asarray(arr, dtype=float))
     return out
 
@@ -528,16 +532,13 @@ def paired_bootstrap(
         raise ValueError(f"no scenario has rows of {policy}, {baseline} and {ceiling}")
     risks = [np.array([d[i] for i in ids]) for d in (p, b, o)]
 
-    def share(mine, base, top, axis=-1):
-        # a resample with too little to gain has no share, as the whole bank would have none (MIN_ACHIEVABLE_GAIN)
-        gain = base.mean(axis) - top.mean(axis)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(gain >= MIN_ACHIEVABLE_GAIN, 100.0 * (base.mean(axis) - mine.mean(axis)) / gain, np.nan)
+    def share(mine, base, top, axis=-1):  # a resample with too little to gain has no share, as a bank has none
+        return _share(base.mean(axis), mine.mean(axis), top.mean(axis))
 
     def difference(mine, base, axis=-1):
         return 100.0 * (mine.mean(axis) - base.mean(axis))
 
-    point = _share(*(float(r.mean()) for r in (risks[1], risks[0], risks[2])))
+    point = _share(risks[1].mean(), risks[0].mean(), risks[2].mean())
     share_ci = stats.paired_bootstrap_ci(risks, share, n, seed) if math.isfinite(point) else (math.nan, math.nan)
     return {
         "scenarios": len(ids),

@@ -270,16 +270,10 @@ class EpisodeInProgress:
                     "actions: this simulator does not replay it as the one that saved it did (another pybullet or "
                     "numpy build?). Resume on the machine that wrote it, or delete the run folder to start over."
                 )
-        if not same_observation(obs, state["obs"]):
+        if not np.array_equal(obs, state["obs"]):
             log.warning(
                 "the episode in progress in %s replayed to a different observation (another torch build or thread "
                 "count?): the run goes on from the replayed one, no longer bit-identical to an uninterrupted run",
                 where,
             )
         return obs, info
-
-
-def same_observation(a, b) -> bool:
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(same_observation(a[k], b[k]) for k in a)
-    return np.array_equal(np.asarray(a), np.asarray(b))
