@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 EXPERIMENT ?= quick
 
-.PHONY: setup run test lint bench preview mutation clean-venv
+.PHONY: setup run test lint bench preview mutation headline clean-venv
 
 setup: $(VENV)/.installed
 
@@ -16,6 +16,16 @@ $(VENV)/.installed: requirements.lock requirements-dev.lock pyproject.toml
 
 run: setup
 	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick
+
+# The paper's family at paper scale, as one experiment (docs/results/porav/README.md): one world model; the paper's
+# DDPG with R1 and R2, the best DDPG-actor variant (dag), the chooser and the two-camera chooser, three seeds each;
+# evaluated on the validation bank, then once on the sealed test bank (recorded in docs/results/ledger.csv).
+# About 7 hours on 2 cores; resumable: run it again to continue where it stopped.
+HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tele] seeds=[0,1,2] \
+	banks=[validation,test] demos.episodes=500 evaluate.policies=[braking,oracle,oracle_brake1,oracle_brake2]
+
+headline: setup
+	$(PY) -m worldmodel.pipeline $(HEADLINE)
 
 # Two workers, one per core; a file's tests stay on one worker, so module-scoped fixtures (the smoke pipeline) are
 # built once.

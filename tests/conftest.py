@@ -24,6 +24,7 @@ def stage_cfg(tmp_path):
             [
                 f"paths.data_root={root}/data",
                 f"paths.runs_root={root}/runs",
+                f"paths.ledger={root}/ledger.csv",  # never the repository's ledger
                 "experiment=t",
                 "scale=smoke",
                 "threads=1",

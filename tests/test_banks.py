@@ -1,39 +1,122 @@
-"""The validation bank: the test bank's grid with scenarios of its own, so settings and checkpoints are chosen
-without touching the test bank."""
+"""The banks: one validation bank after another for choosing, one sealed test bank per family for final numbers,
+and the ledger that records every evaluation on a test bank."""
 
 from __future__ import annotations
 
+import re
+from types import SimpleNamespace
+
 import pytest
 
-from worldmodel import artifacts, evaluate
+from worldmodel import artifacts, banks, evaluate
 from worldmodel.common import StageError
 from worldmodel.config import compose, validate
+from worldmodel.peers import chae, kim, merola
 
 
 def cfg(*overrides: str):
     return compose("evaluate", ["scale=paper", *overrides])
 
 
-def test_validation_and_test_banks_share_no_scenario():
-    test, validation = evaluate.bank(cfg()), evaluate.bank(cfg("evaluate.bank=validation"))
-    assert len(test) == len(validation) == 63 * 20
-    # the same cells, in the same order ...
-    assert [(e.hazard, e.ttc, e.speed) for e in test] == [(e.hazard, e.ttc, e.speed) for e in validation]
-    # ... but no scenario in common: not one spec, not one scene seed
-    assert not {e.spec for e in test} & {e.spec for e in validation}
-    assert not {e.spec.seed for e in test} & {e.spec.seed for e in validation}
-    assert evaluate.bank(cfg()) == test  # and each bank is reproducible
+def test_the_paper_test_bank_shares_no_scenario_with_any_validation_bank():
+    test = evaluate.bank(cfg("evaluate.bank=test"))
+    assert len(test) == 63 * 20
+    assert evaluate.bank(cfg("evaluate.bank=test")) == test  # reproducible
+    for seed in banks.VALIDATION_SEEDS["porav"]:
+        validation = evaluate.bank(cfg(f"evaluate.validation_seed={seed}"))
+        # the same cells, in the same order, but not one spec and not one scene seed in common
+        assert [(e.hazard, e.ttc, e.speed) for e in test] == [(e.hazard, e.ttc, e.speed) for e in validation]
+        assert not {e.spec for e in test} & {e.spec for e in validation}
+        assert not {e.spec.seed for e in test} & {e.spec.seed for e in validation}
 
 
-def test_validation_results_go_to_their_own_folder():
-    assert artifacts.eval_dir(cfg()).name == "eval"
-    assert artifacts.eval_dir(cfg("evaluate.bank=validation")).name == "eval_validation"
+@pytest.mark.parametrize("family,module", [("chae", chae), ("kim", kim), ("merola", merola)])
+def test_each_peer_test_draw_is_new(family, module):
+    """The peers' banks draw their fields from the seed: the test draw repeats none of a validation draw's trials."""
+    c = compose("evaluate", [f"evaluate.family={family}", f"evaluate.{family}.trials=20"]).evaluate[family]
+
+    def trials(seed):
+        specs = module.bank(SimpleNamespace(**{**dict(c), "seed": seed}))
+        return [repr(s) for s in specs]
+
+    test = trials(banks.TEST_SEEDS[family])
+    assert len(test) == len(set(test)) > 0
+    for seed in banks.VALIDATION_SEEDS[family]:
+        assert not set(test) & set(trials(seed)), seed
+
+
+def test_each_bank_writes_its_own_folder():
+    names = {
+        (): "eval",
+        ("evaluate.bank=test",): "eval_test",
+        ("evaluate.validation_seed=4712",): "eval_seed4712",
+        ("evaluate.family=kim",): "eval_kim",
+        ("evaluate.family=kim", "evaluate.bank=test"): "eval_kim_test",
+        ("evaluate.family=merola", "evaluate.merola.seed=77"): "eval_merola_seed77",
+    }
+    for overrides, name in names.items():
+        assert artifacts.eval_dir(cfg(*overrides)).name == name
 
 
 @pytest.mark.parametrize(
     "override,key",
-    [("evaluate.bank=train", "evaluate.bank"), ("evaluate.validation_seed=2018", "evaluate.validation_seed")],
+    [
+        (f"evaluate.validation_seed={banks.TEST_SEEDS['porav']}", "evaluate.validation_seed"),
+        (f"evaluate.kim.seed={banks.TEST_SEEDS['kim']}", "evaluate.kim.seed"),
+        (f"evaluate.chae.seed={banks.TEST_SEEDS['porav']}", "evaluate.chae.seed"),  # any family's test seed
+        (f"agent.select.seed={banks.TEST_SEEDS['chae']}", "agent.select.seed"),  # Chae's checkpoint selection
+    ],
 )
-def test_impossible_bank_settings_are_named(override, key):
-    with pytest.raises(StageError, match=key):
+def test_a_test_seed_is_refused_as_a_validation_draw(override, key):
+    """Also any other family's test seed: a draw that is some family's sealed bank is never for choosing."""
+    with pytest.raises(StageError, match=rf"config {re.escape(key)}=\d+ is impossible: .* sealed test seed"):
         validate(cfg(override))
+
+
+def test_an_unknown_bank_is_named():
+    with pytest.raises(StageError, match="evaluate.bank='train' is impossible: it must be one of validation, test"):
+        validate(cfg("evaluate.bank=train"))
+    with pytest.raises(StageError, match="banks"):
+        validate(compose("pipeline", ["banks=[validation,final]"]))
+
+
+def test_the_ledger_appends_and_counts(tmp_path):
+    path = tmp_path / "docs" / "ledger.csv"
+    assert banks.uses("porav", path=path) == 0 and banks.read_ledger(path) == []
+    for figure in ("share 40.0 %", "share 41.0 %"):
+        banks.record(
+            path,
+            experiment="e",
+            scale="paper",
+            family="porav",
+            scenarios=1260,
+            policies={"braking": {}, "agent_r2/seed0": {"vae": "aa", "rnn": "bb", "actor": "cc"}},
+            headline={"agent_r2": figure},
+        )
+    banks.record(path, experiment="e", scale=None, family="kim", scenarios=5, policies={}, headline={})
+    rows = banks.read_ledger(path)
+    assert path.read_text().count("date,commit") == 1  # one header
+    assert [r["headline"] for r in rows[:2]] == ["agent_r2: share 40.0 %", "agent_r2: share 41.0 %"]
+    assert rows[0]["policies"] == "braking; agent_r2/seed0 (vae=aa, rnn=bb, actor=cc)"
+    assert rows[0]["bank_seed"] == str(banks.TEST_SEEDS["porav"]) and rows[0]["commit"]
+    assert banks.uses("porav", path=path) == 2 and banks.uses("kim", path=path) == 1
+    assert banks.uses("merola", path=path) == 0
+
+
+def test_evaluating_the_test_bank_records_itself_and_a_validation_bank_does_not(stage_cfg, tmp_path):
+    """The real stage on a tiny grid: a validation evaluation leaves the ledger alone, each test evaluation adds a
+    row with its policies and headline figures."""
+    tiny = ["evaluate.ttcs=[1.0]", "evaluate.speeds=[10.0]", "evaluate.hazards=[pedestrian]", "evaluate.per_cell=2"]
+    ledger = tmp_path / "ledger.csv"
+    evaluate.run(stage_cfg("evaluate", *tiny, "evaluate.num_workers=1"))
+    assert not ledger.exists()
+    c = stage_cfg("evaluate", *tiny, "evaluate.num_workers=1", "evaluate.bank=test")
+    evaluate.run(c)
+    evaluate.run(c)
+    rows = banks.read_ledger(ledger)
+    assert len(rows) == 2 and banks.uses("porav", path=ledger) == 2
+    assert rows[0]["family"] == "porav" and rows[0]["scenarios"] == "2" and rows[0]["scale"] == "smoke"
+    assert rows[0]["policies"] == "braking; oracle"
+    assert rows[0]["headline"].startswith("braking: risk ") and "oracle: risk " in rows[0]["headline"]
+    assert (tmp_path / "runs" / "t" / "eval_test" / "summary.json").exists()
+    assert (tmp_path / "runs" / "t" / "eval" / "summary.json").exists()

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, evaluate, ncap, pipeline, policies, train_agent, train_vae
+from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv
@@ -38,8 +38,10 @@ OUTPUTS = [
     "runs/t/eval/summary.json",
     "runs/t/eval/tables.md",
     "runs/t/eval/heatmaps.png",
+    "runs/t/eval_test/summary.json",
     "runs/t/pipeline.json",
 ]
+BANKS = "banks=[validation,test]"  # the validation bank, then the sealed test bank once
 
 
 def smoke_cfg(root, stage="pipeline", *overrides):
@@ -48,6 +50,7 @@ def smoke_cfg(root, stage="pipeline", *overrides):
         [
             f"paths.data_root={root}/data",
             f"paths.runs_root={root}/runs",
+            f"paths.ledger={root}/ledger.csv",
             "experiment=t",
             "scale=smoke",
             "threads=1",
@@ -59,7 +62,7 @@ def smoke_cfg(root, stage="pipeline", *overrides):
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory):
     root = tmp_path_factory.mktemp("pipeline")
-    pipeline.run(smoke_cfg(root))
+    pipeline.run(smoke_cfg(root, "pipeline", BANKS))
     return root
 
 
@@ -75,7 +78,7 @@ def test_pipeline_produces_every_output(experiment):
     assert set(summary["policies"]) == policies
     assert set(summary["achievable_share"]["policies"]) == policies - {"braking"}
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
-    assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval"}
+    assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval", "eval_test"}
     assert all(t["wall_s"] > 0 and t["peak_rss_mb"] > 0 for t in timings.values())
     tables = (experiment / "runs/t/eval/tables.md").read_text()
     assert "Brake&Steer, reward 1" in tables and "Table III" in tables and "Table IV" in tables
@@ -84,9 +87,36 @@ def test_pipeline_produces_every_output(experiment):
 def test_second_run_skips_finished_stages(experiment, caplog):
     stamps = {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
-        pipeline.run(smoke_cfg(experiment))
-    assert caplog.text.count("skipped") == 7 and "running" not in caplog.text
+        pipeline.run(smoke_cfg(experiment, "pipeline", BANKS))
+    assert caplog.text.count("skipped") == 8 and "running" not in caplog.text
     assert stamps == {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
+    # the test bank judged these agents once: one ledger row, every agent with the hashes of its models
+    (row,) = banks.read_ledger(experiment / "ledger.csv")
+    assert row["family"] == "porav" and row["experiment"] == "t"
+    for key in ("agent_r1/seed0", "agent_r2/seed0", "agent_r2_chooser/seed0"):
+        assert f"{key} (vae=" in row["policies"], key
+    assert "agent_r2_chooser: share " in row["headline"]
+
+
+def test_the_pipeline_trains_every_seed_of_seeds(tmp_path):
+    names = [s.name for s in pipeline.steps(smoke_cfg(tmp_path, "pipeline", "agents=[ddpg]", "seeds=[0,2]", BANKS))]
+    assert names == [
+        "collect", "vae", "rnn", "agent_r1", "agent_r1/seed2", "agent_r2", "agent_r2/seed2", "eval", "eval_test"
+    ]  # fmt: skip
+
+
+def test_the_pipeline_trains_a_preset_built_on_another_as_train_agent_would(tmp_path):
+    """chooser_tele extends chooser from a global package (``/agent/chooser@agent``): the pipeline's agent section
+    and env change are the ones `train_agent agent=chooser_tele` composes."""
+    from omegaconf import OmegaConf
+
+    from worldmodel.config import agent_preset
+
+    cfg = smoke_cfg(tmp_path, "pipeline", "agents=[chooser_tele]")
+    composed = smoke_cfg(tmp_path, "train_agent", "agent=chooser_tele")
+    assert OmegaConf.to_container(agent_preset(cfg, "chooser_tele")) == OmegaConf.to_container(composed.agent)
+    (step,) = [s for s in pipeline.steps(cfg) if s.kind == "agent"]
+    assert step.name == "agent_r2_chooser_tele" and step.changes["env"] == {"tele_fov_deg": 30.0}
 
 
 def test_agent_resume_continues_step_count(experiment, tmp_path):

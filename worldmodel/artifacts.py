@@ -93,12 +93,17 @@ def rnn_dir(cfg) -> Path:
 
 
 def eval_dir(cfg) -> Path:
-    """``runs/NAME/eval`` for the test bank, ``runs/NAME/eval_validation`` for the validation bank, and
-    ``runs/NAME/eval_<family>`` for another scenario family's evaluation."""
-    family = str(cfg.evaluate.get("family", "porav"))
-    if family != "porav":
-        return runs_root(cfg) / f"eval_{family}"
-    return runs_root(cfg) / ("eval_validation" if cfg.evaluate.bank == "validation" else "eval")
+    """Where an evaluation writes: ``runs/NAME/eval`` for the paper's family and ``runs/NAME/eval_<family>`` for
+    another, on the family's default validation draw; ``_test`` added for the sealed test bank and ``_seed<N>`` for
+    another validation draw (worldmodel/banks.py)."""
+    from .banks import dir_suffix
+
+    e = cfg.evaluate
+    family = str(e.get("family", "porav"))
+    seed = e.validation_seed if family == "porav" else e[family].seed
+    return runs_root(cfg) / (
+        ("eval" if family == "porav" else f"eval_{family}") + dir_suffix(str(e.bank), family, seed)
+    )
 
 
 def stale_dir(cfg) -> Path:

@@ -35,6 +35,8 @@ class PathsConfig:
     runs_root: str = "runs"
     data: str = "${paths.data_root}/${experiment}"
     runs: str = "${paths.runs_root}/${experiment}"
+    # where evaluations on a test bank are recorded; empty: docs/results/ledger.csv of this repository
+    ledger: str = ""
 
 
 @dataclass
@@ -457,6 +459,8 @@ class SelectConfig(Checked):
 
     def problems(self):
         yield from _positive(self, "trials")
+        yield from _draw_problems(self, "seed", "select.")
+        yield from _draw_problems(self, "rescore_seed", "select.")
         if self.seed < 0:
             yield ConfigValueError("select.seed", self.seed, "it must be >= 0")
         if self.every < 0:
@@ -730,10 +734,19 @@ def _global_preset(path) -> bool:
 
 
 def _load_preset(name: str):
-    """A preset file with the presets its ``defaults`` list names (same group, same package) merged under it."""
+    """A preset file with the presets its ``defaults`` list names merged under it: ``NAME`` (same group, same
+    package) or ``/agent/NAME@agent`` (an agent preset placed under a global preset's ``agent`` key)."""
     preset = OmegaConf.load(CONF_DIR / "agent" / f"{name}.yaml")
-    parents = [d for d in preset.pop("defaults", []) if isinstance(d, str) and d != "_self_"]
-    return OmegaConf.merge(*[_load_preset(p) for p in parents], preset) if parents else preset
+    parents = []
+    for entry in preset.pop("defaults", []):
+        if not isinstance(entry, str) or entry == "_self_":
+            continue
+        if entry.startswith("/agent/"):
+            parent, _, package = entry.removeprefix("/agent/").partition("@")
+            parents.append(OmegaConf.create({package: _load_preset(parent)}) if package else _load_preset(parent))
+        else:
+            parents.append(_load_preset(entry))
+    return OmegaConf.merge(*parents, preset) if parents else preset
 
 
 def preset_globals(name: str) -> dict:
@@ -780,10 +793,20 @@ def teacher_settings(cfg) -> dict:
     return settings
 
 
-SCRIPTED_POLICIES = ("braking", "oracle")
+# braking (the floor), the privileged planner (the ceiling), and the planner after braking straight for its first 1
+# or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard
+SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2")
 # family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae.py SCRIPTED)
 CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
-BANKS = ("test", "validation")
+
+
+def _draw_problems(section, key: str, prefix: str = ""):
+    """A validation draw may not be a sealed test seed (worldmodel/banks.py); ``prefix`` names the section."""
+    from .banks import sealed_seed_problem
+
+    why = sealed_seed_problem(getattr(section, key))
+    if why:
+        yield ConfigValueError(prefix + key, getattr(section, key), why)
 
 
 @dataclass
@@ -793,7 +816,7 @@ class ChaeEvalConfig(Checked):
 
     trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
     ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
-    seed: int = 2017  # the test draw; experiments/chae_dqn.py chooses settings on another draw (seed 99)
+    seed: int = 2017  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
     # k >= 2: also evaluate, per dqn variant, the ensemble of each k consecutive training seeds (seeds 0..k-1, then
     # k..2k-1, ...): greedy on the mean of the members' Q-values, each member at its chosen checkpoint. 0 = each
     # run alone. Successive checkpoints of one run swing between bumping and needless stops, and the runs' swings
@@ -820,6 +843,7 @@ class ChaeEvalConfig(Checked):
 
     def problems(self):
         yield from _positive(self, "trials")
+        yield from _draw_problems(self, "seed", "chae.")
         if not self.singles and not self.ensemble:
             yield ConfigValueError(
                 "chae.singles", self.singles, "with no ensembles (chae.ensemble=0) no agent would drive"
@@ -854,8 +878,7 @@ class KimEvalConfig(Checked):
     # scripted policies beside every LIDAR agent: straight-line braking, Kim's AEB-3m, the planner (the ceiling)
     policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
     world_model_agents: bool = True  # also the paper's street-trained R1 / R2 agents and the chooser, as they are
-    # the test draw; settings and checkpoints are chosen on another (evaluate.kim.seed=77: runs/NAME/eval_kim_seed77)
-    seed: int = 2020
+    seed: int = 2020  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
     # where the runner's path crosses the ego at contact, m forward of its centre (envs.kim.KimSpec.impact_offset):
     # 0 the middle of the flank (ours, and the training distribution's), +2.25 the front bumper, -2.25 the rear. The
     # paper does not say; other values measure how much the results depend on it
@@ -866,6 +889,7 @@ class KimEvalConfig(Checked):
 
     def problems(self):
         yield from _positive(self, "trials", "paper_trials")
+        yield from _draw_problems(self, "seed", "kim.")
         if not 0.0 <= self.impact_offset_spread <= 4.5:
             yield ConfigValueError("kim.impact_offset_spread", self.impact_offset_spread, "it must be in [0, 4.5] m")
         known = ("braking", "aeb3m", "oracle")
@@ -885,11 +909,11 @@ class MerolaEvalConfig(Checked):
     # straight-line braking from the start, Kim's AEB-3m (brakes once a footprint is within 3 m ahead), the planner
     policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
     world_model_agents: bool = True  # also the paper's R1 / R2 agents and the chooser, at their own 1/15 s steps
-    # the test draw; settings and checkpoints are chosen on another (evaluate.merola.seed=77: eval_merola_seed77)
-    seed: int = 2022
+    seed: int = 2022  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
 
     def problems(self):
         yield from _positive(self, "trials")
+        yield from _draw_problems(self, "seed", "merola.")
         if any(p not in ("braking", "aeb3m", "oracle") for p in self.policies):
             yield ConfigValueError("policies", list(self.policies), "use some of braking, aeb3m, oracle")
 
@@ -902,11 +926,11 @@ class EvaluateConfig(Checked):
     ttcs: list[float] = field(default_factory=lambda: [0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5])
     speeds: list[float] = field(default_factory=lambda: [10.0, 20.0, 30.0])
     hazards: list[str] = field(default_factory=lambda: ["pedestrian", "car", "both"])
-    bank_seed: int = 2018  # the test bank: touched once, for final numbers
-    # which bank to run: "test", or "validation" (same grid, scenarios drawn from validation_seed) for choosing
-    # settings and checkpoints; validation results go to runs/NAME/eval_validation/
-    bank: str = "test"
-    validation_seed: int = 4711
+    # which bank (worldmodel/banks.py): "validation", drawn from validation_seed, for choosing settings and
+    # checkpoints, as often as needed; "test", the sealed test bank, for final numbers only: each evaluation on it
+    # is recorded in the ledger (paths.ledger) and goes to runs/NAME/eval_test/
+    bank: str = "validation"
+    validation_seed: int = 4711  # the default validation bank (runs/NAME/eval/); others go to eval_seed<N>/
     num_workers: int = 2  # processes; results are identical to 1
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
@@ -925,14 +949,15 @@ class EvaluateConfig(Checked):
         for key in ("ttcs", "speeds"):
             if any(v <= 0 for v in getattr(self, key)):
                 yield ConfigValueError(key, list(getattr(self, key)), "every value must be positive")
+        from .banks import BANKS
+
         if self.bank not in BANKS:
             yield ConfigValueError("bank", self.bank, f"it must be one of {', '.join(BANKS)}")
         from envs.env import FAMILIES
 
         if self.family not in FAMILIES:
             yield ConfigValueError("family", self.family, f"it must be one of {', '.join(FAMILIES)}")
-        if self.validation_seed == self.bank_seed:
-            yield ConfigValueError("validation_seed", self.validation_seed, "it must differ from bank_seed")
+        yield from _draw_problems(self, "validation_seed")
         unknown = [h for h in self.hazards if h not in ("pedestrian", "car", "both")]
         if unknown:
             yield ConfigValueError("hazards", list(self.hazards), "hazards are pedestrian, car and both")
@@ -940,7 +965,8 @@ class EvaluateConfig(Checked):
             yield ConfigValueError(
                 "policies",
                 list(self.policies),
-                "it must include 'braking' (the baseline) and may add 'oracle'; trained agents are found by themselves",
+                "it must include 'braking' (the baseline) and may add "
+                f"{', '.join(repr(p) for p in SCRIPTED_POLICIES[1:])}; trained agents are found by themselves",
             )
 
 
@@ -999,6 +1025,11 @@ class ExperimentConfig(Checked):
     # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
     # ddpg: the paper's agent (R1 and R2); chooser: issue 11's camera agent that beats braking (R2; docs/design.md §5)
     agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
+    # training seeds of every preset in agents; empty: seed alone (a seed trained before is kept either way)
+    seeds: list[int] = field(default_factory=list)
+    # the banks the pipeline's evaluations run on, in order (worldmodel/banks.py): validation for everyday runs;
+    # add test only for final numbers, since the ledger records every evaluation on a test bank
+    banks: list[str] = field(default_factory=lambda: ["validation"])
     # peer systems the pipeline also trains and evaluates on their own scenario family (pipeline peers=[chae])
     peers: list[str] = field(default_factory=list)
     paths: PathsConfig = field(default_factory=PathsConfig)
@@ -1024,6 +1055,10 @@ class ExperimentConfig(Checked):
             if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
                 known = sorted(p.stem for p in (CONF_DIR / "agent").glob("*.yaml"))
                 yield ConfigValueError("agents", list(self.agents), f"{name!r} is not a preset: use {', '.join(known)}")
+        from .banks import BANKS
+
+        if not self.banks or any(b not in BANKS for b in self.banks):
+            yield ConfigValueError("banks", list(self.banks), f"give some of {', '.join(BANKS)}")
         unknown = [p for p in self.peers if p not in PEERS]
         if unknown:
             yield ConfigValueError("peers", list(self.peers), f"known peer systems: {', '.join(PEERS)}")

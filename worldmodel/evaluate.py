@@ -22,20 +22,24 @@ import logging
 import time
 
 from . import artifacts
+from .banks import record_evaluation
 from .common import StageError, make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
-from .report import OUTCOME_COLUMNS, write_report, write_results_csv
+from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
 
 log = logging.getLogger(__name__)
 
 
 def bank(cfg):
-    """The scenarios of ``evaluate.bank``: the test bank, or the validation bank (same grid, another seed)."""
+    """The scenarios of ``evaluate.bank``: a validation bank, or the sealed test bank (the same grid, drawn from
+    another seed; worldmodel/banks.py)."""
     from envs import test_bank
 
+    from .banks import draw_seed
+
     e = cfg.evaluate
-    seed = e.validation_seed if e.bank == "validation" else e.bank_seed
+    seed = draw_seed(str(e.bank), "porav", e.validation_seed)
     return test_bank(
         ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=int(e.per_cell), seed=int(seed)
     )
@@ -123,6 +127,30 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
     return rows
 
 
+def models_by_policy(rows) -> dict[str, dict[str, str]]:
+    """Each policy's key (``agent_r2/seed1`` for a trained one) -> the short hashes of its models."""
+    out: dict[str, dict[str, str]] = {}
+    for r in rows:
+        key = f"{r['policy']}/seed{r['policy_seed']}" if r["policy"].startswith("agent_") else r["policy"]
+        out.setdefault(key, {c.removesuffix("_sha"): str(r.get(c) or "") for c in MODEL_COLUMNS})
+    return out
+
+
+def headline(summary: dict) -> dict[str, str]:
+    """Each policy's headline figure, its seeds pooled: the share of the achievable improvement and the mean total
+    severe-injury risk per scenario."""
+    shares = summary.get("achievable_share", {}).get("policies", {})
+    out = {}
+    for policy, entry in summary["policies"].items():
+        risk = entry["overall"].get("total_severe_injury")
+        text = "risk n/a" if risk is None else f"risk {100 * risk:.2f} %"
+        share = shares.get(policy, {}).get("overall")
+        if share is not None and policy not in ("braking", "oracle"):
+            text = f"share {share:.1f} %, {text}"
+        out[policy] = text
+    return out
+
+
 def run(cfg) -> dict:
     from .training import tensorboard
 
@@ -169,6 +197,7 @@ def run(cfg) -> dict:
     artifacts.write_provenance(out, record)
     summary = write_report(rows, out, tb_writer=writer)  # summary.json last: it marks the evaluation complete
     writer.close()
+    record_evaluation(cfg, "porav", len(entries), models_by_policy(rows), headline(summary))
     n_policies = len(agents) + len(list(cfg.evaluate.policies))
     log.info(
         "[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s",

@@ -11,8 +11,10 @@ be built from now:
 * stale (an input or the config changed since): the old outputs are moved to ``runs/NAME/stale/`` and the stage
   runs afresh, and so, through their changed inputs, does every stage downstream of it.
 
-Agents are the presets of ``agents`` (each with its rewards, at ``seed``) plus any other trained seed found on disk,
-so a seed sweep is rebuilt too when the world model changes. ``peers=[chae]`` adds a peer system (docs/design.md
+Agents are the presets of ``agents``, each with its rewards, at every seed of ``seeds`` (``seed`` when empty), plus
+any other trained seed found on disk, so a seed sweep is rebuilt too when the world model changes. The evaluation
+runs once per bank of ``banks`` (worldmodel/banks.py): ``[validation]`` by default; ``test`` is for final numbers
+and records itself in the ledger. ``peers=[chae]`` adds a peer system (docs/design.md
 §10): its agent on its own scenario family (Chae's: seeds 0..k-1 for ``evaluate.chae.ensemble`` k), and that
 family's evaluation (``runs/NAME/eval_chae/``).
 
@@ -94,11 +96,16 @@ def peer_seeds(cfg, variant: str) -> list[int]:
     return sorted({int(cfg.seed), *range(k)})
 
 
+def eval_suffix(bank: str) -> str:
+    return "" if bank == "validation" else f"_{bank}"
+
+
 def steps(cfg) -> list[Step]:
     """The stages in order: every later stage only reads what the earlier ones wrote."""
     from . import collect, demonstrate, evaluate, train_agent, train_rnn, train_vae
 
-    agents = {AgentId(r, int(cfg.seed), v) for v in cfg.agents for r in agent_preset(cfg, v).rewards}
+    seeds = [int(s) for s in cfg.seeds] or [int(cfg.seed)]
+    agents = {AgentId(r, s, v) for v in cfg.agents for r in agent_preset(cfg, v).rewards for s in seeds}
     agents |= set(artifacts.trained_agents(cfg))
     peers = [PEERS[p] for p in cfg.peers]
     peer_agents = {AgentId(r, s, v) for v in peers for r in agent_preset(cfg, v).rewards for s in peer_seeds(cfg, v)}
@@ -120,10 +127,12 @@ def steps(cfg) -> list[Step]:
 
     agent_steps = [agent_step(a) for a in sorted(agents)]
     peer_steps = [agent_step(a) for a in sorted(peer_agents)]
-    for v in dict.fromkeys(peers):  # one evaluation per peer family, after its agents
+    for v in dict.fromkeys(peers):  # one evaluation per peer family and bank, after its agents
         globals_ = preset_globals(v)
         family = globals_.get("env", {}).get("family", "porav")
-        peer_steps.append(Step(f"eval_{family}", "eval", evaluate.run, {**globals_, "evaluate": {"family": family}}))
+        for bank in cfg.banks:
+            changes = {**globals_, "evaluate": {"family": family, "bank": bank}}
+            peer_steps.append(Step(f"eval_{family}{eval_suffix(bank)}", "eval", evaluate.run, changes))
     needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes)) for s in agent_steps)
     if needs_demos and int(cfg.demos.episodes) < 1:
         users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes))]
@@ -134,7 +143,7 @@ def steps(cfg) -> list[Step]:
         Step("rnn", "rnn", train_rnn.run),
         *([Step("demos", "demos", demonstrate.run)] if needs_demos else []),
         *agent_steps,
-        Step("eval", "eval", evaluate.run),
+        *[Step(f"eval{eval_suffix(b)}", "eval", evaluate.run, {"evaluate": {"bank": b}}) for b in cfg.banks],
         *peer_steps,
     ]
 
@@ -187,7 +196,7 @@ def run(cfg) -> dict:
             "scale": OmegaConf.select(cfg, "scale_name", default=None),
         }
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
-    ev = artifacts.eval_dir(cfg)
+    ev = artifacts.eval_dir(OmegaConf.merge(cfg, {"evaluate": {"bank": cfg.banks[-1]}}))
     log.info(
         "[pipeline] done in %.0f s (this run). Stage times: %s\n  tables:   %s\n  heatmaps: %s\n  summary:  %s\n"
         "  TensorBoard: .venv/bin/tensorboard --logdir %s",

@@ -12,10 +12,17 @@ from .report import MODEL_COLUMNS
 NO_MODELS = dict.fromkeys(MODEL_COLUMNS, "")
 
 
-def make_oracle(cfg):
+def make_oracle(cfg, brake_first: int | None = None):
+    """The privileged planner of ``evaluate.oracle``; with ``brake_first`` k, the perception ceiling that brakes
+    straight for its first k frames, named ``oracle_brakek``."""
     from envs.planner import PrivilegedPlanner
 
-    return PrivilegedPlanner.from_settings(**oracle_settings(cfg))
+    settings = oracle_settings(cfg)
+    if brake_first is None:
+        return PrivilegedPlanner.from_settings(**settings)
+    planner = PrivilegedPlanner.from_settings(**{**settings, "brake_first": int(brake_first)})
+    planner.name = f"oracle_brake{int(brake_first)}"
+    return planner
 
 
 EXACT_CHOOSER = "exact_chooser"  # the chooser's decision rule on exact costs: the ceiling of agent.learner=chooser
@@ -42,6 +49,8 @@ def policy_for(cfg, name: str):
         return StraightLineBraking(), 0, NO_MODELS
     if name == "oracle":
         return make_oracle(cfg), 0, NO_MODELS
+    if name.startswith("oracle_brake") and name[len("oracle_brake") :].isdigit():
+        return make_oracle(cfg, brake_first=int(name[len("oracle_brake") :])), 0, NO_MODELS
     if name == EXACT_CHOOSER:
         return make_exact_chooser(cfg), 0, NO_MODELS
     return learned_policy(cfg, AgentId.parse(name))

@@ -28,6 +28,7 @@ Choices made here (the paper is silent on them):
 from __future__ import annotations
 
 import csv
+import gzip
 import io
 import json
 import math
@@ -89,8 +90,11 @@ POLICY_LABELS = {
     "agent_r1": "Brake&Steer, reward 1",
     "agent_r2": "Brake&Steer, reward 2",
     "agent_r2_chooser": "Chooser (brake, then one lane change), reward 2",
+    "agent_r2_dag": "Cloned from the planner with 2 DAgger rounds, reward 2",
     "agent_r2_chooser_tele": "Chooser, frame band from a 30° second camera, reward 2",
     "oracle": "Privileged planner (oracle)",
+    "oracle_brake1": "Planner after 1 frame of straight braking (perception ceiling)",
+    "oracle_brake2": "Planner after 2 frames of straight braking (perception ceiling)",
 }
 CEILING = "oracle"
 # Below this gap in mean total injury between the baseline and the ceiling (0.5 percentage points), a cell has
@@ -279,7 +283,8 @@ def _parse_cell(column: str, text: str) -> Any:
 
 
 def write_results_csv(rows: Sequence[dict], path: str | Path) -> Path:
-    """Write one line per row, known columns first, extra keys after them in sorted order. Atomic."""
+    """Write one line per row, known columns first, extra keys after them in sorted order. Atomic. A path ending
+    in ``.gz`` is gzip-compressed, with no timestamp, so the same rows always give the same bytes."""
     extra = sorted({k for r in rows for k in r} - set(COLUMNS))
     fields = list(COLUMNS) + extra
     buf = io.StringIO()
@@ -288,13 +293,18 @@ def write_results_csv(rows: Sequence[dict], path: str | Path) -> Path:
     for r in rows:
         writer.writerow([_csv_cell(r.get(k)) for k in fields])
     path = Path(path)
-    atomic_write_text(path, buf.getvalue())
+    if path.suffix == ".gz":
+        atomic_write_bytes(path, gzip.compress(buf.getvalue().encode(), compresslevel=9, mtime=0))
+    else:
+        atomic_write_text(path, buf.getvalue())
     return path
 
 
 def read_results_csv(path: str | Path) -> list[dict]:
-    """Read a CSV written by ``write_results_csv`` with its types restored (ints, floats incl. NaN, strs)."""
-    with open(path, newline="") as fh:
+    """Read a CSV written by ``write_results_csv`` (``.gz`` too) with its types restored (ints, floats incl. NaN,
+    strs)."""
+    path = Path(path)
+    with gzip.open(path, "rt", newline="") if path.suffix == ".gz" else open(path, newline="") as fh:
         reader = csv.DictReader(fh)
         return [{k: _parse_cell(k, v) for k, v in line.items()} for line in reader]
 
@@ -1055,3 +1065,9 @@ def write_report(
                     tb_writer.add_scalar(f"report/{policy}/{metric}", value, global_step=step)
         tb_writer.flush()
     return summary
+
+
+if __name__ == "__main__":  # python -m worldmodel.report publish | headline | recheck | readme
+    from worldmodel.published import main
+
+    raise SystemExit(main())

@@ -51,7 +51,7 @@ from envs.chae import (
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, atomic_torch_save, atomic_write_bytes, make_env
-from .common import dqn_checkpoint, resume_dqn, seal, write_rows
+from .common import dqn_checkpoint, drawn, record_if_test, resume_dqn, seal, write_rows
 
 log = logging.getLogger(__name__)
 # Chae's state to roughly unit scale: dx up to ~85 m, dy up to ~6 m, speed up to ~17 m/s
@@ -693,7 +693,7 @@ def evaluate(cfg) -> dict:
     """``evaluate.family=chae``: every scripted policy and dqn agent on the same seeded trials."""
     from ..training import tensorboard
 
-    c = cfg.evaluate.chae
+    c = drawn(cfg, "chae")
     out = artifacts.eval_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -731,6 +731,12 @@ def evaluate(cfg) -> dict:
         for ttc, rate in s["bump_rate"].items():
             writer.add_scalar(f"chae/{policy}/bump_rate", rate, int(round(float(ttc) * 10)))
     writer.close()
+    headline = {
+        f"{r['policy']}/seed{r['seed']}": f"max bump {r['max_bump']:.2f} % (TTC {r['at_ttc']:g} s), needless stops "
+        + ("n/a" if r["stops"] is None else f"{r['stops']:.2f} %")
+        for r in summary["runs"]
+    }
+    record_if_test(cfg, "chae", rows, record, headline)
     seal(out, summary, record, t0)
     log.info(
         "[eval chae] %d trials x %d policies in %.0f s: %s",

@@ -54,12 +54,38 @@ def write_rows(out: Path, rows: list[dict], columns) -> None:
         w.writerows(rows)
 
 
+def drawn(cfg, family: str):
+    """``evaluate.<family>`` with the seed of the bank ``evaluate.bank`` names: its own (a validation draw) or the
+    family's sealed test seed (worldmodel/banks.py)."""
+    from omegaconf import OmegaConf
+
+    from ..banks import draw_seed
+
+    c = cfg.evaluate[family]
+    return OmegaConf.merge(c, {"seed": draw_seed(str(cfg.evaluate.bank), family, c.seed)})
+
+
 def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:
     """Provenance, the wall time, then ``summary.json``: last, because it marks the evaluation complete."""
     artifacts.write_provenance(out, record)
     summary["wall_s"] = round(time.perf_counter() - t0, 1)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def record_if_test(cfg, family: str, rows: list[dict], record: dict, headline: dict[str, str]) -> None:
+    """On the sealed test bank, a ledger row: every policy of ``rows`` (trained ones with their checkpoint's hash
+    from the provenance ``record``) and its headline figure."""
+    from ..banks import record_evaluation
+
+    trained = {key: {"actor": artifacts.short(h)} for key, h in record["inputs"].items()}
+    policies: dict[str, dict] = {}
+    for r in rows:
+        key = f"{r['policy']}/seed{r['policy_seed']}" if str(r["policy"]).startswith("agent_") else str(r["policy"])
+        policies.setdefault(key, trained.get(key, {}))
+    first = (rows[0]["policy"], rows[0]["policy_seed"]) if rows else None
+    scenarios = sum(1 for r in rows if (r["policy"], r["policy_seed"]) == first)  # every policy runs them all
+    record_evaluation(cfg, family, scenarios, policies, headline)
 
 
 def world_model_step_s(cfg) -> float:

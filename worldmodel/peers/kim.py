@@ -42,12 +42,11 @@ from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
 from ..stats import paired_permutation_p, wilson
-from .common import seal, world_model_step_s, write_rows
+from .common import drawn, record_if_test, seal, world_model_step_s, write_rows
 
 log = logging.getLogger(__name__)
 ROLLING = 100
 CHECKPOINT_EPISODES = 200
-TEST_SEED = 2020  # evaluate.kim.seed's default: the test draw
 GOAL_REWARDS = ("kim_aware",)  # rewards whose agent also sees the goal (Kim et al. §II-F)
 # Table 2 (avoidance %, mean injury) per scenario 1 / 2 / 3 / all, as published
 PAPER_TABLE_2 = {
@@ -626,9 +625,9 @@ def figure(summary: dict, path) -> None:
 
 
 def draw_suffix(c) -> str:
-    """What sets this bank apart from the test draw at the middle of the flank, for its directory's name, so that
-    another draw (validation: ``_seed77``) or placement (``_at+2.25``, ``_spread2.25``) never overwrites it."""
-    suffix = "" if int(c.seed) == TEST_SEED else f"_seed{int(c.seed)}"
+    """What sets this bank apart from the middle of the flank, for its directory's name (after the bank's own,
+    ``artifacts.eval_dir``), so that another placement (``_at+2.25``, ``_spread2.25``) never overwrites it."""
+    suffix = ""
     if float(c.impact_offset):
         suffix += f"_at{float(c.impact_offset):+g}"
     if float(c.impact_offset_spread):
@@ -642,7 +641,7 @@ def evaluate(cfg) -> dict:
     from ..policies import porav_policies
     from ..training import tensorboard
 
-    c = cfg.evaluate.kim
+    c = drawn(cfg, "kim")
     out = artifacts.eval_dir(cfg)
     out = out.with_name(out.name + draw_suffix(c))
     out.mkdir(parents=True, exist_ok=True)
@@ -682,6 +681,8 @@ def evaluate(cfg) -> dict:
     for policy, s in summary["policies"].items():
         writer.add_scalar(f"kim/{policy}/avoidance", s["all"]["overall"]["avoidance"], 0)
     writer.close()
+    headline = {p: f"avoidance {s['all']['overall']['avoidance']:.1f} %" for p, s in summary["policies"].items()}
+    record_if_test(cfg, "kim", rows, record, headline)
     seal(out, summary, record, t0)
     log.info(
         "[eval kim] %d trials x %d policies in %.0f s: %s",

@@ -46,7 +46,7 @@ from ..artifacts import AgentId
 from ..common import StageError, make_env
 from ..stats import wilson
 from .chae import DQNPolicy, dqn_config
-from .common import dqn_checkpoint, resume_dqn, seal, world_model_step_s, write_rows
+from .common import dqn_checkpoint, drawn, record_if_test, resume_dqn, seal, world_model_step_s, write_rows
 
 log = logging.getLogger(__name__)
 PEDALS, STEERS = (-1.0, 0.0, 1.0), (-0.5, 0.0, 0.5)
@@ -55,7 +55,6 @@ FRAMES = 4
 ROLLING = 100
 CHECKPOINT_EPISODES = 100
 PAPER_PLATEAU = -10.0  # Merola et al. Fig. 4: the rolling-100 return stays near -10 after ~6,000 episodes
-TEST_SEED = 2022  # evaluate.merola.seed's default: the test draw
 OBSERVATIONS = ("frames_vae", "frames_resnet")
 
 
@@ -424,10 +423,8 @@ def evaluate(cfg) -> dict:
     from ..policies import porav_policies
     from ..training import tensorboard
 
-    c = cfg.evaluate.merola
+    c = drawn(cfg, "merola")
     out = artifacts.eval_dir(cfg)
-    if int(c.seed) != TEST_SEED:  # another draw (validation) never overwrites the test draw's results
-        out = out.with_name(f"{out.name}_seed{int(c.seed)}")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     specs = bank(c)
@@ -466,6 +463,10 @@ def evaluate(cfg) -> dict:
     for name, s in summary["policies"].items():
         writer.add_scalar(f"merola/{name}/collision_rate", s["scenarios"]["all"]["collision_rate"], 0)
     writer.close()
+    headline = {
+        p: f"collisions {s['scenarios']['all']['collision_rate']:.1f} %" for p, s in summary["policies"].items()
+    }
+    record_if_test(cfg, "merola", rows, record, headline)
     seal(out, summary, record, t0)
     log.info(
         "[eval merola] %d trials x %d policies in %.0f s: %s",

@@ -1,0 +1,120 @@
+"""Committed results: the rows behind every table, and the command that recomputes the tables from them."""
+
+from __future__ import annotations
+
+import gzip
+import json
+
+import pytest
+
+from worldmodel import evaluate, published
+from worldmodel.report import read_results_csv, write_results_csv
+
+TINY = ["evaluate.ttcs=[0.75,1.5]", "evaluate.speeds=[20.0]", "evaluate.hazards=[pedestrian]", "evaluate.per_cell=3"]
+POLICIES = "evaluate.policies=[braking,oracle,oracle_brake1]"
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    """The real evaluation on a tiny grid, on its validation and its test bank, published into docs/results/x."""
+    from worldmodel.config import compose
+
+    root = tmp_path_factory.mktemp("published")
+
+    def cfg(*overrides):
+        paths = [f"paths.runs_root={root}/runs", f"paths.data_root={root}/data", f"paths.ledger={root}/ledger.csv"]
+        return compose("evaluate", [*paths, "experiment=t", "scale=smoke", *TINY, POLICIES, *overrides])
+
+    evaluate.run(cfg())
+    evaluate.run(cfg("evaluate.bank=test"))
+    out = root / "docs" / "results" / "x"
+    published.publish(root / "runs/t/eval", out / "validation", "make tiny")
+    published.publish(root / "runs/t/eval_test", out / "test", "make tiny")
+    published.write_headline(out)
+    return root, out
+
+
+def test_published_rows_are_the_evaluation_rows_and_give_its_tables(results):
+    root, out = results
+    rows = gzip.decompress((out / "test.rows.csv.gz").read_bytes())
+    assert rows == (root / "runs/t/eval_test/results.csv").read_bytes()
+    assert (out / "test.tables.md").read_text() == (root / "runs/t/eval_test/tables.md").read_text()
+    meta = json.loads((out / "test.meta.json").read_text())
+    assert meta["bank"] == "test" and meta["bank_seed"] == 56171 and meta["command"] == "make tiny"
+    assert json.loads((out / "validation.meta.json").read_text())["bank_seed"] == 4711
+    # the same rows always give the same bytes (no timestamp in the gzip header), so git sees no change
+    first = (out / "test.rows.csv.gz").read_bytes()
+    write_results_csv(read_results_csv(out / "test.rows.csv.gz"), out / "again.csv.gz")
+    assert (out / "again.csv.gz").read_bytes() == first
+    (out / "again.csv.gz").unlink()
+    assert published.recheck(out.parent) == []
+
+
+def test_the_headline_gives_both_banks_with_intervals(results):
+    _, out = results
+    data = json.loads((out / "headline.json").read_text())
+    assert data["banks"] == {"validation": 4711, "test": 56171}
+    assert list(data["policies"]) == ["braking", "oracle", "oracle_brake1"]
+    ceiling = data["policies"]["oracle_brake1"]["test"]
+    assert ceiling["difference_pts"] <= 0 and ceiling["difference_ci95"][0] <= ceiling["difference_pts"]
+    assert data["policies"]["oracle"]["test"]["share"] == 100.0
+    text = (out / "headline.md").read_text()
+    assert "test bank: seed 56171" in text and "Planner after 1 frame" in text
+
+
+def test_recheck_names_an_edited_number(results, tmp_path):
+    import shutil
+
+    _, out = results
+    copy = tmp_path / "x"
+    shutil.copytree(out, copy)
+    tables = (copy / "test.tables.md").read_text()
+    line = next(i for i, x in enumerate(tables.splitlines(), 1) if "Straight-line braking" in x and "|" in x)
+    original = tables.splitlines()[line - 1]
+    edited = original.replace("|", "| 99.9 |", 2).replace("| 99.9 |", "|", 1)  # one cell more, after the name
+    (copy / "test.tables.md").write_text(tables.replace(original, edited, 1))
+    (problem,) = published.recheck(copy)
+    assert f"test.tables.md, line {line} (Straight-line braking)" in problem and "committed 99.9" in problem
+
+
+def test_recheck_fails_when_the_rows_change_under_a_table(results, tmp_path):
+    import shutil
+
+    _, out = results
+    copy = tmp_path / "x"
+    shutil.copytree(out, copy)
+    rows = read_results_csv(copy / "test.rows.csv.gz")
+    for r in rows:
+        if r["policy"] == "oracle_brake1":
+            r["occupant_injury"] = 0.5  # a ceiling that hurts its occupants
+    write_results_csv(rows, copy / "test.rows.csv.gz")
+    problems = published.recheck(copy)
+    assert any("test.tables.md" in p for p in problems) and any("headline.md" in p for p in problems)
+
+
+def test_the_readme_table_sits_between_its_markers():
+    text = f"intro\n{published.README_BEGIN}\nold table\n{published.README_END}\nrest\n"
+    fresh = published.readme_with_table(text, "| new |")
+    assert fresh == f"intro\n{published.README_BEGIN}\n| new |\n{published.README_END}\nrest\n"
+    with pytest.raises(published.RecheckError, match="markers"):
+        published.readme_with_table("no markers", "| new |")
+
+
+def test_every_committed_table_is_what_its_rows_give():
+    """docs/results as committed: every published evaluation and headline recomputes from its rows."""
+    assert published.recheck(published.RESULTS) == []
+
+
+def test_the_readme_result_table_is_the_generated_one():
+    text = published.README.read_text()
+    assert published.readme_with_table(text, published.readme_table()) == text, (
+        "README.md's result table differs from docs/results: run `python -m worldmodel.report readme`"
+    )
+
+
+def test_gzip_rows_read_back_like_plain_ones(tmp_path):
+    rows = [{"policy": "braking", "scenario_id": 1, "ttc": 0.5, "pedestrian_injury": float("nan")}]
+    write_results_csv(rows, tmp_path / "r.csv.gz")
+    assert gzip.decompress((tmp_path / "r.csv.gz").read_bytes()).startswith(b"policy,")
+    back = read_results_csv(tmp_path / "r.csv.gz")
+    assert back[0]["scenario_id"] == 1 and back[0]["pedestrian_injury"] != back[0]["pedestrian_injury"]

@@ -1,0 +1,164 @@
+"""Every scenario bank of the project, declared in one place, and the ledger of the test banks (docs/design.md §6).
+
+**Validation banks** are for choosing settings, checkpoints and rules, as often as needed. ``evaluate.bank``
+defaults to ``validation``, so everyday runs (``make run``, the tests) never touch a test bank.
+
+**Test banks** are for final numbers only: one per scenario family, each drawn from a seed that no choice was ever
+made on. An evaluation on one (``evaluate.bank=test``) appends a row to the ledger, ``docs/results/ledger.csv``:
+the date, the commit, the family and bank, every policy with its model hashes, and the headline figure. A report
+says how many rows its bank has. A configuration is judged on the test bank once; a configuration changed after its
+test result is another configuration, with a row of its own, and the first result stays in the report.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import logging
+import subprocess
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+FAMILIES = ("porav", "chae", "kim", "merola")
+
+# The validation draws of each family, its default first. Every bank that judged a configuration before the test
+# banks below existed is here: those results steered choices, so they can only validate.
+VALIDATION_SEEDS: dict[str, tuple[int, ...]] = {
+    "porav": (4711, 4712, 2018),
+    "chae": (2017, 99, 98),
+    "kim": (2020, 77),
+    "merola": (2022, 77),
+}
+
+# The sealed test banks: for final numbers only. Drawn at random once (secrets.randbelow), never used to choose.
+TEST_SEEDS: dict[str, int] = {"porav": 56171, "chae": 88384, "kim": 53799, "merola": 17734}
+
+BANKS = ("validation", "test")
+REPO = Path(__file__).resolve().parents[1]
+LEDGER = REPO / "docs" / "results" / "ledger.csv"
+LEDGER_COLUMNS = ("date", "commit", "experiment", "scale", "family", "bank_seed", "scenarios", "policies", "headline")
+
+
+def draw_seed(bank: str, family: str, validation_seed: int) -> int:
+    """The seed a family's bank is drawn from: its sealed test seed, or ``validation_seed``."""
+    if bank not in BANKS:
+        raise ValueError(f"bank {bank!r}: use one of {', '.join(BANKS)}")
+    return TEST_SEEDS[family] if bank == "test" else int(validation_seed)
+
+
+def dir_suffix(bank: str, family: str, validation_seed: int) -> str:
+    """How an evaluation's folder tells its bank: nothing for the family's default validation draw, ``_test`` for
+    the test bank, ``_seed<N>`` for another validation draw."""
+    if bank == "test":
+        return "_test"
+    return "" if int(validation_seed) == VALIDATION_SEEDS[family][0] else f"_seed{int(validation_seed)}"
+
+
+def sealed_seed_problem(seed: int) -> str | None:
+    """Why ``seed`` cannot be a validation draw (it is a family's sealed test seed), or None."""
+    if int(seed) in TEST_SEEDS.values():
+        return f"{seed} is a sealed test seed; evaluate on the test bank with evaluate.bank=test"
+    return None
+
+
+def commit() -> str:
+    """The checked-out commit, ``+dirty`` when tracked files differ from it; ``unknown`` outside git."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def read_ledger(path: str | Path = LEDGER) -> list[dict]:
+    path = Path(path)
+    if not path.exists():
+        return []
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def uses(family: str, seed: int | None = None, path: str | Path = LEDGER) -> int:
+    """How many evaluations the ledger records on ``family``'s test bank (``seed``: its sealed seed by default)."""
+    seed = TEST_SEEDS[family] if seed is None else int(seed)
+    return sum(1 for r in read_ledger(path) if r["family"] == family and int(r["bank_seed"]) == seed)
+
+
+def record(
+    path: str | Path,
+    *,
+    experiment: str,
+    scale: str | None,
+    family: str,
+    scenarios: int,
+    policies: dict[str, dict[str, str]],
+    headline: dict[str, str],
+) -> dict:
+    """Append one evaluation on ``family``'s test bank to the ledger at ``path`` (created with its header).
+
+    ``policies``: each policy's key -> its model hashes (empty for scripted ones); ``headline``: each policy's key
+    -> its headline figure, as text with its unit. Appending never rewrites an earlier row."""
+    row = {
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "commit": commit(),
+        "experiment": experiment,
+        "scale": scale or "",
+        "family": family,
+        "bank_seed": TEST_SEEDS[family],
+        "scenarios": int(scenarios),
+        "policies": "; ".join(
+            f"{key}" + (f" ({', '.join(f'{k}={v}' for k, v in hashes.items() if v)})" if any(hashes.values()) else "")
+            for key, hashes in policies.items()
+        ),
+        "headline": "; ".join(f"{key}: {figure}" for key, figure in headline.items()),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    new = not path.exists() or path.stat().st_size == 0
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=LEDGER_COLUMNS, lineterminator="\n")
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+    return row
+
+
+def ledger_path(cfg) -> Path:
+    """``paths.ledger``, or the repository's ``docs/results/ledger.csv`` when it is empty."""
+    from omegaconf import OmegaConf
+
+    chosen = str(OmegaConf.select(cfg, "paths.ledger", default="") or "")
+    return Path(chosen) if chosen else LEDGER
+
+
+def record_evaluation(cfg, family: str, scenarios: int, policies: dict, headline: dict[str, str]) -> dict | None:
+    """The ledger row of an evaluation on ``family``'s test bank (``evaluate.bank=test``); None on a validation
+    bank, which the ledger does not count."""
+    from omegaconf import OmegaConf
+
+    if str(cfg.evaluate.bank) != "test":
+        return None
+    path = ledger_path(cfg)
+    row = record(
+        path,
+        experiment=str(cfg.experiment),
+        scale=OmegaConf.select(cfg, "scale_name", default=None),
+        family=family,
+        scenarios=scenarios,
+        policies=policies,
+        headline=headline,
+    )
+    log.info(
+        "[eval] %s test bank (seed %d): ledger row %d for this bank, %s",
+        family,
+        TEST_SEEDS[family],
+        uses(family, path=path),
+        path,
+    )
+    return row
