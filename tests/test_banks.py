@@ -120,3 +120,17 @@ def test_evaluating_the_test_bank_records_itself_and_a_validation_bank_does_not(
     assert rows[0]["headline"].startswith("braking: risk ") and "oracle: risk " in rows[0]["headline"]
     assert (tmp_path / "runs" / "t" / "eval_test" / "summary.json").exists()
     assert (tmp_path / "runs" / "t" / "eval" / "summary.json").exists()
+
+
+def test_an_evaluation_is_judged_again_only_when_its_own_settings_change(tmp_path):
+    """Another family's settings do not enter an evaluation's provenance, so changing them never sends the paper's
+    family back to its test bank (a second ledger row for the same configuration)."""
+
+    def sha(*overrides):
+        c = compose("evaluate", [f"paths.runs_root={tmp_path}", "evaluate.bank=test", *overrides])
+        return artifacts.provenance(c, "eval")["config"]
+
+    assert sha() == sha("evaluate.kim.trials=7") == sha("evaluate.chae.seed=99") == sha("evaluate.num_workers=1")
+    assert sha() != sha("evaluate.per_cell=7")
+    kim = ("evaluate.family=kim",)
+    assert sha(*kim) == sha(*kim, "evaluate.merola.trials=7") != sha(*kim, "evaluate.kim.trials=7")
