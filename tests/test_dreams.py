@@ -140,3 +140,26 @@ def test_a_perfect_dream_matches_every_branch_and_a_blind_one_only_keep(bank):
     for name, entry in effect["actions"].items():
         assert entry["match"] == pytest.approx([1.0] * 6), name
         assert entry["blind_match"][-1] < 1.0, name  # keep's future is not the swerve's or the brake's
+
+
+def test_the_direction_score_credits_only_the_true_class_on_the_pixels_the_action_changed(bank, tmp_path):
+    """A perfect dream shows every changed pixel in its true class, a dream that ignores the action none (there,
+    the real frame under the action differs from the real 'keep' frame by definition); the intervals hold the
+    point estimate; the rows, written and read back, give the same summary."""
+    _, real, _ = bank
+    same = np.repeat(real["seg"][:, :1], len(dreams.ACTIONS), axis=1)
+    rows = dreams.effect_rows(real["seg"], real["seg"], real["valid"], recon_seg=real["seg"], speed=real["speed"])
+    perfect = dreams.summarise_effect(rows, 6, 3, boot=200)
+    blind = dreams.action_effect(real["seg"], same, real["valid"], recon_seg=real["seg"], boot=200)
+    assert set(perfect["actions"]) == set(dreams.ACTIONS) - {"keep"}
+    for name in ("left", "right_half", "brake_right"):
+        direction = perfect["actions"][name]["direction"]
+        assert direction["dream"]["score"][-1] == 1.0 and direction["vae"]["score"][-1] == 1.0, name
+        assert direction["blind"]["score"][-1] == 0.0, name
+        assert blind["actions"][name]["direction"]["dream"]["score"][-1] == 0.0, name
+        low, high = perfect["actions"][name]["ratio_ci95"][-1]
+        assert low <= perfect["actions"][name]["ratio"]["all"][-1] <= high, name
+    dreams.write_effect_rows(rows, tmp_path / "rows.csv.gz")
+    assert dreams.summarise_effect(dreams.read_effect_rows(tmp_path / "rows.csv.gz"), 6, 3, boot=200) == perfect
+    text = "\n".join(dreams.effect_headline_markdown(perfect))
+    assert "| left_half | +5 |" in text and "| brake_right | +5 |" in text

@@ -26,12 +26,17 @@ import torch
 from envs import CLASS_NAMES, NUM_CLASSES, PALETTE
 
 # [steer, throttle/brake]: steer -1 is full left, pedal -1 full braking. "keep" is the reference branch.
+# Half steering tells whether the LSTM scales its dream with the input where grip caps the yaw rate (at 10-20 m/s
+# the real car turns alike at 0.5 and 1.0).
 ACTIONS: dict[str, tuple[float, float]] = {
     "keep": (0.0, 0.0),
     "brake": (0.0, -1.0),
     "left": (-1.0, 0.0),
     "right": (1.0, 0.0),
+    "left_half": (-0.5, 0.0),
+    "right_half": (0.5, 0.0),
     "brake_left": (-1.0, -1.0),
+    "brake_right": (1.0, -1.0),
 }
 EFFECT_CLASSES = {"vehicles": "Vehicles", "pedestrians": "Pedestrians", "roads": "Roads"}
 HORIZON_KEYS = ("lstm", "persistence", "persistence_vae", "ceiling")
@@ -164,34 +169,132 @@ def branch_differences(seg: np.ndarray) -> dict[str, np.ndarray]:
     return out
 
 
-def action_effect(real_seg: np.ndarray, dreamt_seg: np.ndarray, valid: np.ndarray) -> dict:
-    """Real and dreamt action effects per action, horizon and class, and their ratio (dreamt over real, of the
-    means over the branch points where both the branch and "keep" are still running)."""
+EFFECT_KEYS = ("all", *EFFECT_CLASSES)
+# the per-point counts a summary is made of (effect_rows): each a plain number, so the rows can be committed
+DIRECTION_KEYS = ("dream", "blind", "vae")
+
+
+def effect_rows(
+    real_seg: np.ndarray, dreamt_seg: np.ndarray, valid: np.ndarray, recon_seg: np.ndarray | None = None, speed=None
+) -> list[dict]:
+    """One row per branch point, action (but "keep") and horizon where the branch and "keep" are both running:
+
+    * ``real_<key>`` / ``dreamt_<key>``: the share of pixels that differ from "keep" (``key`` in :data:`EFFECT_KEYS`:
+      all pixels, or those where exactly one of the two frames shows the class);
+    * ``match`` / ``blind_match``: pixel accuracy of the dream under the action, and of the dream under "keep"
+      (what an action-blind model shows), against the real frame under the action;
+    * ``changed``: pixels the action really changed (real branch against real "keep"), and on those, how many the
+      dream under the action (``hits_dream``), the dream under "keep" (``hits_blind``) and the VAE's own
+      reconstruction of the real frame (``hits_vae``; absent without ``recon_seg``) show in their true class.
+    """
     real, dreamt = branch_differences(real_seg), branch_differences(dreamt_seg)
     both = valid & valid[:, :1]
-    result: dict = {"points": int(len(real_seg)), "horizons": list(range(1, real_seg.shape[2] + 1)), "actions": {}}
-    for a, name in enumerate(ACTIONS):
+    changed = real_seg != real_seg[:, :1]
+    true = real_seg
+    hits = {"dream": (dreamt_seg == true) & changed, "blind": (dreamt_seg[:, :1] == true) & changed}
+    if recon_seg is not None:
+        hits["vae"] = (recon_seg == true) & changed
+    match = (dreamt_seg == true).mean((-1, -2))
+    blind_match = (dreamt_seg[:, :1] == true).mean((-1, -2))
+    rows = []
+    names = list(ACTIONS)
+    for i, a, k in zip(*np.nonzero(both), strict=True):
         if a == 0:
             continue
-        entry: dict = {"real": {}, "dreamt": {}, "ratio": {}}
-        ok = both[:, a]
-        n = ok.sum(0).clip(min=1)
-        for key in real:
-            r = (real[key][:, a] * ok).sum(0) / n
-            d = (dreamt[key][:, a] * ok).sum(0) / n
-            entry["real"][key] = [float(x) for x in r]
-            entry["dreamt"][key] = [float(x) for x in d]
-            entry["ratio"][key] = [float(x) if np.isfinite(x) else None for x in d / np.where(r > 0, r, np.nan)]
-        # does the dream under this action look like the real future under it, and more so than the dream under
-        # "keep" does (what an action-blind model would show)?
-        okn = ok[..., None, None]
-        entry["match"] = [float(x) for x in ((dreamt_seg[:, a] == real_seg[:, a]) * okn).mean((-1, -2)).sum(0) / n]
-        entry["blind_match"] = [
-            float(x) for x in ((dreamt_seg[:, 0] == real_seg[:, a]) * okn).mean((-1, -2)).sum(0) / n
+        row = {"point": int(i), "action": names[a], "horizon": int(k) + 1}
+        if speed is not None:
+            row["speed"] = float(speed[i])
+        for key in EFFECT_KEYS:
+            row[f"real_{key}"] = float(real[key][i, a, k])
+            row[f"dreamt_{key}"] = float(dreamt[key][i, a, k])
+        row["match"], row["blind_match"] = float(match[i, a, k]), float(blind_match[i, a, k])
+        row["changed"] = int(changed[i, a, k].sum())
+        for name, h in hits.items():
+            row[f"hits_{name}"] = int(h[i, a, k].sum())
+        rows.append(row)
+    return rows
+
+
+def _ratio_of_sums(top, bottom, axis=-1):
+    """sum(top) / sum(bottom), nan where the bottom sums to 0 (a bootstrap statistic)."""
+    t, b = np.sum(top, axis=axis), np.sum(bottom, axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(b > 0, t / np.where(b > 0, b, 1), np.nan)
+
+
+def _interval(top, bottom, boot: int) -> list[float | None]:
+    from .stats import paired_bootstrap_ci
+
+    if not boot or len(top) < 2:
+        return [None, None]
+    low, high = paired_bootstrap_ci([top, bottom], _ratio_of_sums, boot, seed=0)
+    return [None if not np.isfinite(x) else float(x) for x in (low, high)]
+
+
+def write_effect_rows(rows: list[dict], path) -> None:
+    """The rows as gzip CSV with no timestamp (the same rows give the same bytes)."""
+    import csv
+    import gzip
+    import io
+
+    from .common import atomic_write_bytes
+
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(path, gzip.compress(buf.getvalue().encode(), compresslevel=9, mtime=0))
+
+
+def read_effect_rows(path) -> list[dict]:
+    import csv
+    import gzip
+
+    with gzip.open(path, "rt", newline="") as fh:
+        return [
+            {k: v if k == "action" else (float(v) if "." in v or "e" in v else int(v)) for k, v in r.items()}
+            for r in csv.DictReader(fh)
         ]
-        entry["points"] = [int(x) for x in ok.sum(0)]
+
+
+def summarise_effect(rows: list[dict], horizons: int, points: int, boot: int = 2000) -> dict:
+    """The action effect from :func:`effect_rows`, per action and horizon: real and dreamt effects per class and
+    their ratio (dreamt over real, of the means over the points), the ratio's 95 % interval (paired bootstrap over
+    branch points, worldmodel/stats.py), pixel accuracy of the dream and of the blind dream, and the direction
+    score: on the pixels the action really changed, the share the dream shows in their true class, beside the
+    blind dream and the VAE's reconstruction, each with its interval. ``boot=0``: no intervals."""
+    result: dict = {"points": int(points), "horizons": list(range(1, horizons + 1)), "actions": {}}
+    for name in list(ACTIONS)[1:]:
+        mine = [r for r in rows if r["action"] == name]
+        entry: dict = {"real": {}, "dreamt": {}, "ratio": {}, "ratio_ci95": [], "direction": {}, "points": []}
+        at = [[r for r in mine if r["horizon"] == k] for k in result["horizons"]]
+        for key in EFFECT_KEYS:
+            real = [float(np.mean([r[f"real_{key}"] for r in h])) if h else 0.0 for h in at]
+            dreamt = [float(np.mean([r[f"dreamt_{key}"] for r in h])) if h else 0.0 for h in at]
+            entry["real"][key], entry["dreamt"][key] = real, dreamt
+            entry["ratio"][key] = [d / r if r > 0 else None for d, r in zip(dreamt, real, strict=True)]
+        entry["ratio_ci95"] = [_interval([r["dreamt_all"] for r in h], [r["real_all"] for r in h], boot) for h in at]
+        entry["match"] = [float(np.mean([r["match"] for r in h])) if h else 0.0 for h in at]
+        entry["blind_match"] = [float(np.mean([r["blind_match"] for r in h])) if h else 0.0 for h in at]
+        for key in DIRECTION_KEYS:
+            if not mine or f"hits_{key}" not in mine[0]:
+                continue
+            score = [_ratio_of_sums([r[f"hits_{key}"] for r in h], [r["changed"] for r in h]) for h in at]
+            entry["direction"][key] = {
+                "score": [None if not np.isfinite(x) else float(x) for x in score],
+                "ci95": [_interval([r[f"hits_{key}"] for r in h], [r["changed"] for r in h], boot) for h in at],
+            }
+        entry["points"] = [len(h) for h in at]
         result["actions"][name] = entry
     return result
+
+
+def action_effect(
+    real_seg: np.ndarray, dreamt_seg: np.ndarray, valid: np.ndarray, recon_seg: np.ndarray | None = None, boot=0
+) -> dict:
+    """:func:`summarise_effect` of :func:`effect_rows`: the metric straight from the branch frames."""
+    rows = effect_rows(real_seg, dreamt_seg, valid, recon_seg)
+    return summarise_effect(rows, real_seg.shape[2], len(real_seg), boot)
 
 
 def effect_at(result: dict, horizon: int = 5, key: str = "all") -> dict[str, float | None]:
@@ -200,10 +303,23 @@ def effect_at(result: dict, horizon: int = 5, key: str = "all") -> dict[str, flo
     return {name: e["ratio"][key][i] for name, e in result["actions"].items()}
 
 
+@torch.inference_mode()
+def reconstruct_classes(vae, seg: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """The VAE's reconstruction (encode to the mean latent, decode) of class maps ``(..., H, W)``, in zero-padded
+    chunks of one size: the best a dream decoded by this VAE could show."""
+    flat = torch.from_numpy(np.ascontiguousarray(seg.reshape(-1, *seg.shape[-2:])))
+    n = len(flat)
+    padded = torch.zeros((-(-n // chunk) * chunk, *flat.shape[1:]), dtype=flat.dtype)
+    padded[:n] = flat
+    mu = torch.cat([vae.encode(part)[0] for part in padded.split(chunk)])[:n]
+    return decode_classes(vae, mu, chunk).reshape(seg.shape)
+
+
 def measure_action_effect(
-    cfg, vae, rnn, points: int, horizon: int = 10, warmup: int = 8
-) -> tuple[dict, dict, np.ndarray]:
-    """The branch bank for ``cfg`` (camera env, the collection's autopilot), the LSTM's dreams, and the metric."""
+    cfg, vae, rnn, points: int, horizon: int = 10, warmup: int = 8, boot: int = 2000
+) -> tuple[dict, dict, np.ndarray, list[dict]]:
+    """The branch bank for ``cfg`` (camera env, the collection's autopilot), the LSTM's dreams, the metric with
+    its intervals, and the per-point rows it is computed from (:func:`effect_rows`)."""
     from omegaconf import OmegaConf
 
     from .common import make_env
@@ -221,7 +337,9 @@ def measure_action_effect(
     finally:
         env.close()
     dreams = dream_branches(vae, rnn, bank)
-    return action_effect(bank["seg"], dreams, bank["valid"]), bank, dreams
+    recon = reconstruct_classes(vae, bank["seg"])
+    rows = effect_rows(bank["seg"], dreams, bank["valid"], recon, speed=bank["speed"])
+    return summarise_effect(rows, horizon, points, boot), bank, dreams, rows
 
 
 def dream_figure(bank: dict, dreams: np.ndarray, point: int = 0) -> np.ndarray:
@@ -316,16 +434,20 @@ def beats_decoded_persistence(result: dict) -> dict[str, bool]:
 
 
 # ----------------------------------------------------------------------------- both, as the stage runs them
-def measure(cfg, vae, rnn, store, lat, episodes: list[int], writer=None, step: int = 0) -> dict:
+def measure(
+    cfg, vae, rnn, store, lat, episodes: list[int], writer=None, step: int = 0, rows: list | None = None
+) -> dict:
     """``action_effect`` and ``horizon`` (worldmodel/dreams.py) as ``rnn.effect_*`` and ``rnn.horizon_episodes``
-    ask, logged to TensorBoard when ``writer`` is given."""
+    ask, logged to TensorBoard when ``writer`` is given; the action effect's per-point rows are added to ``rows``."""
     out: dict = {}
     t0 = time.perf_counter()
     if int(cfg.rnn.effect_points) > 0:
-        effect, bank, dreamt = measure_action_effect(
+        effect, bank, dreamt, effect_rows_ = measure_action_effect(
             cfg, vae, rnn, int(cfg.rnn.effect_points), int(cfg.rnn.effect_horizon)
         )
         out["action_effect"] = effect
+        if rows is not None:
+            rows += effect_rows_
         at5 = effect_at(effect, min(5, int(cfg.rnn.effect_horizon)))
         log.info("[dreams] action effect, dreamt / real at +5 steps: %s", {k: _round(v) for k, v in at5.items()})
         if writer is not None:
@@ -358,12 +480,52 @@ def _round(x):
 
 
 # ----------------------------------------------------------------------------- reports
+def _with_interval(value, interval, digits: int) -> str:
+    if value is None:
+        return "–"
+    low, high = interval or (None, None)
+    return f"{value:.{digits}f}" + ("" if low is None else f" [{low:.{digits}f}, {high:.{digits}f}]")
+
+
+def effect_headline_markdown(effect: dict, horizons=(5, 10)) -> list[str]:
+    """Per action: dreamt / real with its interval, and the direction score of the dream beside the blind dream's
+    and the VAE's, at a few horizons."""
+    ks = [k for k in horizons if k in effect["horizons"]]
+    lines = [
+        f"Action effect over {effect['points']} held-out branch points, 95 % intervals from a paired bootstrap "
+        "over the points. *Size*: pixels that differ from the 'keep' branch, dreamt over real (1 = the dream "
+        "moves as much as the simulator). *Direction*: on the pixels the action really changed, the share shown "
+        "in their true class by the dream under the action, by the dream under 'keep' (action-blind) and by the "
+        "VAE's reconstruction of the real frame (the best a dream could show).",
+        "",
+        "| action | horizon | points | size: dreamt / real | direction: dream | action-blind dream | VAE |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, entry in effect["actions"].items():
+        for k in ks:
+            i = effect["horizons"].index(k)
+            cells = [
+                name,
+                f"+{k}",
+                str(entry["points"][i]),
+                _with_interval(
+                    entry["ratio"]["all"][i], entry.get("ratio_ci95", [None] * len(effect["horizons"]))[i], 2
+                ),
+            ]
+            for key in DIRECTION_KEYS:
+                d = entry.get("direction", {}).get(key)
+                cells.append("–" if d is None else _with_interval(d["score"][i], d["ci95"][i], 3))
+            lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown(result: dict, horizons=(1, 3, 5, 10)) -> str:
     """The action effect (real, dreamt, ratio per action and class) and quality against horizon as tables."""
     lines = []
     effect = result.get("action_effect")
     if effect:
         ks = [k for k in horizons if k in effect["horizons"]]
+        lines += [*effect_headline_markdown(effect), ""]
         lines += [
             f"Action effect over {effect['points']} held-out branch points: share of pixels that differ from the "
             "'keep' branch, real (simulator) and dreamt (LSTM), and their ratio.",
@@ -478,20 +640,23 @@ def run(cfg) -> dict:
     rnn, rnn_path = artifacts.load_rnn(cfg, "best")
     store = artifacts.open_rollouts(cfg)
     lat = Latents(artifacts.latents_path(cfg))
+    rows: list[dict] = []
     try:
         result = {
             "checkpoint": str(rnn_path),
-            **measure(cfg, vae, rnn, store, lat, store.episodes("validation", branches=False)),
+            **measure(cfg, vae, rnn, store, lat, store.episodes("validation", branches=False), rows=rows),
         }
     finally:
         lat.close()
         store.close()
     out = artifacts.rnn_dir(cfg) / "dreams.json"
     atomic_write_text(out, json.dumps(result, indent=1))
+    if rows:
+        write_effect_rows(rows, out.with_name("action_effect.rows.csv.gz"))
     atomic_write_text(out.with_suffix(".md"), markdown(result))
     plot(result, out.with_suffix(".png"))
     print(markdown(result))
-    print(f"wrote {out} and beside it dreams.md, dreams.png")
+    print(f"wrote {out} and beside it dreams.md, dreams.png and the action effect's rows, action_effect.rows.csv.gz")
     return result
 
 
