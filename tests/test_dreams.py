@@ -97,6 +97,10 @@ def test_the_stage_reports_action_effect_and_horizon(smoke_builds):
     assert set(effect["actions"]) == set(dreams.ACTIONS) - {"keep"}
     for entry in effect["actions"].values():
         assert set(entry["real"]) == {"all", "vehicles", "pedestrians", "roads"}
+    # the points behind it are written beside, and give it again
+    rows = dreams.read_effect_rows(smoke_builds("rnn") / "runs/t/rnn/action_effect.rows.csv.gz")
+    assert {r["point"] for r in rows} <= {0, 1}
+    assert dreams.summarise_effect(rows, 4, 2) == json.loads(json.dumps(effect))
     horizon = metrics["horizon"]
     assert set(dreams.HORIZON_KEYS) <= set(horizon) and len(horizon["lstm"]["pixel_accuracy"]) == 4
     assert set(horizon["lstm_beats_decoded_persistence"]) == {"pixel_accuracy", "hazard_iou"}

@@ -281,8 +281,12 @@ def run(cfg) -> dict:
 
         model, best_path = artifacts.load_rnn(cfg, "best")
         scores = prediction_iou(model, vae, store, lat, val_eps)
-        scores.update(dreams.measure(cfg, vae, model, store, lat, store.episodes("validation", branches=False), writer))
+        effect_rows: list[dict] = []
+        validation = store.episodes("validation", branches=False)
+        scores.update(dreams.measure(cfg, vae, model, store, lat, validation, writer, rows=effect_rows))
         lat.close()
+        if effect_rows:  # the points behind the action effect, for reports that commit them
+            dreams.write_effect_rows(effect_rows, run_.dir / "action_effect.rows.csv.gz")
         metrics = {
             "checkpoint": str(best_path),
             "epochs": epochs,
