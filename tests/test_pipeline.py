@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, train_agent, train_vae
+from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose
 from worldmodel.report import read_results_csv
@@ -296,6 +296,9 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
     for figure in ("stopping_distance", "bump_rate", "learning_curves"):
         assert (runs / f"eval_chae/{figure}.png").exists(), figure
     assert "Chae et al. (paper" in (runs / "eval_chae/tables.md").read_text()
+    # its rows, committed, give its tables again
+    published.publish(runs / "eval_chae", root / "docs/chae/validation", "pipeline peers=[chae]")
+    assert published.recheck(root / "docs") == []
     assert not (runs / "eval/results.csv").read_text().count("chae")  # the paper's bank is left alone
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
@@ -335,6 +338,9 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     assert not any(int(r["collision"]) for r in rows if r["policy"] == "braking" and r["scenario"] == "lead_brake")
     for name in ("tables.md", "collisions.png", "learning_curves.png", "summary.json"):
         assert (runs / "eval_merola" / name).exists(), name
+    for family in ("kim", "merola"):  # their rows, committed, give their tables again
+        published.publish(runs / f"eval_{family}", root / f"docs/{family}/validation", "evaluate")
+    assert published.recheck(root / "docs") == []
 
     ncap.run(smoke_cfg(root, "ncap", "ncap.tests=[CPNA-25]"))
     summary = json.loads((runs / "eval_ncap/summary.json").read_text())["policies"]

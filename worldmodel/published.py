@@ -19,6 +19,8 @@ the file, the line and the number. The statistics come from ``worldmodel.stats``
 from __future__ import annotations
 
 import argparse
+import csv
+import gzip
 import json
 import math
 import re
@@ -27,7 +29,7 @@ from itertools import zip_longest
 from pathlib import Path
 
 from . import banks, report
-from .common import atomic_write_text
+from .common import atomic_write_bytes, atomic_write_text
 
 ROWS, TABLES, META = ".rows.csv.gz", ".tables.md", ".meta.json"
 RESULTS = banks.REPO / "docs" / "results"
@@ -42,44 +44,83 @@ class RecheckError(Exception):
 
 
 # ----------------------------------------------------------------------------- one evaluation
+def _typed(text: str):
+    """A peer's CSV cell back to the value it was written from (bool, int, float, or the text)."""
+    if text in ("True", "False"):
+        return text == "True"
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return None if text == "" else text
+
+
+def read_rows(path: Path, family: str) -> list[dict]:
+    if family == "porav":
+        return report.read_results_csv(path)
+    with gzip.open(path, "rt", newline="") if Path(path).suffix == ".gz" else open(path, newline="") as fh:
+        return [{k: _typed(v) for k, v in r.items()} for r in csv.DictReader(fh)]
+
+
 def render_tables(rows: list[dict], meta: dict) -> str:
-    """The tables of one evaluation, from its rows alone."""
-    if meta["family"] != "porav":
-        raise RecheckError(f"no renderer for family {meta['family']!r}: only the paper's family publishes rows yet")
-    return report.tables_markdown(rows)
+    """The tables of one evaluation, from its rows and the settings its summary recorded (``meta["render"]``)."""
+    family, how = meta["family"], meta.get("render", {})
+    if family == "porav":
+        return report.tables_markdown(rows)
+    from .peers import chae, kim, merola
+
+    if family == "chae":
+        return chae.tables(chae.summarise(rows, [float(t) for t in how["ttcs"]]), int(how["trials"]))
+    if family == "kim":
+        return kim.tables(kim.summarise(rows, int(how["paper_trials"])), int(how["trials"]), int(how["paper_trials"]))
+    if family == "merola":
+        return merola.tables(merola.summarise(rows), int(how["trials"]))
+    raise RecheckError(f"no renderer for family {family!r}")
+
+
+def family_of(eval_dir: Path) -> str:
+    return next((f for f in banks.FAMILIES[1:] if eval_dir.name.startswith(f"eval_{f}")), "porav")
+
+
+def bank_of(eval_dir: Path, family: str) -> tuple[str, int]:
+    """(bank, seed) from an evaluation folder's name (``artifacts.eval_dir``)."""
+    name = eval_dir.name.removeprefix("eval").removeprefix(f"_{family}" if family != "porav" else "")
+    if name == "_test" or name.startswith("_test_"):
+        return "test", banks.TEST_SEEDS[family]
+    match = re.match(r"_seed(\d+)", name)
+    return "validation", int(match.group(1)) if match else banks.VALIDATION_SEEDS[family][0]
 
 
 def publish(eval_dir: Path, stem: Path, command: str) -> Path:
-    """Copy an evaluation's rows next to ``stem`` and render its tables from them."""
+    """Copy an evaluation's rows next to ``stem`` and render its tables from them; refused when the rendering is
+    not the evaluation's own ``tables.md`` (its code has changed since: evaluate again)."""
     eval_dir, stem = Path(eval_dir), Path(stem)
-    results = eval_dir / "results.csv"
     if not (eval_dir / "summary.json").exists():
-        raise SystemExit(f"{eval_dir} holds no finished evaluation (no summary.json): run it first")
-    rows = report.read_results_csv(results)
-    family = next((f for f in banks.FAMILIES[1:] if eval_dir.name.startswith(f"eval_{f}")), "porav")
-    if family != "porav":
-        raise SystemExit(f"{eval_dir}: only the paper's family (runs/NAME/eval*) publishes rows yet")
-    test = eval_dir.name == "eval_test"
+        raise RecheckError(f"{eval_dir} holds no finished evaluation (no summary.json): run it first")
+    family = family_of(eval_dir)
+    bank, seed = bank_of(eval_dir, family)
+    summary = json.loads((eval_dir / "summary.json").read_text())
     meta = {
         "family": family,
-        "bank": "test" if test else "validation",
-        "bank_seed": banks.TEST_SEEDS[family] if test else _validation_seed(eval_dir),
+        "bank": bank,
+        "bank_seed": seed,
         "experiment": eval_dir.parent.name,
         "command": command,
-        "policies": report.policy_order(rows),
-        "scenarios": len({r["scenario_id"] for r in rows}),
+        "render": summary.get("render", {}),
     }
+    raw = (eval_dir / "results.csv").read_bytes()
+    rows = read_rows(eval_dir / "results.csv", family)
+    tables = render_tables(rows, meta)
+    if tables != (eval_dir / "tables.md").read_text():
+        diff = first_difference(str(eval_dir / "tables.md"), (eval_dir / "tables.md").read_text(), tables)
+        raise RecheckError(f"the rows no longer give the evaluation's tables ({diff}): evaluate again, then publish")
     stem.parent.mkdir(parents=True, exist_ok=True)
-    report.write_results_csv(rows, stem.with_name(stem.name + ROWS))
+    atomic_write_bytes(stem.with_name(stem.name + ROWS), gzip.compress(raw, compresslevel=9, mtime=0))
     atomic_write_text(stem.with_name(stem.name + META), json.dumps(meta, indent=2) + "\n")
-    atomic_write_text(stem.with_name(stem.name + TABLES), render_tables(rows, meta))
+    atomic_write_text(stem.with_name(stem.name + TABLES), tables)
     print(f"published {len(rows)} rows of {eval_dir} as {stem}{ROWS}, {TABLES}, {META}")
     return stem
-
-
-def _validation_seed(eval_dir: Path) -> int:
-    match = re.search(r"_seed(\d+)$", eval_dir.name)
-    return int(match.group(1)) if match else banks.VALIDATION_SEEDS["porav"][0]
 
 
 def published(directory: Path) -> dict[str, tuple[list[dict], dict]]:
@@ -90,7 +131,8 @@ def published(directory: Path) -> dict[str, tuple[list[dict], dict]]:
         meta_path = rows_path.with_name(stem + META)
         if not meta_path.exists():
             raise RecheckError(f"{rows_path} has no {meta_path.name}: publish it again")
-        out[stem] = (report.read_results_csv(rows_path), json.loads(meta_path.read_text()))
+        meta = json.loads(meta_path.read_text())
+        out[stem] = (read_rows(rows_path, meta["family"]), meta)
     return out
 
 
@@ -243,7 +285,8 @@ def recheck_directory(directory: Path) -> list[str]:
         diff = first_difference(str(path), path.read_text(), render_tables(rows, meta))
         if diff:
             problems.append(diff)
-    if (directory / "headline.md").exists() or {"validation", "test"} <= set(evaluations):
+    porav = all(meta["family"] == "porav" for _, meta in evaluations.values())
+    if (directory / "headline.md").exists() or (porav and {"validation", "test"} <= set(evaluations)):
         text, data = headline(directory)
         for name, fresh in (("headline.md", text), ("headline.json", json.dumps(data, indent=2) + "\n")):
             path = directory / name
@@ -305,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("publish", help="commit an evaluation's rows and render its tables from them")
     p.add_argument("eval_dir", type=Path)
-    p.add_argument("stem", type=Path, help="e.g. docs/results/porav/test")
+    p.add_argument("stem", type=Path, help="e.g. docs/results/porav/test: writes test.rows.csv.gz, test.tables.md, ...")
     p.add_argument("--command", dest="made_by", required=True, help="the command that made the evaluation")
     p = sub.add_parser("headline", help="the validation-and-test table of a directory")
     p.add_argument("directory", type=Path)

@@ -723,6 +723,7 @@ def evaluate(cfg) -> dict:
         )
     write_rows(out, rows, COLUMNS)
     summary = summarise(rows, [float(t) for t in c.ttcs])
+    summary["render"] = {"trials": int(c.trials), "ttcs": [float(t) for t in c.ttcs]}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, int(c.trials)))
     figures(rows, summary, out)
     learning_curves(cfg, agents, out / "learning_curves.png")

@@ -675,6 +675,7 @@ def evaluate(cfg) -> dict:
         )
     write_rows(out, rows, COLUMNS)
     summary = summarise(rows, int(c.paper_trials))
+    summary["render"] = {"trials": int(c.trials), "paper_trials": int(c.paper_trials)}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, int(c.trials), int(c.paper_trials)))
     figure(summary, out / "avoidance.png")
     writer = tensorboard(out)

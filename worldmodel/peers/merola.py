@@ -455,6 +455,7 @@ def evaluate(cfg) -> dict:
         )
     write_rows(out, rows, COLUMNS)
     summary = summarise(rows)
+    summary["render"] = {"trials": int(c.trials)}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, int(c.trials)))
     figure(summary, out / "collisions.png")
     if agents:
