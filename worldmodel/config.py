@@ -65,8 +65,8 @@ class AutopilotConfig(Checked):
 @dataclass
 class BranchConfig(Checked):
     """Counterfactual continuations in the collection (``worldmodel.recording``; data/README.md): in a share of the
-    episodes, the simulator is snapshotted at a random step and replayed from there under several constant actions.
-    The autopilot alone rarely shows the same moment under different actions; these branches do."""
+    episodes the simulator is snapshotted at a random step and replayed under several constant actions, showing the
+    same moment under different actions, which the autopilot alone rarely does."""
 
     share: float = 0.25  # share of recorded episodes that branch (each once); 0 records none
     actions: int = 4  # continuations per branch point, each one constant action drawn uniformly from [-1, 1]^2
@@ -150,14 +150,11 @@ class DemosConfig(Checked):
     num_workers: int = 2
     episodes_per_shard: int = 25
     focus: FocusConfig = field(default_factory=FocusConfig)
-    # the teacher's steering directions (1 right, -1 left): evaluate.oracle's planner, but steering only to these
-    # sides. One side takes the left/right ambiguity out of the teacher, which a student cloning by least squares
-    # would otherwise average into braking straight. Stored apart: data/NAME/demos_right/ for [1.0].
+    # the sides evaluate.oracle's planner may steer to (1 right, -1 left); one side removes the ambiguity that a
+    # least-squares student averages into braking straight. Stored apart: data/NAME/demos_right/ for [1.0]
     teacher_sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
-    # the teacher's steering delays (s), in place of evaluate.oracle.delays_s; null = those. A label made from
-    # scratch (DAgger's) by a planner that may start steering later says "straight on" for as long as some later
-    # start still avoids; [0.0]: every label says what to do now. Stored apart: data/NAME/demos_delays0/. On Kim's
-    # family it changes neither the planner's avoidance nor its student's (docs/results/kim/)
+    # s, the teacher's steering delays in place of evaluate.oracle.delays_s (null: those); [0.0] makes every DAgger
+    # label say what to do now. Stored apart (data/NAME/demos_delays0/); no effect on family kim (docs/results/kim/)
     teacher_delays_s: list[float] | None = None
 
     def problems(self):
@@ -193,9 +190,8 @@ class EnvConfig(Checked):
     camera: bool = True
     image_size: int = 64
     fov_deg: float = 90.0
-    # a second camera at the same pose with this narrower field of view (obs "seg_tele"), for the chooser's
-    # frame band (agent.chooser.mask_camera=tele): at 90 degrees a pedestrian 30 m ahead is ~1 px wide and is
-    # missing from half the first frames at 30 m/s, TTC 0.9-1.1 s; at 30 degrees it covers 10-20 px. null = none
+    # degrees: a second camera at the same pose (obs "seg_tele") for agent.chooser.mask_camera=tele, where a
+    # pedestrian 30 m ahead covers 10-20 px, against ~1 px at 90 degrees. null = none
     tele_fov_deg: float | None = None
     horizon_after_ttc_s: float | None = 3.0  # agent episodes: truncated this long after the sampled TTC
     mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
@@ -230,8 +226,8 @@ class VAEConfig(Checked):
     lr: float = 1e-4
     batch_size: int = 32
     epochs: int = 2
-    # loss weight per class = frequency ** -class_balance (0 = plain summed CE as in World Models; 0.5 lifted
-    # held-out Vehicles IoU from 0.17 to 0.50 at quick scale, see README)
+    # loss weight per class = frequency ** -class_balance (0: plain summed CE, as World Models); 0.5 lifted
+    # held-out Vehicles IoU from 0.17 to 0.50 at quick scale (docs/design.md §5)
     class_balance: float = 0.5
     free_bits: float = 0.0  # nats per latent dimension below which KL is not penalised (0 = off)
     kl_weight: float = 1.0
@@ -262,17 +258,15 @@ class RNNConfig(Checked):
     batch_size: int = 32
     epochs: int = 10
     seq_len: int = 32
-    # false: inputs are mu, as the agent feeds them (latent MSE 0.030 vs 0.034 with sampled inputs at quick
-    # scale); true: resampled like the targets (World Models). Validation uses the same inputs as training.
+    # false: the inputs are mu, as the agent feeds them (latent MSE 0.030 against 0.034 sampled, at quick scale);
+    # true: resampled like the targets (World Models). Validation uses the same inputs as training
     sample_inputs: bool = False
-    # multi-step loss: in every window, from a random step on, the LSTM also runs this many steps on its own
-    # predictions (the way it dreams), and the targets' NLL there is added with open_loop_weight. 0 = one-step
-    # teacher forcing only (World Models)
+    # steps of each window, from a random step on, that the LSTM also runs on its own predictions (as it dreams),
+    # their NLL added with open_loop_weight; 0: one-step teacher forcing only, as World Models
     open_loop_steps: int = 0
     open_loop_weight: float = 1.0
-    # what the stage measures after training (worldmodel/dreams.py): the action effect on this many branch points
-    # of held-out scenarios, over effect_horizon steps, and open-loop quality against horizon on this many
-    # held-out episodes
+    # measured after training (worldmodel/dreams.py): the action effect at this many held-out branch points over
+    # effect_horizon steps, and open-loop quality on horizon_episodes held-out episodes; 0 skips a measurement
     effect_points: int = 40
     effect_horizon: int = 10
     horizon_episodes: int = 40
@@ -302,35 +296,30 @@ class ChooserConfig(Checked):
     costs of every candidate on straight-line braking's states, labelled by the simulator."""
 
     episodes: int = 3000  # labelled braking episodes (data/NAME/chooser_labels/), the last 15 % held out
-    # the seed of the labelled scenarios; null = the training seed (each seed its own labels). Set, seeds share one
-    # label set and differ only in the scorer's initialisation and minibatches
+    # the seed of the labelled scenarios; null: the training seed. Set, the seeds share one label set and differ
+    # only in the scorer's initialisation and minibatches
     label_seed: int | None = None
     num_workers: int = 2
     # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
     hazard_share: float = 0.85
     speed_range: list[float] = field(default_factory=lambda: [8.0, 30.0])
     ttc_range: list[float] = field(default_factory=lambda: [0.25, 1.5])
-    # the chooser may switch during its first decide_s seconds, then it keeps braking. Measured on the quick
-    # validation bank with exact costs: deciding on the first frame only keeps 88 % of the planner's improvement,
-    # the first 3 frames 89 %, the first 1.5 s 89 % (docs/results/agent/README.md)
+    # s: the chooser may switch only this early, then it keeps braking; with exact costs, 3 frames keep 89 % of the
+    # planner's improvement, as much as 1.5 s does (docs/results/agent/)
     decide_s: float = 0.2
-    # the candidates after straight-line braking: steer magnitudes x {held swerve, lane changes} x pedals x sides.
-    # Lane changes of 0.3 s at steer 0.3 and 1.0 are what the exact chooser picks most; the 8 others add 1 point
+    # the candidates after straight-line braking: steer magnitudes x {held swerve, lane changes} x pedals x sides;
+    # the exact chooser picks 0.3 s lane changes at steer 0.3 and 1.0 most, and 8 more candidates add 1 point
     steers: list[float] = field(default_factory=lambda: [0.3, 1.0])
     lane_change_s: list[float] = field(default_factory=lambda: [0.3])
     swerve: bool = False  # also held swerves
     pedals: list[float] = field(default_factory=lambda: [-1.0])
     sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
     margin: float = 0.0  # switch only when the predicted saving over braking exceeds this (R2 units)
-    # ... and only where braking itself is predicted to cost more than this (R2 units): where braking is nearly safe
-    # a switch has little to win and a wrong one much to lose. A decision-time rule: the scorer is fitted and kept
-    # as without it
+    # R2 units: switch only where braking itself is predicted to cost more than this: where braking is nearly safe
+    # a switch has little to win and a wrong one much to lose. A decision-time rule: the scorer is fitted without it
     min_brake_cost: float = 0.0  # 0 = no floor
-    # R2 units added to a candidate's labelled cost where it ends in a static object, so the scorer learns to keep
-    # clear of poles and walls (the issue bars static collisions at 2 %). On the paper-scale validation bank, 0.2
-    # cuts the exact-cost chooser's static collisions from 2.1 to 1.1 % for 0.06 points of its gain, but a learned
-    # scorer's from 2.9 to 0.1 % for ~0.6 points (docs/results/agent/README.md). Needs labels that record the flags
-    # (made since 2026-11-24)
+    # R2 units added to a candidate's labelled cost where it ends in a static object, so that the scorer keeps clear
+    # of poles and walls (the bar on static collisions: 2 %); needs labels that record the flag (docs/results/agent/)
     static_penalty: float = 0.0
     hidden: list[int] = field(default_factory=lambda: [256, 256])
     dropout: float = 0.2
@@ -342,15 +331,14 @@ class ChooserConfig(Checked):
     # "cost": regress every candidate's cost; "advantage": braking's cost and the others' differences from it;
     # "policy": logits trained to minimise the expected cost of the softmax choice (cost-sensitive classification)
     target: str = "cost"
-    # the scorer also reads a band of the raw frame around the horizon (envs.views.MaskView: pedestrians and
-    # vehicles, this frame and the last) through a small CNN: where the hazard is, not only in which rows and columns
+    # the scorer also reads, through a small CNN, a band of the raw frame around the horizon (envs.views.MaskView:
+    # pedestrians and vehicles, this frame and the last): where the hazard is, not only its rows and columns
     mask_view: bool = False
     # which camera's band the scorer reads: "wide" (the world model's 90-degree camera, rows 20-44) or "tele"
     # (the narrow second camera of env.tele_fov_deg, rows 8-48, where the hazard pedestrian appears 20x larger)
     mask_camera: str = "wide"
-    # learning by cheating for perception: the scorer's first layer also feeds a head that guesses the privileged
-    # hazard state (envs.chooser.hazard_state: where the hazard pedestrian and car are, how they move), trained
-    # with this weight beside the cost loss; the guess is never used to act
+    # the loss weight of a head on the scorer's first layer that guesses the privileged hazard state
+    # (envs.chooser.hazard_state): learning by cheating for perception; the guess never acts. 0 = no head
     aux_weight: float = 0.0
 
     def problems(self):
@@ -421,8 +409,8 @@ class SelectConfig(Checked):
     episodes once ``start`` of the run has passed, the greedy agent drives a validation draw of Chae's trials
     (``trials`` Scenario-1 trials at each TTC of ``ttcs`` and as many Scenario-2 trials, seeded by ``seed``: never
     the evaluation's ``evaluate.chae.seed``), and ``best.pt`` keeps the checkpoint that, among those bumping in at
-    most ``max_bump`` % at every TTC, stops needlessly least (else: the one that bumps least). Evaluation then loads
-    it. Chae's two metrics chose it because the reward alone does not tell a needless stop from a pass at 10-30
+    most ``max_bump`` % at every TTC, stops needlessly least (else: the one that bumps least); evaluation loads it.
+    Chae's two metrics, not the reward, choose it: the reward does not tell a needless stop from a pass at 10-30
     km/h, and successive checkpoints of one run differ there (docs/results/chae/)."""
 
     every: int = 250  # episodes between validations; 0 = off, evaluation loads last.pt
@@ -432,28 +420,19 @@ class SelectConfig(Checked):
     ttcs: list[float] = field(default_factory=lambda: [1.5, 1.7, 1.9])
     max_bump: float = 1.0  # %, at each TTC
     max_stops: float = 5.0  # %, needless stops: with max_bump, the bars that rescoring's candidates are inside
-    # keep every validated checkpoint as validated/episodeNNNNN.pt (2 MB each), so that checkpoints can be chosen
-    # again afterwards on a larger draw (rescore below, or experiments/chae_reselect.py) without retraining
+    # keep every validated checkpoint as validated/episodeNNNNN.pt (2 MB each), to choose again on a larger draw
+    # (rescore below, or experiments/chae_reselect.py) without retraining
     keep: bool = False
-    # after the run, the ``rescore`` kept checkpoints inside both bars that bump least at ttcs[0] drive a larger
-    # draw there (``rescore_trials`` Scenario-1 trials and as many in Scenario 2, seeded by ``rescore_seed``), and
-    # best.pt becomes the one with the most room under both bars; 0 = off. Tried with value_rescale and TTCs from
-    # 1.3 s (docs/results/chae/settings_validation.md, sixteenth session): the corner's bumps went, and one ensemble
-    # in three bumped at TTC 2.7-3.5 s instead, which a draw at ttcs[0] alone does not see. The dqn_chae preset
-    # rescores 4 since the twenty-first session, with rescore_ttcs below
+    # after the run, this many kept checkpoints inside both bars that bump least at ttcs[0] drive a larger draw
+    # (seeded by ``rescore_seed``), and best.pt becomes the one with the most room under both bars; 0 = off
     rescore: int = 0
     rescore_seed: int = 98
-    rescore_trials: int = 300  # per TTC: the eighteenth to twentieth sessions' value, which the preset keeps
-    # the TTCs the rescoring draw drives, the highest bump rate over them weighed; null = ttcs[0] alone. The
-    # checkpoints chosen at 1.5 s alone crept over the safety line at 2.5-3.7 s (sixteenth session); with 1.5 and
-    # 2.5-3.5 s, nine fresh seeds (seventeenth) gave no ensemble inside both bars at 0.1 m of noise; the dqn_chae
-    # preset's since the twenty-first session, at 0.05 m
+    rescore_trials: int = 300  # Scenario-1 trials per TTC of the rescoring draw, and as many in Scenario 2
+    # s, the TTCs the rescoring draw drives, weighed by their highest bump rate; null = ttcs[0] alone, whose choices
+    # bumped at TTC 2.5-3.7 s instead (docs/results/chae/); dqn_chae adds 2.5-3.5 s
     rescore_ttcs: list[float] | None = None
-    # after the run and its rescoring, if the chosen checkpoint is not inside both bars on the rescoring draw (or
-    # there is no candidate), train ``extend`` more episodes, validate and rescore again, at most ``extend_blocks``
-    # times; 0 blocks = off. The runs swing between bumping and stopping to the end, so a run cut at a fixed length
-    # without a good checkpoint has stopped drawing them, not run out (docs/results/chae/settings_validation.md,
-    # twenty-second session). The block is left to the scale (smoke: 4), the number of blocks to the preset
+    # if the rescored choice is not inside both bars, train ``extend`` more episodes (the scale's) and choose again,
+    # at most ``extend_blocks`` times (the preset's; 0 = off): the runs swing to the end (docs/results/chae/)
     extend: int = 1000
     extend_blocks: int = 0
 
@@ -532,9 +511,8 @@ class AgentConfig(DDPGConfig):
     # labels every state it reaches, and the actor is cloned again on everything so far
     dagger_rounds: int = 0
     dagger_episodes: int = 100
-    # Kim's LIDAR agent: the weight, in the cloning loss, of the samples whose label steers (|steering| > 0.15 of
-    # full); 1 = plain least squares. The planner steers on ~6 % of its labels, and a least-squares student, unsure
-    # when, under-steers (docs/results/kim/, "Why the student stops at braking")
+    # Kim's LIDAR agent: the cloning loss's weight on labels that steer (|steering| > 0.15 of full); 1 = plain least
+    # squares. The planner steers on ~6 % of its labels, and a least-squares student under-steers (docs/results/kim/)
     bc_steer_weight: float = 1.0
     reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
     # the rewards the pipeline trains this preset with (`agents:`); a student that only clones the R2 planner
@@ -548,34 +526,20 @@ class AgentConfig(DDPGConfig):
     dqn: DQNConfig = field(default_factory=DQNConfig)
     episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
     select: SelectConfig = field(default_factory=SelectConfig)  # the dqn learner on family chae: best.pt
-    # a LIDAR ddpg peer's training steps (obs=lidar on family kim, worldmodel/peers/kim.py; Kim et al.: 100k), and
-    # ddqn_merola's (worldmodel/peers/merola.py; Merola et al.: 360k).
-    # Its own key, so that a scale can shrink it while the peer's preset keeps the paper's other settings
+    # the training steps of a LIDAR ddpg peer (Kim et al.: 100k) and of ddqn_merola (Merola et al.: 360k): a key of
+    # its own, so that a scale can shrink it while the peer's preset keeps the paper's other settings
     peer_total_steps: int = 100_000
-    # family kim's training distribution (episodes, planner demonstrations, DAgger): > 0 draws where the runner's
-    # path crosses the ego uniformly within this many metres of the middle of its flank (envs.kim.sample), the
-    # placement the paper leaves unstated; 0 keeps the middle. Evaluate it there: evaluate.kim.impact_offset_spread
+    # m: family kim's training draws the runner's crossing uniformly within this of the ego's middle (envs.kim.sample;
+    # the paper does not say); 0 = the middle. Evaluate with the same evaluate.kim.impact_offset_spread
     kim_impact_offset_spread: float = 0.0
-    # family chae's training TTCs (the dqn learner's episodes), U(lo, hi) s; evaluation keeps its own TTCs. The
-    # paper's 1.5-4 s puts the bar's edge (TTC 1.5 s) at the edge of training, where one ensemble in three bumps at
-    # 10-12.5 km/h. 1.3-4 s removed those bumps but made two ensembles in three stop needlessly at 10-30 km/h: not
-    # adopted (docs/results/chae/settings_validation.md, eleventh session); with agent.dqn.value_rescale (fifteenth),
-    # two ensembles in three inside both bars: not adopted; with agent.select.rescore as well (sixteenth), bumps at
-    # TTC 2.7-3.5 s instead: not adopted. The dqn_chae preset's [1.3, 4.0] since the twenty-first session, at 0.05 m
+    # s, family chae's training TTCs, U(lo, hi); evaluation keeps its own. The paper's 1.5-4 s; dqn_chae trains
+    # from 1.3 s, so that TTC 1.5 s, the bar's edge, is not training's edge (docs/results/chae/)
     chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
-    # family chae: the standard deviation (m) of the noise on the pedestrian's relative position in Chae's state
-    # (envs.chae.PedestrianHistory), for the dqn learner's training and checkpoint selection. The paper says only
-    # "slight noise". A checkpoint records its value and is evaluated with it. 0.1 here is the value of the first
-    # twenty sessions, kept so that their runs stay current; the dqn_chae preset sets 0.05 since the twenty-first,
-    # where Chae's Table I at TTC 1.1 and 1.3 s points (docs/design.md §10, docs/results/chae/). It decides the
-    # corner's bumps: in the preset's configuration two exact and two 0.05 m ensembles were inside both bars on
-    # fresh draws, against two in three at 0.1. On the test draw nine fresh seeds at 0.05 m gave two in three, the
-    # third stopping needlessly instead of bumping
+    # m, std of the noise on the pedestrian's position in Chae's state (the paper: "slight"); a checkpoint records
+    # it. 0.1 keeps older runs current; dqn_chae sets 0.05, where Chae's Table I points (docs/results/chae/)
     chae_noise_m: float = 0.1
-    # family chae: a noise curriculum. Over the first chae_noise_ramp of agent.episodes the training episodes' noise
-    # rises linearly from 0 to chae_noise_m; every later episode, every checkpoint validation and the checkpoint's
-    # record use chae_noise_m. 0: no curriculum. Keep it <= agent.select.start so that every selectable checkpoint
-    # has learnt on the full noise since (docs/results/chae/settings_validation.md, twentieth session)
+    # share of agent.episodes over which the training noise rises from 0 to chae_noise_m (validation uses the full
+    # noise); 0 = no curriculum. Keep it <= agent.select.start. Built, never trained (docs/results/chae/)
     chae_noise_ramp: float = 0.0
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
@@ -817,22 +781,14 @@ class ChaeEvalConfig(Checked):
     trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
     ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
     seed: int = 2017  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
-    # k >= 2: also evaluate, per dqn variant, the ensemble of each k consecutive training seeds (seeds 0..k-1, then
-    # k..2k-1, ...): greedy on the mean of the members' Q-values, each member at its chosen checkpoint. 0 = each
-    # run alone. Successive checkpoints of one run swing between bumping and needless stops, and the runs' swings
-    # are out of phase (docs/results/chae/); averaging Q over independent runs damps what one run gets wrong.
-    # 3, chosen on the validation draw: two ensembles in three inside both of the issue's bars, single runs three in
-    # nine (docs/results/chae/settings_validation.md); with fifteen seeds, two in five on two fresh draws. Ensembles
-    # of five, and the best three of five (ensemble_pool=5), did no better there: not adopted
+    # k >= 2: also evaluate ensembles of k consecutive seeds, greedy on their mean Q, which damps the runs' swings
+    # (0: runs alone); 3: two ensembles in three inside both bars, single runs three in nine (docs/results/chae/)
     ensemble: int = 3
-    # n > ensemble: each ensemble is the `ensemble` runs, of n consecutive seeds, whose chosen checkpoints scored best
-    # on the selection draw, in the order checkpoint selection uses (chae.selected); 0 = `ensemble` consecutive seeds
+    # n > ensemble: each ensemble is the `ensemble` of n consecutive seeds that scored best on the selection draw;
+    # 0 = `ensemble` consecutive seeds. Best three of five did no better (docs/results/chae/)
     ensemble_pool: int = 0
-    # true: each ensemble acts by majority vote of its members' greedy brake levels (a tie: the highest mean Q among
-    # the tied levels) instead of greedily on the mean of Q, which can choose a level that no member would. On nine
-    # fresh seeds, two ensembles in three inside both bars on two draws, needless stops <= 3.2 %; the third bumps in
-    # ~3 % at TTC 1.5 s, so by the rule written first it is not the default (docs/results/chae/settings_validation.md,
-    # eighteenth session)
+    # true: ensembles act by majority vote of their members' greedy levels (a tie: the highest mean Q), not on the
+    # mean of Q; on nine seeds it was inside both bars as often as the mean (docs/results/chae/)
     ensemble_vote: bool = False
     # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
     # 1,000 trials per TTC, where each run alone would cost as much again per seed
@@ -879,9 +835,8 @@ class KimEvalConfig(Checked):
     policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
     world_model_agents: bool = True  # also the paper's street-trained R1 / R2 agents and the chooser, as they are
     seed: int = 2020  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
-    # where the runner's path crosses the ego at contact, m forward of its centre (envs.kim.KimSpec.impact_offset):
-    # 0 the middle of the flank (ours, and the training distribution's), +2.25 the front bumper, -2.25 the rear. The
-    # paper does not say; other values measure how much the results depend on it
+    # m forward of the ego's centre where the runner's path crosses it (envs.kim.KimSpec.impact_offset): 0 the middle
+    # (training's), +2.25 the front bumper, -2.25 the rear; the paper does not say
     impact_offset: float = 0.0
     # > 0: each trial's crossing is drawn uniformly within impact_offset ± this (kept on the ego), from a stream of
     # its own, so the trials are otherwise the same; 2.25 with offset 0 = anywhere along the ego
@@ -920,7 +875,7 @@ class MerolaEvalConfig(Checked):
 
 @dataclass
 class EvaluateConfig(Checked):
-    """The seeded test bank (docs/design.md §6) and the scripted policies evaluated beside the agents."""
+    """The seeded scenario banks (docs/design.md §6) and the scripted policies evaluated beside the agents."""
 
     per_cell: int = 5
     ttcs: list[float] = field(default_factory=lambda: [0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5])
@@ -1023,7 +978,7 @@ class ExperimentConfig(Checked):
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
     # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
-    # ddpg: the paper's agent (R1 and R2); chooser: issue 11's camera agent that beats braking (R2; docs/design.md §5)
+    # ddpg: the paper's agent (R1 and R2); chooser: the camera agent that beats braking (R2; docs/design.md §5)
     agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
     # training seeds of every preset in agents; empty: seed alone (a seed trained before is kept either way)
     seeds: list[int] = field(default_factory=list)
