@@ -58,3 +58,22 @@ def test_the_simulator_never_imports_torch():
     for path in (ROOT / "envs").glob("*.py"):
         imports = imported_modules(path, "envs")
         assert not {m for m in imports if m == "torch" or m.startswith("torch.")}, path
+
+
+def test_every_peer_keeps_the_interface_and_imports_no_other_peer():
+    """Each registered peer is a module with the Peer interface (worldmodel/peers/__init__.py), its declared family
+    and preset match the registry and the preset's own family, and it imports no other peer."""
+    from worldmodel import peers
+    from worldmodel.config import preset_globals
+
+    names = set(peers.REGISTRY)
+    for family, preset in peers.REGISTRY.items():
+        module = peers.peer(family)
+        assert isinstance(module, peers.Peer), family
+        assert (module.FAMILY, module.PRESET) == (family, preset)
+        assert preset_globals(preset)["env"]["family"] == family
+        imports = imported_modules(ROOT / "worldmodel" / "peers" / f"{family}.py", "worldmodel.peers")
+        others = {f"worldmodel.peers.{n}" for n in names - {family}}
+        assert not imports & others, f"peers/{family}.py imports {sorted(imports & others)}: share through common.py"
+    with pytest.raises(KeyError, match="known are chae, kim, merola"):
+        peers.peer("porav")

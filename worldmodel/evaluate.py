@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import time
 
-from . import artifacts
+from . import artifacts, peers
 from .banks import record_evaluation
 from .common import StageError, make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
@@ -156,18 +156,8 @@ def run(cfg) -> dict:
 
     validate(cfg)
     set_threads(1)  # one decision at a time: a single thread is fastest for batch-1 inference
-    if cfg.evaluate.family == "chae":
-        from .peers import chae
-
-        return chae.evaluate(cfg)
-    if cfg.evaluate.family == "kim":
-        from .peers import kim
-
-        return kim.evaluate(cfg)
-    if cfg.evaluate.family == "merola":
-        from .peers import merola
-
-        return merola.evaluate(cfg)
+    if cfg.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
+        return peers.peer(cfg.evaluate.family).evaluate(cfg)
     if cfg.evaluate.family == "ncap":
         raise StageError(
             f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={cfg.experiment}"

@@ -36,7 +36,7 @@ import numpy as np
 
 from envs.ncap import bank, car_bank, car_points, verdict
 
-from . import artifacts
+from . import artifacts, peers
 from .common import make_env, set_threads
 from .config import hydra_main, validate
 from .policies import env_overrides, porav_policies
@@ -98,43 +98,6 @@ def takeover_step(takeover_ttc_s: float, step_s: float) -> int:
     from envs.ncap import START_TTC_S
 
     return max(0, math.ceil((START_TTC_S - takeover_ttc_s) / step_s - 1e-9))
-
-
-def chae_policies(cfg):
-    """Chae's family: TTC braking, latest-safe braking, every dqn agent (pedestrian tests only, but the camera
-    variant)."""
-    from .peers import chae
-
-    out = [(chae.TTCBraking(), 0, False, False), (chae.LatestSafeBraking(), 0, False, False)]
-    for agent in artifacts.trained_agents(cfg, family="chae"):
-        policy = chae.load_policy(cfg, agent)
-        out.append((policy, agent.seed, policy.see.camera, policy.see.camera))
-    return out
-
-
-def kim_policies(cfg):
-    """Kim's family: AEB-3m and every goal-unaware LIDAR agent. A camera agent of the family (agent=ddpg_wm_kim)
-    acts at the world model's 1/15 s steps, not at this group's 0.1 s, and is left out (logged)."""
-    from envs.kim import Aeb3m
-
-    from .peers import kim
-
-    out = [(Aeb3m(), 0, False, True)]
-    for agent in artifacts.trained_agents(cfg, family="kim"):
-        if agent.reward not in kim.GOAL_REWARDS:
-            policy, camera = kim.load_policy(cfg, agent)
-            if camera:
-                log.info("[ncap] %s: a camera agent of family kim; not run in the 0.1 s kim group", agent.key)
-                continue
-            out.append((policy, agent.seed, False, True))
-    return out
-
-
-def merola_policies(cfg):
-    """Merola's family: every ddqn_merola agent."""
-    from .peers import merola
-
-    return [(merola.load_policy(cfg, a), a.seed, True, True) for a in artifacts.trained_agents(cfg, family="merola")]
 
 
 def run_bank(env, policy, specs, family: str, seed: int) -> list[dict]:
@@ -199,12 +162,9 @@ def run(cfg) -> dict:
     t0 = time.perf_counter()
     pedestrians, cars = specs_of(cfg)
     porav_step = float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0
-    groups = [  # family, step, policies, reward the env reports, takeover TTC (None: from the start)
-        ("porav", porav_step, porav_policies(cfg), "r2", takeover),
-        ("chae", 0.1, chae_policies(cfg), "chae", None),
-        ("kim", 0.1, kim_policies(cfg), "kim_unaware", None),
-        ("merola", 0.1, merola_policies(cfg), "merola", None),
-    ]
+    groups = [("porav", porav_step, porav_policies(cfg), "r2", takeover)]
+    # family, step, policies, reward the env reports, takeover TTC (None: from the start, since when to act is theirs)
+    groups += [(f, 0.1, peers.peer(f).ncap_policies(cfg), peers.peer(f).NCAP_REWARD, None) for f in peers.REGISTRY]
     total = sum(len(pedestrians) + (len(cars) if both else 0) for g in groups for _, _, _, both in g[2])
     rows: list[dict] = []
     with tqdm(total=total, desc="ncap", unit="run") as bar:

@@ -68,15 +68,11 @@ def render_tables(rows: list[dict], meta: dict) -> str:
     family, how = meta["family"], meta.get("render", {})
     if family == "porav":
         return report.tables_markdown(rows)
-    from .peers import chae, kim, merola
+    from . import peers
 
-    if family == "chae":
-        return chae.tables(chae.summarise(rows, [float(t) for t in how["ttcs"]]), int(how["trials"]))
-    if family == "kim":
-        return kim.tables(kim.summarise(rows, int(how["paper_trials"])), int(how["trials"]), int(how["paper_trials"]))
-    if family == "merola":
-        return merola.tables(merola.summarise(rows), int(how["trials"]))
-    raise RecheckError(f"no renderer for family {family!r}")
+    if family not in peers.REGISTRY:
+        raise RecheckError(f"no renderer for family {family!r}")
+    return peers.peer(family).render_tables(rows, how)
 
 
 def family_of(eval_dir: Path) -> str:

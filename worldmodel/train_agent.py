@@ -74,10 +74,8 @@ def run(cfg) -> dict:
     name = agent_id.policy
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
-    if typed.agent.learner == "dqn":  # Chae's braking DQN or Merola's Double DQN, by the reward's family
+    if typed.agent.learner == "dqn" or typed.agent.obs == "lidar":  # Chae's or Merola's DQN, Kim's LIDAR DDPG
         return run_peer(cfg, agent_id, agent_id.family)
-    if typed.agent.obs == "lidar":
-        return run_peer(cfg, agent_id, "kim")
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
     action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
@@ -296,9 +294,9 @@ def run_peer(cfg, agent_id, family: str) -> dict:
     """A peer system's learner on its own scenario family (``worldmodel/peers/<family>.py``): Chae et al.'s braking
     DQN (``agent.learner=dqn``) or Kim et al.'s LIDAR DDPG (``agent.obs=lidar``). Its ``train`` returns the metrics,
     with ``summary`` (a line for the log)."""
-    import importlib
+    from . import peers
 
-    peer = importlib.import_module(f".peers.{family}", __package__)
+    peer = peers.peer(family)
     seed_everything(int(cfg.seed))  # the process-wide generators too, which a checkpoint saves and restores
     record = artifacts.provenance(cfg, "agent")
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:

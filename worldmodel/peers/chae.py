@@ -51,9 +51,10 @@ from envs.chae import (
 from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, atomic_torch_save, atomic_write_bytes, make_env
-from .common import dqn_checkpoint, drawn, record_if_test, resume_dqn, seal, write_rows
+from .common import DQNPolicy, dqn_checkpoint, dqn_config, drawn, record_if_test, resume_dqn, seal, write_rows
 
 log = logging.getLogger(__name__)
+FAMILY, PRESET, NCAP_REWARD = "chae", "dqn_chae", "chae"  # the Peer interface (worldmodel/peers/__init__.py)
 # Chae's state to roughly unit scale: dx up to ~85 m, dy up to ~6 m, speed up to ~17 m/s
 HISTORY_SCALE = np.tile(np.array([1 / 50.0, 1 / 4.0, 1 / 20.0], np.float32), PedestrianHistory.steps)
 PAPER_TABLE_I = {0.9: 61.29, 1.1: 18.85, 1.3: 0.74}  # bump rate, %; 0 from 1.5 s on (10,000 trials per TTC)
@@ -122,14 +123,6 @@ def family_env(cfg, camera: bool, end_on_bump: bool = True):
     the bump and runs on, to measure contact."""
     options = {} if end_on_bump else {"family_options": {"end_on_bump": False}}
     return make_env(cfg, camera=camera, family="chae", reward="chae", step_s=STEP_S, **options)
-
-
-def dqn_config(cfg):
-    from omegaconf import OmegaConf
-
-    from ..models.dqn import DQNConfig
-
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DQNConfig), cfg.agent.dqn))
 
 
 # ----------------------------------------------------------------------------- training
@@ -417,25 +410,6 @@ def summary(metrics: dict) -> str:
 
 
 # ----------------------------------------------------------------------------- policies
-class DQNPolicy:
-    """A trained DQN, greedy, behind the scripted-policy interface."""
-
-    def __init__(self, name: str, agent, see, policy_seed: int, action_of=None):
-        self.name, self.agent, self.see, self.policy_seed = name, agent, see, policy_seed
-        self.action_of = brake_action if action_of is None else action_of  # action index -> [steer, pedal]
-
-    def reset(self, seed=None) -> None:
-        self.see.reset(seed)
-
-    def bind(self, env) -> None:
-        self.env = env
-
-    def act(self, obs, info) -> np.ndarray:
-        action = self.action_of(self.agent.act(self.see(self.env, obs), explore=False))
-        self.see.note_action(action)
-        return action
-
-
 class QEnsemble:
     """Several trained DQNs acting as one: greedy on the mean of their Q-values (Chae's four brake levels)."""
 
@@ -747,6 +721,21 @@ def evaluate(cfg) -> dict:
         out / "tables.md",
     )
     return summary
+
+
+def render_tables(rows: list[dict], settings: dict) -> str:
+    """The evaluation's tables from its rows and ``summary["render"]``."""
+    return tables(summarise(rows, [float(t) for t in settings["ttcs"]]), int(settings["trials"]))
+
+
+def ncap_policies(cfg) -> list[tuple]:
+    """TTC braking, latest-safe braking and every dqn agent on the NCAP bank: pedestrian tests only, but the
+    camera variant, which sees cars too."""
+    out = [(TTCBraking(), 0, False, False), (LatestSafeBraking(), 0, False, False)]
+    for agent in artifacts.trained_agents(cfg, family=FAMILY):
+        policy = load_policy(cfg, agent)
+        out.append((policy, agent.seed, policy.see.camera, policy.see.camera))
+    return out
 
 
 def _mean(values) -> float | None:

@@ -9,8 +9,41 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
+from envs.chae import brake_action
+
 from .. import artifacts
 from ..common import StageError
+
+
+def dqn_config(cfg):
+    """``agent.dqn`` as the typed ``DQNConfig``."""
+    from omegaconf import OmegaConf
+
+    from ..models.dqn import DQNConfig
+
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DQNConfig), cfg.agent.dqn))
+
+
+class DQNPolicy:
+    """A trained DQN, greedy, behind the scripted-policy interface; its actions are Chae's brake levels unless
+    ``action_of`` maps them (Merola's steer and pedal grid)."""
+
+    def __init__(self, name: str, agent, see, policy_seed: int, action_of=None):
+        self.name, self.agent, self.see, self.policy_seed = name, agent, see, policy_seed
+        self.action_of = brake_action if action_of is None else action_of  # action index -> [steer, pedal]
+
+    def reset(self, seed=None) -> None:
+        self.see.reset(seed)
+
+    def bind(self, env) -> None:
+        self.env = env
+
+    def act(self, obs, info) -> np.ndarray:
+        action = self.action_of(self.agent.act(self.see(self.env, obs), explore=False))
+        self.see.note_action(action)
+        return action
 
 
 def resume_dqn(run_, agent, obs_dim: int, curve: dict) -> tuple[int, dict]:

@@ -45,6 +45,7 @@ from ..stats import paired_permutation_p, wilson
 from .common import drawn, record_if_test, seal, world_model_step_s, write_rows
 
 log = logging.getLogger(__name__)
+FAMILY, PRESET, NCAP_REWARD = "kim", "ddpg_kim", "kim_unaware"  # the Peer interface (worldmodel/peers/__init__.py)
 ROLLING = 100
 CHECKPOINT_EPISODES = 200
 GOAL_REWARDS = ("kim_aware",)  # rewards whose agent also sees the goal (Kim et al. §II-F)
@@ -622,6 +623,28 @@ def figure(summary: dict, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def render_tables(rows: list[dict], settings: dict) -> str:
+    """The evaluation's tables from its rows and ``summary["render"]``."""
+    paper_trials = int(settings["paper_trials"])
+    return tables(summarise(rows, paper_trials), int(settings["trials"]), paper_trials)
+
+
+def ncap_policies(cfg) -> list[tuple]:
+    """AEB-3m and every goal-unaware LIDAR agent on the NCAP bank. A camera agent of the family (agent=ddpg_wm_kim)
+    acts at the world model's 1/15 s steps, not at this group's 0.1 s, and is left out (logged)."""
+    from envs.kim import Aeb3m
+
+    out = [(Aeb3m(), 0, False, True)]
+    for agent in artifacts.trained_agents(cfg, family=FAMILY):
+        if agent.reward not in GOAL_REWARDS:
+            policy, camera = load_policy(cfg, agent)
+            if camera:
+                log.info("[ncap] %s: a camera agent of family kim; not run in the 0.1 s kim group", agent.key)
+                continue
+            out.append((policy, agent.seed, False, True))
+    return out
 
 
 def draw_suffix(c) -> str:

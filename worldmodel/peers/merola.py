@@ -45,10 +45,20 @@ from .. import artifacts
 from ..artifacts import AgentId
 from ..common import StageError, make_env
 from ..stats import wilson
-from .chae import DQNPolicy, dqn_config
-from .common import dqn_checkpoint, drawn, record_if_test, resume_dqn, seal, world_model_step_s, write_rows
+from .common import (
+    DQNPolicy,
+    dqn_checkpoint,
+    dqn_config,
+    drawn,
+    record_if_test,
+    resume_dqn,
+    seal,
+    world_model_step_s,
+    write_rows,
+)
 
 log = logging.getLogger(__name__)
+FAMILY, PRESET, NCAP_REWARD = "merola", "ddqn_merola", "merola"  # the Peer interface (worldmodel/peers/__init__.py)
 PEDALS, STEERS = (-1.0, 0.0, 1.0), (-0.5, 0.0, 0.5)
 ACTIONS = np.array([(s, p) for p in PEDALS for s in STEERS], dtype=np.float32)  # index -> [steer, pedal]
 FRAMES = 4
@@ -399,6 +409,16 @@ def learning_curves(cfg, agents: list[AgentId], path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def render_tables(rows: list[dict], settings: dict) -> str:
+    """The evaluation's tables from its rows and ``summary["render"]``."""
+    return tables(summarise(rows), int(settings["trials"]))
+
+
+def ncap_policies(cfg) -> list[tuple]:
+    """Every ddqn_merola agent on the NCAP bank (camera frames: the car-to-car tests too)."""
+    return [(load_policy(cfg, a), a.seed, True, True) for a in artifacts.trained_agents(cfg, family=FAMILY)]
 
 
 def scripted(cfg) -> list:
