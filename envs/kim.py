@@ -36,6 +36,7 @@ from . import geometry
 from .actors import Actors
 from .scene import BUILDINGS, POLES, TEMPLATES, StaticLayout
 from .specs import FamilySpec
+from .streams import KIM_BUILDING_HEIGHTS, KIM_NEUTRAL_CARS
 
 FAMILY = "kim"
 SCENARIOS = ("right", "left", "left_turn")
@@ -289,7 +290,7 @@ def build(spec: KimSpec, ego_front: float) -> tuple[Actors, KimState]:
     """The runner and, if ``spec.neutral``, the neutral cars, at the takeover (the ego's centre at x = 0)."""
     ego_x0 = ego_front - CAR_LENGTH / 2
     junction_x, path, s0 = place_runner(spec, ego_x0)
-    rng = np.random.default_rng([spec.seed, 2020])
+    rng = np.random.default_rng([spec.seed, KIM_NEUTRAL_CARS])
     cars = [ScriptedCar(0, path, s0, RUNNER_SPEED)]
     hazard = [True]
     if spec.neutral:
@@ -347,7 +348,7 @@ def layout(spec: KimSpec, state: KimState, rng: np.random.Generator) -> StaticLa
     circles_a = np.array(circles, dtype=np.float64).reshape(-1, 4)
     return StaticLayout(
         junction_x=jx,
-        placements=render_placements(jx, rects_a, circles_a, np.random.default_rng([spec.seed, 14])),
+        placements=render_placements(jx, rects_a, circles_a, np.random.default_rng([spec.seed, KIM_BUILDING_HEIGHTS])),
         rects=rects_a,
         circles=circles_a,
         crossroads_half_width=ROAD_HALF_WIDTH,

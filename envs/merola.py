@@ -30,6 +30,7 @@ import numpy as np
 from .actors import Actors
 from .scene import EGO_LANE_Y, JUNCTION_HALF_WIDTH, ONCOMING_LANE_Y, StaticLayout, sample_layout
 from .specs import FamilySpec
+from .streams import MEROLA_JUNCTION_DISTANCE
 
 FAMILY = "merola"
 SCENARIOS = ("lead_brake", "crossing", "drift")
@@ -191,7 +192,7 @@ def motion(spec: MerolaSpec, ego_front: float) -> tuple[Motion, float | None]:
 
 def build(spec: MerolaSpec, ego_front: float) -> tuple[Actors, MerolaState]:
     move, junction_x = motion(spec, ego_front)
-    rng = np.random.default_rng([spec.seed, 2022])
+    rng = np.random.default_rng([spec.seed, MEROLA_JUNCTION_DISTANCE])
     if junction_x is None:
         ahead = rng.uniform(*JUNCTION_AHEAD_M) if spec.at_junction else rng.uniform(200.0, 300.0)
         junction_x = ego_front + float(ahead)

@@ -40,6 +40,7 @@ from envs.chae import (
     brake_action,
     sample_chae,
 )
+from envs.streams import CHAE_BANK_SCENARIO_2, CHAE_TRAINING_EPISODES
 from worldmodel.models.dqn import DQN, DQNConfig
 
 TABLE_TTCS = tuple(round(0.9 + 0.2 * i, 1) for i in range(16))  # 0.9 .. 3.9
@@ -84,7 +85,7 @@ def train(
     trauma_batch = settings.pop("trauma_batch", 10)
     cfg = DQNConfig(**settings, trauma_batch=trauma_batch if trauma else 0)
     agent = DQN(PedestrianHistory.dim, len(BRAKE_LEVELS), cfg, seed)
-    rng = np.random.default_rng([seed, 1717])
+    rng = np.random.default_rng([seed, CHAE_TRAINING_EPISODES])
     curve = {"return": [], "end": []}
     for _ in tqdm(range(episodes), desc=f"dqn_chae seed {seed} trauma {trauma}", unit="episode"):
         spec = sample_chae(rng, ttc_range=ttc_range)
@@ -144,7 +145,7 @@ def score(policy, trials: int, seed: int = 99) -> dict:
             contacts += o["pedestrian_collision"]
         out["bump_rate"][ttc] = 100 * ends.count("bump") / trials
         out["contact_rate"][ttc] = 100 * contacts / trials
-    rng = np.random.default_rng([seed, 2])
+    rng = np.random.default_rng([seed, CHAE_BANK_SCENARIO_2])
     stops = 0
     for i in range(trials):
         spec = ChaeSpec(

@@ -12,10 +12,11 @@ from step to step, are what they cannot copy (docs/results/kim/README.md). The c
 docs/design.md §5) learns the exact cost of every candidate manoeuvre instead and, because it brakes until it
 switches once, decides only in braking's own states, which the labels hold exactly.
 
-``labels``: straight-line braking through ``--episodes`` training-distribution episodes (stream 7778, apart from the
-training's and the students'), or through the evaluation's bank (``--bank``, ``evaluate.kim.*``); at each of the
-first ``--decide-s`` seconds the LIDAR view the agent would see and, by re-simulation, the exact cost (Kim's
-``kim_unaware``: the summed ISS of the crashes to come, 0 when nothing is hit) of starting each candidate there.
+``labels``: straight-line braking through ``--episodes`` training-distribution episodes (``KIM_CHOOSER_LABELS``,
+apart from the training's and the students'), or through the evaluation's bank (``--bank``, ``evaluate.kim.*``);
+at each of the first ``--decide-s`` seconds the LIDAR view the agent would see and, by re-simulation, the exact cost
+(Kim's ``kim_unaware``: the summed ISS of the crashes to come, 0 when nothing is hit) of starting each candidate
+there.
 
 ``fit``: an MLP regresses all candidates' costs from the view and the decision step, by least squares, on the
 first 85 % of the training labels; the epoch kept is the one whose chooser avoids most on the last 15 %. Because
@@ -43,6 +44,7 @@ from tqdm import tqdm
 from envs.chooser import BRAKE, ManoeuvreChooser, decide_steps_for, switch_choice
 from envs.kim import SCENARIOS, kim_action_for
 from envs.planner import Manoeuvre, _Plan, plan_cost
+from envs.streams import KIM_CHOOSER_LABELS
 from worldmodel import stats
 from worldmodel.common import set_threads
 from worldmodel.config import compose
@@ -50,7 +52,6 @@ from worldmodel.peers import kim
 
 from .kim_student import beside_braking
 
-LABEL_STREAM = 7778  # the chooser's labelled episodes: neither the training's, the demonstrations' nor the students'
 HELD_OUT = 0.15
 REWARD = "kim_unaware"
 STEP_S = 0.1  # the family's steps (kim.family_env)
@@ -265,7 +266,7 @@ def main(argv=None) -> None:
         if args.bank:
             specs = kim.bank(cfg.evaluate.kim)
         else:
-            specs = [kim.training_scenario(cfg, LABEL_STREAM, e) for e in range(args.episodes)]
+            specs = [kim.training_scenario(cfg, KIM_CHOOSER_LABELS, e) for e in range(args.episodes)]
         data = labels(cfg, specs, decide_steps)
         args.data.parent.mkdir(parents=True, exist_ok=True)
         np.savez(args.data, **data)

@@ -12,10 +12,10 @@ second planner plans from scratch, as a DAgger label does; counts the labels tha
 plan a steering manoeuvre that starts later (and so say "straight on" now).
 
 ``collect``: a trained cloned student (``agent.variant`` = ``--student``, its ``experiment`` and ``seed`` from the
-overrides) drives ``--episodes`` fresh training-distribution episodes (stream 7777, apart from the training's) and,
-at every step, records what it sees (the LIDAR view), the true state in its frame (``true_state``), the planner's
-from-scratch label and its own action. Prints how often the label steers and how often the student follows, and
-writes an ``.npz``.
+overrides) drives ``--episodes`` fresh training-distribution episodes (``KIM_STUDENT_SCENARIOS``, apart from the
+training's) and, at every step, records what it sees (the LIDAR view), the true state in its frame
+(``true_state``), the planner's from-scratch label and its own action. Prints how often the label steers and how
+often the student follows, and writes an ``.npz``.
 
 ``fit``: clones a fresh actor (the agent's network, ``agent.*`` overrides apply) on the first 80 % of the collected
 episodes, from the LIDAR view or from the true state, and reports on the last 20 %: the mean squared error, and
@@ -45,6 +45,7 @@ import torch
 from tqdm import tqdm
 
 from envs.kim import SCENARIOS, kim_action, kim_action_for
+from envs.streams import KIM_DEMO_SCENARIOS, KIM_STUDENT_SCENARIOS
 from worldmodel import stats
 from worldmodel.artifacts import AgentId
 from worldmodel.common import set_threads
@@ -52,7 +53,6 @@ from worldmodel.config import compose
 from worldmodel.models.ddpg import DDPG
 from worldmodel.peers import kim
 
-STUDENT_STREAM = 7777  # the students' episodes: neither the training's, the demonstrations' nor DAgger's draws
 HELD_OUT = 0.2
 
 
@@ -82,7 +82,7 @@ def labels(cfg, episodes: int) -> None:
     drive, label = kim.teacher(cfg), kim.teacher(cfg)
     counts, avoided = {"straight on": 0, "steer now": 0, "steer later": 0}, 0
     for i in tqdm(range(episodes), desc="planner episodes", unit="episode"):
-        env.reset(options={"scenario": kim.training_scenario(cfg, kim.DEMO_STREAM, i)})
+        env.reset(options={"scenario": kim.training_scenario(cfg, KIM_DEMO_SCENARIOS, i)})
         for p in (drive, label):
             p.reset()
             p.bind(env)
@@ -140,7 +140,7 @@ def record(cfg, agent, source: str, see, stream: tuple, episodes: int, desc: str
 
 def collect(cfg, episodes: int, out: Path) -> None:
     policy, _ = kim.load_policy(cfg, AgentId.of(cfg))
-    data = record(cfg, policy.agent, "lidar", policy.see, (STUDENT_STREAM,), episodes)
+    data = record(cfg, policy.agent, "lidar", policy.see, (KIM_STUDENT_SCENARIOS,), episodes)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez(out, **data)
     agreement("the student", data["action"], data["label"])
@@ -253,7 +253,7 @@ def dagger(cfg, data: dict, source: str, steer_weight: float, rounds: int, episo
     see = lidar_observer(cfg, data) if source == "lidar" else kim.observer(cfg, "kim_unaware")
     for r in range(1, rounds + 1):
         agent = fit(cfg, data, source, steer_weight, held_out_share=0.0)
-        more = record(cfg, agent, source, see, (STUDENT_STREAM, int(cfg.seed), r), episodes, f"round {r}")
+        more = record(cfg, agent, source, see, (KIM_STUDENT_SCENARIOS, int(cfg.seed), r), episodes, f"round {r}")
         more["episode"] = more["episode"] + int(data["episode"].max()) + 1
         print(f"round {r}: the student avoided {100 * (1 - np.mean(_ends(more))):.1f} % of its {episodes} episodes")
         data = {k: np.concatenate([data[k], more[k]]) for k in data}

@@ -28,6 +28,7 @@ from envs.kim import (
 )
 from envs.policies import ConstantAction
 from envs.scene import BUILDINGS, POLES, ROADLINES, ROADS, SIDEWALKS, TEMPLATES, VEHICLES
+from envs.streams import KIM_DAGGER_SCENARIOS, KIM_DEMO_SCENARIOS, KIM_TRAINING_EPISODES
 
 
 @pytest.fixture(scope="module")
@@ -377,7 +378,7 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
         np.testing.assert_array_equal(getattr(first, key)[: len(first)], getattr(again, key)[: len(again)])
     planner, own = kim.teacher(c), []
     for i in (0, 1, 2):  # episode 3 is held out (the last tenth, at least one)
-        spec = sample(np.random.default_rng([0, kim.DEMO_STREAM, i]))
+        spec = sample(np.random.default_rng([0, KIM_DEMO_SCENARIOS, i]))
         rollout(env, planner, spec)
         own.append(not env.collisions)
     assert avoided == round(100.0 * sum(own) / 3, 1)
@@ -442,7 +443,7 @@ def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
     middle = compose("train_agent", ["agent=ddpg_kim_fd"])
     anywhere = compose("train_agent", ["agent=ddpg_kim_fd_anywhere"])
     assert anywhere.agent.variant == "ddpg_kim_fd_anywhere" and anywhere.agent.demo_share == middle.agent.demo_share
-    for stream in ((kim.EPISODE_STREAM,), (kim.DEMO_STREAM,), (kim.DAGGER_STREAM, 1)):
+    for stream in ((KIM_TRAINING_EPISODES,), (KIM_DEMO_SCENARIOS,), (KIM_DAGGER_SCENARIOS, 1)):
         plain = [kim.training_scenario(middle, *stream, i) for i in range(60)]
         drawn = [kim.training_scenario(anywhere, *stream, i) for i in range(60)]
         assert all(s.impact_offset == 0.0 for s in plain)
@@ -450,7 +451,7 @@ def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
         assert offsets.min() < -1.5 and offsets.max() > 1.5 and np.all(np.abs(offsets) <= 2.25)
         for a, b in zip(plain, drawn, strict=True):
             assert {**a.to_dict(), "impact_offset": 0.0} == {**b.to_dict(), "impact_offset": 0.0}
-    assert plain == [kim.training_scenario(middle, kim.DAGGER_STREAM, 1, i) for i in range(60)]  # replays
+    assert plain == [kim.training_scenario(middle, KIM_DAGGER_SCENARIOS, 1, i) for i in range(60)]  # replays
     assert all(abs(sample(np.random.default_rng(i), 9.0).impact_offset) <= 2.25 for i in range(20))  # on the ego
     with pytest.raises(ValueError, match="impact_offset_spread"):
         sample(np.random.default_rng(0), -1.0)

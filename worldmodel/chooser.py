@@ -37,6 +37,7 @@ from tqdm import tqdm
 
 from envs.chooser import BRAKE, HAZARD_STATE, ManoeuvreChooser, cost_labels, decide_steps_for, switch_choice
 from envs.planner import Manoeuvre
+from envs.streams import CHOOSER_LABEL_EPISODES, CHOOSER_MINIBATCHES
 from envs.views import MaskView
 
 from . import artifacts
@@ -107,7 +108,7 @@ def cfg_chooser(cfg):
 def label_scenario(seed: int, episode: int, c):
     from envs import sample_focus_scenario
 
-    rng = np.random.default_rng([int(seed), 8128, int(episode)])
+    rng = np.random.default_rng([int(seed), CHOOSER_LABEL_EPISODES, int(episode)])
     return sample_focus_scenario(rng, float(c.hazard_share), tuple(c.speed_range), tuple(c.ttc_range))
 
 
@@ -396,7 +397,7 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     scorer.mean.copy_(vec.mean(0))
     scorer.std.copy_(vec.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
     opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
-    rng = np.random.default_rng([int(seed), 77])
+    rng = np.random.default_rng([int(seed), CHOOSER_MINIBATCHES])
 
     def held_out() -> tuple[float, float]:
         scorer.eval()

@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from envs.streams import DEMO_SCENARIOS
+
 from . import artifacts
 from .common import StageError
 from .config import hydra_main, teacher_settings, validate
 from .data import SCHEMA_VERSION
 from .recording import env_settings, record_dataset
 
-DEMO_STREAM = 31337  # keeps demonstration scenarios apart from the collection's (seed, i) draws
 MAX_EPISODE_S = 15.0
 
 
@@ -47,7 +48,7 @@ def spec_of(settings: dict, index: int):
     from envs import sample_focus_scenario
 
     f = settings["focus"]
-    rng = np.random.default_rng([settings["seed"], DEMO_STREAM, index])
+    rng = np.random.default_rng([settings["seed"], DEMO_SCENARIOS, index])
     return sample_focus_scenario(rng, f["hazard_share"], tuple(f["speed_range"]), tuple(f["ttc_range"]))
 
 

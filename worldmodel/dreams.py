@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from envs import CLASS_NAMES, NUM_CLASSES, PALETTE
+from envs.streams import DREAM_BRANCH_SCENARIOS
 
 # [steer, throttle/brake]: steer -1 is full left, pedal -1 full braking. "keep" is the reference branch.
 # Half steering tells whether the LSTM scales its dream with the input where grip caps the yaw rate (at 10-20 m/s
@@ -56,12 +57,12 @@ def branch_bank(
 ) -> dict:
     """Real branches from ``points`` held-out branch points; ``env`` must have a camera.
 
-    Scenario k is drawn from the paper's distribution with the seed stream ``[seed, 6007, k]`` (disjoint from the
-    collection's ``[seed, index]``), at speed ``speeds[k % len(speeds)]``; an episode that ends during the warm-up
-    is replaced by the next draw. Returns ``context_seg (N, warmup + 1, H, W)`` (the last is the branch point),
-    ``context_action (N, warmup, 2)``, ``seg (N, A, horizon, H, W)`` with ``[:, a, k]`` the frame k + 1 steps
-    after the branch point under action ``a`` (in :data:`ACTIONS` order), ``valid (N, A, horizon)`` (false after
-    that branch's episode ended) and ``speed (N,)``.
+    Scenario k is drawn from the paper's distribution with the seed stream ``[seed, DREAM_BRANCH_SCENARIOS, k]``
+    (``envs/streams.py``; disjoint from the collection's ``[seed, index]``), at speed ``speeds[k % len(speeds)]``; an
+    episode that ends during the warm-up is replaced by the next draw. Returns ``context_seg (N, warmup + 1, H, W)``
+    (the last is the branch point), ``context_action (N, warmup, 2)``, ``seg (N, A, horizon, H, W)`` with ``[:, a,
+    k]`` the frame k + 1 steps after the branch point under action ``a`` (in :data:`ACTIONS` order), ``valid (N, A,
+    horizon)`` (false after that branch's episode ended) and ``speed (N,)``.
     """
     from envs import NoisyAutopilot, sample_scenario
 
@@ -72,7 +73,7 @@ def branch_bank(
     out = {k: [] for k in ("context_seg", "context_action", "seg", "valid", "speed")}
     k = 0
     while len(out["speed"]) < points:
-        rng = np.random.default_rng([int(seed), 6007, k])
+        rng = np.random.default_rng([int(seed), DREAM_BRANCH_SCENARIOS, k])
         spec = dataclasses.replace(sample_scenario(rng), ego_speed=float(speeds[k % len(speeds)]))
         k += 1
         frames, acts, ended = _drive(env, NoisyAutopilot(**ap), spec, warmup)

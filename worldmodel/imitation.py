@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from envs import sample_focus_scenario
 from envs.planner import PrivilegedPlanner
+from envs.streams import DAGGER_SCENARIOS
 
 from . import artifacts
 from .action_map import ActionMap
@@ -96,7 +97,7 @@ def dagger_labels(cfg, agent: DDPG, encoder, action_map: ActionMap, round_: int)
     f = cfg.demos.focus
     xs, ys, hits = [], [], {"pedestrian": 0, "vehicle": 0, "static": 0}
     for e in tqdm(range(int(cfg.agent.dagger_episodes)), desc=f"DAgger round {round_}", unit="episode"):
-        rng = np.random.default_rng([int(cfg.seed), 5151, round_, e])
+        rng = np.random.default_rng([int(cfg.seed), DAGGER_SCENARIOS, round_, e])
         spec = sample_focus_scenario(rng, float(f.hazard_share), tuple(f.speed_range), tuple(f.ttc_range))
         obs, _ = view.reset(options={"scenario": spec})
         planner.reset(spec.seed)

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.streams import DATASET_SPLIT, RECORDING_BRANCHES
+
 from .common import StageError, atomic_write_text, clean_temporaries
 from .data import SCHEMA_VERSION, shard_name, write_shard
 
@@ -112,7 +114,7 @@ def branch_plan(settings: dict, index: int) -> tuple[int, np.ndarray] | None:
     b = settings.get("branch")
     if not b:
         return None
-    rng = np.random.default_rng([int(settings["seed"]), int(index), 3571])
+    rng = np.random.default_rng([int(settings["seed"]), int(index), RECORDING_BRANCHES])
     if rng.random() >= float(b["share"]):
         return None
     step = int(rng.integers(1, int(b["latest_step"]) + 1))
@@ -183,7 +185,7 @@ def record_shard(task: tuple) -> dict:
 
 
 def split_episodes(seed: int, episodes: int, fraction: float) -> dict:
-    order = np.random.default_rng([seed, 7919]).permutation(episodes)
+    order = np.random.default_rng([seed, DATASET_SPLIT]).permutation(episodes)
     n_val = max(1, int(round(fraction * episodes))) if episodes > 1 else 0
     return {"train": sorted(int(i) for i in order[n_val:]), "validation": sorted(int(i) for i in order[:n_val])}
 

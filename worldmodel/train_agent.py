@@ -26,6 +26,8 @@ from collections import deque
 
 import numpy as np
 
+from envs.streams import AGENT_EPISODE_SEEDS, AGENT_FOCUS_EPISODES
+
 from . import artifacts
 from .action_map import ActionMap
 from .common import StageError, check_finite, make_env, seed_everything, set_threads
@@ -47,7 +49,7 @@ OUTCOME_KEYS = (
 
 
 def episode_seed(seed: int, episode: int) -> int:
-    return int(np.random.default_rng([seed, 1729, episode]).integers(0, 2**31 - 1))
+    return int(np.random.default_rng([seed, AGENT_EPISODE_SEEDS, episode]).integers(0, 2**31 - 1))
 
 
 def reset_options(cfg, episode: int) -> dict:
@@ -57,7 +59,7 @@ def reset_options(cfg, episode: int) -> dict:
     if share > 0:
         from envs import sample_focus_scenario
 
-        rng = np.random.default_rng([seed, 4242, episode])
+        rng = np.random.default_rng([seed, AGENT_FOCUS_EPISODES, episode])
         if rng.uniform() < share:
             f = cfg.demos.focus
             spec = sample_focus_scenario(rng, float(f.hazard_share), tuple(f.speed_range), tuple(f.ttc_range))

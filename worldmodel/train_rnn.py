@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from envs import CLASS_NAMES, NUM_CLASSES
+from envs.streams import RNN_OPEN_LOOP_START, RNN_VALIDATION_INPUTS
 
 from . import artifacts, dreams
 from .common import StageError, check_finite, seed_everything, set_threads
@@ -239,7 +240,8 @@ def run(cfg) -> dict:
                 out, _ = model(z, a)
                 loss = masked_loss(model, out, z_next, mask)
                 if open_loop:
-                    start = int(np.random.default_rng([int(cfg.seed), epoch, b, 77]).integers(0, L - open_loop + 1))
+                    starts = np.random.default_rng([int(cfg.seed), epoch, b, RNN_OPEN_LOOP_START])
+                    start = int(starts.integers(0, L - open_loop + 1))
                     dream_loss = open_loop_loss(model, z, a, z_next, mask, start, open_loop)
                     loss = loss + float(cfg.rnn.open_loop_weight) * dream_loss
                 check_finite(loss.item(), "LSTM loss", step, run_.last)
@@ -317,7 +319,7 @@ def validation_loss(model, lat, units, L, D, B, seed, *, sample_inputs: bool) ->
     """Mean per-step loss over the held-out windows, with the inputs drawn as in training (``rnn.sample_inputs``),
     so ``best.pt`` is chosen on the distribution it was trained on."""
     model.eval()
-    gen = torch.Generator().manual_seed(seed + 99)
+    gen = torch.Generator().manual_seed(seed + RNN_VALIDATION_INPUTS)
     total, count = 0.0, 0
     for b in range(0, len(units), B):
         z, a, z_next, mask = make_batch(lat, units[b : b + B], L, D, gen, sample_inputs=sample_inputs)

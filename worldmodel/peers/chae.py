@@ -47,6 +47,7 @@ from envs.chae import (
     brake_action,
     sample_chae,
 )
+from envs.streams import CHAE_BANK_SCENARIO_2, CHAE_TRAINING_EPISODES
 
 from .. import artifacts
 from ..artifacts import AgentId
@@ -129,7 +130,7 @@ def family_env(cfg, camera: bool, end_on_bump: bool = True):
 def episode_scenario(seed: int, episode: int, ttc_range=TTC_RANGE) -> tuple[ChaeSpec, int]:
     """Training episode ``episode``'s scenario and observation-noise seed: a function of (seed, episode) and the
     TTC range (``agent.chae_ttc_range``) only, so a resumed run draws what an uninterrupted one would."""
-    rng = np.random.default_rng([int(seed), 1717, int(episode)])
+    rng = np.random.default_rng([int(seed), CHAE_TRAINING_EPISODES, int(episode)])
     return sample_chae(rng, ttc_range=(float(ttc_range[0]), float(ttc_range[1]))), int(rng.integers(2**31))
 
 
@@ -604,7 +605,7 @@ def bank(c) -> list[tuple[int, ChaeSpec]]:
                 far_side=bool(rng.random() < 0.5),
             )
             out.append((1, spec))
-    rng = np.random.default_rng([int(c.seed), 2])
+    rng = np.random.default_rng([int(c.seed), CHAE_BANK_SCENARIO_2])
     for i in range(int(c.trials)):
         spec = ChaeSpec(
             seed=i,

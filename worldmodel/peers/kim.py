@@ -37,6 +37,7 @@ from envs.kim import sample as sample_kim
 from envs.lidar import RANGE_M, LidarHistory
 from envs.policies import StraightLineBraking
 from envs.rewards import crash_iss
+from envs.streams import KIM_BANK_CROSSING, KIM_DAGGER_SCENARIOS, KIM_DEMO_SCENARIOS, KIM_TRAINING_EPISODES
 
 from .. import artifacts
 from ..artifacts import AgentId
@@ -107,7 +108,8 @@ def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
 
 def training_scenario(cfg, *stream: int) -> KimSpec:
     """A scenario of the training distribution (``agent.kim_impact_offset_spread`` says where the runner may
-    strike), a function of (seed, ``stream``) only, so a resumed run draws what an uninterrupted one would."""
+    strike), a function of (seed, ``stream``) only, so a resumed run draws what an uninterrupted one would;
+    ``stream`` starts with a tag of envs/streams.py (``KIM_TRAINING_EPISODES`` and the others) and its indices."""
     rng = np.random.default_rng([int(cfg.seed), *map(int, stream)])
     return sample_kim(rng, float(cfg.agent.kim_impact_offset_spread))
 
@@ -120,9 +122,6 @@ def ddpg_config(cfg):
 
 
 # ----------------------------------------------------------------------------- learning from the planner
-EPISODE_STREAM = 2020  # training episode i: (seed, 2020, i)
-DEMO_STREAM = 2021  # keeps demonstration scenarios apart from the training episodes' draws
-DAGGER_STREAM = 2022
 HELD_OUT_SHARE = 0.1  # the last tenth of the demonstration episodes (at least one) stops the cloning early
 STEERING_LABEL = 0.15  # a label steers (agent.bc_steer_weight) above this share of full steering; the planner: 0.3+
 
@@ -156,7 +155,7 @@ def planner_demonstrations(cfg, env, see: LidarObserver, hp, split: str):
     buffer = ReplayBuffer(max(1, len(episodes) * 60), see.dim, 2)  # 5 s of 0.1 s steps, and room to spare
     window, scale, avoided = NStepWindow(hp.n_step, hp.gamma), float(hp.reward_scale), 0
     for i in tqdm(episodes, desc=f"planner demonstrations ({split})", unit="episode"):
-        env.reset(options={"scenario": training_scenario(cfg, DEMO_STREAM, i)})
+        env.reset(options={"scenario": training_scenario(cfg, KIM_DEMO_SCENARIOS, i)})
         planner.reset()
         planner.bind(env)
         see.reset()
@@ -186,7 +185,7 @@ def dagger_labels(cfg, env, see: LidarObserver, agent, round_: int):
     planner = teacher(cfg)
     xs, ys, avoided, n = [], [], 0, int(cfg.agent.dagger_episodes)
     for e in tqdm(range(n), desc=f"DAgger round {round_}", unit="episode"):
-        env.reset(options={"scenario": training_scenario(cfg, DAGGER_STREAM, round_, e)})
+        env.reset(options={"scenario": training_scenario(cfg, KIM_DAGGER_SCENARIOS, round_, e)})
         planner.reset()
         planner.bind(env)
         see.reset()
@@ -298,7 +297,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     run_.restore_random_state()  # building the networks and views drew from them
     with tqdm(total=total, initial=step, desc=f"ddpg kim ({agent_id.reward})", unit="step") as bar:
         while step < total and not run_.stop.requested:
-            env.reset(options={"scenario": training_scenario(cfg, EPISODE_STREAM, episode)})
+            env.reset(options={"scenario": training_scenario(cfg, KIM_TRAINING_EPISODES, episode)})
             see.reset()
             x, ret = see(env), 0.0
             while True:
@@ -431,7 +430,7 @@ def bank(c) -> list[KimSpec]:
     out, half = [], CAR_LENGTH / 2
     for k, scenario in enumerate(SCENARIOS):
         rng = np.random.default_rng([int(c.seed), k])
-        crossing = np.random.default_rng([int(c.seed), k, 1])  # its own stream: the other fields stay the same
+        crossing = np.random.default_rng([int(c.seed), k, KIM_BANK_CROSSING])  # the other fields stay the same
         for _ in range(int(c.trials)):
             spec = sample_kim(rng)
             offset = float(c.impact_offset)

@@ -40,6 +40,7 @@ import torch
 
 from envs.merola import SCENARIOS, MerolaSpec
 from envs.merola import sample as sample_merola
+from envs.streams import MEROLA_TRAINING_EPISODES
 
 from .. import artifacts
 from ..artifacts import AgentId
@@ -146,7 +147,7 @@ def family_env(cfg, step_s: float | None = None, camera: bool = True):
 def episode_scenario(seed: int, episode: int) -> MerolaSpec:
     """Training episode ``episode``'s scenario: a function of (seed, episode) only, so a resumed run draws what an
     uninterrupted one would."""
-    return sample_merola(np.random.default_rng([int(seed), 2022, int(episode)]))
+    return sample_merola(np.random.default_rng([int(seed), MEROLA_TRAINING_EPISODES, int(episode)]))
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
