@@ -9,7 +9,10 @@ Only the env's camera mode builds this module's pool; the camera-off mode needs 
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import sys
 
 import numpy as np
 
@@ -28,6 +31,30 @@ from .scene import (
     VEHICLES,
     StaticLayout,
 )
+
+
+@contextlib.contextmanager
+def c_output_silenced():
+    """Swallow what C code writes on the process's stdout and stderr inside the block: pybullet writes its build
+    time when imported, and every worker of a run would repeat it. Python exceptions are unaffected: they are
+    raised, and printed, after the block."""
+    import ctypes
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            os.dup2(devnull.fileno(), 2)
+            try:
+                yield
+            finally:
+                ctypes.CDLL(None).fflush(None)
+    finally:
+        for fd, copy in zip((1, 2), saved, strict=True):
+            os.dup2(copy, fd)
+            os.close(copy)
 
 
 class BodyPool:

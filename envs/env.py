@@ -168,13 +168,14 @@ class UrbanCollisionEnv(gym.Env):
 
     # ------------------------------------------------------------------ pybullet
     def _connect(self) -> None:
-        import pybullet as p
-
         from .actors import CAR_POOL, PEDESTRIAN_POOL
-        from .bodies import BodyPool
+        from .bodies import BodyPool, c_output_silenced
         from .camera import SegmentationCamera
 
-        self._client = p.connect(p.DIRECT)
+        with c_output_silenced():  # pybullet's build-time banner
+            import pybullet as p
+
+            self._client = p.connect(p.DIRECT)
         vehicle_size = (self.params.length, self.params.width, self.params.height)
         self._pool = BodyPool(self._client, CAR_POOL, PEDESTRIAN_POOL, vehicle_size, PEDESTRIAN_HALF_SIZE)
         self._camera = SegmentationCamera(self._client, self._pool, self.image_size, self.fov_deg)

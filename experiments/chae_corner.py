@@ -4,7 +4,8 @@
 
 For every policy whose name contains ``--policy``, and each of its seeds: the ego's initial speeds (km/h) of the
 Scenario-1 trials that bumped at TTC ``--ttc``, and Scenario 2's needless stops per 10 km/h band of initial speed.
-Shows whether the failures sit in a corner of the training range (docs/results/chae/settings_validation.md).
+Shows whether the failures sit in a corner of the training range
+(docs/results/chae/notes/training_ttcs_and_value_rescaling.md).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ ensemble's, on one TTC of a validation draw, and what they were in the trials th
 
     python -m experiments.chae_split runs/NAME --seeds 21 22 23 --draw 105 [--trials 1000] [--ttc 1.5] [--average vote]
 
-A diagnostic (docs/results/chae/settings_validation.md, eighteenth session): a vote of members that each bump in
+A diagnostic (docs/results/chae/notes/ensembles.md): a vote of members that each bump in
 0.8-1.3 % alone bumped in 2.8 %. For every Scenario-1 trial at ``--ttc`` this drives the ensemble and records, at
 each step, every member's greedy level and the ensemble's; it prints how the members split over the steps of the
 trials that bump and of those that do not, and in how many bumping trials some member wanted a harder brake than the
@@ -17,6 +17,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+
+from .chae_margin import VoteEnsemble
 
 FULL = 0  # the index of -9.8 m/s^2 in envs.chae.BRAKE_LEVELS (levels are ordered hardest first)
 
@@ -53,7 +55,7 @@ def main(argv=None) -> None:
     from worldmodel.peers import chae
 
     cfg, members = load_members(args.run, args.seeds)
-    combine = chae.VoteEnsemble if args.average == "vote" else chae.QEnsemble
+    combine = VoteEnsemble if args.average == "vote" else chae.QEnsemble
     recording = Recording(combine(m.agent for m in members))
     policy = chae.DQNPolicy("split", recording, members[0].see, 0)
     entries = [e for e in chae.bank(SimpleNamespace(seed=args.draw, trials=args.trials, ttcs=[args.ttc])) if e[0] == 1]

@@ -3,7 +3,6 @@ the physics band of issue 13's calculation."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 
@@ -450,29 +449,6 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert chosen == ((q0 + q1) / 2).argmax(1).tolist()
     assert chosen != q0.argmax(1).tolist() or chosen != q1.argmax(1).tolist()  # not simply one member
     assert chae.ensembles(agents, members, 3) == []  # seed 2 missing: no partial ensemble
-    # evaluate.chae.ensemble_vote: the majority of the members' greedy levels; a tie, the higher mean Q of the tied
-    (voting,) = chae.ensembles(agents, members, 2, vote=True)
-    assert voting.name == "agent_chae_dqn_chae_ensemble2vote"
-    voted = [voting.agent.act(o) for o in obs]
-    mean_q = (q0 + q1) / 2
-    tied = np.stack([q0.argmax(1), q1.argmax(1)], axis=1)  # two members: agreement, or a tie between their levels
-    assert voted == [pair[np.argmax(mean_q[i, pair])] for i, pair in enumerate(tied)]
-    assert all(v in pair for v, pair in zip(voted, tied, strict=True))  # never a level no member chose
-    assert len(set(voted)) > 1 and (tied[:, 0] != tied[:, 1]).any()  # the states test both the votes and the ties
-    twice = chae.VoteEnsemble([members[0].agent, members[1].agent, members[0].agent])
-    assert [twice.act(o) for o in obs] == q0.argmax(1).tolist()  # two votes of three always win
-    assert (twice.q_values(obs).argmax(1) == q0.argmax(1)).all()  # the batched scores say the same
-    assert (((2 * q0 + q1) / 3).argmax(1) != q0.argmax(1)).any()  # where the mean of the three would not
-    # ensemble_pool: of seeds 0-2, the two that the selection draw ranks first join, in its order
-    pooled_ids = [*agents, dataclasses.replace(agents[0], seed=2)]
-    ranks = {0: (0.0, 9.0), 1: (0.0, 1.0), 2: (5.0, 0.0)}  # (bumps, stops): seed 2 outside the bump bar
-    scores = {a: {"max_bump_rate": ranks[a.seed][0], "unnecessary_stop_rate": ranks[a.seed][1]} for a in pooled_ids}
-    (best_two,) = chae.ensembles(pooled_ids, [*members, members[0]], 2, pool=3, scores=scores)
-    assert (best_two.name, best_two.policy_seed) == ("agent_chae_dqn_chae_ensemble2of3", 0)
-    assert [m for m in best_two.agent.members] == [members[1].agent, members[0].agent]
-    assert (
-        chae.selection_score(ev, agents[0]) == json.loads((agents[0].dir(ev) / "metrics.json").read_text())["selected"]
-    )
 
     summary = chae.evaluate(ev)
     rows = list(csv.DictReader(open(tmp_path / "runs/e/eval_chae/results.csv")))
@@ -494,9 +470,6 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert set(alone["policies"]) == {"braking", "agent_chae_dqn_chae_ensemble2"}
     for name in alone["policies"]:
         assert alone["policies"][name] == summary["policies"][name]
-    by_vote = chae.evaluate(cfg(*alone_args, "evaluate.chae.ensemble_vote=true"))
-    assert set(by_vote["policies"]) == {"braking", "agent_chae_dqn_chae_ensemble2vote"}
-    assert by_vote["policies"]["braking"] == summary["policies"]["braking"]
     # experiments.chae_tables: the rows read back give the evaluation's tables; a run given twice is refused
     from experiments import chae_tables
 
@@ -508,22 +481,8 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.policies=[braking,aeb3m]"))
     with pytest.raises(StageError, match="evaluate.chae.ensemble=1"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=1"))
-    for pool in ("2", "1"):  # a pool must hold more runs than an ensemble takes
-        with pytest.raises(StageError, match="evaluate.chae.ensemble_pool"):
-            validate(
-                cfg(
-                    "evaluate",
-                    "evaluate.family=chae",
-                    "evaluate.chae.ensemble=2",
-                    f"evaluate.chae.ensemble_pool={pool}",
-                )
-            )
     with pytest.raises(StageError, match="evaluate.chae.singles"):
         validate(cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.singles=false"))
-    with pytest.raises(StageError, match="evaluate.chae.ensemble_vote"):
-        validate(
-            cfg("evaluate", "evaluate.family=chae", "evaluate.chae.ensemble=0", "evaluate.chae.ensemble_vote=true")
-        )
 
 
 def test_the_configs_scripted_names_are_the_ones_evaluation_builds():
@@ -531,18 +490,6 @@ def test_the_configs_scripted_names_are_the_ones_evaluation_builds():
     from worldmodel.peers import chae
 
     assert tuple(chae.SCRIPTED) == CHAE_SCRIPTED_POLICIES
-
-
-def test_the_best_runs_of_a_pool_rank_as_checkpoint_selection_ranks_checkpoints():
-    """evaluate.chae.ensemble_pool ranks runs by their selection scores: inside the bump bar (1 %) first, by fewest
-    needless stops; then by fewest bumps; the earlier seed on a tie."""
-    from worldmodel.peers.chae import best_selected
-
-    s = lambda bumps, stops: {"max_bump_rate": bumps, "unnecessary_stop_rate": stops}  # noqa: E731
-    scores = {0: s(0.0, 4.5), 1: s(4.5, 7.0), 2: s(0.0, 0.0), 3: s(15.5, 0.0), 4: s(0.0, 5.5)}
-    assert best_selected(scores, 3) == [2, 0, 4]
-    assert best_selected(scores, 5) == [2, 0, 4, 1, 3]
-    assert best_selected({5: s(1.0, 1.0), 6: s(0.5, 1.0), 7: s(2.0, 0.0)}, 2) == [5, 6]
 
 
 def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():
@@ -675,40 +622,3 @@ def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluatio
     env.close()
     np.testing.assert_array_equal(exact_readings[0], exact_readings[1])
     assert not np.array_equal(noisy_readings[0], noisy_readings[1])
-
-
-def test_a_noise_curriculum_ramps_the_training_noise_and_records_the_full_one(tmp_path):
-    """agent.chae_noise_ramp: the training episodes' noise (logged to TensorBoard) starts exact, rises linearly over
-    the ramp's share of the episodes and then holds agent.chae_noise_m, which the checkpoint records. A ramp of 1
-    or one on the camera's observation is refused, naming the key; the default leaves provenance as it was."""
-    import torch
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    from worldmodel import artifacts, train_agent
-    from worldmodel.artifacts import AgentId
-    from worldmodel.common import StageError
-    from worldmodel.config import validate
-
-    def cfg(root, *extra):
-        return smoke_dqn_chae(root, "agent.select.every=0", *extra)
-
-    plain = cfg(tmp_path / "plain")
-    assert artifacts.provenance(cfg(tmp_path / "plain", "agent.chae_noise_ramp=0"), "agent") == (
-        artifacts.provenance(plain, "agent")
-    )
-    for bad in (("agent.chae_noise_ramp=1.0",), ("agent.chae_noise_ramp=0.5", "obs=worldmodel")):
-        with pytest.raises(StageError, match="agent.chae_noise_ramp"):
-            validate(cfg(tmp_path / "bad", *bad))
-
-    ramped = cfg(tmp_path / "ramped", "agent.chae_noise_ramp=0.5", "agent.chae_noise_m=0.2")
-    train_agent.run(ramped)
-    run_dir = AgentId.of(ramped).dir(ramped)
-    assert torch.load(run_dir / "last.pt", weights_only=False)["noise_m"] == 0.2
-    events = EventAccumulator(str(run_dir))
-    events.Reload()
-    noise = [e.value for e in sorted(events.Scalars("train/state_noise_m"), key=lambda e: e.step)]
-    episodes = int(ramped.agent.episodes)
-    ramp = 0.5 * episodes
-    expected = [0.2 * min(1.0, k / ramp) for k in range(episodes)]
-    np.testing.assert_allclose(noise, expected, atol=1e-6)
-    assert noise[0] == 0.0 and noise[-1] == pytest.approx(0.2)

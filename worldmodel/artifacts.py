@@ -255,23 +255,25 @@ ADDED_DEFAULTS = {
         "bc_steer_weight": 1.0,
         "chae_ttc_range": [1.5, 4.0],
         "chae_noise_m": 0.1,
-        "chae_noise_ramp": 0.0,
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
-DQN_OPTIONS_OFF = {
-    "advantage_alpha": 0.0,
-    "value_rescale": False,
-    "dueling": False,
-    "trauma_weight_final": None,
-    "trauma_weight_hold": 0.0,
-    "normalize_obs": False,
-    "greedy_average": None,
-    "target_average": 1,
+DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
+# Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are
+# put back before hashing, so those runs stay current. (Removed keys that were also added defaults simply stay out.)
+REMOVED_KEYS = {
+    ("agent", "dqn"): {"trauma_lead": 0},
+    ("evaluate", "chae"): {"ensemble_pool": 0, "ensemble_vote": False},
 }
 
 
 def _drop_added_defaults(settings: dict) -> dict:
+    for (section, sub), removed in REMOVED_KEYS.items():
+        part = settings.get(section, {})
+        part = part.get(sub) if isinstance(part, dict) else None
+        if isinstance(part, dict):
+            for key, value in removed.items():
+                part.setdefault(key, value)
     agent = settings.get("agent")
     if isinstance(agent, dict) and agent.get("learner") != "dqn":
         agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners

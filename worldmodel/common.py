@@ -1,6 +1,6 @@
 """Plumbing shared by every stage: clear errors, atomic writes, seeding and building the env.
 
-Paths and loaders live in ``artifacts.py``, config composition in ``config.py`` (docs/design.md §2, §9).
+Paths and loaders live in ``artifacts.py``, config composition in ``config/`` (docs/design.md §2, §9).
 """
 
 from __future__ import annotations

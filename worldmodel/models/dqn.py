@@ -42,7 +42,6 @@ stopped.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -88,27 +87,10 @@ class DQNConfig(Checked):
     trauma_batch: int = 10
     """trauma transitions added to every update's batch (fewer while the trauma memory holds fewer). 0 turns the
     trauma memory off: plain DQN"""
-    trauma_lead: int = 0
-    """the transitions up to this many steps before a trauma, in the same episode, enter the trauma memory with it
-    (0: the trauma alone, as Chae et al.). The braking decision that would have prevented a bump comes a second or
-    more before it; replaying those states with the trauma shortens the way the penalty travels back by TD"""
     target_every: int = 500
     """updates between hard copies of the online network into the target network"""
-    target_average: int = 1
-    """Averaged-DQN (Anschel et al. 2017): the TD target values the next state by the mean of the last this-many
-    target networks (the copies made ``target_every`` updates apart), not by the latest alone. 1 = one target
-    network, as DQN. Averaging K copies divides the variance that the target's approximation error adds to the
-    targets by about K, which Anschel et al. show damps DQN's oscillations; for when successive checkpoints of a
-    run swing between policies (Chae: bumping and needless stops, 250 episodes apart). Measured on Chae (K = 10,
-    one seed): it swings as widely"""
     double: bool = False
     """Double DQN target: the online network chooses the next action, the target network values it"""
-    advantage_alpha: float = 0.0
-    """advantage learning (Bellemare et al. 2016, "Increasing the action gap"): the target of Q(s, a) is lowered by
-    alpha * (max_b Q'(s, b) - Q'(s, a)), which keeps the greedy policy optimal but widens the gap between the best
-    action and the others about 1 / (1 - alpha) times. 0 = the plain Bellman target. For when the values that
-    separate actions are small beside the values' own range and the network's error (Chae: a collision costs
-    100, a needless stop at 10 km/h 0.3)"""
     value_rescale: bool = False
     """learn h(Q) instead of Q, with h(x) = sign(x) (sqrt(|x| + 1) - 1) + 0.001 x (Pohlen et al. 2018, as in R2D2):
     the TD target becomes h(r + gamma h^-1(Q'(s', a'))). h is increasing, so the greedy action is the same, but it
@@ -127,11 +109,6 @@ class DQNConfig(Checked):
     loss: str = "sum"
     """how TD errors make the loss. "sum": Chae's Eq. 9, the sum of squared TD errors over the replay and the
     trauma batch; "mse": their mean; "huber": the mean Huber loss (delta 1), as in Mnih et al. 2015"""
-    dueling: bool = False
-    """the dueling head (Wang et al. 2016): the last hidden layer feeds a state value V(s) and advantages A(s, .),
-    and Q = V + A - mean(A). The paper's network has one linear head (False). When the values that separate the
-    actions are small beside the values themselves (Chae: waiting or braking gently at low speed differ by
-    hundredths, beside a bump's 100), the advantages are learnt in their own stream"""
     trauma_weight_final: float | None = None
     """if set, the trauma batch's share of the loss is weighted by a factor that decays exponentially from 1 to
     this over ``total_steps`` updates (the schedule of ``lr_final``), then stays there. None = weight 1 throughout,
@@ -140,52 +117,27 @@ class DQNConfig(Checked):
     travel back quickly while collisions are rare, but late in training it biases the fit towards the states near
     a collision (Chae: gentle braking for every pedestrian in case it starts); annealing its weight removes that
     bias as prioritised replay's importance weights do (Schaul et al. 2016)"""
-    trauma_weight_hold: float = 0.0
-    """with ``trauma_weight_final``: the share of ``total_steps`` updates during which the weight stays 1 before it
-    starts to decay (then over the remaining updates). 0 = decay from the first update. For runs that have not yet
-    learnt to avoid the collisions when the decay starts (Chae: the first bumps are avoided only when epsilon is
-    low, around 55 % of the run), so that the bias is removed after the penalty has travelled back, not before"""
-    normalize_obs: bool = False
-    """standardise each observation feature by the mean and standard deviation of the replay memory at the first
-    update (the warm-up transitions), frozen from then on and saved with the network. False = raw inputs, as
-    Chae et al. (their state mixes metres up to ~80 with speeds). Measured on Chae (one seed): learning starts
-    as late and the greedy agent swings as much as with raw inputs"""
     grad_clip: float | None = 10.0
     """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
     gradient grows with the batch, and one collision penalty can be large"""
-    greedy_average: float | None = None
-    """if set, a third copy of the network follows the online one as an exponential moving average of its weights
-    (after every update, w_avg := d w_avg + (1 - d) w_online, d = this), and greedy decisions (``act(...,
-    explore=False)``: evaluation, checkpoint selection) use it; exploration and the TD targets do not. None = greedy
-    decisions use the online network, as Chae et al. For when successive checkpoints of one run act very
-    differently (Chae: 250 episodes apart, 1 % and 30 % bumps), as weight averaging does in Polyak and Juditsky 1992
-    and SWA (Izmailov et al. 2018): 1 - d is the inverse of the number of updates averaged over. Measured on Chae
-    (d = 0.9999, three seeds): the same two runs in three pass the bars as without it"""
 
     def problems(self):
         yield from positive_fields(self, "lr", "total_steps", "batch_size", "buffer_size", "target_every")
-        yield from positive_fields(self, "target_average")
         yield from positive_fields(self, "eps_decay_steps")
         if self.lr_final is not None and not 0 < self.lr_final <= self.lr:
             yield ConfigValueError("lr_final", self.lr_final, f"it must be in (0, lr={self.lr}] or null")
         if self.trauma_weight_final is not None and not 0 < self.trauma_weight_final <= 1:
             yield ConfigValueError("trauma_weight_final", self.trauma_weight_final, "it must be in (0, 1] or null")
-        if not 0 <= self.trauma_weight_hold < 1:
-            yield ConfigValueError("trauma_weight_hold", self.trauma_weight_hold, "it must be in [0, 1)")
         if self.grad_clip is not None and not self.grad_clip > 0:
             yield ConfigValueError("grad_clip", self.grad_clip, "it must be positive or null")
         if not 0 <= self.gamma <= 1:
             yield ConfigValueError("gamma", self.gamma, "it must be in [0, 1]")
-        if self.greedy_average is not None and not 0 < self.greedy_average < 1:
-            yield ConfigValueError("greedy_average", self.greedy_average, "it must be in (0, 1) or null")
-        if not 0 <= self.advantage_alpha < 1:
-            yield ConfigValueError("advantage_alpha", self.advantage_alpha, "it must be in [0, 1)")
         for key in ("eps_start", "eps_end"):
             if not 0 <= getattr(self, key) <= 1:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
         if self.eps_end > self.eps_start:
             yield ConfigValueError("eps_end", self.eps_end, f"it must be at most eps_start={self.eps_start}")
-        for key in ("trauma_size", "trauma_batch", "trauma_lead", "warmup_steps", "leaky_slope"):
+        for key in ("trauma_size", "trauma_batch", "warmup_steps", "leaky_slope"):
             if getattr(self, key) < 0:
                 yield ConfigValueError(key, getattr(self, key), "it must be >= 0")
         if self.trauma_batch > self.trauma_size:
@@ -228,45 +180,23 @@ def td_loss(q: torch.Tensor, target: torch.Tensor, kind: str, batch: int | None 
 
 
 class QNetwork(nn.Module):
-    """Q(s, .): an MLP from the observation to one value per action, leaky ReLU between layers; with ``dueling``,
-    a value and an advantage head on the last hidden layer, Q = V + A - mean(A)."""
+    """Q(s, .): an MLP from the observation to one value per action, leaky ReLU between layers."""
 
     def __init__(
-        self,
-        obs_dim: int,
-        n_actions: int,
-        hidden: Sequence[int] = (100, 70, 50, 70, 100),
-        leaky_slope: float = 0.01,
-        dueling: bool = False,
-        normalize: bool = False,
+        self, obs_dim: int, n_actions: int, hidden: Sequence[int] = (100, 70, 50, 70, 100), leaky_slope: float = 0.01
     ):
         super().__init__()
-        self.normalize = bool(normalize)
-        if self.normalize:  # set once by DQN.update (freeze_normalization); buffers, so checkpoints carry them
-            self.register_buffer("obs_mean", torch.zeros(obs_dim))
-            self.register_buffer("obs_std", torch.ones(obs_dim))
         layers: list[nn.Module] = []
         in_dim = obs_dim
         for width in hidden:
             layers += [nn.Linear(in_dim, width), nn.LeakyReLU(leaky_slope)]
             in_dim = width
-        self.dueling = bool(dueling)
-        if self.dueling:
-            self.net = nn.Sequential(*layers)
-            self.value, self.advantage = nn.Linear(in_dim, 1), nn.Linear(in_dim, n_actions)
-        else:
-            layers.append(nn.Linear(in_dim, n_actions))
-            self.net = nn.Sequential(*layers)
+        layers.append(nn.Linear(in_dim, n_actions))
+        self.net = nn.Sequential(*layers)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Returns Q with shape (batch, n_actions)."""
-        if self.normalize:
-            obs = (obs - self.obs_mean) / self.obs_std
-        if not self.dueling:
-            return self.net(obs)
-        h = self.net(obs)
-        advantage = self.advantage(h)
-        return self.value(h) + advantage - advantage.mean(dim=-1, keepdim=True)
+        return self.net(obs)
 
 
 class TransitionBuffer(CircularStore):
@@ -306,21 +236,10 @@ class DQN:
         # Initialise from `seed` without consuming or resetting the global torch RNG, which the caller may use.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            shape = (obs_dim, n_actions, cfg.hidden, cfg.leaky_slope, cfg.dueling, cfg.normalize_obs)
+            shape = (obs_dim, n_actions, cfg.hidden, cfg.leaky_slope)
             self.q_network, self.target_network = QNetwork(*shape), QNetwork(*shape)
         self.target_network.load_state_dict(self.q_network.state_dict())
         self.target_network.requires_grad_(False)  # moved only by hard copies
-        # target_average: the earlier copies, newest first; all start as the initial network, as the target does
-        self.earlier_targets: list[QNetwork] = []
-        for _ in range(cfg.target_average - 1):
-            self.earlier_targets.append(QNetwork(*shape))
-            self.earlier_targets[-1].load_state_dict(self.q_network.state_dict())
-            self.earlier_targets[-1].requires_grad_(False)
-        self.average_network = None  # greedy_average: the weight average that greedy decisions use
-        if cfg.greedy_average is not None:
-            self.average_network = QNetwork(*shape)
-            self.average_network.load_state_dict(self.q_network.state_dict())
-            self.average_network.requires_grad_(False)
 
         optimizer = {"rmsprop": torch.optim.RMSprop, "adam": torch.optim.Adam}[cfg.optimizer]
         self.optimizer = optimizer(self.q_network.parameters(), lr=cfg.lr)
@@ -328,11 +247,9 @@ class DQN:
         total = cfg.total_steps
         # lr * ratio^(u / total): exactly lr_final after `total` updates, held there after.
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda u: ratio ** (min(u, total) / total))
-        self.normalized = False  # whether the networks' input statistics are frozen yet (normalize_obs)
 
         self.replay = TransitionBuffer(cfg.buffer_size, obs_dim)
         self.trauma = TransitionBuffer(cfg.trauma_size, obs_dim) if cfg.trauma_batch > 0 else None
-        self._lead: deque = deque(maxlen=cfg.trauma_lead)  # this episode's latest transitions, for trauma_lead
 
     # ------------------------------------------------------------------ acting
     def epsilon(self, step: int | None = None) -> float:
@@ -342,88 +259,46 @@ class DQN:
         return self.cfg.eps_start + frac * (self.cfg.eps_end - self.cfg.eps_start)
 
     @torch.no_grad()
-    def q_values(self, obs: np.ndarray, averaged: bool = False) -> np.ndarray:
-        """Q(obs, .) from the online network (``averaged``: from the weight average when ``greedy_average`` keeps
-        one), for one observation (n_actions,) or a batch (n, n_actions)."""
-        net = self.average_network if averaged and self.average_network is not None else self.q_network
-        values = net(torch.as_tensor(obs, dtype=torch.float32))
+    def q_values(self, obs: np.ndarray) -> np.ndarray:
+        """Q(obs, .) from the online network, for one observation (n_actions,) or a batch (n, n_actions)."""
+        values = self.q_network(torch.as_tensor(obs, dtype=torch.float32))
         return (unsquash(values) if self.cfg.value_rescale else values).numpy()
 
     def act(self, obs: np.ndarray, step: int | None = None, explore: bool = True) -> int:
-        """A uniformly random action with probability ``epsilon(step)`` if ``explore``, else the greedy one: of the
-        online network while exploring, of the weight average (``greedy_average``) when not."""
+        """A uniformly random action with probability ``epsilon(step)`` if ``explore``, else the greedy one."""
         if explore and self.rng.random() < self.epsilon(step):
             return int(self.rng.integers(self.n_actions))
-        return int(np.argmax(self.q_values(obs, averaged=not explore)))
+        return int(np.argmax(self.q_values(obs)))
 
     def remember(
         self, obs, action: int, reward: float, next_obs, terminated: bool, trauma: bool = False, episode_end=None
     ) -> None:
-        """Store a transition in the replay memory and, if ``trauma`` and the trauma memory is on, in that too
-        (after the ``trauma_lead`` transitions before it). ``episode_end`` (default: ``terminated``) tells where an
-        episode ends, so that a lead never reaches into the previous episode: pass ``terminated or truncated``."""
-        transition = (obs, action, reward, next_obs, terminated)
-        self.replay.add(*transition)
+        """Store a transition in the replay memory and, if ``trauma`` and the trauma memory is on, in that too.
+        ``episode_end`` (where an episode ends: ``terminated or truncated``) is accepted for callers that pass it."""
+        self.replay.add(obs, action, reward, next_obs, terminated)
         if trauma and self.trauma is not None:
-            for earlier in self._lead:
-                self.trauma.add(*earlier)
-            self.trauma.add(*transition)
-            self._lead.clear()
-        elif self.cfg.trauma_lead:
-            self._lead.append(transition)
-        if terminated if episode_end is None else episode_end:
-            self._lead.clear()
+            self.trauma.add(obs, action, reward, next_obs, terminated)
         self.steps += 1
 
     # ------------------------------------------------------------------ learning
     def trauma_weight(self, update: int | None = None) -> float:
         """The trauma batch's loss weight at update ``update`` (default: updates so far): 1, decaying exponentially
-        to ``trauma_weight_final`` over ``total_steps`` updates when that is set (after the first
-        ``trauma_weight_hold`` share of them at 1)."""
+        to ``trauma_weight_final`` over ``total_steps`` updates when that is set."""
         final = self.cfg.trauma_weight_final
         if final is None:
             return 1.0
         u = self.updates if update is None else update
-        hold = self.cfg.trauma_weight_hold * self.cfg.total_steps
-        progress = (min(u, self.cfg.total_steps) - hold) / (self.cfg.total_steps - hold)
+        progress = min(u, self.cfg.total_steps) / self.cfg.total_steps
         return float(final ** max(progress, 0.0))
 
     @torch.no_grad()
-    def freeze_normalization(self) -> None:
-        """Both networks standardise their inputs by the replay memory's per-feature mean and standard deviation
-        (a feature that never varied keeps scale 1)."""
-        obs = self.replay.obs[: len(self.replay)]
-        mean = torch.as_tensor(obs.mean(axis=0), dtype=torch.float32)
-        std = torch.as_tensor(obs.std(axis=0), dtype=torch.float32)
-        std = torch.where(std > 1e-6, std, torch.ones_like(std))
-        for net in (self.q_network, self.target_network, self.average_network, *self.earlier_targets):
-            if net is None:
-                continue
-            net.obs_mean.copy_(mean)
-            net.obs_std.copy_(std)
-        self.normalized = True
-
-    def target_values(self, obs: torch.Tensor) -> torch.Tensor:
-        """Q'(obs, .): the target network's values, or with ``target_average`` > 1 the mean over the latest copies."""
-        values = self.target_network(obs)
-        if not self.earlier_targets:
-            return values
-        for net in self.earlier_targets:
-            values = values + net(obs)
-        return values / (1 + len(self.earlier_targets))
-
-    @torch.no_grad()
-    def td_targets(
-        self, reward: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor, obs=None, action=None
-    ) -> torch.Tensor:
+    def td_targets(self, reward: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
         """y = r + gamma (1 - terminated) Q'(s', a'), a' = argmax Q'(s', .) (DQN) or argmax Q(s', .) (Double DQN)
-        (with ``value_rescale``, y = h(r + gamma (1 - terminated) h^-1(Q'(s', a'))), the networks holding h(Q));
-        with ``advantage_alpha`` > 0, minus alpha (max_b Q'(s, b) - Q'(s, a)), which needs ``obs`` and ``action``.
-        Q' is ``target_values``: the mean of the latest ``target_average`` target copies."""
+        (with ``value_rescale``, y = h(r + gamma (1 - terminated) h^-1(Q'(s', a'))), the networks holding h(Q))."""
         reward = torch.as_tensor(reward, dtype=torch.float32)
         next_obs = torch.as_tensor(next_obs, dtype=torch.float32)
         terminated = torch.as_tensor(terminated, dtype=torch.float32)
-        next_q = self.target_values(next_obs)
+        next_q = self.target_network(next_obs)
         if self.cfg.double:
             next_action = self.q_network(next_obs).argmax(dim=1, keepdim=True)
             next_value = next_q.gather(1, next_action).squeeze(1)
@@ -433,12 +308,6 @@ class DQN:
             target = squash(reward + self.cfg.gamma * (1.0 - terminated) * unsquash(next_value))
         else:
             target = reward + self.cfg.gamma * (1.0 - terminated) * next_value
-        if self.cfg.advantage_alpha > 0:
-            if obs is None or action is None:
-                raise ValueError("advantage learning (advantage_alpha > 0) needs the batch's obs and action")
-            q_here = self.target_values(torch.as_tensor(obs, dtype=torch.float32))
-            taken = q_here.gather(1, torch.as_tensor(action, dtype=torch.int64).view(-1, 1)).squeeze(1)
-            target = target - self.cfg.advantage_alpha * (q_here.max(dim=1).values - taken)
         return target
 
     def update(self) -> dict[str, float] | None:
@@ -450,8 +319,6 @@ class DQN:
         cfg = self.cfg
         if self.steps < cfg.warmup_steps or len(self.replay) < cfg.batch_size:
             return None
-        if cfg.normalize_obs and not self.normalized:
-            self.freeze_normalization()
         batch = self.replay.sample(cfg.batch_size, self.rng)
         n_trauma = 0
         if self.trauma is not None and len(self.trauma) > 0:
@@ -460,9 +327,7 @@ class DQN:
             trauma = self.trauma.sample(n_trauma, self.rng, replace=False)
             batch = {name: torch.cat([batch[name], trauma[name]]) for name in batch}
 
-        target = self.td_targets(
-            batch["rewards"], batch["next_obs"], batch["terminated"], batch["obs"], batch["actions"]
-        )
+        target = self.td_targets(batch["rewards"], batch["next_obs"], batch["terminated"])
         q = self.q_network(batch["obs"]).gather(1, batch["actions"].unsqueeze(1)).squeeze(1)
         weight = self.trauma_weight()
         if weight == 1.0:
@@ -481,8 +346,6 @@ class DQN:
         self.optimizer.step()
         self.scheduler.step()
         self.updates += 1
-        if self.average_network is not None:
-            self._average()
         if self.updates % cfg.target_every == 0:
             self.sync_target()
         return {
@@ -494,19 +357,8 @@ class DQN:
             "lr": float(lr),
         }
 
-    @torch.no_grad()
-    def _average(self) -> None:
-        d = float(self.cfg.greedy_average)
-        for avg, online in zip(self.average_network.parameters(), self.q_network.parameters(), strict=True):
-            avg.mul_(d).add_(online, alpha=1.0 - d)
-
     def sync_target(self) -> None:
-        """Target := online network; with ``target_average``, the previous target becomes the newest earlier copy
-        and the oldest copy is dropped."""
-        if self.earlier_targets:
-            oldest = self.earlier_targets.pop()
-            oldest.load_state_dict(self.target_network.state_dict())
-            self.earlier_targets.insert(0, oldest)
+        """Target := online network."""
         self.target_network.load_state_dict(self.q_network.state_dict())
 
     # ------------------------------------------------------------------ checkpoints
@@ -519,39 +371,24 @@ class DQN:
             "rng": self.rng.bit_generator.state,
             "steps": self.steps,
             "updates": self.updates,
-            "normalized": self.normalized,
             "replay": self.replay.state_dict(),
             "trauma": None if self.trauma is None else self.trauma.state_dict(),
-            "average_network": None if self.average_network is None else self.average_network.state_dict(),
-            "earlier_targets": [net.state_dict() for net in self.earlier_targets],
         }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         if (state["trauma"] is None) != (self.trauma is None):
             raise ValueError("the checkpoint and this agent disagree on whether the trauma memory is on (trauma_batch)")
-        if (state.get("average_network") is None) != (self.average_network is None):
+        if state.get("average_network") is not None or state.get("earlier_targets") or state.get("normalized"):
             raise ValueError(
-                "the checkpoint and this agent disagree on whether greedy decisions use a weight average "
-                "(greedy_average): resume or evaluate with the greedy_average the run was trained with"
-            )
-        earlier = state.get("earlier_targets", [])  # absent: saved before target_average existed
-        if len(earlier) != len(self.earlier_targets):
-            raise ValueError(
-                f"the checkpoint averages {len(earlier) + 1} target networks and this agent "
-                f"{len(self.earlier_targets) + 1} (target_average): resume or evaluate with the target_average the "
-                "run was trained with"
+                "the checkpoint was trained with a weight-averaged greedy network, averaged targets or standardised "
+                "inputs (greedy_average, target_average, normalize_obs), which this version no longer has"
             )
         self.q_network.load_state_dict(state["q_network"])
         self.target_network.load_state_dict(state["target_network"])
-        for net, saved in zip(self.earlier_targets, earlier, strict=True):
-            net.load_state_dict(saved)
-        if self.average_network is not None:
-            self.average_network.load_state_dict(state["average_network"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.rng.bit_generator.state = state["rng"]
         self.steps, self.updates = int(state["steps"]), int(state["updates"])
-        self.normalized = bool(state.get("normalized", False))  # absent: saved before normalize_obs existed
         self.replay.load_state_dict(state["replay"])
         if self.trauma is not None:
             self.trauma.load_state_dict(state["trauma"])

@@ -18,8 +18,8 @@ the stopping distance to the pedestrian (their Fig. 7), and, since "bump" is onl
 impact speed and Rosen pedestrian injury. Policies: straight-line braking from the pedestrian's start, TTC-threshold
 braking, the privileged latest-safe braking, a hand-written closing-speed rule on the agent's own noisy state
 (``closing_braking``, not privileged; ``evaluate.chae.policies`` picks among these four), every dqn agent of the
-experiment and, with ``evaluate.chae.ensemble`` k, the greedy mean-Q ensemble (or, with ``ensemble_vote``, the
-majority vote) of each k consecutive seeds of a variant. Writes ``runs/NAME/eval_chae/``.
+experiment and, with ``evaluate.chae.ensemble`` k, the greedy mean-Q ensemble of each k consecutive seeds of a
+variant. Writes ``runs/NAME/eval_chae/``.
 """
 
 from __future__ import annotations
@@ -154,8 +154,6 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             )
     see = observer(cfg, str(cfg.agent.obs))
     see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
-    ramp_episodes = float(cfg.agent.chae_noise_ramp) * episodes
-    judge = observer(cfg, str(cfg.agent.obs)) if ramp_episodes else see  # validation sees the full noise
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
     agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
@@ -181,8 +179,6 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         """One training episode, logged; a validation (or a checkpoint) when it falls due."""
         nonlocal episode, loss
         spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
-        if ramp_episodes:
-            see.view.noise_m = see_noise * min(1.0, episode / ramp_episodes)
         obs, _ = env.reset(options={"scenario": spec})
         see.reset(view_seed)
         x, ret = see(env, obs), 0.0
@@ -207,12 +203,10 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         writer.add_scalar("episode/return", ret, episode)
         writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
         writer.add_scalar("train/epsilon", agent.epsilon(), episode)
-        if ramp_episodes:
-            writer.add_scalar("train/state_noise_m", see.view.noise_m, episode)
         if loss is not None:
             writer.add_scalar("train/loss", loss, episode)
         if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
-            score = validation.score(DQNPolicy("validation", agent, judge, int(cfg.seed)), episode)
+            score = validation.score(DQNPolicy("validation", agent, see, int(cfg.seed)), episode)
             improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
             curve["validation"].append(score)
             writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
@@ -426,87 +420,25 @@ class QEnsemble:
         return int(np.argmax(self.q_values(obs)))
 
 
-class VoteEnsemble(QEnsemble):
-    """Several trained DQNs acting as one by majority vote (``evaluate.chae.ensemble_vote``): each member's greedy
-    brake level is one vote, the most voted level wins, and a tie goes to the level with the highest mean Q among
-    the tied ones. Unlike the mean of Q, a level no member would choose alone can never win: a mean-Q ensemble of
-    three runs that each stop needlessly in <= 0.9 % of Scenario 2 stopped in 14.7 % (docs/results/chae/).
-
-    ``q_values`` returns scores whose argmax is the vote: the votes, plus the mean Q scaled into [0, 1e-3] to break
-    ties (less than one vote, so it never overturns a majority)."""
-
-    def q_values(self, obs: np.ndarray) -> np.ndarray:
-        values = np.stack([m.q_values(obs) for m in self.members])  # (members, ..., actions)
-        levels = np.arange(values.shape[-1])
-        votes = (values.argmax(axis=-1)[..., None] == levels).sum(axis=0).astype(float)
-        mean = values.mean(axis=0)
-        low = mean.min(axis=-1, keepdims=True)
-        spread = np.ptp(mean, axis=-1, keepdims=True)
-        return votes + 1e-3 * (mean - low) / (spread + 1e-12)
-
-
-def ensembles(
-    agents: list[AgentId],
-    policies: list[DQNPolicy],
-    k: int,
-    pool: int = 0,
-    scores: dict | None = None,
-    vote: bool = False,
-) -> list[DQNPolicy]:
+def ensembles(agents: list[AgentId], policies: list[DQNPolicy], k: int) -> list[DQNPolicy]:
     """``evaluate.chae.ensemble``: per policy name (variant and observation), one ``QEnsemble`` of each ``k``
-    consecutive seeds 0..k-1, k..2k-1, ..., named ``<policy>_ensemble<k>`` with the group's index as its seed.
-    With ``pool`` n > k (``evaluate.chae.ensemble_pool``), of each n consecutive seeds the k whose chosen checkpoints
-    scored best on the selection draw (``scores``: agent -> its ``selected`` record), in ``selected``'s order,
-    named ``<policy>_ensemble<k>of<n>``. With ``vote`` (``evaluate.chae.ensemble_vote``), each acts by majority vote
-    (``VoteEnsemble``) and its name ends in ``vote``. A group with a seed missing is left out (logged), so an
-    ensemble is always the same runs."""
-    n = pool or k
-    by_name: dict[str, dict[int, tuple[AgentId, DQNPolicy]]] = {}
+    consecutive seeds 0..k-1, k..2k-1, ..., named ``<policy>_ensemble<k>`` with the group's index as its seed. A
+    group with a seed missing is left out (logged), so an ensemble is always the same runs."""
+    by_name: dict[str, dict[int, DQNPolicy]] = {}
     for agent, policy in zip(agents, policies, strict=True):
-        by_name.setdefault(agent.policy, {})[agent.seed] = (agent, policy)
+        by_name.setdefault(agent.policy, {})[agent.seed] = policy
     out = []
     for name, seeds in by_name.items():
-        for group in range(max(seeds) // n + 1):
-            wanted = list(range(group * n, (group + 1) * n))
+        for group in range(max(seeds) // k + 1):
+            wanted = list(range(group * k, (group + 1) * k))
             missing = [s for s in wanted if s not in seeds]
             if missing:
                 log.info("[eval chae] no %s_ensemble%d over seeds %s: seeds %s not trained", name, k, wanted, missing)
                 continue
-            suffix = f"ensemble{k}"
-            if pool:
-                wanted = best_selected({s: scores[seeds[s][0]] for s in wanted}, k)
-                suffix += f"of{n}"
-                log.info("[eval chae] %s_%s %d: seeds %s, the best on the selection draw", name, suffix, group, wanted)
-            members = [seeds[s][1] for s in wanted]
+            members = [seeds[s] for s in wanted]
             see = members[0].see  # the members' observers are alike; one makes the ensemble's input
-            combine = VoteEnsemble if vote else QEnsemble
-            suffix += "vote" if vote else ""
-            out.append(DQNPolicy(f"{name}_{suffix}", combine(m.agent for m in members), see, group))
+            out.append(DQNPolicy(f"{name}_ensemble{k}", QEnsemble(m.agent for m in members), see, group))
     return out
-
-
-def selection_score(cfg, agent: AgentId) -> dict:
-    """The run's chosen checkpoint's score on the selection draw (``metrics.json``'s ``selected``)."""
-    path = agent.dir(cfg) / "metrics.json"
-    chosen = json.loads(path.read_text()).get("selected") if path.exists() else None
-    if not chosen:
-        raise StageError(
-            f"{agent.dir(cfg)} has no checkpoint chosen on a selection draw (metrics.json: 'selected'), which "
-            "evaluate.chae.ensemble_pool ranks runs by; retrain it with agent.select on, or set ensemble_pool=0"
-        )
-    return chosen
-
-
-def best_selected(scores: dict[int, dict], k: int) -> list[int]:
-    """The ``k`` seeds whose selection scores rank first in ``selected``'s order (the earlier seed on a tie)."""
-    ranked = []
-    rest = dict(scores)
-    for _ in range(k):
-        best = selected(list(rest.values()), BAR_BUMP)
-        seed = next(s for s, v in rest.items() if v is best)
-        ranked.append(seed)
-        del rest[seed]
-    return ranked
 
 
 class TTCBraking:
@@ -677,8 +609,7 @@ def evaluate(cfg) -> dict:
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
     if int(c.ensemble):
-        scores = {a: selection_score(cfg, a) for a in agents} if c.ensemble_pool else None
-        grouped = ensembles(agents, learned, int(c.ensemble), int(c.ensemble_pool), scores, bool(c.ensemble_vote))
+        grouped = ensembles(agents, learned, int(c.ensemble))
         learned = learned + grouped if c.singles else grouped
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)

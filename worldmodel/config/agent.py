@@ -1,0 +1,355 @@
+"""The agent sections: every learner's keys (DDPG, the chooser, the DQN) with Chae's checkpoint selection, and
+the reward."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
+
+from ..common import Checked, ConfigValueError
+from ..common import positive_fields as _positive
+from ..models.ddpg import DDPGConfig
+from ..models.dqn import DQNConfig
+from .evaluation import _draw_problems
+
+MASK_CAMERAS = ("wide", "tele")
+
+
+@dataclass
+class ChooserConfig(Checked):
+    """The chooser agent (``agent.learner=chooser``; ``envs/chooser.py``, ``worldmodel/chooser.py``): it brakes,
+    and switches once to the candidate manoeuvre its scorer predicts to cost least. The scorer learns the exact
+    costs of every candidate on straight-line braking's states, labelled by the simulator."""
+
+    episodes: int = 3000  # labelled braking episodes (data/NAME/chooser_labels/), the last 15 % held out
+    # the seed of the labelled scenarios; null: the training seed. Set, the seeds share one label set and differ
+    # only in the scorer's initialisation and minibatches
+    label_seed: int | None = None
+    num_workers: int = 2
+    # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
+    hazard_share: float = 0.85
+    speed_range: list[float] = field(default_factory=lambda: [8.0, 30.0])
+    ttc_range: list[float] = field(default_factory=lambda: [0.25, 1.5])
+    # s: the chooser may switch only this early, then it keeps braking; with exact costs, 3 frames keep 89 % of the
+    # planner's improvement, as much as 1.5 s does (docs/results/agent/)
+    decide_s: float = 0.2
+    # the candidates after straight-line braking: steer magnitudes x {held swerve, lane changes} x pedals x sides;
+    # the exact chooser picks 0.3 s lane changes at steer 0.3 and 1.0 most, and 8 more candidates add 1 point
+    steers: list[float] = field(default_factory=lambda: [0.3, 1.0])
+    lane_change_s: list[float] = field(default_factory=lambda: [0.3])
+    swerve: bool = False  # also held swerves
+    pedals: list[float] = field(default_factory=lambda: [-1.0])
+    sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
+    margin: float = 0.0  # switch only when the predicted saving over braking exceeds this (R2 units)
+    # R2 units: switch only where braking itself is predicted to cost more than this: where braking is nearly safe
+    # a switch has little to win and a wrong one much to lose. A decision-time rule: the scorer is fitted without it
+    min_brake_cost: float = 0.0  # 0 = no floor
+    # R2 units added to a candidate's labelled cost where it ends in a static object, so that the scorer keeps clear
+    # of poles and walls (the bar on static collisions: 2 %); needs labels that record the flag (docs/results/agent/)
+    static_penalty: float = 0.0
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    dropout: float = 0.2
+    lr: float = 1.0e-3
+    weight_decay: float = 1.0e-4
+    batch_size: int = 256
+    steps: int = 6000  # minibatches; the scorer kept is the best on the held-out labelled episodes
+    ensemble: int = 1  # the scorer is the mean of this many MLPs (each its own init and minibatches)
+    # "cost": regress every candidate's cost; "advantage": braking's cost and the others' differences from it;
+    # "policy": logits trained to minimise the expected cost of the softmax choice (cost-sensitive classification)
+    target: str = "cost"
+    # the scorer also reads, through a small CNN, a band of the raw frame around the horizon (envs.views.MaskView:
+    # pedestrians and vehicles, this frame and the last): where the hazard is, not only its rows and columns
+    mask_view: bool = False
+    # which camera's band the scorer reads: "wide" (the world model's 90-degree camera, rows 20-44) or "tele"
+    # (the narrow second camera of env.tele_fov_deg, rows 8-48, where the hazard pedestrian appears 20x larger)
+    mask_camera: str = "wide"
+    # the loss weight of a head on the scorer's first layer that guesses the privileged hazard state
+    # (envs.chooser.hazard_state): learning by cheating for perception; the guess never acts. 0 = no head
+    aux_weight: float = 0.0
+
+    def problems(self):
+        from envs.chooser import chooser_candidates
+
+        yield from _positive(self, "episodes", "num_workers", "decide_s", "lr", "batch_size", "steps")
+        if not 0.0 <= self.hazard_share <= 1.0:
+            yield ConfigValueError("chooser.hazard_share", self.hazard_share, "it must be in [0, 1]")
+        for key in ("speed_range", "ttc_range"):
+            value = list(getattr(self, key))
+            if len(value) != 2 or not 0 < value[0] <= value[1]:
+                yield ConfigValueError(f"chooser.{key}", value, "it must be [low, high] with 0 < low <= high")
+        if self.min_brake_cost < 0:
+            yield ConfigValueError("chooser.min_brake_cost", self.min_brake_cost, "it must be >= 0 (R2 units)")
+        if self.static_penalty < 0:
+            yield ConfigValueError("chooser.static_penalty", self.static_penalty, "it must be >= 0 (R2 units)")
+        if self.margin < 0 or not 0.0 <= self.dropout < 1.0 or self.weight_decay < 0:
+            yield ConfigValueError("chooser.margin", self.margin, "margin and weight_decay >= 0, dropout in [0, 1)")
+        if self.aux_weight < 0:
+            yield ConfigValueError("chooser.aux_weight", self.aux_weight, "it must be >= 0")
+        if self.mask_camera not in MASK_CAMERAS:
+            yield ConfigValueError("chooser.mask_camera", self.mask_camera, f"it must be one of {MASK_CAMERAS}")
+        if self.ensemble < 1:
+            yield ConfigValueError("chooser.ensemble", self.ensemble, "it must be >= 1")
+        if self.target not in ("cost", "advantage", "policy"):
+            yield ConfigValueError("chooser.target", self.target, "it must be cost, advantage or policy")
+        if not self.hidden or any(int(h) < 1 for h in self.hidden):
+            yield ConfigValueError("chooser.hidden", list(self.hidden), "use a non-empty list of layer sizes >= 1")
+        try:
+            chooser_candidates(self.steers, self.lane_change_s, self.pedals, self.sides, self.swerve)
+        except ValueError as err:
+            yield ConfigValueError("chooser", "...", str(err))
+
+    def candidates(self, step_s: float = 1.0 / 15.0):
+        from envs.chooser import chooser_candidates
+
+        return chooser_candidates(
+            [float(x) for x in self.steers],
+            [float(x) for x in self.lane_change_s],
+            [float(x) for x in self.pedals],
+            [float(x) for x in self.sides],
+            bool(self.swerve),
+            step_s=float(step_s),
+        )
+
+    def label_settings(self) -> dict:
+        """What the labels depend on (the store is rebuilt when any of it changes)."""
+        return {
+            "version": 2,  # 2: the hazard state is stored beside the costs
+            "hazard_share": float(self.hazard_share),
+            "speed_range": [float(x) for x in self.speed_range],
+            "ttc_range": [float(x) for x in self.ttc_range],
+            "decide_s": float(self.decide_s),
+            "candidates": [vars(m) for m in self.candidates()],
+        }
+
+
+LEARNERS = ("ddpg", "chooser", "dqn")
+# what an agent sees: the world model's [z, zhat(, speed)] from the camera, or Chae's privileged 15-value
+# pedestrian history (envs/chae.py); a DDPG or chooser agent always sees the world model
+# LIDAR scans (Kim), or Merola's last 4 camera frames as frozen VAE means or ResNet-18 features
+OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "frames_resnet")
+
+
+@dataclass
+class SelectConfig(Checked):
+    """Checkpoint selection for the dqn learner on family chae (``worldmodel/peers/chae.py``). Every ``every``
+    episodes once ``start`` of the run has passed, the greedy agent drives a validation draw of Chae's trials
+    (``trials`` Scenario-1 trials at each TTC of ``ttcs`` and as many Scenario-2 trials, seeded by ``seed``: never
+    the evaluation's ``evaluate.chae.seed``), and ``best.pt`` keeps the checkpoint that, among those bumping in at
+    most ``max_bump`` % at every TTC, stops needlessly least (else: the one that bumps least); evaluation loads it.
+    Chae's two metrics, not the reward, choose it: the reward does not tell a needless stop from a pass at 10-30
+    km/h, and successive checkpoints of one run differ there (docs/results/chae/)."""
+
+    every: int = 250  # episodes between validations; 0 = off, evaluation loads last.pt
+    start: float = 0.25  # the share of agent.episodes before the first validation
+    seed: int = 99
+    trials: int = 200
+    ttcs: list[float] = field(default_factory=lambda: [1.5, 1.7, 1.9])
+    max_bump: float = 1.0  # %, at each TTC
+    max_stops: float = 5.0  # %, needless stops: with max_bump, the bars that rescoring's candidates are inside
+    # keep every validated checkpoint as validated/episodeNNNNN.pt (2 MB each), to choose again on a larger draw
+    # (rescore below, or experiments/chae_reselect.py) without retraining
+    keep: bool = False
+    # after the run, this many kept checkpoints inside both bars that bump least at ttcs[0] drive a larger draw
+    # (seeded by ``rescore_seed``), and best.pt becomes the one with the most room under both bars; 0 = off
+    rescore: int = 0
+    rescore_seed: int = 98
+    rescore_trials: int = 300  # Scenario-1 trials per TTC of the rescoring draw, and as many in Scenario 2
+    # s, the TTCs the rescoring draw drives, weighed by their highest bump rate; null = ttcs[0] alone, whose choices
+    # bumped at TTC 2.5-3.7 s instead (docs/results/chae/); dqn_chae adds 2.5-3.5 s
+    rescore_ttcs: list[float] | None = None
+    # if the rescored choice is not inside both bars, train ``extend`` more episodes (the scale's) and choose again,
+    # at most ``extend_blocks`` times (the preset's; 0 = off): the runs swing to the end (docs/results/chae/)
+    extend: int = 1000
+    extend_blocks: int = 0
+
+    def problems(self):
+        yield from _positive(self, "trials")
+        yield from _draw_problems(self, "seed", "select.")
+        yield from _draw_problems(self, "rescore_seed", "select.")
+        if self.seed < 0:
+            yield ConfigValueError("select.seed", self.seed, "it must be >= 0")
+        if self.every < 0:
+            yield ConfigValueError("select.every", self.every, "it must be >= 0 episodes (0 = off)")
+        if not 0.0 <= self.start <= 1.0:
+            yield ConfigValueError("select.start", self.start, "it must be a share of the run, in [0, 1]")
+        if not self.ttcs or any(not 0.0 < float(t) < 5.0 for t in self.ttcs):
+            yield ConfigValueError("select.ttcs", list(self.ttcs), "use a non-empty list of TTCs in (0, 5) s")
+        if not 0.0 <= self.max_bump <= 100.0:
+            yield ConfigValueError("select.max_bump", self.max_bump, "it must be a rate in [0, 100] %")
+        if not 0.0 <= self.max_stops <= 100.0:
+            yield ConfigValueError("select.max_stops", self.max_stops, "it must be a rate in [0, 100] %")
+        if self.rescore < 0:
+            yield ConfigValueError("select.rescore", self.rescore, "it must be >= 0 checkpoints (0 = off)")
+        if self.rescore and not self.keep:
+            yield ConfigValueError(
+                "select.rescore", self.rescore, "it reads the kept checkpoints back: set agent.select.keep=true too"
+            )
+        if self.rescore and self.rescore_seed == self.seed:
+            yield ConfigValueError(
+                "select.rescore_seed", self.rescore_seed, "it must differ from agent.select.seed (a new draw)"
+            )
+        yield from _positive(self, "rescore_trials")
+        if self.extend < 0:
+            yield ConfigValueError("select.extend", self.extend, "it must be >= 0 episodes per block (0 = off)")
+        if self.extend_blocks < 0:
+            yield ConfigValueError("select.extend_blocks", self.extend_blocks, "it must be >= 0 blocks")
+        if self.extend and self.extend_blocks and not self.rescore:
+            yield ConfigValueError(
+                "select.extend",
+                self.extend,
+                "it trains on until the rescoring finds a member: set agent.select.rescore too",
+            )
+        if self.extend and self.extend_blocks and self.every and self.extend % self.every:
+            yield ConfigValueError(
+                "select.extend", self.extend, f"use a multiple of agent.select.every ({self.every}) episodes"
+            )
+        if self.rescore_ttcs is not None and (
+            not self.rescore_ttcs or any(not 0.0 < float(t) < 5.0 for t in self.rescore_ttcs)
+        ):
+            yield ConfigValueError(
+                "select.rescore_ttcs", list(self.rescore_ttcs), "use null or a non-empty list of TTCs in (0, 5) s"
+            )
+
+
+@dataclass
+class AgentConfig(DDPGConfig):
+    """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there) and the training loop's settings."""
+
+    # names the run (runs/NAME/agent_r2_<variant>/seed0/): set by each preset in conf/agent/ to its file name
+    variant: str = "ddpg"
+    total_steps: int = 20000
+    use_speed: bool = False  # append ego speed to the agent input
+    # append where pedestrians and vehicles are in the current and previous raw frame (envs/views.py): what the
+    # camera sees and the VAE loses, a 1-2 px pedestrian at 30 m/s
+    frame_view: bool = False
+    checkpoint_every: int = 2000
+    # what the actor's output means (worldmodel/action_map.py): "none" | "brake" (the pedal is a residual on full
+    # braking, so u = 0 is straight-line braking), and "wheel" | "grip" (steer as a share of mu g at this speed)
+    anchor: str = "none"
+    steer: str = "wheel"
+    # training episodes: this share from the focus mix (demos.focus), the rest from the paper's distributions
+    focus_share: float = 0.0
+    # planner demonstrations (needs demos.episodes > 0 and `python -m worldmodel.demonstrate`): this share of every
+    # minibatch comes from them (DDPGfD), and the actor is first cloned on them for bc_pretrain_steps minibatches
+    demo_share: float = 0.0
+    bc_pretrain_steps: int = 0
+    # DAgger rounds after the first cloning: the student drives dagger_episodes focus-mix episodes, the planner
+    # labels every state it reaches, and the actor is cloned again on everything so far
+    dagger_rounds: int = 0
+    dagger_episodes: int = 100
+    # Kim's LIDAR agent: the cloning loss's weight on labels that steer (|steering| > 0.15 of full); 1 = plain least
+    # squares. The planner steers on ~6 % of its labels, and a least-squares student under-steers (docs/results/kim/)
+    bc_steer_weight: float = 1.0
+    reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
+    # the rewards the pipeline trains this preset with (`agents:`); a student that only clones the R2 planner
+    # lists r2 alone, since its R1 run would be the same network under another name
+    rewards: list[str] = field(default_factory=lambda: ["r1", "r2"])
+    # "ddpg" (the paper's learner, with the options above) or "chooser" (agent.chooser: costs of manoeuvres learnt
+    # from the simulator's labels; R2 only, and none of the DDPG keys apply)
+    learner: str = "ddpg"
+    chooser: ChooserConfig = field(default_factory=ChooserConfig)
+    # learner "dqn" (worldmodel/peers/chae.py): DQN / Double DQN with a trauma memory over discrete brake levels
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+    episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
+    select: SelectConfig = field(default_factory=SelectConfig)  # the dqn learner on family chae: best.pt
+    # the training steps of a LIDAR ddpg peer (Kim et al.: 100k) and of ddqn_merola (Merola et al.: 360k): a key of
+    # its own, so that a scale can shrink it while the peer's preset keeps the paper's other settings
+    peer_total_steps: int = 100_000
+    # m: family kim's training draws the runner's crossing uniformly within this of the ego's middle (envs.kim.sample;
+    # the paper does not say); 0 = the middle. Evaluate with the same evaluate.kim.impact_offset_spread
+    kim_impact_offset_spread: float = 0.0
+    # s, family chae's training TTCs, U(lo, hi); evaluation keeps its own. The paper's 1.5-4 s; dqn_chae trains
+    # from 1.3 s, so that TTC 1.5 s, the bar's edge, is not training's edge (docs/results/chae/)
+    chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
+    # m, std of the noise on the pedestrian's position in Chae's state (the paper: "slight"); a checkpoint records
+    # it. 0.1 keeps older runs current; dqn_chae sets 0.05, where Chae's Table I points (docs/results/chae/)
+    chae_noise_m: float = 0.1
+    # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
+    # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
+    obs: str = "worldmodel"
+    paper_obs: str = "worldmodel"
+    # obs=frames_resnet: a local ResNet-18 state dict with torchvision's names (ImageNet weights cannot be
+    # downloaded here; worldmodel/models/resnet.py refuses to run without them)
+    resnet_weights: str | None = None
+
+    def problems(self):
+        from ..action_map import ANCHORS, STEERS
+
+        if self.learner not in LEARNERS:
+            yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
+
+        yield from super().problems()
+        yield from _positive(self, "checkpoint_every", "reward_scale", "episodes")
+        clones = self.learner == "ddpg" and self.bc_pretrain_steps > 0  # 0 steps: the cloned actor alone
+        for key, applies in (("total_steps", self.learner == "ddpg"), ("peer_total_steps", True)):
+            steps = getattr(self, key)
+            if applies and (steps < 0 or (steps == 0 and not clones)):
+                yield ConfigValueError(key, steps, "it must be > 0 (or 0 with a ddpg learner's bc_pretrain_steps > 0)")
+        if not self.variant.replace("_", "").isalnum() or not self.variant.islower():
+            yield ConfigValueError("variant", self.variant, "it must be a lower-case name of letters, digits and _")
+        for key in ("obs", "paper_obs"):
+            if getattr(self, key) not in OBSERVATIONS:
+                yield ConfigValueError(key, getattr(self, key), f"it must be one of {', '.join(OBSERVATIONS)}")
+        seen_by = {
+            "ddpg": ("worldmodel", "lidar"),
+            "chooser": ("worldmodel",),
+            "dqn": ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"),
+        }
+        if self.learner in seen_by and self.obs not in seen_by[self.learner]:
+            yield ConfigValueError(
+                "obs", self.obs, f"the {self.learner} learner sees one of: {', '.join(seen_by[self.learner])}"
+            )
+        for key in ("focus_share", "demo_share"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
+        if not 0.0 <= self.kim_impact_offset_spread <= KIM_CAR_LENGTH / 2:
+            yield ConfigValueError(
+                "kim_impact_offset_spread",
+                self.kim_impact_offset_spread,
+                f"it must be in [0, {KIM_CAR_LENGTH / 2:g}] m (half the ego)",
+            )
+        ttcs = [float(t) for t in self.chae_ttc_range]
+        if len(ttcs) != 2 or not 0.0 < ttcs[0] < ttcs[1] <= 5.0:
+            yield ConfigValueError(
+                "chae_ttc_range",
+                list(self.chae_ttc_range),
+                "use [lo, hi] with 0 < lo < hi <= 5 s (beyond 5 s the trigger would lie behind the ego)",
+            )
+        if not 0.0 <= self.chae_noise_m <= 1.0:
+            yield ConfigValueError(
+                "chae_noise_m", self.chae_noise_m, "it must be in [0, 1] m (0: the exact relative position)"
+            )
+        if self.dagger_rounds < 0 or self.dagger_episodes < 1:
+            yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
+        if self.bc_steer_weight <= 0 or (self.bc_steer_weight != 1.0 and self.obs != "lidar"):
+            yield ConfigValueError(
+                "bc_steer_weight",
+                self.bc_steer_weight,
+                "it must be > 0, and 1 unless the agent sees the LIDAR (obs=lidar)",
+            )
+        if self.dagger_rounds and not self.bc_pretrain_steps:
+            yield ConfigValueError("dagger_rounds", self.dagger_rounds, "DAgger clones: set bc_pretrain_steps > 0")
+        if self.bc_pretrain_steps < 0:
+            yield ConfigValueError("bc_pretrain_steps", self.bc_pretrain_steps, "it must be >= 0")
+        from envs.rewards import REWARDS
+
+        if not self.rewards or any(r not in REWARDS for r in self.rewards):
+            yield ConfigValueError("rewards", list(self.rewards), f"use a non-empty list of {', '.join(REWARDS)}")
+        if self.anchor not in ANCHORS:
+            yield ConfigValueError("anchor", self.anchor, f"it must be one of {', '.join(ANCHORS)}")
+        if self.steer not in STEERS:
+            yield ConfigValueError("steer", self.steer, f"it must be one of {', '.join(STEERS)}")
+
+
+@dataclass
+class RewardConfig(Checked):
+    """R1 = -(n_ped + n_occ) (paper Eq. 7) or R2 = -(sum P_ped + sum P_occ) (Eq. 8); ``envs.rewards``."""
+
+    name: str = "r2"
+
+    def problems(self):
+        from envs.rewards import REWARDS
+
+        if self.name not in REWARDS:
+            yield ConfigValueError("name", self.name, f"use one of {', '.join('reward=' + r for r in REWARDS)}")

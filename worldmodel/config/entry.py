@@ -1,0 +1,163 @@
+"""The ways in: validation of a composed config, agent presets as ``train_agent`` composes them, the planner's
+settings, ``compose`` for tests and notebooks and ``hydra_main`` for the stage commands."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable
+from dataclasses import fields, is_dataclass
+
+from omegaconf import OmegaConf
+
+from ..common import CONF_DIR, ConfigValueError, StageError, return_freed_memory
+from .agent import AgentConfig
+from .experiment import ExperimentConfig
+
+
+def agent_preset(cfg, name: str):
+    """The ``agent`` section as ``train_agent experiment=... agent=<name>`` would compose it: the schema's defaults,
+    then the scale's ``agent`` keys, then the preset ``conf/agent/<name>.yaml`` (the order of base.yaml's defaults).
+    The preset the config was composed with keeps its command-line overrides."""
+    if str(cfg.agent.variant) == name:
+        return cfg.agent
+    path = CONF_DIR / "agent" / f"{name}.yaml"
+    if not path.exists():
+        raise StageError(f"agent variant {name!r} has no preset {path}: restore it, or move its runs aside")
+    preset = _load_preset(name)
+    if _global_preset(path):
+        preset = preset.get("agent", OmegaConf.create())
+    scale = OmegaConf.create()
+    if cfg.get("scale_name"):
+        scale = OmegaConf.load(CONF_DIR / "scale" / f"{cfg.scale_name}.yaml").get("agent", OmegaConf.create())
+    return OmegaConf.merge(OmegaConf.structured(AgentConfig), scale, preset)
+
+
+def _global_preset(path) -> bool:
+    return path.read_text().lstrip().startswith("# @package _global_")
+
+
+def _load_preset(name: str):
+    """A preset file with the presets its ``defaults`` list names merged under it: ``NAME`` (same group, same
+    package) or ``/agent/NAME@agent`` (an agent preset placed under a global preset's ``agent`` key)."""
+    preset = OmegaConf.load(CONF_DIR / "agent" / f"{name}.yaml")
+    parents = []
+    for entry in preset.pop("defaults", []):
+        if not isinstance(entry, str) or entry == "_self_":
+            continue
+        if entry.startswith("/agent/"):
+            parent, _, package = entry.removeprefix("/agent/").partition("@")
+            parents.append(OmegaConf.create({package: _load_preset(parent)}) if package else _load_preset(parent))
+        else:
+            parents.append(_load_preset(entry))
+    return OmegaConf.merge(*parents, preset) if parents else preset
+
+
+def preset_globals(name: str) -> dict:
+    """What an agent preset sets outside ``agent`` (a peer's preset, ``# @package _global_``, also picks its
+    scenario family, step and reward: conf/agent/dqn_chae.yaml)."""
+    path = CONF_DIR / "agent" / f"{name}.yaml"
+    if not path.exists() or not _global_preset(path):
+        return {}
+    preset = OmegaConf.to_container(_load_preset(name))
+    return {k: v for k, v in preset.items() if k not in ("agent", "defaults")}
+
+
+def oracle_settings(cfg) -> dict:
+    """``evaluate.oracle`` as plain keyword arguments of ``PrivilegedPlanner.from_settings``."""
+    o = cfg.evaluate.oracle
+    settings = {
+        "replan_every_s": float(o.replan_every_s),
+        "brake_first": int(o.brake_first),
+        "pedals": [float(x) for x in o.pedals],
+        "steers": [float(x) for x in o.steers],
+        "delays_s": [float(x) for x in o.delays_s],
+        "lane_change_s": [float(x) for x in o.lane_change_s],
+    }
+    sides = [float(x) for x in o.sides]
+    if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
+        settings["sides"] = sides
+    step_s = float(cfg.env.step_s)
+    if step_s != 1.0 / 15.0:  # absent = the default step, for the same reason
+        settings["step_s"] = step_s
+    return settings
+
+
+def teacher_settings(cfg) -> dict:
+    """The planner that records demonstrations and labels DAgger states: ``evaluate.oracle`` planning from the first
+    frame, steering to ``demos.teacher_sides`` after ``demos.teacher_delays_s`` (``PrivilegedPlanner.from_settings``
+    keyword arguments)."""
+    settings = {k: v for k, v in oracle_settings(cfg).items() if k not in ("brake_first", "sides")}
+    sides = [float(x) for x in cfg.demos.teacher_sides]
+    if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
+        settings["sides"] = sides
+    delays = cfg.demos.get("teacher_delays_s")
+    if delays is not None:
+        settings["delays_s"] = [float(x) for x in delays]
+    return settings
+
+
+# ----------------------------------------------------------------------------- validation
+def validate(cfg) -> ExperimentConfig:
+    """The config as typed dataclasses, after every range check; the first impossible value is a StageError
+    naming its key (``agent.tau``, ``evaluate.oracle.replan_every_s``)."""
+
+    for f in fields(ExperimentConfig):
+        node = OmegaConf.select(cfg, f.name, throw_on_missing=False)
+        if node is None or not OmegaConf.is_config(node) or not is_dataclass(OmegaConf.get_type(node)):
+            continue
+        try:
+            OmegaConf.to_object(node)
+        except ConfigValueError as err:
+            raise StageError(f"config {f.name}.{err}") from None
+    try:
+        return OmegaConf.to_object(cfg)
+    except ConfigValueError as err:
+        raise StageError(f"config {err}") from None
+
+
+def section(cfg, name: str) -> dict:
+    """A config section as a plain dict (resolved), e.g. for recording what an artifact was built with."""
+    return OmegaConf.to_container(cfg[name], resolve=True)
+
+
+# ----------------------------------------------------------------------------- composition and entry points
+def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
+    """Compose the real Hydra config of ``stage`` (for tests and notebooks)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return hydra_compose(config_name=stage, overrides=list(overrides))
+
+
+def hydra_main(stage: str) -> Callable[[Callable], Callable]:
+    """Wrap a stage's ``run(cfg)`` as its command-line entry point.
+
+    ``StageError`` is logged as one readable line and exits with status 2, so a missing input reads as an
+    instruction rather than a traceback.
+    """
+    import hydra
+
+    def decorate(run: Callable):
+        if run.__module__ == "__main__" and getattr(sys.modules["__main__"], "__spec__", None) is not None:
+            # Under `python -m worldmodel.X` the stage's functions live in __main__, which a launcher's job process
+            # (joblib, submitit) cannot import by name, so process pools inside the stage fail to pickle them.
+            # Running the copy from the real module keeps every function importable.
+            import importlib
+
+            run = getattr(importlib.import_module(sys.modules["__main__"].__spec__.name), run.__name__)
+
+        @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
+        def main(cfg):
+            return_freed_memory()
+            try:
+                return run(cfg)
+            except StageError as err:
+                # through logging, so the job's .log file (and a SLURM job's log) says why it stopped
+                logging.getLogger(f"worldmodel.{stage}").error("error: %s", err)
+                sys.exit(2)
+
+        return main
+
+    return decorate

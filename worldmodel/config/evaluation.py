@@ -1,0 +1,231 @@
+"""The evaluation sections: the privileged planner, the scripted policies, the paper's bank, each peer family's
+evaluation and the Euro NCAP bank."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
+
+from ..common import Checked, ConfigValueError
+from ..common import positive_fields as _positive
+
+
+@dataclass
+class OracleConfig(Checked):
+    """The privileged planner (``envs/planner.py``): the ceiling the agents are judged against."""
+
+    replan_every_s: float = 0.2  # re-simulate the candidates from the true state this often
+    pedals: list[float] = field(default_factory=lambda: [-1.0, -0.5, 0.0, 1.0])  # held pedal levels; must hold -1
+    steers: list[float] = field(default_factory=lambda: [0.3, 0.6, 1.0])  # steering magnitudes, both ways
+    delays_s: list[float] = field(default_factory=lambda: [0.0, 0.2, 0.4])  # when the steering starts
+    lane_change_s: list[float] = field(default_factory=lambda: [0.3, 0.6])  # steer-then-counter-steer lengths
+    # steering directions tried, in order: 1 right, -1 left (one side: a teacher without left/right ambiguity)
+    sides: list[float] = field(default_factory=lambda: [1.0, -1.0])
+    # frames of straight-line braking before planning starts: the perception ceiling (a camera policy that needs
+    # this many frames to see the hazard); 0 for the ceiling itself
+    brake_first: int = 0
+
+    def problems(self):
+        from envs.planner import candidate_manoeuvres
+
+        if self.replan_every_s <= 0:
+            yield ConfigValueError("oracle.replan_every_s", self.replan_every_s, "it must be > 0")
+        if self.brake_first < 0:
+            yield ConfigValueError("oracle.brake_first", self.brake_first, "it must be >= 0 frames")
+        try:
+            candidate_manoeuvres(
+                pedals=list(self.pedals),
+                steers=list(self.steers),
+                delays_s=list(self.delays_s),
+                lane_change_s=list(self.lane_change_s),
+                sides=list(self.sides),
+            )
+        except ValueError as err:
+            yield ConfigValueError("oracle", "...", str(err))
+
+
+# braking (the floor), the privileged planner (the ceiling), and the planner after braking straight for its first 1
+# or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard
+SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2")
+# family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae.py SCRIPTED)
+CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
+
+
+def _draw_problems(section, key: str, prefix: str = ""):
+    """A validation draw may not be a sealed test seed (worldmodel/banks.py); ``prefix`` names the section."""
+    from ..banks import sealed_seed_problem
+
+    why = sealed_seed_problem(getattr(section, key))
+    if why:
+        yield ConfigValueError(prefix + key, getattr(section, key), why)
+
+
+@dataclass
+class ChaeEvalConfig(Checked):
+    """Chae et al.'s evaluation on family chae (worldmodel/peers/chae.py): Table I's bump rate per TTC, Scenario 2's
+    unnecessary stops, stopping distances, and contact, impact speed and injury."""
+
+    trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
+    ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
+    seed: int = 2017  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
+    # k >= 2: also evaluate ensembles of k consecutive seeds, greedy on their mean Q, which damps the runs' swings
+    # (0: runs alone); 3: two ensembles in three inside both bars, single runs three in nine (docs/results/chae/)
+    ensemble: int = 3
+    # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
+    # 1,000 trials per TTC, where each run alone would cost as much again per seed
+    singles: bool = True
+    # scripted policies beside every dqn agent (CHAE_SCRIPTED_POLICIES; peers.chae.SCRIPTED builds them). Fewer for
+    # a large draw whose scripted rows are already known: they are deterministic, the same trials give the same rows
+    policies: list[str] = field(default_factory=lambda: list(CHAE_SCRIPTED_POLICIES))
+
+    def problems(self):
+        yield from _positive(self, "trials")
+        yield from _draw_problems(self, "seed", "chae.")
+        if not self.singles and not self.ensemble:
+            yield ConfigValueError(
+                "chae.singles", self.singles, "with no ensembles (chae.ensemble=0) no agent would drive"
+            )
+        if not self.ttcs or any(t <= 0 for t in self.ttcs):
+            yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
+        if any(p not in CHAE_SCRIPTED_POLICIES for p in self.policies):
+            yield ConfigValueError(
+                "chae.policies", list(self.policies), f"use some of {', '.join(CHAE_SCRIPTED_POLICIES)}"
+            )
+        if self.ensemble == 1 or self.ensemble < 0:
+            yield ConfigValueError("chae.ensemble", self.ensemble, "give 0 (none) or the members per ensemble, >= 2")
+
+
+@dataclass
+class KimEvalConfig(Checked):
+    """Kim et al.'s evaluation on family kim (worldmodel/peers/kim.py): Table 2's avoidance and injury per
+    scenario, on the paper's 30 trials per scenario and on ``trials`` with 95 % intervals, and pairwise tests."""
+
+    trials: int = 200  # seeded trials per scenario; the first 30 are the paper-sized table
+    paper_trials: int = 30
+    # scripted policies beside every LIDAR agent: straight-line braking, Kim's AEB-3m, the planner (the ceiling)
+    policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
+    world_model_agents: bool = True  # also the paper's street-trained R1 / R2 agents and the chooser, as they are
+    seed: int = 2020  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
+    # m forward of the ego's centre where the runner's path crosses it (envs.kim.KimSpec.impact_offset): 0 the middle
+    # (training's), +2.25 the front bumper, -2.25 the rear; the paper does not say
+    impact_offset: float = 0.0
+    # > 0: each trial's crossing is drawn uniformly within impact_offset ± this (kept on the ego), from a stream of
+    # its own, so the trials are otherwise the same; 2.25 with offset 0 = anywhere along the ego
+    impact_offset_spread: float = 0.0
+
+    def problems(self):
+        yield from _positive(self, "trials", "paper_trials")
+        yield from _draw_problems(self, "seed", "kim.")
+        if not 0.0 <= self.impact_offset_spread <= 4.5:
+            yield ConfigValueError("kim.impact_offset_spread", self.impact_offset_spread, "it must be in [0, 4.5] m")
+        known = ("braking", "aeb3m", "oracle")
+        if any(p not in known for p in self.policies):
+            yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(known)}")
+        half = KIM_CAR_LENGTH / 2
+        if not abs(self.impact_offset) <= half:
+            yield ConfigValueError("kim.impact_offset", self.impact_offset, f"it must be within ±{half:g} m")
+
+
+@dataclass
+class MerolaEvalConfig(Checked):
+    """Merola et al.'s scenarios (worldmodel/peers/merola.py): collision rate, ego delta-v, injury risk and return
+    per scenario for braking, the planner, the paper's world-model agents and every ddqn_merola agent."""
+
+    trials: int = 100  # seeded trials per scenario, the same for every policy
+    # straight-line braking from the start, Kim's AEB-3m (brakes once a footprint is within 3 m ahead), the planner
+    policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
+    world_model_agents: bool = True  # also the paper's R1 / R2 agents and the chooser, at their own 1/15 s steps
+    seed: int = 2022  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
+
+    def problems(self):
+        yield from _positive(self, "trials")
+        yield from _draw_problems(self, "seed", "merola.")
+        if any(p not in ("braking", "aeb3m", "oracle") for p in self.policies):
+            yield ConfigValueError("policies", list(self.policies), "use some of braking, aeb3m, oracle")
+
+
+@dataclass
+class EvaluateConfig(Checked):
+    """The seeded scenario banks (docs/design.md §6) and the scripted policies evaluated beside the agents."""
+
+    per_cell: int = 5
+    ttcs: list[float] = field(default_factory=lambda: [0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5])
+    speeds: list[float] = field(default_factory=lambda: [10.0, 20.0, 30.0])
+    hazards: list[str] = field(default_factory=lambda: ["pedestrian", "car", "both"])
+    # which bank (worldmodel/banks.py): "validation", drawn from validation_seed, for choosing settings and
+    # checkpoints, as often as needed; "test", the sealed test bank, for final numbers only: each evaluation on it
+    # is recorded in the ledger (paths.ledger) and goes to runs/NAME/eval_test/
+    bank: str = "validation"
+    validation_seed: int = 4711  # the default validation bank (runs/NAME/eval/); others go to eval_seed<N>/
+    num_workers: int = 2  # processes; results are identical to 1
+    # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
+    policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
+    oracle: OracleConfig = field(default_factory=OracleConfig)
+    # which scenario family to evaluate: porav (the test bank above), chae, kim or merola (evaluate.<family>)
+    family: str = "porav"
+    chae: ChaeEvalConfig = field(default_factory=ChaeEvalConfig)
+    kim: KimEvalConfig = field(default_factory=KimEvalConfig)
+    merola: MerolaEvalConfig = field(default_factory=MerolaEvalConfig)
+
+    def problems(self):
+        yield from _positive(self, "per_cell", "num_workers")
+        for key in ("ttcs", "speeds", "hazards"):
+            if not getattr(self, key):
+                yield ConfigValueError(key, [], "it must not be empty")
+        for key in ("ttcs", "speeds"):
+            if any(v <= 0 for v in getattr(self, key)):
+                yield ConfigValueError(key, list(getattr(self, key)), "every value must be positive")
+        from ..banks import BANKS
+
+        if self.bank not in BANKS:
+            yield ConfigValueError("bank", self.bank, f"it must be one of {', '.join(BANKS)}")
+        from envs.env import FAMILIES
+
+        if self.family not in FAMILIES:
+            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(FAMILIES)}")
+        yield from _draw_problems(self, "validation_seed")
+        unknown = [h for h in self.hazards if h not in ("pedestrian", "car", "both")]
+        if unknown:
+            yield ConfigValueError("hazards", list(self.hazards), "hazards are pedestrian, car and both")
+        if "braking" not in self.policies or any(p not in SCRIPTED_POLICIES for p in self.policies):
+            yield ConfigValueError(
+                "policies",
+                list(self.policies),
+                "it must include 'braking' (the baseline) and may add "
+                f"{', '.join(repr(p) for p in SCRIPTED_POLICIES[1:])}; trained agents are found by themselves",
+            )
+
+
+@dataclass
+class NcapConfig(Checked):
+    """The Euro NCAP bank (worldmodel/ncap.py): the pedestrian tests and the car-to-car rear tests."""
+
+    # the paper's agents (and braking, the planner) act from this TTC on; before it the car holds its speed
+    takeover_ttc_s: float = 1.5
+    tests: list[str] = field(default_factory=lambda: ["CPFA-50", "CPNA-25", "CPNA-75", "CPNC-50"])
+    speeds_kmh: list[float] = field(default_factory=lambda: [float(v) for v in range(20, 65, 5)])
+    # car-to-car: CCRs and CCRm at every car_speed_step_kmh of their speed range and every overlap; CCRb's 4 variants
+    car_tests: list[str] = field(default_factory=lambda: ["CCRs", "CCRm", "CCRb"])
+    overlaps_pct: list[float] = field(default_factory=lambda: [-75.0, -50.0, 50.0, 75.0, 100.0])
+    car_speed_step_kmh: float = 5.0
+
+    def problems(self):
+        from envs.ncap import CAR_TESTS, TESTS
+
+        if any(t not in TESTS for t in self.tests):
+            yield ConfigValueError("tests", list(self.tests), f"use a list of {', '.join(TESTS)}")
+        if any(t not in CAR_TESTS for t in self.car_tests):
+            yield ConfigValueError("car_tests", list(self.car_tests), f"use a list of {', '.join(CAR_TESTS)}")
+        if not self.tests and not self.car_tests:
+            yield ConfigValueError("tests", [], "give at least one pedestrian or car-to-car test")
+        if any(not 0 < abs(o) <= 100 for o in self.overlaps_pct) or not self.overlaps_pct:
+            yield ConfigValueError("overlaps_pct", list(self.overlaps_pct), "use overlaps in [-100, 0) or (0, 100]")
+        if self.car_speed_step_kmh <= 0 or self.car_speed_step_kmh % 5:
+            yield ConfigValueError("car_speed_step_kmh", self.car_speed_step_kmh, "use a positive multiple of 5")
+        if not self.speeds_kmh or any(not 0 < v <= 150 for v in self.speeds_kmh):
+            yield ConfigValueError("speeds_kmh", list(self.speeds_kmh), "use speeds in (0, 150] km/h")
+        if not 0.0 < self.takeover_ttc_s <= 4.0:
+            yield ConfigValueError(
+                "takeover_ttc_s", self.takeover_ttc_s, "it must be in (0, 4] s (the tests start at 4 s)"
+            )

@@ -1,0 +1,83 @@
+"""The whole schema: every section under one ``ExperimentConfig``, registered in Hydra's ConfigStore."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from hydra.core.config_store import ConfigStore
+
+from ..common import CONF_DIR, Checked, ConfigValueError
+from ..common import positive_fields as _positive
+from ..peers import REGISTRY
+from .agent import AgentConfig, RewardConfig
+from .data import CollectConfig, DemosConfig, EnvConfig, PathsConfig
+from .evaluation import EvaluateConfig, NcapConfig
+from .world_model import RNNConfig, VAEConfig
+
+PEERS = REGISTRY  # peer system -> its agent preset (conf/agent/), on its own family (worldmodel/peers/)
+
+
+@dataclass
+class ExperimentConfig(Checked):
+    """Every stage's config: shared keys, then one section per stage or component."""
+
+    experiment: str = "default"  # names data/${experiment}/ and runs/${experiment}/
+    seed: int = 0
+    resume: bool = False  # continue from runs/.../last.pt (and finish partial datasets)
+    threads: int = 2  # torch intra-op threads
+    # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
+    allow_stale: bool = False
+    scale_name: str | None = None  # set by conf/scale/*.yaml
+    # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
+    # ddpg: the paper's agent (R1 and R2); chooser: the camera agent that beats braking (R2; docs/design.md §5)
+    agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
+    # training seeds of every preset in agents; empty: seed alone (a seed trained before is kept either way)
+    seeds: list[int] = field(default_factory=list)
+    # the banks the pipeline's evaluations run on, in order (worldmodel/banks.py): validation for everyday runs;
+    # add test only for final numbers, since the ledger records every evaluation on a test bank
+    banks: list[str] = field(default_factory=lambda: ["validation"])
+    # peer systems the pipeline also trains and evaluates on their own scenario family (pipeline peers=[chae])
+    peers: list[str] = field(default_factory=list)
+    paths: PathsConfig = field(default_factory=PathsConfig)
+    collect: CollectConfig = field(default_factory=CollectConfig)
+    demos: DemosConfig = field(default_factory=DemosConfig)
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
+    ncap: NcapConfig = field(default_factory=NcapConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    rnn: RNNConfig = field(default_factory=RNNConfig)
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+
+    def problems(self):
+        yield from _positive(self, "threads")
+        a = self.agent
+        for key in ("demo_share", "bc_pretrain_steps", "bc_weight"):
+            if getattr(a, key) > 0 and self.demos.episodes < 1:
+                yield ConfigValueError(
+                    f"agent.{key}", getattr(a, key), "it learns from planner demonstrations: set demos.episodes > 0"
+                )
+        for name in self.agents:
+            if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
+                known = sorted(p.stem for p in (CONF_DIR / "agent").glob("*.yaml"))
+                yield ConfigValueError("agents", list(self.agents), f"{name!r} is not a preset: use {', '.join(known)}")
+        from ..banks import BANKS
+
+        if not self.banks or any(b not in BANKS for b in self.banks):
+            yield ConfigValueError("banks", list(self.banks), f"give some of {', '.join(BANKS)}")
+        unknown = [p for p in self.peers if p not in PEERS]
+        if unknown:
+            yield ConfigValueError("peers", list(self.peers), f"known peer systems: {', '.join(PEERS)}")
+        if a.bc_weight > 0 and a.demo_share == 0:
+            yield ConfigValueError(
+                "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"
+            )
+
+
+def register() -> None:
+    """Put the schema into Hydra's ConfigStore as ``schema`` (idempotent); ``conf/base.yaml`` starts from it, so
+    every group option and override is merged into, and checked against, these dataclasses."""
+    ConfigStore.instance().store(name="schema", node=ExperimentConfig)
+
+
+register()
