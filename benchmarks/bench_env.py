@@ -6,7 +6,7 @@ Steps/s are wall-clock (the docs/design.md §7 target) and also per CPU-second o
 (``*_cpu``), which other people's jobs on a shared machine disturb much less; ``load_average`` records how busy
 the machine was. ``profile_camera_on`` splits a camera-on step into its parts (CPU ms per step).
 
-Profile of the camera (issue 6; 2-core AMD EPYC, shared; wall time, and valgrind instruction counts where other
+Profile of the camera (2-core AMD EPYC, shared; wall time, and valgrind instruction counts where other
 people's jobs made timings unreliable). Before: 274 steps/s camera on, ~3.2 ms of a ~3.7 ms step inside
 ``getCameraImage``; actor placement 0.07 ms; dynamics, collisions and the rest ~0.4 ms.
 
@@ -56,7 +56,7 @@ def steps_per_second(
 ) -> tuple[float, float]:
     """(wall-clock, CPU-time) steps per second, resets included; ``family="kim"``: Kim's junction (drawn by
     ``camera.CrossroadsGround``), 0.1 s steps, scenarios from its own sampler; ``tele_fov_deg``: with the
-    narrow second camera (issue 11's chooser_tele), a second render per step."""
+    narrow second camera (the chooser_tele agent's), a second render per step."""
     rng = np.random.default_rng(0)
     if family == "porav":
         env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None, tele_fov_deg=tele_fov_deg)

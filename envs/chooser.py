@@ -1,6 +1,6 @@
 """Brake, and switch once to a manoeuvre predicted to cost less: the decision structure of the chooser agent.
 
-Issue 11's students that clone the planner's *actions* fail where the camera cannot tell the planner's reasons
+Students that clone the planner's *actions* fail where the camera cannot tell the planner's reasons
 apart: least squares averages a swerve left and a swerve right into braking straight, or into a half-swerve. The
 chooser learns the *costs* of a fixed set of manoeuvres instead (docs/design.md §5):
 

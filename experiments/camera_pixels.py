@@ -2,11 +2,11 @@
 
     python -m experiments.camera_pixels [--fovs 90,45,30] [--per-cell 10]
 
-Issue 11's perception bound, measured at the source. For the validation bank's pedestrian scenarios at 20 and
-30 m/s with TTC <= 1.1 s (seed 4711; the test bank is never touched), the ego brakes straight and each of its
-first three frames is rendered at every field of view; the table gives the mean number of pixels the hazard
-pedestrian covers (``UrbanCollisionEnv.hazard_pixels``) and the share of scenarios where it covers none at onset.
-~3 s on one core.
+The perception bound (docs/results/agent/notes/perception_bound.md), measured at the source. For the validation
+bank's pedestrian scenarios at 20 and 30 m/s with TTC <= 1.1 s (seed 4711; the test bank is never touched), the ego
+brakes straight and each of its first three frames is rendered at every field of view; the table gives the mean
+number of pixels the hazard pedestrian covers (``UrbanCollisionEnv.hazard_pixels``) and the share of scenarios where
+it covers none at onset. ~3 s on one core.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ do not choose on it) in the training env, which ends at the first bump. Prints p
 1.5, 1.7, 1.9 s, Scenario 2's needless stops, and the mean Eq. 8 return per trial as training counts it, so that
 a rule inside the bars can be set beside what the learner is paid to do. ``evaluate.family=chae`` drives the
 chosen threshold as ``closing_braking`` (docs/results/chae/README.md). ``--noise-m`` makes the ensembles act on
-another noise than their checkpoints record (twentieth session: does Eq. 8 on the noisy state prefer what the
+another noise than their checkpoints record (does Eq. 8 on the noisy state prefer what the
 exact-trained ensembles do there?); ``--save`` keeps every policy's per-trial returns, in bank order, for paired
 comparisons across runs on the same draw:
 

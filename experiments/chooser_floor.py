@@ -7,11 +7,11 @@
 the floor. It is a decision-time rule, so the trained scorers (``runs/NAME/agent_r2_chooser/seed<S>/``) are scored
 as they are: on the validation bank's labels (``data/NAME/chooser_labels/validation-*/``, made once if missing),
 each seed's exact R2 cost per scenario (``worldmodel.chooser.policy_cost``, equal to the simulated episode) under
-each floor. Prints, per floor, the mean gain over braking per seed, the static-collision rate (labels made since
-2026-11-24 record, per candidate, whether it ends in a static object) and the TTC <= 1.0 s cells in which the
-seed-averaged chooser costs more than braking (the issue's cells bar). First, from the labels alone, the exact-cost
-chooser under static penalties (``agent.chooser.static_penalty``); with ``--ensemble``, also the seeds' predictions
-averaged. The test bank is never touched.
+each floor. Prints, per floor, the mean gain over braking per seed, the static-collision rate (where the labels
+record, per candidate, whether it ends in a static object; older labels lack the flags) and the TTC <= 1.0 s cells in
+which the seed-averaged chooser costs more than braking (the bar on those cells: no higher than braking's). First,
+from the labels alone, the exact-cost chooser under static penalties (``agent.chooser.static_penalty``); with
+``--ensemble``, also the seeds' predictions averaged. The test bank is never touched.
 
 A margin other than the one the scorers were trained with is a what-if of the decision rule alone: training keeps
 the scorer checkpoint that is best on its held-out labels at the preset's margin, so a chooser trained with another

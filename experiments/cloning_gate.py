@@ -1,4 +1,4 @@
-"""Issue 11's feasibility gate: how much of the planner's decisions the world model's view carries.
+"""The feasibility gate: how much of the planner's decisions the world model's view carries.
 
     python -m experiments.cloning_gate experiment=quick demos.episodes=500
 

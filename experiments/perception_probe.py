@@ -2,7 +2,7 @@
 
     python -m experiments.perception_probe experiment=quick agent.chooser.episodes=15000 [--steps 4000]
 
-Issue 11's bound. The chooser's scorer reaches ~53 % of the achievable improvement on the privileged hazard state
+The perception bound. The chooser's scorer reaches ~53 % of the achievable improvement on the privileged hazard state
 (where the hazard pedestrian and car are, how they move: ``envs.chooser.HAZARD_STATE``) and ~25-29 % from the world
 model's latents. Is the gap the VAE (which blurs a 1-6 px pedestrian) or the frame itself? This probe skips the VAE:
 

@@ -1,5 +1,5 @@
 """Scenario family ``chae`` (envs/chae.py) on the real simulator: replay, trigger, termination, reward, state and
-the physics band of issue 13's calculation."""
+the physics band that braking at the trigger gives."""
 
 from __future__ import annotations
 
@@ -133,7 +133,7 @@ def test_pedestrian_history_is_15_values_oldest_first(env):
 
 
 def test_braking_at_the_trigger_lands_in_the_physics_band(env):
-    """Issue 13's physics check: full braking exactly at the trigger bumps in 37.3 / 3.1 / 0 / 0 % at TTC 0.9 /
+    """The physics check: full braking exactly at the trigger bumps in 37.3 / 3.1 / 0 / 0 % at TTC 0.9 /
     1.1 / 1.3 / 1.5 s (v ~ U(10, 60) km/h), and in 76.5 / 12.1 / 0.46 / 0 % a step of 0.1 s later. Deciding once per
     step, the privileged policies react 0-0.1 s late, so they must land inside that band."""
     band = {0.9: (37.3, 76.5), 1.1: (3.1, 12.1), 1.3: (0.0, 0.46), 1.5: (0.0, 0.0)}
@@ -562,7 +562,7 @@ def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_p
 
     assert AgentConfig().chae_ttc_range == [1.5, 4.0]  # the schema's
     default, wide = cfg(tmp_path / "paper", "agent.chae_ttc_range=[1.5,4.0]"), cfg(tmp_path / "wide")
-    assert list(wide.agent.chae_ttc_range) == [1.3, 4.0]  # the preset's, since the twenty-first session
+    assert list(wide.agent.chae_ttc_range) == [1.3, 4.0]  # the preset's
     assert artifacts.provenance(wide, "agent") != artifacts.provenance(default, "agent")
     for bad in ("[2.0,1.5]", "[1.5]", "[0.0,4.0]", "[1.5,6.0]"):
         with pytest.raises(StageError, match="agent.chae_ttc_range"):
@@ -593,7 +593,7 @@ def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluatio
         return smoke_dqn_chae(root, "agent.select.every=0", *extra)
 
     default, exact = cfg(tmp_path / "paper"), cfg(tmp_path / "exact", "agent.chae_noise_m=0")
-    assert default.agent.chae_noise_m == 0.05  # the preset's, since the twenty-first session
+    assert default.agent.chae_noise_m == 0.05  # the preset's
     assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_noise_m=0.05"), "agent") == (
         artifacts.provenance(default, "agent")
     )

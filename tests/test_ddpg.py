@@ -346,7 +346,7 @@ def test_agent_config_section_is_the_ddpg_schema():
         DDPGConfig(gamma=1.5)
 
 
-# ----------------------------------------------------------------------------- issue 11's learner options
+# ------------------------------------------------------------------------------------ the learner options
 def test_n_step_window_returns_match_hand_computation():
     from worldmodel.models.ddpg import NStepWindow
 

@@ -418,9 +418,9 @@ def test_rollout_is_the_hand_written_episode_loop():
     assert short.steps == 3 and not short.terminated
 
 
-# The straight-line braking outcomes of every scenario of the test bank's grid (one per cell), hashed when the
-# step length became a setting (issue 13): the porav family must stay bit-identical through the groundwork for the
-# other families. A change here changes every published number; it needs a reason, not a new hash.
+# The straight-line braking outcomes of every scenario of the test bank's grid (one per cell), hashed: the porav
+# family must stay bit-identical whatever the step-length setting and the other families add. A change here changes
+# every published number; it needs a reason, not a new hash.
 PORAV_BRAKING_HASH = "36e39c42aa18dda70242e4e654555255fbd683c60b3f707268cea39181bc5732"
 
 
