@@ -1,0 +1,157 @@
+"""Kim et al.'s evaluation as Table 2: the per-policy summary with intervals and paired tests, its markdown tables
+beside the published ones, and the avoidance figure."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envs.kim import SCENARIOS
+
+from ...stats import paired_permutation_p, wilson
+
+# Table 2 (avoidance %, mean injury) per scenario 1 / 2 / 3 / all, as published
+PAPER_TABLE_2 = {
+    "goal-aware DDPG (paper)": ((82.00, 92.50, 97.00, 92.17), (-1.89, -0.54, -0.43, -0.94)),
+    "goal-unaware DDPG (paper)": ((87.00, 89.00, 92.50, 87.83), (-2.66, -0.88, -1.11, -1.52)),
+    "human drivers (paper)": ((16.67, 16.67, 0.00, 11.11), (-13.20, -14.21, -13.97, -13.79)),
+    "AEB (paper)": ((31.50, 5.30, 0.00, 5.30), (-17.99, -19.22, -21.90, -19.67)),
+}
+
+
+def summarise(rows: list[dict], paper_trials: int) -> dict:
+    """Per policy (seeds pooled): avoidance % with its interval and mean injury (-ISS, both units), per scenario
+    and overall, on every trial and on the first ``paper_trials`` per scenario."""
+    out: dict = {"policies": {}}
+    for policy in dict.fromkeys(r["policy"] for r in rows):
+        mine = [r for r in rows if r["policy"] == policy]
+        s: dict = {"seeds": sorted({r["policy_seed"] for r in mine})}
+        for label, subset in (("all", mine), ("paper", [r for r in mine if r["trial"] < paper_trials])):
+            cells = {}
+            for scenario in (*SCENARIOS, "overall"):
+                at = subset if scenario == "overall" else [r for r in subset if r["scenario"] == scenario]
+                k, n = sum(r["avoided"] for r in at), len(at)
+                cells[scenario] = {
+                    "n": n,
+                    "avoidance": 100 * k / n if n else None,
+                    "interval": wilson(k, n),
+                    "injury_kmh": -float(np.mean([r["iss_kmh"] for r in at])) if n else None,
+                    "injury_ms": -float(np.mean([r["iss_ms"] for r in at])) if n else None,
+                    "rear_ended": 100 * float(np.mean([r["rear_ended"] for r in at])) if n else None,
+                }
+            s[label] = cells
+        out["policies"][policy] = s
+    names = list(out["policies"])
+    tests = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            ra = sorted(
+                (r for r in rows if r["policy"] == a), key=lambda r: (r["policy_seed"], r["scenario"], r["trial"])
+            )
+            rb = sorted(
+                (r for r in rows if r["policy"] == b), key=lambda r: (r["policy_seed"], r["scenario"], r["trial"])
+            )
+            xa = _per_trial(ra)
+            xb = _per_trial(rb)
+            keys = sorted(set(xa) & set(xb))
+            if keys:
+                tests[f"{a} vs {b}"] = paired_permutation_p([xa[k] for k in keys], [xb[k] for k in keys])
+    out["paired_p"] = tests
+    return out
+
+
+def _per_trial(rows: list[dict]) -> dict:
+    """Mean ISS (km/h) per (scenario, trial), over a policy's seeds."""
+    acc: dict = {}
+    for r in rows:
+        acc.setdefault((r["scenario"], r["trial"]), []).append(r["iss_kmh"])
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+def tables(summary: dict, trials: int, paper_trials: int) -> str:
+    pol = summary["policies"]
+    head = "| policy | right | left | left turn | overall | right | left | left turn | overall |"
+    rule = "|---|" + "---:|" * 8
+
+    def fmt(v, f="{:.1f}"):
+        return "–" if v is None else f.format(v)
+
+    lines = [
+        "# Kim et al. on family kim (seeds pooled): Table 2's layout",
+        "",
+        f"## The paper's size: the first {paper_trials} trials per scenario",
+        "",
+        "Avoidance % (no collision of any kind) | mean injury (minus the summed Sobhani ISS per episode, ΔV in km/h)",
+        "",
+        head,
+        rule,
+    ]
+    for name, (avoid, injury) in PAPER_TABLE_2.items():
+        lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in (*avoid, *injury)) + " |")
+    for name, s in pol.items():
+        c = s["paper"]
+        cells = [fmt(c[k]["avoidance"]) for k in (*SCENARIOS, "overall")]
+        cells += [fmt(c[k]["injury_kmh"], "{:.2f}") for k in (*SCENARIOS, "overall")]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "The paper's inconsistencies (docs/design.md §10): its 'all' column is not the mean of the three scenarios, "
+        "and 87.00 / 31.50 / 5.30 are not multiples of 1/30; its human row is a driving-simulator study, not "
+        "reproduced here.",
+        "",
+        f"## {trials} trials per scenario, with 95 % Wilson intervals",
+        "",
+        "| policy | seeds | right | left | left turn | overall | injury (km/h) | injury (m/s) | rear-ended % |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, s in pol.items():
+        c = s["all"]
+        cells = [
+            f"{c[k]['avoidance']:.1f} [{c[k]['interval'][0]:.0f}, {c[k]['interval'][1]:.0f}]"
+            for k in (*SCENARIOS, "overall")
+        ]
+        o = c["overall"]
+        lines.append(
+            f"| {name} | {','.join(map(str, s['seeds']))} | "
+            + " | ".join(cells)
+            + f" | {o['injury_kmh']:.2f} | {o['injury_ms']:.2f} | {o['rear_ended']:.1f} |"
+        )
+    lines += ["", "## Pairwise tests (paired sign-flip permutation test on per-trial ISS, 10,000 flips)", ""]
+    lines += ["| pair | p |", "|---|---:|"]
+    lines += [f"| {pair} | {p:.4f} |" for pair, p in summary["paired_p"].items()]
+    lines.append("")
+    return "\n".join(lines)
+
+
+def figure(summary: dict, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pol = summary["policies"]
+    names = list(pol)
+    groups = (*SCENARIOS, "overall")
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    width = 0.8 / max(1, len(names))
+    for i, name in enumerate(names):
+        c = pol[name]["all"]
+        vals = [c[g]["avoidance"] for g in groups]
+        lo = [v - c[g]["interval"][0] for g, v in zip(groups, vals, strict=True)]
+        hi = [c[g]["interval"][1] - v for g, v in zip(groups, vals, strict=True)]
+        ax.bar(np.arange(len(groups)) + i * width, vals, width, yerr=[lo, hi], capsize=2, label=name)
+    ax.set_xticks(np.arange(len(groups)) + 0.4 - width / 2, [g.replace("_", " ") for g in groups])
+    ax.set_ylabel("runner avoided, no collision (%)")
+    ax.set_ylim(0, 105)
+    ax.axhline(87.83, color="k", ls=":", lw=1)
+    ax.text(len(groups) - 0.5, 88.5, "paper's goal-unaware DDPG, overall", ha="right", fontsize=7)
+    ax.legend(fontsize=7, ncol=2, loc="lower left")
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def render_tables(rows: list[dict], settings: dict) -> str:
+    """The evaluation's tables from its rows and ``summary["render"]``."""
+    paper_trials = int(settings["paper_trials"])
+    return tables(summarise(rows, paper_trials), int(settings["trials"]), paper_trials)
