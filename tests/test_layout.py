@@ -60,9 +60,20 @@ def test_the_simulator_never_imports_torch():
         assert not {m for m in imports if m == "torch" or m.startswith("torch.")}, path
 
 
+def peer_sources(family: str) -> list[tuple[Path, str]]:
+    """(path, package its relative imports resolve against) of every module of peer ``family``: the module
+    ``worldmodel/peers/<family>.py``, or each module of the package ``worldmodel/peers/<family>/``."""
+    module = ROOT / "worldmodel" / "peers" / f"{family}.py"
+    if module.exists():
+        return [(module, "worldmodel.peers")]
+    paths = sorted((ROOT / "worldmodel" / "peers" / family).rglob("*.py"))
+    return [(path, ".".join(path.parent.relative_to(ROOT).parts)) for path in paths]
+
+
 def test_every_peer_keeps_the_interface_and_imports_no_other_peer():
-    """Each registered peer is a module with the Peer interface (worldmodel/peers/__init__.py), its declared family
-    and preset match the registry and the preset's own family, and it imports no other peer."""
+    """Each registered peer is a module or package with the Peer interface (worldmodel/peers/__init__.py), its
+    declared family and preset match the registry and the preset's own family, and none of its modules imports
+    another peer."""
     from worldmodel import peers
     from worldmodel.config import preset_globals
 
@@ -72,8 +83,13 @@ def test_every_peer_keeps_the_interface_and_imports_no_other_peer():
         assert isinstance(module, peers.Peer), family
         assert (module.FAMILY, module.PRESET) == (family, preset)
         assert preset_globals(preset)["env"]["family"] == family
-        imports = imported_modules(ROOT / "worldmodel" / "peers" / f"{family}.py", "worldmodel.peers")
-        others = {f"worldmodel.peers.{n}" for n in names - {family}}
-        assert not imports & others, f"peers/{family}.py imports {sorted(imports & others)}: share through common.py"
+        others = tuple(f"worldmodel.peers.{n}" for n in names - {family})
+        sources = peer_sources(family)
+        assert sources, f"no source for peer {family}"
+        for path, package in sources:
+            imports = imported_modules(path, package)
+            bad = sorted(m for m in imports if m in others or m.startswith(tuple(f"{o}." for o in others)))
+            where = path.relative_to(ROOT / "worldmodel")
+            assert not bad, f"{where} imports {bad}: share through peers/common.py"
     with pytest.raises(KeyError, match="known are chae, kim, merola"):
         peers.peer("porav")

@@ -1,5 +1,6 @@
-"""What every peer's trainer and evaluation share: resuming a DQN run, its checkpoint, and writing an evaluation
-directory (``results.csv`` first, ``summary.json`` last, since its presence marks the evaluation complete)."""
+"""What every peer's trainer and evaluation share: resuming a DQN run, its training episode, its checkpoint, and
+writing an evaluation directory (``results.csv`` first, ``summary.json`` last, since its presence marks the
+evaluation complete)."""
 
 from __future__ import annotations
 
@@ -60,6 +61,30 @@ def resume_dqn(run_, agent, obs_dim: int, curve: dict) -> tuple[int, dict]:
     episode = int(run_.state["episode"])
     run_.resumed(f"episode {episode}")
     return episode, run_.state["curve"]
+
+
+def play_dqn_episode(env, agent, see, spec, action_of, trauma_of=None, view_seed=None, loss=None):
+    """One training episode of a DQN learner on scenario ``spec``: reset the env and the observer (on
+    ``view_seed``), then act, step, observe, remember and update once per step until the episode ends. An action
+    index becomes the env's [steer, pedal] through ``action_of``; ``trauma_of(terminated, info)`` says whether a
+    transition goes into the trauma memory too (None: none does). Returns the episode's return, its outcome and the
+    latest loss (``loss`` while no update has reported one)."""
+    obs, _ = env.reset(options={"scenario": spec})
+    see.reset(view_seed)
+    x, ret = see(env, obs), 0.0
+    while True:
+        a = agent.act(x)
+        action = action_of(a)
+        obs, reward, terminated, truncated, info = env.step(action)
+        see.note_action(action)
+        x_next = see(env, obs)
+        trauma = False if trauma_of is None else trauma_of(terminated, info)
+        agent.remember(x, a, reward, x_next, terminated, trauma=trauma, episode_end=terminated or truncated)
+        stats = agent.update()
+        loss = stats["loss"] if stats else loss
+        x, ret = x_next, ret + reward
+        if terminated or truncated:
+            return ret, info["outcome"], loss
 
 
 def dqn_checkpoint(agent, hp, episode: int, curve: dict, obs: str, obs_dim: int, reward: str, **extra) -> dict:

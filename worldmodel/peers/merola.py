@@ -51,6 +51,7 @@ from .common import (
     dqn_checkpoint,
     dqn_config,
     drawn,
+    play_dqn_episode,
     record_if_test,
     resume_dqn,
     seal,
@@ -177,20 +178,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     run_.restore_random_state()  # building the networks and views drew from them
     with tqdm(total=total, initial=agent.steps, desc=f"ddqn merola ({cfg.agent.obs})", unit="step") as bar:
         while agent.steps < total and not run_.stop.requested:
-            obs, _ = env.reset(options={"scenario": episode_scenario(int(cfg.seed), episode)})
-            see.reset()
-            x, ret = see(env, obs), 0.0
-            while True:
-                a = agent.act(x)
-                obs, reward, terminated, truncated, info = env.step(merola_action(a))
-                x_next = see(env, obs)
-                agent.remember(x, a, reward, x_next, terminated, trauma=False, episode_end=terminated or truncated)
-                stats = agent.update()
-                loss = stats["loss"] if stats else loss
-                x, ret = x_next, ret + reward
-                if terminated or truncated:
-                    break
-            o = info["outcome"]
+            spec = episode_scenario(int(cfg.seed), episode)
+            ret, o, loss = play_dqn_episode(env, agent, see, spec, merola_action, loss=loss)  # no trauma memory
             crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
             curve["return"].append(float(ret))
             curve["collision"].append(int(crashed))

@@ -1,0 +1,162 @@
+"""``evaluate.family=chae``: the seeded bank of trials every policy drives, one policy's rows, the evaluation that
+writes ``runs/NAME/eval_chae/``, and what runs on the Euro NCAP bank."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from envs.chae import V_INIT_RANGE, V_PED_RANGE, ChaeSpec, LatestSafeBraking
+from envs.streams import CHAE_BANK_SCENARIO_2
+
+from ... import artifacts
+from ..common import drawn, record_if_test, seal, write_rows
+from .observe import FAMILY, family_env
+from .policies import SCRIPTED, TTCBraking, ensembles, load_policy
+from .report import figures, learning_curves, summarise, tables
+
+log = logging.getLogger(__name__)
+
+
+def bank(c) -> list[tuple[int, ChaeSpec]]:
+    """(scenario, spec): Scenario 1 at every TTC of ``c.ttcs`` and Scenario 2, ``c.trials`` each, seeded."""
+    out = []
+    for ttc in c.ttcs:
+        rng = np.random.default_rng([int(c.seed), int(round(float(ttc) * 100))])
+        for i in range(int(c.trials)):
+            spec = ChaeSpec(
+                seed=i,
+                ttc=float(ttc),
+                v_init=float(rng.uniform(*V_INIT_RANGE)),
+                v_ped=float(rng.uniform(*V_PED_RANGE)),
+                far_side=bool(rng.random() < 0.5),
+            )
+            out.append((1, spec))
+    rng = np.random.default_rng([int(c.seed), CHAE_BANK_SCENARIO_2])
+    for i in range(int(c.trials)):
+        spec = ChaeSpec(
+            seed=i,
+            ttc=float(rng.uniform(1.5, 4.0)),
+            v_init=float(rng.uniform(*V_INIT_RANGE)),
+            v_ped=float(rng.uniform(*V_PED_RANGE)),
+            far_side=bool(rng.random() < 0.5),
+            crosses=False,
+        )
+        out.append((2, spec))
+    return out
+
+
+COLUMNS = (
+    "policy",
+    "policy_seed",
+    "scenario",
+    "ttc",
+    "v_init",
+    "v_ped",
+    "far_side",
+    "end",
+    "bump",
+    "contact",
+    "impact_speed",
+    "pedestrian_injury",
+    "stop_gap",
+)
+
+
+def run_policy(env, policy, entries, policy_seed: int = 0, leave: bool = True) -> list[dict]:
+    from tqdm import tqdm
+
+    from envs.rollout import rollout
+
+    rows = []
+    for scenario, spec in tqdm(entries, desc=policy.name, unit="trial", leave=leave):
+        o = rollout(env, policy, spec).outcome
+        rows.append(
+            {
+                "policy": policy.name,
+                "policy_seed": policy_seed,
+                "scenario": scenario,
+                "ttc": spec.ttc,
+                "v_init": spec.v_init,
+                "v_ped": spec.v_ped,
+                "far_side": int(spec.far_side),
+                "end": o["end"],
+                "bump": o["bumped"],
+                "contact": int(o["pedestrian_collision"]),
+                "impact_speed": o["speed_at_collision"] if o["pedestrian_collision"] else float("nan"),
+                "pedestrian_injury": o["pedestrian_injury"],
+                "stop_gap": o["gap_to_pedestrian"] if o["end"] == "stop" else float("nan"),
+            }
+        )
+    return rows
+
+
+def evaluate(cfg) -> dict:
+    """``evaluate.family=chae``: every scripted policy and dqn agent on the same seeded trials."""
+    from ...training import tensorboard
+
+    c = drawn(cfg, "chae")
+    out = artifacts.eval_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    entries = bank(c)
+    agents = artifacts.trained_agents(cfg, family="chae")
+    record = artifacts.provenance(cfg, "eval")
+    learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
+    if int(c.ensemble):
+        grouped = ensembles(agents, learned, int(c.ensemble))
+        learned = learned + grouped if c.singles else grouped
+    rows = []
+    plain = family_env(cfg, camera=False, end_on_bump=False)
+    for name in c.policies:
+        rows += run_policy(plain, SCRIPTED[name](), entries)
+    plain.close()
+    for policy in learned:
+        env = family_env(cfg, camera=policy.see.camera, end_on_bump=False)
+        rows += run_policy(env, policy, entries, policy.policy_seed)
+        env.close()
+    if not agents:
+        log.info(
+            "[eval chae] no dqn agents under %s: scripted policies only. Train one with "
+            "`python -m worldmodel.train_agent experiment=%s agent=dqn_chae`.",
+            artifacts.runs_root(cfg),
+            cfg.experiment,
+        )
+    write_rows(out, rows, COLUMNS)
+    summary = summarise(rows, [float(t) for t in c.ttcs])
+    summary["render"] = {"trials": int(c.trials), "ttcs": [float(t) for t in c.ttcs]}  # what tables() is given
+    (out / "tables.md").write_text(tables(summary, int(c.trials)))
+    figures(rows, summary, out)
+    learning_curves(cfg, agents, out / "learning_curves.png")
+    writer = tensorboard(out)
+    for policy, s in summary["policies"].items():
+        for ttc, rate in s["bump_rate"].items():
+            writer.add_scalar(f"chae/{policy}/bump_rate", rate, int(round(float(ttc) * 10)))
+    writer.close()
+    headline = {
+        f"{r['policy']}/seed{r['seed']}": f"max bump {r['max_bump']:.2f} % (TTC {r['at_ttc']:g} s), needless stops "
+        + ("n/a" if r["stops"] is None else f"{r['stops']:.2f} %")
+        for r in summary["runs"]
+    }
+    record_if_test(cfg, "chae", rows, record, headline)
+    seal(out, summary, record, t0)
+    log.info(
+        "[eval chae] %d trials x %d policies in %.0f s: %s",
+        len(entries),
+        len(c.policies) + len(learned),
+        summary["wall_s"],
+        out / "tables.md",
+    )
+    return summary
+
+
+def ncap_policies(cfg) -> list[tuple]:
+    """TTC braking, latest-safe braking and every dqn agent on the NCAP bank: pedestrian tests only, but the
+    camera variant, which sees cars too."""
+    out = [(TTCBraking(), 0, False, False), (LatestSafeBraking(), 0, False, False)]
+    for agent in artifacts.trained_agents(cfg, family=FAMILY):
+        policy = load_policy(cfg, agent)
+        out.append((policy, agent.seed, policy.see.camera, policy.see.camera))
+    return out

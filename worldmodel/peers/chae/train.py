@@ -1,0 +1,182 @@
+"""Chae's DQN training on family chae (``train_agent`` with ``agent.learner=dqn``): the episodes, the validations
+and checkpoints along the way, the rescoring at the end and the extension blocks it may ask for."""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+
+import numpy as np
+
+from envs.chae import BRAKE_LEVELS, TTC_RANGE, ChaeSpec, brake_action, sample_chae
+from envs.streams import CHAE_TRAINING_EPISODES
+
+from ...artifacts import AgentId
+from ...common import StageError, atomic_torch_save, atomic_write_bytes
+from ..common import DQNPolicy, dqn_checkpoint, dqn_config, play_dqn_episode, resume_dqn
+from .observe import HistoryObserver, family_env, observer
+from .report import ROLLING
+from .select import Validation, member_found, rescore_kept, selected, validated_path
+
+log = logging.getLogger(__name__)
+CHECKPOINT_EPISODES = 100
+
+
+def episode_scenario(seed: int, episode: int, ttc_range=TTC_RANGE) -> tuple[ChaeSpec, int]:
+    """Training episode ``episode``'s scenario and observation-noise seed: a function of (seed, episode) and the
+    TTC range (``agent.chae_ttc_range``) only, so a resumed run draws what an uninterrupted one would."""
+    rng = np.random.default_rng([int(seed), CHAE_TRAINING_EPISODES, int(episode)])
+    return sample_chae(rng, ttc_range=(float(ttc_range[0]), float(ttc_range[1]))), int(rng.integers(2**31))
+
+
+def bumped(terminated: bool, info: dict) -> bool:
+    """Chae's trauma: the transition into a bump, which ends the episode."""
+    return terminated and info["outcome"]["end"] == "bump"
+
+
+def train(cfg, run_, agent_id: AgentId) -> dict:
+    """``train_agent`` for ``agent.learner=dqn``: ``agent.episodes`` episodes of family chae."""
+    from tqdm import tqdm
+
+    from ...models.dqn import DQN
+
+    if agent_id.reward != "chae":
+        raise StageError(
+            f"agent.learner=dqn learns Chae's braking with reward chae, not {agent_id.reward}: use agent=dqn_chae"
+        )
+    episodes = int(cfg.agent.episodes)
+    sel = cfg.agent.select
+    for key in ("seed", "rescore_seed") if sel.rescore else ("seed",):
+        if sel.every and int(sel[key]) == int(cfg.evaluate.chae.seed):
+            raise StageError(
+                f"agent.select.{key}={sel[key]} is the evaluation's draw (evaluate.chae.seed): checkpoints must be "
+                f"chosen on other trials; give agent.select.{key} another value"
+            )
+    see = observer(cfg, str(cfg.agent.obs))
+    see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
+    env = family_env(cfg, see.camera)
+    hp = dqn_config(cfg)
+    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
+    episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "end": []})
+    curve.setdefault("validation", [])
+    first_validation = int(np.ceil(float(sel.start) * episodes))
+    validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
+
+    def snapshot(best: bool = False, keep: bool = False):
+        state = dqn_checkpoint(
+            agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward, noise_m=see_noise
+        )
+        if keep:
+            atomic_torch_save(state, validated_path(run_.dir, episode))
+        run_.save(state, best=best)
+
+    writer = run_.writer
+    recent: deque = deque(maxlen=ROLLING)
+    recent.extend(e == "bump" for e in curve["end"][-ROLLING:])
+    loss = None
+
+    def play_episode():
+        """One training episode, logged; a validation (or a checkpoint) when it falls due."""
+        nonlocal episode, loss
+        spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
+        ret, outcome, loss = play_dqn_episode(env, agent, see, spec, brake_action, bumped, view_seed, loss)
+        end = outcome["end"]
+        curve["return"].append(float(ret))
+        curve["end"].append(end)
+        recent.append(end == "bump")
+        episode += 1
+        writer.add_scalar("episode/return", ret, episode)
+        writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
+        writer.add_scalar("train/epsilon", agent.epsilon(), episode)
+        if loss is not None:
+            writer.add_scalar("train/loss", loss, episode)
+        if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
+            score = validation.score(DQNPolicy("validation", agent, see, int(cfg.seed)), episode)
+            improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
+            curve["validation"].append(score)
+            writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
+            writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
+            snapshot(best=improved, keep=bool(sel.keep))
+        elif episode % CHECKPOINT_EPISODES == 0:
+            snapshot()
+
+    # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
+    draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {list(sel.rescore_ttcs or [sel.ttcs[0]])}"
+    rescore_cache: dict = curve.setdefault("rescorings", {}).setdefault(draw, {})
+
+    def choose() -> tuple[dict | None, dict | None]:
+        """The validation score best.pt holds and, with rescoring, the rescoring (best.pt then its choice)."""
+        chosen, rescored = selected(curve["validation"], float(sel.max_bump)), None
+        if validation is not None and sel.rescore:
+            rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"], cache=rescore_cache)
+            if rescored["chosen"] is not None:
+                episode_chosen = rescored["chosen"]["episode"]
+                atomic_write_bytes(run_.best, validated_path(run_.dir, episode_chosen).read_bytes())
+                chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
+        return chosen, rescored
+
+    # training on needs the rescoring's verdict: without validation (agent.select.every=0) there is none
+    block, blocks = (int(sel.extend), int(sel.extend_blocks)) if validation is not None and sel.rescore else (0, 0)
+    # the planned episodes, then whole blocks until the rescoring finds a member inside both bars
+    target = first_target(episode, episodes, block)
+    gates = curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
+    run_.restore_random_state()  # building the networks and views drew from them
+    with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
+        while True:
+            while episode < target and not run_.stop.requested:
+                play_episode()
+                bar.update(1)
+            if run_.stop.requested:
+                snapshot()
+                break
+            chosen, rescored = choose()
+            verdict = {"episode": episode, "member": member_found(rescored, sel)}
+            if gates and gates[-1]["episode"] == episode:  # a finished run resumed: the same verdict again
+                gates.pop()
+            gates.append(verdict)
+            snapshot()  # with the rescoring and its verdict in the curve: a resumed run need not drive it again
+            if not block or target >= episodes + blocks * block or gates[-1]["member"]:
+                break
+            log.info("[%s] no rescored member inside both bars at episode %d: %d more", run_.name, episode, block)
+            target += block
+            bar.total = target
+            bar.refresh()
+    env.close()
+    if validation is not None:
+        validation.env.close()
+    if run_.stop.requested:
+        return run_.stopped(agent.steps)
+    last = curve["end"][-ROLLING:]
+    return {
+        "reward": agent_id.reward,
+        "obs": str(cfg.agent.obs),
+        "episodes": episode,
+        "steps": agent.steps,
+        "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
+        "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
+        "selected": chosen,
+        "rescored": rescored,
+        "extended": max(0, episode - episodes),
+        "gates": gates,
+        "curve": curve,
+    }
+
+
+def first_target(episode: int, episodes: int, block: int) -> int:
+    """The episode a run at ``episode`` trains to before its next rescoring: the planned ``episodes``, or, for a run
+    resumed inside an extension block of ``block`` episodes, that block's end."""
+    if not block or episode <= episodes:
+        return episodes
+    return episodes + -(-(episode - episodes) // block) * block
+
+
+def summary(metrics: dict) -> str:
+    """One log line for a finished training run."""
+    line = f"{metrics['episodes']} episodes; bumps in the last 100: {metrics['recent_bump_rate']}"
+    chosen = metrics.get("selected")
+    if chosen:
+        line += (
+            f"; best.pt = episode {chosen['episode']} (validation: bumps <= {chosen['max_bump_rate']:.1f} % per TTC, "
+            f"{chosen['unnecessary_stop_rate']:.1f} % unnecessary stops)"
+        )
+    return line
