@@ -10,6 +10,7 @@ import functools
 import math
 import os
 import random
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -126,13 +127,69 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 
 def atomic_torch_save(obj: Any, path: Path) -> None:
+    """``torch.save`` to ``path`` atomically, every tensor on the CPU, so that a checkpoint loads on any device."""
     import io
 
     import torch
 
     buf = io.BytesIO()
-    torch.save(obj, buf)
+    torch.save(to_cpu(obj), buf)
     atomic_write_bytes(path, buf.getvalue())
+
+
+def _off_cpu(obj: Any) -> bool:
+    import torch
+
+    if isinstance(obj, torch.Tensor):
+        return obj.device.type != "cpu"
+    if isinstance(obj, dict):
+        return any(_off_cpu(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return any(_off_cpu(v) for v in obj)
+    return False
+
+
+def to_cpu(obj: Any) -> Any:
+    """``obj`` with every tensor in its dicts, lists and tuples moved to the CPU; ``obj`` itself when all are
+    there already, so a CPU run saves exactly what it did before devices existed."""
+    import torch
+
+    if not _off_cpu(obj):
+        return obj
+    if isinstance(obj, torch.Tensor):
+        return obj.cpu()
+    if isinstance(obj, dict):
+        out = {k: to_cpu(v) for k, v in obj.items()}
+        return type(obj)(out) if type(obj) is not dict else out
+    if isinstance(obj, (list, tuple)):
+        moved = [to_cpu(v) for v in obj]
+        return type(obj)(moved) if not hasattr(obj, "_fields") else type(obj)(*moved)
+    return obj
+
+
+# auto | cpu | cuda | cuda:N (the ``device`` setting)
+DEVICE_SETTING = re.compile(r"auto|cpu|cuda(:\d+)?")
+
+
+def resolve_device(setting: str):
+    """The torch device of the ``device`` setting: ``auto`` is CUDA when torch sees it and the CPU otherwise. A CUDA
+    device this machine lacks stops the stage before any work (a StageError, exit status 2), naming the setting."""
+    import torch
+
+    setting = str(setting)
+    if not DEVICE_SETTING.fullmatch(setting):
+        raise StageError(f"device={setting}: use auto, cpu, cuda or cuda:N")
+    if setting == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if setting.startswith("cuda"):
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        index = int(setting.partition(":")[2] or 0)
+        if index >= count:
+            raise StageError(
+                f"device={setting}: torch sees {count or 'no'} CUDA device{'s' if count != 1 else ''} on this machine "
+                f"(torch {torch.__version__}); use device=cpu (or device=auto, which picks CUDA only where it exists)"
+            )
+    return torch.device(setting)
 
 
 def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:

@@ -123,7 +123,7 @@ def cloning_fit(agent: DDPG, held_out: ReplayBuffer) -> dict:
     obs = torch.from_numpy(held_out.obs[: len(held_out)])
     target = torch.from_numpy(held_out.actions[: len(held_out)])
     with torch.no_grad():
-        fit = ((agent.actor(obs) - target) ** 2).sum(-1).mean().item()
+        fit = ((agent.actor(obs.to(agent.device)).cpu() - target) ** 2).sum(-1).mean().item()
     constant = ((target.mean(0) - target) ** 2).sum(-1).mean().item()
     zero = (target**2).sum(-1).mean().item()
     return {"actor": round(fit, 5), "best_constant": round(constant, 5), "zero": round(zero, 5)}

@@ -48,10 +48,12 @@ def encode_dataset(
     encoded_mu, encoded_logvar = [], []  # encoded frames not yet written, in episode order
     waiting: list[int] = []  # episodes whose frames are queued or encoded but not written
 
+    device = next(vae.parameters()).device
+
     def encode_batch(valid: int) -> None:
-        mu, logvar = vae.encode(torch.from_numpy(frames))
-        encoded_mu.append(mu[:valid].numpy().astype(np.float32))
-        encoded_logvar.append(logvar[:valid].numpy().astype(np.float32))
+        mu, logvar = vae.encode(torch.from_numpy(frames).to(device))
+        encoded_mu.append(mu[:valid].cpu().numpy().astype(np.float32))
+        encoded_logvar.append(logvar[:valid].cpu().numpy().astype(np.float32))
 
     def write_finished(f) -> None:
         mu, logvar = np.concatenate(encoded_mu), np.concatenate(encoded_logvar)

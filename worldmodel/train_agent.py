@@ -30,7 +30,7 @@ from envs.streams import AGENT_EPISODE_SEEDS, AGENT_FOCUS_EPISODES
 
 from . import artifacts
 from .action_map import ActionMap
-from .common import StageError, check_finite, make_env, seed_everything, set_threads
+from .common import StageError, check_finite, make_env, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
 from .imitation import clone, cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
 from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
@@ -85,7 +85,7 @@ def run(cfg) -> dict:
     seed_everything(int(cfg.seed))
     hp = typed.agent
     obs_dim = encoder.dim
-    agent = DDPG(obs_dim, 2, hp, seed=int(cfg.seed))
+    agent = DDPG(obs_dim, 2, hp, seed=int(cfg.seed), device=resolve_device(cfg.device))
     buffer = ReplayBuffer(hp.buffer_size, obs_dim, 2)
     history: deque = deque(maxlen=ROLLING)
     demos, demo_info = None, {}

@@ -26,7 +26,7 @@ from envs import CLASS_NAMES, NUM_CLASSES
 from envs.streams import RNN_OPEN_LOOP_START, RNN_VALIDATION_INPUTS
 
 from . import artifacts, dreams
-from .common import StageError, check_finite, seed_everything, set_threads
+from .common import StageError, check_finite, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
 from .latents import Latents, encode_dataset, is_current
 from .training import TrainingRun
@@ -186,7 +186,8 @@ def run(cfg) -> dict:
     vae, vae_path = artifacts.load_vae(cfg, "best")
     store = artifacts.open_rollouts(cfg)
     seed_everything(int(cfg.seed))
-    model = artifacts.build_rnn(cfg)
+    device = resolve_device(cfg.device)
+    model = artifacts.build_rnn(cfg).to(device)  # built on the CPU first: the same initial weights on every device
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.rnn.lr))
     L, D, B = int(cfg.rnn.seq_len), int(cfg.vae.latent_dim), int(cfg.rnn.batch_size)
     sample_inputs = bool(cfg.rnn.sample_inputs)
@@ -199,7 +200,8 @@ def run(cfg) -> dict:
 
     with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
         # after the run's checks: a refused resume must not cost an encoding
-        lat_path, reencoded = ensure_latents(cfg, store, vae, vae_path)
+        lat_path, reencoded = ensure_latents(cfg, store, vae.to(device), vae_path)
+        vae.cpu()  # the measurements after training decode on the CPU
         lat = Latents(lat_path)
         if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
             raise StageError(
@@ -237,6 +239,7 @@ def run(cfg) -> dict:
                 z, a, z_next, mask = make_batch(lat, units, L, D, gen, sample_inputs=sample_inputs)
                 if b < batch_in_epoch:
                     continue
+                z, a, z_next, mask = (t.to(device, non_blocking=True) for t in (z, a, z_next, mask))
                 out, _ = model(z, a)
                 loss = masked_loss(model, out, z_next, mask)
                 if open_loop:
@@ -319,10 +322,12 @@ def validation_loss(model, lat, units, L, D, B, seed, *, sample_inputs: bool) ->
     """Mean per-step loss over the held-out windows, with the inputs drawn as in training (``rnn.sample_inputs``),
     so ``best.pt`` is chosen on the distribution it was trained on."""
     model.eval()
-    gen = torch.Generator().manual_seed(seed + RNN_VALIDATION_INPUTS)
+    device = next(model.parameters()).device
+    gen = torch.Generator().manual_seed(seed + RNN_VALIDATION_INPUTS)  # drawn on the CPU: the same on every device
     total, count = 0.0, 0
     for b in range(0, len(units), B):
-        z, a, z_next, mask = make_batch(lat, units[b : b + B], L, D, gen, sample_inputs=sample_inputs)
+        batch = make_batch(lat, units[b : b + B], L, D, gen, sample_inputs=sample_inputs)
+        z, a, z_next, mask = (t.to(device) for t in batch)
         out, _ = model(z, a)
         total += masked_loss(model, out, z_next, mask).item() * int(mask.sum())
         count += int(mask.sum())

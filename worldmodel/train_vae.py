@@ -18,7 +18,7 @@ import torch
 from envs import CLASS_NAMES, NUM_CLASSES
 
 from . import artifacts
-from .common import check_finite, seed_everything, set_threads
+from .common import check_finite, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
 from .data import RolloutStore, iter_frame_batches
 from .training import TrainingRun
@@ -62,11 +62,12 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
     from .models.vae import confusion, iou_from_confusion, vae_loss
 
     model.eval()
+    device = next(model.parameters()).device
     conf = np.zeros((NUM_CLASSES, NUM_CLASSES), dtype=np.int64)
     recon_sum = kl_sum = 0.0
     n = 0
     for batch in iter_frame_batches(store, episodes, batch_size, np.random.default_rng(0)):
-        x = torch.from_numpy(batch)
+        x = torch.from_numpy(batch).to(device)
         logits, mu, logvar = model(x, sample=False)
         _, recon, kl = vae_loss(logits, x, mu, logvar)
         recon_sum += float(recon) * len(x)
@@ -94,7 +95,8 @@ def run(cfg) -> dict:
     store = artifacts.open_rollouts(cfg)
     out = artifacts.vae_dir(cfg)
     seed_everything(int(cfg.seed))
-    model = artifacts.build_vae(cfg)
+    device = resolve_device(cfg.device)
+    model = artifacts.build_vae(cfg).to(device)  # built on the CPU first: the same initial weights on every device
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.vae.lr))
     epochs, batch_size = int(cfg.vae.epochs), int(cfg.vae.batch_size)
     train_eps, val_eps = store.episodes("train"), store.episodes("validation") or store.episodes("train")
@@ -107,6 +109,7 @@ def run(cfg) -> dict:
             artifacts.check_vae_architecture(run_.state, cfg, run_.last)
             weights = run_.state.get("class_weights")
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
+        weights_here = None if weights is None else weights.to(device)
 
         # what a resume or a loader checks the architecture against, and the loss weights to resume with
         arch = {
@@ -128,10 +131,16 @@ def run(cfg) -> dict:
             for b, batch in enumerate(iter_frame_batches(store, train_eps, batch_size, rng)):
                 if b < batch_in_epoch:  # resuming mid-epoch: skip what was already trained on
                     continue
-                x = torch.from_numpy(batch)
+                x = torch.from_numpy(batch).to(device, non_blocking=True)
                 logits, mu, logvar = model(x)
                 loss, recon, kl = vae_loss(
-                    logits, x, mu, logvar, float(cfg.vae.kl_weight), float(cfg.vae.free_bits), class_weights=weights
+                    logits,
+                    x,
+                    mu,
+                    logvar,
+                    float(cfg.vae.kl_weight),
+                    float(cfg.vae.free_bits),
+                    class_weights=weights_here,
                 )
                 check_finite(loss.item(), "VAE loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
@@ -169,7 +178,7 @@ def run(cfg) -> dict:
             )
 
         model, best_path = artifacts.load_vae(cfg, "best")
-        final = evaluate(model, store, val_eps, 64)
+        final = evaluate(model.to(device), store, val_eps, 64)
         wall = time.perf_counter() - t0
         metrics = {
             "checkpoint": str(best_path),
@@ -201,7 +210,8 @@ def log_validation(writer, model, store: RolloutStore, episode: int, val: dict, 
         [store.read(episode, "seg", slice(k, k + 1))[0] for k in range(0, min(store.lengths[episode], 64), 8)]
     )
     with torch.inference_mode():
-        recon_frames = model.eval().reconstruct(torch.from_numpy(sample)).numpy()
+        device = next(model.parameters()).device
+        recon_frames = model.eval().reconstruct(torch.from_numpy(sample).to(device)).cpu().numpy()
     model.train()
     writer.add_image(
         "reconstruction (top: input, bottom: VAE)", palette_grid(sample, recon_frames), step, dataformats="HWC"

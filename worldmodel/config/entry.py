@@ -10,7 +10,7 @@ from dataclasses import fields, is_dataclass
 
 from omegaconf import OmegaConf
 
-from ..common import CONF_DIR, ConfigValueError, StageError, return_freed_memory
+from ..common import CONF_DIR, ConfigValueError, StageError, resolve_device, return_freed_memory
 from .agent import AgentConfig
 from .experiment import ExperimentConfig
 
@@ -111,9 +111,12 @@ def validate(cfg) -> ExperimentConfig:
         except ConfigValueError as err:
             raise StageError(f"config {f.name}.{err}") from None
     try:
-        return OmegaConf.to_object(cfg)
+        typed = OmegaConf.to_object(cfg)
     except ConfigValueError as err:
         raise StageError(f"config {err}") from None
+    if isinstance(typed, ExperimentConfig):
+        resolve_device(typed.device)  # a CUDA device this machine lacks stops here, before any work
+    return typed
 
 
 def section(cfg, name: str) -> dict:

@@ -25,6 +25,9 @@ class ExperimentConfig(Checked):
     seed: int = 0
     resume: bool = False  # continue from runs/.../last.pt (and finish partial datasets)
     threads: int = 2  # torch intra-op threads
+    # where torch trains and decides: auto (CUDA when torch sees it, else the CPU), cpu, cuda or cuda:N. Never part of
+    # a provenance hash: checkpoints hold CPU tensors, so a model trained on one device loads on any other
+    device: str = "auto"
     # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
@@ -51,6 +54,10 @@ class ExperimentConfig(Checked):
 
     def problems(self):
         yield from _positive(self, "threads")
+        from ..common import DEVICE_SETTING
+
+        if not DEVICE_SETTING.fullmatch(str(self.device)):
+            yield ConfigValueError("device", self.device, "use auto, cpu, cuda or cuda:N")
         a = self.agent
         for key in ("demo_share", "bc_pretrain_steps", "bc_weight"):
             if getattr(a, key) > 0 and self.demos.episodes < 1:

@@ -305,8 +305,9 @@ class DDPG:
     behaviour cloning on the samples a batch marks as demonstrations (``batch["demo"]``), Q-filtered if asked.
     """
 
-    def __init__(self, obs_dim: int, act_dim: int, cfg: DDPGConfig, seed: int):
+    def __init__(self, obs_dim: int, act_dim: int, cfg: DDPGConfig, seed: int, device="cpu"):
         self.obs_dim, self.act_dim, self.cfg = int(obs_dim), int(act_dim), cfg
+        self.device = torch.device(device)
         self.rng = np.random.default_rng(seed)
         self.updates = 0
         lidar = {"lidar_scans": cfg.lidar_scans, "lidar_rays": cfg.lidar_rays}
@@ -330,6 +331,10 @@ class DDPG:
         # Targets are only ever read under no_grad and moved by soft_update.
         for target in self._targets():
             target.requires_grad_(False)
+        # built on the CPU from the seed, then moved: the same initial weights on every device
+        for net in (self.actor, self.critic, self.critic2, *self._targets()):
+            if net is not None:
+                net.to(self.device)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
         critic_params = list(self.critic.parameters()) + (list(self.critic2.parameters()) if self.critic2 else [])
         self.critic_optimizer = torch.optim.Adam(critic_params, lr=cfg.critic_lr)
@@ -343,7 +348,7 @@ class DDPG:
         (obs_dim,) or a batch (n, obs_dim)."""
         with torch.inference_mode():
             # as_tensor shares memory with a float32 array, so acting allocates nothing the size of the input.
-            action = self.actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+            action = self.actor(torch.as_tensor(obs, dtype=torch.float32).to(self.device)).cpu().numpy()
         if explore:
             action = action + self.rng.normal(0.0, self.cfg.exploration_noise, size=action.shape)
         return np.clip(action, -1.0, 1.0).astype(np.float32, copy=False)
@@ -364,7 +369,8 @@ class DDPG:
         next_obs = batch["next_obs"]
         next_action = self.actor_target(next_obs)
         if self.cfg.target_noise > 0:
-            noise = torch.randn(next_action.shape, generator=self.torch_rng) * self.cfg.target_noise
+            # drawn on the CPU generator, then moved: the same noise on every device
+            noise = torch.randn(next_action.shape, generator=self.torch_rng).to(self.device) * self.cfg.target_noise
             next_action = (next_action + noise.clamp(-0.5, 0.5)).clamp(-1.0, 1.0)
         next_q = self.critic_target(next_obs, next_action)
         if self.critic2_target is not None:
@@ -389,7 +395,8 @@ class DDPG:
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
         """One gradient step on the critic(s); every ``policy_delay``-th call also one on the actor, then a soft
-        update of the targets."""
+        update of the targets. The batch may be on the CPU: it is moved to the agent's device."""
+        batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         target = self.td_target(batch)
         q = self.critic(batch["obs"], batch["actions"])
         critic_loss = F.mse_loss(q, target)
@@ -425,6 +432,8 @@ class DDPG:
         error weighted by ``weights`` (None: all alike); returns the loss."""
         if getattr(self, "_clone_optimizer", None) is None:
             self._new_clone_optimizer()
+        obs, actions = obs.to(self.device), actions.to(self.device)
+        weights = None if weights is None else weights.to(self.device)
         squared = ((self.actor(obs) - actions) ** 2).sum(-1)
         loss = squared.mean() if weights is None else (weights * squared).sum() / weights.sum()
         self._clone_optimizer.zero_grad()
