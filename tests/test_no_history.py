@@ -14,8 +14,6 @@ import json
 import re
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parent.parent
 SCANNED = (
     "README.md",
@@ -33,8 +31,6 @@ KINDS = (".md", ".py", ".yaml", ".yml", ".ipynb", ".sh", ".toml")
 NEVER = ("CHANGELOG.md",)  # history's own file
 DATED_DATA = "_tables.md"  # generated tables: dates allowed in their data, nothing else
 
-# Files that other work is splitting right now; whoever splits them cleans their docstrings.
-BEING_SPLIT = ("worldmodel/peers/", "worldmodel/dreams.py", "worldmodel/chooser.py")
 
 _UNITS = ("first", "second", "third", "fourth", "fifth", "sixth", "seventh", "eighth", "ninth")
 _ORDINAL_WORDS = (
@@ -108,24 +104,9 @@ def history_in(path: Path, root: Path = ROOT) -> list[str]:
     return hits
 
 
-def being_split(path: Path, root: Path = ROOT) -> bool:
-    rel = path.relative_to(root).as_posix()
-    return any(rel == p or (p.endswith("/") and rel.startswith(p)) for p in BEING_SPLIT)
-
-
 def test_the_product_files_carry_no_development_history():
-    hits = [h for path in scanned_files() if not being_split(path) for h in history_in(path)]
+    hits = [h for path in scanned_files() for h in history_in(path)]
     assert not hits, "development history in product files (say the fact, not when or why it came):\n" + "\n".join(hits)
-
-
-@pytest.mark.xfail(
-    strict=False,
-    reason="worldmodel/peers/, worldmodel/dreams.py and worldmodel/chooser.py are being split by other work, which "
-    "cleans their docstrings (committed worldmodel/dreams.py still names an issue number in beats_decoded_persistence)",
-)
-def test_the_files_being_split_carry_no_development_history():
-    hits = [h for path in scanned_files() if being_split(path) for h in history_in(path)]
-    assert not hits, "development history in files being split:\n" + "\n".join(hits)
 
 
 def test_the_check_sees_sessions_issues_and_dates(tmp_path):
@@ -181,6 +162,3 @@ def test_the_check_sees_sessions_issues_and_dates(tmp_path):
         "notebooks/n.ipynb:cell 0 line 2",
     }, hits
     assert {h.split(": ")[1] for h in hits} == {"numbered session", "issue number", "date"}
-    assert being_split(tmp_path / "worldmodel/peers/chae.py", tmp_path)
-    assert being_split(tmp_path / "worldmodel/dreams.py", tmp_path)
-    assert not being_split(tmp_path / "worldmodel/dreams_extra.py", tmp_path)

@@ -333,7 +333,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
         if uses_demos(cfg) and not uses_world_model:
-            # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/peers/kim.py): what
+            # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/peers/kim/): what
             # makes them is part of its settings, not an input on disk
             from .config import teacher_settings
 

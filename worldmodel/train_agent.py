@@ -293,7 +293,7 @@ def run_chooser(cfg, agent_id) -> dict:
 
 
 def run_peer(cfg, agent_id, family: str) -> dict:
-    """A peer system's learner on its own scenario family (``worldmodel/peers/<family>.py``): Chae et al.'s braking
+    """A peer system's learner on its own scenario family (``worldmodel/peers/<family>``): Chae et al.'s braking
     DQN (``agent.learner=dqn``) or Kim et al.'s LIDAR DDPG (``agent.obs=lidar``). Its ``train`` returns the metrics,
     with ``summary`` (a line for the log)."""
     from . import peers

@@ -132,7 +132,7 @@ OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "fram
 
 @dataclass
 class SelectConfig(Checked):
-    """Checkpoint selection for the dqn learner on family chae (``worldmodel/peers/chae.py``). Every ``every``
+    """Checkpoint selection for the dqn learner on family chae (``worldmodel/peers/chae/``). Every ``every``
     episodes once ``start`` of the run has passed, the greedy agent drives a validation draw of Chae's trials
     (``trials`` Scenario-1 trials at each TTC of ``ttcs`` and as many Scenario-2 trials, seeded by ``seed``: never
     the evaluation's ``evaluate.chae.seed``), and ``best.pt`` keeps the checkpoint that, among those bumping in at
@@ -249,7 +249,7 @@ class AgentConfig(DDPGConfig):
     # from the simulator's labels; R2 only, and none of the DDPG keys apply)
     learner: str = "ddpg"
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
-    # learner "dqn" (worldmodel/peers/chae.py): DQN / Double DQN with a trauma memory over discrete brake levels
+    # learner "dqn" (worldmodel/peers/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
     episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
     select: SelectConfig = field(default_factory=SelectConfig)  # the dqn learner on family chae: best.pt

@@ -48,7 +48,7 @@ class OracleConfig(Checked):
 # braking (the floor), the privileged planner (the ceiling), and the planner after braking straight for its first 1
 # or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard
 SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2")
-# family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae.py SCRIPTED)
+# family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae/ SCRIPTED)
 CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
 
 
@@ -63,7 +63,7 @@ def _draw_problems(section, key: str, prefix: str = ""):
 
 @dataclass
 class ChaeEvalConfig(Checked):
-    """Chae et al.'s evaluation on family chae (worldmodel/peers/chae.py): Table I's bump rate per TTC, Scenario 2's
+    """Chae et al.'s evaluation on family chae (worldmodel/peers/chae/): Table I's bump rate per TTC, Scenario 2's
     unnecessary stops, stopping distances, and contact, impact speed and injury."""
 
     trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
@@ -98,7 +98,7 @@ class ChaeEvalConfig(Checked):
 
 @dataclass
 class KimEvalConfig(Checked):
-    """Kim et al.'s evaluation on family kim (worldmodel/peers/kim.py): Table 2's avoidance and injury per
+    """Kim et al.'s evaluation on family kim (worldmodel/peers/kim/): Table 2's avoidance and injury per
     scenario, on the paper's 30 trials per scenario and on ``trials`` with 95 % intervals, and pairwise tests."""
 
     trials: int = 200  # seeded trials per scenario; the first 30 are the paper-sized table

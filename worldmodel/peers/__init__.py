@@ -19,7 +19,7 @@ from __future__ import annotations
 import importlib
 from typing import Protocol, runtime_checkable
 
-# family -> the agent preset of its paper (conf/agent/<preset>.yaml); the module is worldmodel/peers/<family>.py
+# family -> the agent preset of its paper (conf/agent/<preset>.yaml); the module or package is worldmodel/peers/<family>
 REGISTRY: dict[str, str] = {"chae": "dqn_chae", "kim": "ddpg_kim", "merola": "ddqn_merola"}
 
 
