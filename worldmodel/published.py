@@ -68,6 +68,8 @@ def render_tables(rows: list[dict], meta: dict) -> str:
     family, how = meta["family"], meta.get("render", {})
     if family == "porav":
         return report.tables_markdown(rows)
+    if family == ACTION_EFFECT:
+        return action_effect_tables(rows, how)
     from . import peers
 
     if family not in peers.REGISTRY:
@@ -88,10 +90,44 @@ def bank_of(eval_dir: Path, family: str) -> tuple[str, int]:
     return "validation", int(match.group(1)) if match else banks.VALIDATION_SEEDS[family][0]
 
 
+ACTION_EFFECT = "action_effect"  # the world model's action effect (worldmodel/action_effect.py), from runs/NAME/rnn/
+
+
+def action_effect_tables(rows: list[dict], how: dict) -> str:
+    """The action effect's tables (size with intervals, direction, per class) from its per-point rows."""
+    from . import dreams
+
+    effect = dreams.summarise_effect(rows, int(how["horizons"]), int(how["points"]), int(how["boot"]))
+    return "# The world model's action effect\n\n" + dreams.markdown({"action_effect": effect})
+
+
+def publish_action_effect(rnn_dir: Path, stem: Path, command: str) -> Path:
+    """Commit the LSTM stage's action-effect rows and render their tables, after checking that they give the
+    stage's own ``metrics.json`` figures again."""
+    from . import dreams
+
+    metrics = json.loads((rnn_dir / "metrics.json").read_text())["action_effect"]
+    raw = (rnn_dir / "action_effect.rows.csv.gz").read_bytes()
+    rows = read_rows(rnn_dir / "action_effect.rows.csv.gz", ACTION_EFFECT)
+    how = {"horizons": len(metrics["horizons"]), "points": int(metrics["points"]), "boot": 2000}
+    if json.loads(json.dumps(dreams.summarise_effect(rows, how["horizons"], how["points"], how["boot"]))) != metrics:
+        raise RecheckError(f"{rnn_dir}: the rows no longer give metrics.json's action effect: measure again")
+    meta = {"family": ACTION_EFFECT, "experiment": rnn_dir.parent.name, "command": command, "render": how}
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(stem.with_name(stem.name + ROWS), raw)
+    atomic_write_text(stem.with_name(stem.name + META), json.dumps(meta, indent=2) + "\n")
+    atomic_write_text(stem.with_name(stem.name + TABLES), action_effect_tables(rows, how))
+    print(f"published {len(rows)} action-effect rows of {rnn_dir} as {stem}{ROWS}, {TABLES}, {META}")
+    return stem
+
+
 def publish(eval_dir: Path, stem: Path, command: str) -> Path:
     """Copy an evaluation's rows next to ``stem`` and render its tables from them; refused when the rendering is
-    not the evaluation's own ``tables.md`` (its code has changed since: evaluate again)."""
+    not the evaluation's own ``tables.md`` (its code has changed since: evaluate again). Given an LSTM stage's
+    folder (``runs/NAME/rnn``), the action effect's rows instead."""
     eval_dir, stem = Path(eval_dir), Path(stem)
+    if (eval_dir / "action_effect.rows.csv.gz").exists():
+        return publish_action_effect(eval_dir, stem, command)
     if not (eval_dir / "summary.json").exists():
         raise RecheckError(f"{eval_dir} holds no finished evaluation (no summary.json): run it first")
     family = family_of(eval_dir)
