@@ -4,6 +4,7 @@ evaluation complete)."""
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import json
@@ -112,15 +113,15 @@ def write_rows(out: Path, rows: list[dict], columns) -> None:
         w.writerows(rows)
 
 
-def drawn(cfg, family: str):
-    """``evaluate.<family>`` with the seed of the bank ``evaluate.bank`` names: its own (a validation draw) or the
-    family's sealed test seed (worldmodel/banks.py)."""
-    from omegaconf import OmegaConf
-
+def drawn(typed, family: str):
+    """The typed ``evaluate.<family>`` of the typed config ``typed`` (``validate(cfg)``) with the seed of the bank
+    ``evaluate.bank`` names: its own (a validation draw) or the family's sealed test seed (worldmodel/banks.py). A
+    copy with the seed set, not ``dataclasses.replace``: building the section anew would refuse a test seed."""
     from ..banks import draw_seed
 
-    c = cfg.evaluate[family]
-    return OmegaConf.merge(c, {"seed": draw_seed(str(cfg.evaluate.bank), family, c.seed)})
+    c = copy.copy(getattr(typed.evaluate, family))
+    c.seed = draw_seed(typed.evaluate.bank, family, c.seed)
+    return c
 
 
 def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:
@@ -146,7 +147,7 @@ def record_if_test(cfg, family: str, rows: list[dict], record: dict, headline: d
     record_evaluation(cfg, family, scenarios, policies, headline)
 
 
-def world_model_step_s(cfg) -> float:
+def world_model_step_s(typed) -> float:
     """The step length the experiment's world model was trained at, at which its agents act on any family: the
-    env section's when it describes the paper's family, else the paper's 1/15 s."""
-    return float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0
+    env section's of the typed config ``typed`` when it describes the paper's family, else the paper's 1/15 s."""
+    return typed.env.step_s if typed.env.family == "porav" else 1.0 / 15.0

@@ -156,19 +156,21 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     steps have been taken; the learning rate decays over exactly that many updates."""
     from tqdm import tqdm
 
+    from ..config import validate
     from ..models.dqn import DQN
 
     if agent_id.reward != "merola":
         raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
-    total = int(cfg.agent.peer_total_steps)
-    see = observer(cfg, str(cfg.agent.obs))
+    typed = validate(cfg)
+    total = typed.agent.peer_total_steps
+    see = observer(cfg, typed.agent.obs)
     env = family_env(cfg)
     hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
-    agent = DQN(see.dim, len(ACTIONS), hp, int(cfg.seed))
+    agent = DQN(see.dim, len(ACTIONS), hp, typed.seed)
     episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "collision": [], "scenario": []})
 
     def snapshot():
-        obs = str(cfg.agent.obs)
+        obs = typed.agent.obs
         run_.save(dqn_checkpoint(agent, hp, episode, curve, obs, see.dim, agent_id.reward, family="merola"))
 
     writer = run_.writer
@@ -176,9 +178,9 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     crashes: deque = deque(curve["collision"][-ROLLING:], maxlen=ROLLING)
     loss = None
     run_.restore_random_state()  # building the networks and views drew from them
-    with tqdm(total=total, initial=agent.steps, desc=f"ddqn merola ({cfg.agent.obs})", unit="step") as bar:
+    with tqdm(total=total, initial=agent.steps, desc=f"ddqn merola ({typed.agent.obs})", unit="step") as bar:
         while agent.steps < total and not run_.stop.requested:
-            spec = episode_scenario(int(cfg.seed), episode)
+            spec = episode_scenario(typed.seed, episode)
             ret, o, loss = play_dqn_episode(env, agent, see, spec, merola_action, loss=loss)  # no trauma memory
             crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
             curve["return"].append(float(ret))
@@ -202,7 +204,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         return run_.stopped(agent.steps)
     return {
         "reward": agent_id.reward,
-        "obs": str(cfg.agent.obs),
+        "obs": typed.agent.obs,
         "episodes": episode,
         "steps": agent.steps,
         "recent_return": float(np.mean(recent)) if recent else None,
@@ -239,11 +241,12 @@ def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
 
 # ----------------------------------------------------------------------------- evaluation
 def bank(c) -> list[MerolaSpec]:
-    """``c.trials`` seeded trials per scenario, the same for every policy."""
+    """``c.trials`` seeded trials per scenario, the same for every policy (``c``: the typed ``evaluate.merola``, or
+    anything with an int ``seed`` and ``trials``)."""
     out = []
     for k, scenario in enumerate(SCENARIOS):
-        rng = np.random.default_rng([int(c.seed), k])
-        out += [sample_merola(rng, scenario) for _ in range(int(c.trials))]
+        rng = np.random.default_rng([c.seed, k])
+        out += [sample_merola(rng, scenario) for _ in range(c.trials)]
     return out
 
 
@@ -430,10 +433,12 @@ def scripted(cfg) -> list:
 def evaluate(cfg) -> dict:
     """``evaluate.family=merola``: braking, the planner, the paper's world-model agents and every ddqn_merola agent
     on the same seeded trials."""
+    from ..config import validate
     from ..policies import porav_policies
     from ..training import tensorboard
 
-    c = drawn(cfg, "merola")
+    typed = validate(cfg)
+    c = drawn(typed, "merola")
     out = artifacts.eval_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -452,7 +457,7 @@ def evaluate(cfg) -> dict:
         rows += run_policy(env, policy, specs, "ddqn_merola", policy.policy_seed)
     env.close()
     if world_model:  # the paper's agents act at the step length they were trained with
-        env = family_env(cfg, step_s=world_model_step_s(cfg))
+        env = family_env(cfg, step_s=world_model_step_s(typed))
         for policy, seed in world_model:
             rows += run_policy(env, policy, specs, "world model", seed)
         env.close()
@@ -465,8 +470,8 @@ def evaluate(cfg) -> dict:
         )
     write_rows(out, rows, COLUMNS)
     summary = summarise(rows)
-    summary["render"] = {"trials": int(c.trials)}  # what tables() is given
-    (out / "tables.md").write_text(tables(summary, int(c.trials)))
+    summary["render"] = {"trials": c.trials}  # what tables() is given
+    (out / "tables.md").write_text(tables(summary, c.trials))
     figure(summary, out / "collisions.png")
     if agents:
         learning_curves(cfg, agents, out / "learning_curves.png")

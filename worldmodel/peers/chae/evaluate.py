@@ -21,21 +21,23 @@ log = logging.getLogger(__name__)
 
 
 def bank(c) -> list[tuple[int, ChaeSpec]]:
-    """(scenario, spec): Scenario 1 at every TTC of ``c.ttcs`` and Scenario 2, ``c.trials`` each, seeded."""
+    """(scenario, spec): Scenario 1 at every TTC of ``c.ttcs`` and Scenario 2, ``c.trials`` each, seeded (``c``: a
+    typed section such as ``evaluate.chae`` or ``agent.select``, or anything with an int ``seed`` and ``trials`` and
+    float ``ttcs``)."""
     out = []
     for ttc in c.ttcs:
-        rng = np.random.default_rng([int(c.seed), int(round(float(ttc) * 100))])
-        for i in range(int(c.trials)):
+        rng = np.random.default_rng([c.seed, round(ttc * 100)])
+        for i in range(c.trials):
             spec = ChaeSpec(
                 seed=i,
-                ttc=float(ttc),
+                ttc=ttc,
                 v_init=float(rng.uniform(*V_INIT_RANGE)),
                 v_ped=float(rng.uniform(*V_PED_RANGE)),
                 far_side=bool(rng.random() < 0.5),
             )
             out.append((1, spec))
-    rng = np.random.default_rng([int(c.seed), CHAE_BANK_SCENARIO_2])
-    for i in range(int(c.trials)):
+    rng = np.random.default_rng([c.seed, CHAE_BANK_SCENARIO_2])
+    for i in range(c.trials):
         spec = ChaeSpec(
             seed=i,
             ttc=float(rng.uniform(1.5, 4.0)),
@@ -95,9 +97,10 @@ def run_policy(env, policy, entries, policy_seed: int = 0, leave: bool = True) -
 
 def evaluate(cfg) -> dict:
     """``evaluate.family=chae``: every scripted policy and dqn agent on the same seeded trials."""
+    from ...config import validate
     from ...training import tensorboard
 
-    c = drawn(cfg, "chae")
+    c = drawn(validate(cfg), "chae")
     out = artifacts.eval_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -105,8 +108,8 @@ def evaluate(cfg) -> dict:
     agents = artifacts.trained_agents(cfg, family="chae")
     record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
-    if int(c.ensemble):
-        grouped = ensembles(agents, learned, int(c.ensemble))
+    if c.ensemble:
+        grouped = ensembles(agents, learned, c.ensemble)
         learned = learned + grouped if c.singles else grouped
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
@@ -125,9 +128,9 @@ def evaluate(cfg) -> dict:
             cfg.experiment,
         )
     write_rows(out, rows, COLUMNS)
-    summary = summarise(rows, [float(t) for t in c.ttcs])
-    summary["render"] = {"trials": int(c.trials), "ttcs": [float(t) for t in c.ttcs]}  # what tables() is given
-    (out / "tables.md").write_text(tables(summary, int(c.trials)))
+    summary = summarise(rows, c.ttcs)
+    summary["render"] = {"trials": c.trials, "ttcs": c.ttcs}  # what tables() is given
+    (out / "tables.md").write_text(tables(summary, c.trials))
     figures(rows, summary, out)
     learning_curves(cfg, agents, out / "learning_curves.png")
     writer = tensorboard(out)

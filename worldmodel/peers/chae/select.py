@@ -19,11 +19,12 @@ def validated_path(run_dir, episode: int):
 
 
 class Validation:
-    """``agent.select``'s validation draw (``bank`` on its own seed), driven greedily by a checkpoint."""
+    """``agent.select``'s validation draw (``bank`` on its own seed), driven greedily by a checkpoint; ``sel``: the
+    typed ``agent.select``."""
 
     def __init__(self, sel, env):
-        self.ttcs = [float(t) for t in sel.ttcs]
-        self.entries = bank(SimpleNamespace(seed=int(sel.seed), trials=int(sel.trials), ttcs=self.ttcs))
+        self.ttcs = sel.ttcs
+        self.entries = bank(SimpleNamespace(seed=sel.seed, trials=sel.trials, ttcs=self.ttcs))
         self.env = env
 
     def score(self, policy, episode: int) -> dict:
@@ -70,26 +71,30 @@ def rescore_choice(rescored: list[dict], max_bump: float, max_stops: float) -> d
 
 
 def member_found(rescored: dict | None, sel) -> bool:
-    """Whether the rescoring chose a checkpoint inside both bars on its draw (``agent.select.extend`` stops)."""
+    """Whether the rescoring chose a checkpoint inside both bars on its draw (``agent.select.extend`` stops);
+    ``sel``: the typed ``agent.select``."""
     chosen = (rescored or {}).get("chosen")
-    return chosen is not None and room(chosen, float(sel.max_bump), float(sel.max_stops)) <= 1.0
+    return chosen is not None and room(chosen, sel.max_bump, sel.max_stops) <= 1.0
 
 
 def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, cache: dict | None = None) -> dict:
     """``agent.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
-    (``sel``: the run's select settings, default ``cfg.agent.select``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
+    (``sel``: the run's select settings, with float bars and TTCs and int counts, default the typed
+    ``agent.select`` of ``cfg``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
     Returns the draw, every shortlisted checkpoint's bumps per TTC, their highest and the needless stops, and the
     chosen one (None: no candidate). ``cache`` (str(episode) -> entry) holds checkpoints already rescored on this
     draw, and takes the new ones."""
     import torch
 
-    sel = sel or cfg.agent.select
-    corner, max_bump, max_stops = float(sel.ttcs[0]), float(sel.max_bump), float(sel.max_stops)
-    ttcs = [float(t) for t in (getattr(sel, "rescore_ttcs", None) or [corner])]
-    entries = bank(SimpleNamespace(seed=int(sel.rescore_seed), trials=int(sel.rescore_trials), ttcs=ttcs))
+    from ...config import validate
+
+    sel = sel or validate(cfg).agent.select
+    corner, max_bump, max_stops = sel.ttcs[0], sel.max_bump, sel.max_stops
+    ttcs = getattr(sel, "rescore_ttcs", None) or [corner]
+    entries = bank(SimpleNamespace(seed=sel.rescore_seed, trials=sel.rescore_trials, ttcs=ttcs))
     env, rescored = None, []
     cache = {} if cache is None else cache
-    for score in rescore_shortlist(scores, int(sel.rescore), max_bump, max_stops, corner):
+    for score in rescore_shortlist(scores, sel.rescore, max_bump, max_stops, corner):
         if str(score["episode"]) in cache:
             rescored.append(cache[str(score["episode"])])
             continue
@@ -110,8 +115,8 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
         env.close()
     chosen = rescore_choice(rescored, max_bump, max_stops)
     return {
-        "seed": int(sel.rescore_seed),
-        "trials": int(sel.rescore_trials),
+        "seed": sel.rescore_seed,
+        "trials": sel.rescore_trials,
         "ttc": corner,
         "ttcs": ttcs,
         "rescored": rescored,

@@ -38,34 +38,35 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` for ``agent.learner=dqn``: ``agent.episodes`` episodes of family chae."""
     from tqdm import tqdm
 
+    from ...config import validate
     from ...models.dqn import DQN
 
     if agent_id.reward != "chae":
         raise StageError(
             f"agent.learner=dqn learns Chae's braking with reward chae, not {agent_id.reward}: use agent=dqn_chae"
         )
-    episodes = int(cfg.agent.episodes)
-    sel = cfg.agent.select
+    typed = validate(cfg)
+    a = typed.agent
+    episodes = a.episodes
+    sel = a.select
     for key in ("seed", "rescore_seed") if sel.rescore else ("seed",):
-        if sel.every and int(sel[key]) == int(cfg.evaluate.chae.seed):
+        if sel.every and getattr(sel, key) == typed.evaluate.chae.seed:
             raise StageError(
-                f"agent.select.{key}={sel[key]} is the evaluation's draw (evaluate.chae.seed): checkpoints must be "
-                f"chosen on other trials; give agent.select.{key} another value"
+                f"agent.select.{key}={getattr(sel, key)} is the evaluation's draw (evaluate.chae.seed): checkpoints "
+                f"must be chosen on other trials; give agent.select.{key} another value"
             )
-    see = observer(cfg, str(cfg.agent.obs))
+    see = observer(cfg, a.obs, noise_m=a.chae_noise_m)
     see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
-    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, int(cfg.seed))
+    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, typed.seed)
     episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "end": []})
     curve.setdefault("validation", [])
-    first_validation = int(np.ceil(float(sel.start) * episodes))
+    first_validation = int(np.ceil(sel.start * episodes))
     validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
 
     def snapshot(best: bool = False, keep: bool = False):
-        state = dqn_checkpoint(
-            agent, hp, episode, curve, str(cfg.agent.obs), see.dim, agent_id.reward, noise_m=see_noise
-        )
+        state = dqn_checkpoint(agent, hp, episode, curve, a.obs, see.dim, agent_id.reward, noise_m=see_noise)
         if keep:
             atomic_torch_save(state, validated_path(run_.dir, episode))
         run_.save(state, best=best)
@@ -78,7 +79,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     def play_episode():
         """One training episode, logged; a validation (or a checkpoint) when it falls due."""
         nonlocal episode, loss
-        spec, view_seed = episode_scenario(int(cfg.seed), episode, cfg.agent.chae_ttc_range)
+        spec, view_seed = episode_scenario(typed.seed, episode, a.chae_ttc_range)
         ret, outcome, loss = play_dqn_episode(env, agent, see, spec, brake_action, bumped, view_seed, loss)
         end = outcome["end"]
         curve["return"].append(float(ret))
@@ -90,25 +91,25 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         writer.add_scalar("train/epsilon", agent.epsilon(), episode)
         if loss is not None:
             writer.add_scalar("train/loss", loss, episode)
-        if validation is not None and episode >= first_validation and episode % int(sel.every) == 0:
-            score = validation.score(DQNPolicy("validation", agent, see, int(cfg.seed)), episode)
-            improved = selected(curve["validation"] + [score], float(sel.max_bump)) is score
+        if validation is not None and episode >= first_validation and episode % sel.every == 0:
+            score = validation.score(DQNPolicy("validation", agent, see, typed.seed), episode)
+            improved = selected(curve["validation"] + [score], sel.max_bump) is score
             curve["validation"].append(score)
             writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
             writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
-            snapshot(best=improved, keep=bool(sel.keep))
+            snapshot(best=improved, keep=sel.keep)
         elif episode % CHECKPOINT_EPISODES == 0:
             snapshot()
 
     # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
-    draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {list(sel.rescore_ttcs or [sel.ttcs[0]])}"
+    draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {sel.rescore_ttcs or [sel.ttcs[0]]}"
     rescore_cache: dict = curve.setdefault("rescorings", {}).setdefault(draw, {})
 
     def choose() -> tuple[dict | None, dict | None]:
         """The validation score best.pt holds and, with rescoring, the rescoring (best.pt then its choice)."""
-        chosen, rescored = selected(curve["validation"], float(sel.max_bump)), None
+        chosen, rescored = selected(curve["validation"], sel.max_bump), None
         if validation is not None and sel.rescore:
-            rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"], cache=rescore_cache)
+            rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"], sel, rescore_cache)
             if rescored["chosen"] is not None:
                 episode_chosen = rescored["chosen"]["episode"]
                 atomic_write_bytes(run_.best, validated_path(run_.dir, episode_chosen).read_bytes())
@@ -116,12 +117,12 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         return chosen, rescored
 
     # training on needs the rescoring's verdict: without validation (agent.select.every=0) there is none
-    block, blocks = (int(sel.extend), int(sel.extend_blocks)) if validation is not None and sel.rescore else (0, 0)
+    block, blocks = (sel.extend, sel.extend_blocks) if validation is not None and sel.rescore else (0, 0)
     # the planned episodes, then whole blocks until the rescoring finds a member inside both bars
     target = first_target(episode, episodes, block)
     gates = curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
     run_.restore_random_state()  # building the networks and views drew from them
-    with tqdm(total=target, initial=episode, desc=f"dqn chae ({cfg.agent.obs})", unit="episode") as bar:
+    with tqdm(total=target, initial=episode, desc=f"dqn chae ({a.obs})", unit="episode") as bar:
         while True:
             while episode < target and not run_.stop.requested:
                 play_episode()
@@ -149,7 +150,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     last = curve["end"][-ROLLING:]
     return {
         "reward": agent_id.reward,
-        "obs": str(cfg.agent.obs),
+        "obs": a.obs,
         "episodes": episode,
         "steps": agent.steps,
         "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,

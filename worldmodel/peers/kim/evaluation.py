@@ -40,14 +40,15 @@ def scripted(cfg) -> list:
 def bank(c) -> list[KimSpec]:
     """``c.trials`` seeded trials per scenario; scenario k's first ``c.paper_trials`` make the paper-sized table. Every
     trial's runner crosses the ego at ``c.impact_offset`` (0 by default, as in training), or uniformly within
-    ``c.impact_offset_spread`` of it."""
+    ``c.impact_offset_spread`` of it. ``c``: the typed ``evaluate.kim`` or anything with its int ``seed`` and
+    ``trials`` and float offsets."""
     out, half = [], CAR_LENGTH / 2
     for k, scenario in enumerate(SCENARIOS):
-        rng = np.random.default_rng([int(c.seed), k])
-        crossing = np.random.default_rng([int(c.seed), k, KIM_BANK_CROSSING])  # the other fields stay the same
-        for _ in range(int(c.trials)):
+        rng = np.random.default_rng([c.seed, k])
+        crossing = np.random.default_rng([c.seed, k, KIM_BANK_CROSSING])  # the other fields stay the same
+        for _ in range(c.trials):
             spec = sample_kim(rng)
-            offset = float(c.impact_offset)
+            offset = c.impact_offset
             if c.impact_offset_spread > 0:
                 low, high = max(-half, offset - c.impact_offset_spread), min(half, offset + c.impact_offset_spread)
                 offset = float(crossing.uniform(low, high))
@@ -125,20 +126,22 @@ def draw_suffix(c) -> str:
     """What sets this bank apart from the middle of the flank, for its directory's name (after the bank's own,
     ``artifacts.eval_dir``), so that another placement (``_at+2.25``, ``_spread2.25``) never overwrites it."""
     suffix = ""
-    if float(c.impact_offset):
-        suffix += f"_at{float(c.impact_offset):+g}"
-    if float(c.impact_offset_spread):
-        suffix += f"_spread{float(c.impact_offset_spread):g}"
+    if c.impact_offset:
+        suffix += f"_at{c.impact_offset:+g}"
+    if c.impact_offset_spread:
+        suffix += f"_spread{c.impact_offset_spread:g}"
     return suffix
 
 
 def evaluate(cfg) -> dict:
     """``evaluate.family=kim``: AEB-3m, braking, the planner, every LIDAR and world-model agent of the family and
     (``evaluate.kim.world_model_agents``) the paper's street-trained agents, on the same seeded trials."""
+    from ...config import validate
     from ...policies import porav_policies
     from ...training import tensorboard
 
-    c = drawn(cfg, "kim")
+    typed = validate(cfg)
+    c = drawn(typed, "kim")
     out = artifacts.eval_dir(cfg)
     out = out.with_name(out.name + draw_suffix(c))
     out.mkdir(parents=True, exist_ok=True)
@@ -159,7 +162,7 @@ def evaluate(cfg) -> dict:
         rows += run_policy(env, policy, specs, seed)
     env.close()
     if camera:  # world-model agents act at the step length their world model was trained with
-        env = family_env(cfg, "kim_unaware", camera=True, step_s=world_model_step_s(cfg))
+        env = family_env(cfg, "kim_unaware", camera=True, step_s=world_model_step_s(typed))
         for policy, seed in camera:
             rows += run_policy(env, policy, specs, seed)
         env.close()
@@ -171,9 +174,9 @@ def evaluate(cfg) -> dict:
             cfg.experiment,
         )
     write_rows(out, rows, COLUMNS)
-    summary = summarise(rows, int(c.paper_trials))
-    summary["render"] = {"trials": int(c.trials), "paper_trials": int(c.paper_trials)}  # what tables() is given
-    (out / "tables.md").write_text(tables(summary, int(c.trials), int(c.paper_trials)))
+    summary = summarise(rows, c.paper_trials)
+    summary["render"] = {"trials": c.trials, "paper_trials": c.paper_trials}  # what tables() is given
+    (out / "tables.md").write_text(tables(summary, c.trials, c.paper_trials))
     figure(summary, out / "avoidance.png")
     writer = tensorboard(out)
     for policy, s in summary["policies"].items():

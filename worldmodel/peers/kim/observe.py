@@ -50,13 +50,15 @@ class LidarObserver:
 
 
 def observer(cfg, reward: str):
-    if str(cfg.agent.obs) != "lidar":
+    """The LIDAR observer of the agent section of ``cfg``: the typed config (``validate(cfg)``) or the composed one,
+    whose schema gives the same typed values."""
+    a = cfg.agent
+    if a.obs != "lidar":
         raise StageError(
-            f"Kim et al.'s agent (agent=ddpg_kim) sees the LIDAR (obs=lidar), not obs={cfg.agent.obs}; the camera "
+            f"Kim et al.'s agent (agent=ddpg_kim) sees the LIDAR (obs=lidar), not obs={a.obs}; the camera "
             "agent on this family is agent=ddpg_wm_kim"
         )
-    a = cfg.agent
-    return LidarObserver(reward in GOAL_REWARDS, int(a.lidar_scans), int(a.lidar_rays), bool(a.use_speed))
+    return LidarObserver(reward in GOAL_REWARDS, a.lidar_scans, a.lidar_rays, a.use_speed)
 
 
 def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
@@ -66,9 +68,11 @@ def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
 def training_scenario(cfg, *stream: int) -> KimSpec:
     """A scenario of the training distribution (``agent.kim_impact_offset_spread`` says where the runner may
     strike), a function of (seed, ``stream``) only, so a resumed run draws what an uninterrupted one would;
-    ``stream`` starts with a tag of envs/streams.py (``KIM_TRAINING_EPISODES`` and the others) and its indices."""
-    rng = np.random.default_rng([int(cfg.seed), *map(int, stream)])
-    return sample_kim(rng, float(cfg.agent.kim_impact_offset_spread))
+    ``stream`` starts with a tag of envs/streams.py (``KIM_TRAINING_EPISODES`` and the others) and its indices.
+    ``cfg``: the typed config (``validate(cfg)``; called once per episode, so the caller validates) or the composed
+    one, whose schema gives the same int seed and float spread."""
+    rng = np.random.default_rng([cfg.seed, *map(int, stream)])
+    return sample_kim(rng, cfg.agent.kim_impact_offset_spread)
 
 
 def ddpg_config(cfg):

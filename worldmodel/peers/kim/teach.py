@@ -36,18 +36,20 @@ def planner_demonstrations(cfg, env, see: LidarObserver, hp, split: str):
     Returns (replay buffer of the transitions, planner's avoidance % over the split's episodes)."""
     from tqdm import tqdm
 
+    from ...config import validate
     from ...models.ddpg import NStepWindow, ReplayBuffer
 
+    typed = validate(cfg)
     planner = teacher(cfg)
-    n = int(cfg.demos.episodes)
+    n = typed.demos.episodes
     if n < 2:
         raise StageError(f"demos.episodes={n}: cloning needs at least 2 episodes, one of them held out")
     first_held_out = n - max(1, round(HELD_OUT_SHARE * n))
     episodes = list(range(first_held_out, n) if split == "validation" else range(first_held_out))
     buffer = ReplayBuffer(max(1, len(episodes) * 60), see.dim, 2)  # 5 s of 0.1 s steps, and room to spare
-    window, scale, avoided = NStepWindow(hp.n_step, hp.gamma), float(hp.reward_scale), 0
+    window, scale, avoided = NStepWindow(hp.n_step, hp.gamma), hp.reward_scale, 0
     for i in tqdm(episodes, desc=f"planner demonstrations ({split})", unit="episode"):
-        env.reset(options={"scenario": training_scenario(cfg, KIM_DEMO_SCENARIOS, i)})
+        env.reset(options={"scenario": training_scenario(typed, KIM_DEMO_SCENARIOS, i)})
         planner.reset()
         planner.bind(env)
         see.reset()
@@ -74,10 +76,13 @@ def dagger_labels(cfg, env, see: LidarObserver, agent, round_: int):
     the planner's answers as Kim actions, and the student's avoidance % over the round."""
     from tqdm import tqdm
 
+    from ...config import validate
+
+    typed = validate(cfg)
     planner = teacher(cfg)
-    xs, ys, avoided, n = [], [], 0, int(cfg.agent.dagger_episodes)
+    xs, ys, avoided, n = [], [], 0, typed.agent.dagger_episodes
     for e in tqdm(range(n), desc=f"DAgger round {round_}", unit="episode"):
-        env.reset(options={"scenario": training_scenario(cfg, KIM_DAGGER_SCENARIOS, round_, e)})
+        env.reset(options={"scenario": training_scenario(typed, KIM_DAGGER_SCENARIOS, round_, e)})
         planner.reset()
         planner.bind(env)
         see.reset()
@@ -98,23 +103,26 @@ def dagger_labels(cfg, env, see: LidarObserver, agent, round_: int):
 def learn_from_planner(cfg, env, see: LidarObserver, agent, hp, writer, cloned: bool) -> tuple:
     """The planner's demonstrations for DDPG from demonstrations (``agent.demo_share``, ``agent.bc_weight``) and,
     unless ``cloned`` (a resumed run), the actor's cloning on them (``agent.bc_pretrain_steps``) with
-    ``agent.dagger_rounds`` DAgger rounds. Returns (demonstration buffer, what was measured on the way)."""
+    ``agent.dagger_rounds`` DAgger rounds. ``hp``: the typed agent section. Returns (demonstration buffer, what was
+    measured on the way)."""
+    from ...config import validate
     from ...imitation import clone, cloning_fit
 
     demos, planner_avoided = planner_demonstrations(cfg, env, see, hp, "train")
-    info = {"episodes": int(cfg.demos.episodes), "transitions": len(demos), "planner_avoidance": planner_avoided}
+    episodes = validate(cfg).demos.episodes
+    info = {"episodes": episodes, "transitions": len(demos), "planner_avoidance": planner_avoided}
     log.info("%d demonstration transitions; the planner avoided %.1f %%", len(demos), planner_avoided)
     if cloned or hp.bc_pretrain_steps <= 0:
         return demos, info
     held_out, _ = planner_demonstrations(cfg, env, see, hp, "validation")
     inputs, targets = demos.obs[: len(demos)], demos.actions[: len(demos)]
-    for round_ in range(int(hp.dagger_rounds) + 1):
+    for round_ in range(hp.dagger_rounds + 1):
         if round_:
             x, y, student = dagger_labels(cfg, env, see, agent, round_)
             inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])
             info[f"dagger_round{round_}"] = {"labels": len(x), "student_avoidance": student}
             log.info("DAgger round %d: the student avoided %.1f %%, %d labels", round_, student, len(x))
-        w = float(cfg.agent.bc_steer_weight)
+        w = hp.bc_steer_weight
         weights = None if w == 1.0 else np.where(np.abs(targets[:, 1]) > STEERING_LABEL, w, 1.0)  # None: as before
         clone(agent, inputs, targets, hp, writer, round_, held_out, weights)
         info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)

@@ -13,7 +13,7 @@ from envs.streams import KIM_TRAINING_EPISODES
 from ... import artifacts
 from ...artifacts import AgentId
 from ...common import StageError
-from .observe import GOAL_REWARDS, LidarObserver, ddpg_config, family_env, observer, training_scenario
+from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
 from .teach import learn_from_planner
 
 ROLLING = 100
@@ -24,6 +24,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.peer_total_steps`` steps."""
     from tqdm import tqdm
 
+    from ...config import validate
     from ...imitation import mixed_batch
     from ...models.ddpg import DDPG, DDPGConfig, NStepWindow, ReplayBuffer
 
@@ -31,13 +32,14 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         raise StageError(
             f"the LIDAR agent learns on family kim: use reward=kim_unaware or kim_aware, not {agent_id.reward}"
         )
-    hp = ddpg_config(cfg)
+    typed = validate(cfg)
+    hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
     if not hp.lidar_scans:
         raise StageError("obs=lidar needs the LIDAR front end: agent.lidar_scans=4 (agent=ddpg_kim sets it)")
-    total = int(cfg.agent.peer_total_steps)
-    see = observer(cfg, agent_id.reward)
+    total = hp.peer_total_steps
+    see = observer(typed, agent_id.reward)
     env = family_env(cfg, agent_id.reward)
-    agent = DDPG(see.dim, 2, hp, seed=int(cfg.seed))
+    agent = DDPG(see.dim, 2, hp, seed=typed.seed)
     buffer = ReplayBuffer(hp.buffer_size, see.dim, 2)
     step, episode, curve = 0, 0, {"return": [], "crash": [], "end": []}
     if run_.state is not None:
@@ -81,12 +83,12 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     window = NStepWindow(hp.n_step, hp.gamma)
     writer = run_.writer
     recent: deque = deque((not c for c in curve["crash"][-ROLLING:]), maxlen=ROLLING)
-    scale = float(hp.reward_scale)
+    scale = hp.reward_scale
     losses: dict = {}
     run_.restore_random_state()  # building the networks and views drew from them
     with tqdm(total=total, initial=step, desc=f"ddpg kim ({agent_id.reward})", unit="step") as bar:
         while step < total and not run_.stop.requested:
-            env.reset(options={"scenario": training_scenario(cfg, KIM_TRAINING_EPISODES, episode)})
+            env.reset(options={"scenario": training_scenario(typed, KIM_TRAINING_EPISODES, episode)})
             see.reset()
             x, ret = see(env), 0.0
             while True:
