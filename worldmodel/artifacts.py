@@ -77,7 +77,7 @@ def demos_dir(cfg) -> Path:
 def uses_demos(cfg) -> bool:
     """Whether the agent ``cfg`` trains learns from the planner's demonstrations (or its DAgger labels)."""
     a = cfg.agent
-    return float(a.demo_share) > 0 or int(a.bc_pretrain_steps) > 0
+    return a.demo_share > 0 or a.bc_pretrain_steps > 0
 
 
 def latents_path(cfg) -> Path:
@@ -99,11 +99,9 @@ def eval_dir(cfg) -> Path:
     from .banks import dir_suffix
 
     e = cfg.evaluate
-    family = str(e.get("family", "porav"))
+    family = e.get("family", "porav")
     seed = e.validation_seed if family == "porav" else e[family].seed
-    return runs_root(cfg) / (
-        ("eval" if family == "porav" else f"eval_{family}") + dir_suffix(str(e.bank), family, seed)
-    )
+    return runs_root(cfg) / (("eval" if family == "porav" else f"eval_{family}") + dir_suffix(e.bank, family, seed))
 
 
 def stale_dir(cfg) -> Path:
@@ -160,8 +158,8 @@ class AgentId:
     def of(cls, cfg) -> AgentId:
         """The agent that ``train_agent`` with this config trains."""
         a = cfg.agent
-        obs = str(a.get("obs", "worldmodel"))
-        return cls(str(cfg.reward.name), int(cfg.seed), str(a.variant), "" if obs == a.get("paper_obs", obs) else obs)
+        obs = a.get("obs", "worldmodel")
+        return cls(cfg.reward.name, cfg.seed, a.variant, "" if obs == a.get("paper_obs", obs) else obs)
 
 
 def agent_dir(cfg) -> Path:
@@ -329,7 +327,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
             settings["rnn"].pop("open_loop_weight", None)
     elif stage == "agent":
         agent = agent or AgentId.of(cfg)
-        uses_world_model = str(cfg.agent.get("obs", "worldmodel")) == "worldmodel"
+        uses_world_model = cfg.agent.get("obs", "worldmodel") == "worldmodel"
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
         if uses_demos(cfg) and not uses_world_model:
@@ -344,10 +342,10 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
             settings["teacher"] = teacher_settings(cfg)
         elif uses_demos(cfg):
             inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")
-        if uses_world_model and (uses_demos(cfg) or float(cfg.agent.focus_share) > 0):
+        if uses_world_model and (uses_demos(cfg) or cfg.agent.focus_share > 0):
             settings["focus"] = _config(cfg, "demos")["demos"]["focus"]  # the focus mix's ranges shape the training
     elif stage == "eval":
-        family = str(cfg.evaluate.get("family", "porav"))
+        family = cfg.evaluate.get("family", "porav")
         inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family)}
         settings = _config(cfg, "evaluate", "env")
         settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
@@ -425,7 +423,7 @@ def check_inputs(cfg, what: str, path: Path, state: dict, inputs: dict[str, Path
         f"`python -m worldmodel.pipeline experiment={cfg.experiment}`, which rebuilds every stale stage), "
         "or pass allow_stale=true to load it anyway."
     )
-    if bool(cfg.get("allow_stale", False)):
+    if cfg.get("allow_stale", False):
         log.warning("allow_stale=true: %s", message)
         return
     raise StageError(message)
@@ -448,15 +446,15 @@ def open_demos(cfg):
     from .data import CorruptDataError, RolloutStore
 
     root = demos_dir(cfg)
-    make = f"{stage_command('demonstrate', cfg)} demos.episodes={int(cfg.demos.episodes)}"
+    n = cfg.demos.episodes
+    make = f"{stage_command('demonstrate', cfg)} demos.episodes={n}"
     if not (root / "manifest.json").exists():
         raise StageError(f"no complete planner demonstrations at {root}. Run `{make}` first.")
     try:
         store = RolloutStore(root)
     except CorruptDataError as err:
         raise StageError(str(err)) from err
-    if len(store.episodes("train")) + len(store.episodes("validation")) != int(cfg.demos.episodes):
-        n = int(cfg.demos.episodes)
+    if len(store.episodes("train")) + len(store.episodes("validation")) != n:
         raise StageError(f"{root} does not hold demos.episodes={n} episodes: delete it and run `{make}`")
     return store
 
@@ -464,19 +462,19 @@ def open_demos(cfg):
 def build_vae(cfg):
     from .models.vae import SegVAE
 
-    return SegVAE(num_classes=int(cfg.vae.num_classes), latent_dim=int(cfg.vae.latent_dim))
+    return SegVAE(num_classes=cfg.vae.num_classes, latent_dim=cfg.vae.latent_dim)
 
 
 def build_rnn(cfg):
     from .models.rnn import WorldRNN
 
     return WorldRNN(
-        latent_dim=int(cfg.vae.latent_dim),
+        latent_dim=cfg.vae.latent_dim,
         action_dim=2,
-        hidden=int(cfg.rnn.hidden),
-        head=str(cfg.rnn.head),
-        gaussians=int(cfg.rnn.gaussians),
-        residual=bool(cfg.rnn.residual),
+        hidden=cfg.rnn.hidden,
+        head=cfg.rnn.head,
+        gaussians=cfg.rnn.gaussians,
+        residual=cfg.rnn.residual,
     )
 
 
@@ -537,8 +535,8 @@ def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None
     return WorldModelEncoder(
         vae,
         rnn,
-        use_speed=bool(cfg.agent.use_speed if use_speed is None else use_speed),
-        frame_view=bool(cfg.agent.frame_view if frame_view is None else frame_view),
+        use_speed=cfg.agent.use_speed if use_speed is None else use_speed,
+        frame_view=cfg.agent.frame_view if frame_view is None else frame_view,
     )
 
 

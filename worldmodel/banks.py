@@ -142,12 +142,12 @@ def record_evaluation(cfg, family: str, scenarios: int, policies: dict, headline
     bank, which the ledger does not count."""
     from omegaconf import OmegaConf
 
-    if str(cfg.evaluate.bank) != "test":
+    if cfg.evaluate.bank != "test":
         return None
     path = ledger_path(cfg)
     row = record(
         path,
-        experiment=str(cfg.experiment),
+        experiment=cfg.experiment,
         scale=OmegaConf.select(cfg, "scale_name", default=None),
         family=family,
         scenarios=scenarios,

@@ -28,17 +28,18 @@ def episode_spec(seed: int, index: int):
 
 
 def _collection_settings(cfg) -> dict:
-    c = cfg.collect
-    branch = OmegaConf.to_object(c.branch).settings()
+    typed = validate(cfg)
+    c = typed.collect
+    branch = c.branch.settings()
     return {
         **({"branch": branch} if branch else {}),
         "schema_version": SCHEMA_VERSION,
-        "seed": int(cfg.seed),
-        "episodes": int(c.episodes),
-        "episodes_per_shard": int(c.episodes_per_shard),
-        "max_episode_s": float(c.max_episode_s),
-        "autopilot": OmegaConf.to_container(c.autopilot, resolve=True),
-        "env": env_settings(cfg),
+        "seed": typed.seed,
+        "episodes": c.episodes,
+        "episodes_per_shard": c.episodes_per_shard,
+        "max_episode_s": c.max_episode_s,
+        "autopilot": OmegaConf.to_container(cfg.collect.autopilot, resolve=True),
+        "env": env_settings(typed),
     }
 
 
@@ -54,15 +55,15 @@ def spec_of(settings: dict, index: int):
 
 
 def run(cfg) -> dict:
-    validate(cfg)
+    typed = validate(cfg)
     return record_dataset(
         artifacts.rollouts_dir(cfg),
         _collection_settings(cfg),
         spec_of,
         autopilot_of,
-        resume=bool(cfg.resume),
-        num_workers=int(cfg.collect.num_workers),
-        validation_fraction=float(cfg.collect.validation_fraction),
+        resume=typed.resume,
+        num_workers=typed.collect.num_workers,
+        validation_fraction=typed.collect.validation_fraction,
         label="collect",
     )
 

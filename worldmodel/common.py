@@ -37,7 +37,7 @@ def make_env(cfg, **overrides):
     ``overrides`` replace any keyword (``camera=False``, ``horizon_after_ttc_s=None``, ...)."""
     from hydra.utils import instantiate
 
-    return instantiate(cfg.env, **{"reward": str(cfg.reward.name), **overrides})
+    return instantiate(cfg.env, **{"reward": cfg.reward.name, **overrides})
 
 
 def stage_command(stage: str, cfg) -> str:

@@ -32,15 +32,15 @@ def demo_settings(cfg) -> dict:
     return {
         "schema_version": SCHEMA_VERSION,
         "source": "planner",
-        "seed": int(cfg.seed),
-        "episodes": int(cfg.demos.episodes),
-        "episodes_per_shard": int(cfg.demos.episodes_per_shard),
+        "seed": typed.seed,
+        "episodes": typed.demos.episodes,
+        "episodes_per_shard": typed.demos.episodes_per_shard,
         "max_episode_s": MAX_EPISODE_S,
-        "horizon_after_ttc_s": float(cfg.env.horizon_after_ttc_s or 3.0),
+        "horizon_after_ttc_s": typed.env.horizon_after_ttc_s or 3.0,
         "focus": typed.demos.focus.settings(),
         # the planner as evaluated, planning from the first frame, steering to demos.teacher_sides
         "planner": teacher_settings(cfg),
-        "env": env_settings(cfg),
+        "env": env_settings(typed),
     }
 
 
@@ -59,6 +59,7 @@ def planner_of(settings: dict, spec):
 
 
 def run(cfg) -> dict:
+    typed = validate(cfg)
     settings = demo_settings(cfg)
     if settings["episodes"] < 1:
         raise StageError("demos.episodes=0 asks for no demonstrations; pass demos.episodes=N (N >= 1)")
@@ -67,8 +68,8 @@ def run(cfg) -> dict:
         settings,
         spec_of,
         planner_of,
-        resume=bool(cfg.resume),
-        num_workers=int(cfg.demos.num_workers),
+        resume=typed.resume,
+        num_workers=typed.demos.num_workers,
         validation_fraction=0.1,
         label="demonstrate",
     )

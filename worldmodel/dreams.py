@@ -100,10 +100,11 @@ def reconstruct_classes(vae, seg: np.ndarray, chunk: int = 64) -> np.ndarray:
 
 
 def measure_action_effect(
-    cfg, vae, rnn, points: int, horizon: int = 10, warmup: int = 8, boot: int = 2000
+    cfg, vae, rnn, points: int, horizon: int = 10, warmup: int = 8, boot: int = 2000, *, seed: int
 ) -> tuple[dict, dict, np.ndarray, list[dict]]:
-    """The branch bank for ``cfg`` (camera env, the collection's autopilot), the LSTM's dreams, the metric with
-    its intervals, and the per-point rows it is computed from (:func:`effect_rows`)."""
+    """The branch bank for ``cfg`` (camera env, the collection's autopilot) drawn from ``seed`` (the experiment's),
+    the LSTM's dreams, the metric with its intervals, and the per-point rows it is computed from
+    (:func:`effect_rows`)."""
     from omegaconf import OmegaConf
 
     from .common import make_env
@@ -115,7 +116,7 @@ def measure_action_effect(
             points,
             horizon,
             warmup,
-            seed=int(cfg.seed),
+            seed=seed,
             autopilot=OmegaConf.to_container(cfg.collect.autopilot, resolve=True),
         )
     finally:
@@ -223,16 +224,20 @@ def measure(
 ) -> dict:
     """``action_effect`` and ``horizon`` (worldmodel/dreams.py) as ``rnn.effect_*`` and ``rnn.horizon_episodes``
     ask, logged to TensorBoard when ``writer`` is given; the action effect's per-point rows are added to ``rows``."""
+    from .config import validate
+
+    typed = validate(cfg)
+    rnn_cfg = typed.rnn
     out: dict = {}
     t0 = time.perf_counter()
-    if int(cfg.rnn.effect_points) > 0:
+    if rnn_cfg.effect_points > 0:
         effect, bank, dreamt, effect_rows_ = measure_action_effect(
-            cfg, vae, rnn, int(cfg.rnn.effect_points), int(cfg.rnn.effect_horizon)
+            cfg, vae, rnn, rnn_cfg.effect_points, rnn_cfg.effect_horizon, seed=typed.seed
         )
         out["action_effect"] = effect
         if rows is not None:
             rows += effect_rows_
-        at5 = effect_at(effect, min(5, int(cfg.rnn.effect_horizon)))
+        at5 = effect_at(effect, min(5, rnn_cfg.effect_horizon))
         log.info("[dreams] action effect, dreamt / real at +5 steps: %s", {k: _round(v) for k, v in at5.items()})
         if writer is not None:
             for name, entry in effect["actions"].items():
@@ -245,10 +250,8 @@ def measure(
                 step,
                 dataformats="HWC",
             )
-    if int(cfg.rnn.horizon_episodes) > 0 and episodes:
-        quality = horizon_quality(
-            vae, rnn, store, lat, episodes[: int(cfg.rnn.horizon_episodes)], int(cfg.rnn.effect_horizon)
-        )
+    if rnn_cfg.horizon_episodes > 0 and episodes:
+        quality = horizon_quality(vae, rnn, store, lat, episodes[: rnn_cfg.horizon_episodes], rnn_cfg.effect_horizon)
         quality["lstm_beats_decoded_persistence"] = beats_decoded_persistence(quality)
         out["horizon"] = quality
         if writer is not None:
@@ -418,8 +421,7 @@ def run(cfg) -> dict:
     from .config import validate
     from .latents import Latents
 
-    validate(cfg)
-    set_threads(cfg.threads)
+    set_threads(validate(cfg).threads)
     vae, _ = artifacts.load_vae(cfg, "best")
     rnn, rnn_path = artifacts.load_rnn(cfg, "best")
     store = artifacts.open_rollouts(cfg)

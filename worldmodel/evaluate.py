@@ -33,15 +33,16 @@ log = logging.getLogger(__name__)
 
 def bank(cfg):
     """The scenarios of ``evaluate.bank``: a validation bank, or the sealed test bank (the same grid, drawn from
-    another seed; worldmodel/banks.py)."""
+    another seed; worldmodel/banks.py). ``cfg``: the typed config (``validate``), or the composed one, whose values
+    have the same types."""
     from envs import test_bank
 
     from .banks import draw_seed
 
     e = cfg.evaluate
-    seed = draw_seed(str(e.bank), "porav", e.validation_seed)
+    seed = draw_seed(e.bank, "porav", e.validation_seed)
     return test_bank(
-        ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=int(e.per_cell), seed=int(seed)
+        ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=e.per_cell, seed=int(seed)
     )
 
 
@@ -154,32 +155,32 @@ def headline(summary: dict) -> dict[str, str]:
 def run(cfg) -> dict:
     from .training import tensorboard
 
-    validate(cfg)
+    typed = validate(cfg)
     set_threads(1)  # one decision at a time: a single thread is fastest for batch-1 inference
-    if cfg.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
-        return peers.peer(cfg.evaluate.family).evaluate(cfg)
-    if cfg.evaluate.family == "ncap":
+    if typed.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
+        return peers.peer(typed.evaluate.family).evaluate(cfg)
+    if typed.evaluate.family == "ncap":
         raise StageError(
-            f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={cfg.experiment}"
+            f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={typed.experiment}"
         )
-    entries = bank(cfg)
+    entries = bank(typed)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()
 
-    workers = int(cfg.evaluate.num_workers)
+    workers = typed.evaluate.num_workers
     agents = [a.key for a in artifacts.trained_agents(cfg)]
     record = artifacts.provenance(cfg, "eval")
     for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs
         policy_for(cfg, key)
     rows = []
-    for key in [p for p in SCRIPTED_POLICIES if p in cfg.evaluate.policies] + agents:
+    for key in [p for p in SCRIPTED_POLICIES if p in typed.evaluate.policies] + agents:
         rows += evaluate_policy(cfg, key, entries, workers)
     if not agents:
         log.info(
             "[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
             "`python -m worldmodel.train_agent experiment=%s reward=r1`.",
             artifacts.runs_root(cfg),
-            cfg.experiment,
+            typed.experiment,
         )
 
     write_results_csv(rows, out / "results.csv")
@@ -188,7 +189,7 @@ def run(cfg) -> dict:
     summary = write_report(rows, out, tb_writer=writer)  # summary.json last: it marks the evaluation complete
     writer.close()
     record_evaluation(cfg, "porav", len(entries), models_by_policy(rows), headline(summary))
-    n_policies = len(agents) + len(list(cfg.evaluate.policies))
+    n_policies = len(agents) + len(typed.evaluate.policies)
     log.info(
         "[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s",
         len(entries),

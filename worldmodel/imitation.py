@@ -23,7 +23,7 @@ from . import artifacts
 from .action_map import ActionMap
 from .agent_obs import WorldModelView, encode_episode
 from .common import make_env
-from .config import teacher_settings
+from .config import teacher_settings, validate
 from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
 
 
@@ -32,8 +32,8 @@ def demonstration_buffer(
 ) -> tuple[ReplayBuffer, dict]:
     """The planner's demonstrations (``worldmodel.demonstrate``) as agent transitions: every frame through the
     frozen world model as a live run would feed it, every action as the actor output that asks for it, rewards
-    scaled and folded into ``agent.n_step`` returns like the agent's own. ``split``: the store's ``train`` or
-    ``validation`` episodes, or all of them."""
+    scaled and folded into ``agent.n_step`` returns like the agent's own. ``hp``: ``cfg``'s agent section (typed,
+    or as composed). ``split``: the store's ``train`` or ``validation`` episodes, or all of them."""
     store = artifacts.open_demos(cfg)
     splits = ("train", "validation") if split is None else (split,)
     episodes = sorted(i for s in splits for i in store.episodes(s))
@@ -42,7 +42,7 @@ def demonstration_buffer(
     window = NStepWindow(hp.n_step, hp.gamma)
     for i in tqdm(episodes, desc=f"encode demonstrations ({split or 'all'})", unit="episode"):
         seg, speed, action = store.read(i, "seg"), store.read(i, "speed"), store.read(i, "action")
-        rewards = store.read(i, f"reward_{reward}") * float(cfg.agent.reward_scale)
+        rewards = store.read(i, f"reward_{reward}") * hp.reward_scale
         terminated = bool(store.attrs(i)["terminated"])
         states = encode_episode(encoder, seg, speed, action)
         n = len(seg) - 1
@@ -91,14 +91,15 @@ def dagger_labels(cfg, agent: DDPG, encoder, action_map: ActionMap, round_: int)
     Cloning the planner's own episodes teaches the student the planner's states only; there its recurrent state
     already carries the planner's first swerve, which the student, acting alone, never made (measured: on held-out
     demonstrations the cloned actor steers 0.14 at the first frame of a planner swerve and 0.69 by the third)."""
+    typed = validate(cfg)
     sim = make_env(cfg)
     view = WorldModelView(sim, encoder, action_map)
     planner = PrivilegedPlanner.from_settings(**teacher_settings(cfg))
-    f = cfg.demos.focus
+    f = typed.demos.focus
     xs, ys, hits = [], [], {"pedestrian": 0, "vehicle": 0, "static": 0}
-    for e in tqdm(range(int(cfg.agent.dagger_episodes)), desc=f"DAgger round {round_}", unit="episode"):
-        rng = np.random.default_rng([int(cfg.seed), DAGGER_SCENARIOS, round_, e])
-        spec = sample_focus_scenario(rng, float(f.hazard_share), tuple(f.speed_range), tuple(f.ttc_range))
+    for e in tqdm(range(typed.agent.dagger_episodes), desc=f"DAgger round {round_}", unit="episode"):
+        rng = np.random.default_rng([typed.seed, DAGGER_SCENARIOS, round_, e])
+        spec = sample_focus_scenario(rng, f.hazard_share, tuple(f.speed_range), tuple(f.ttc_range))
         obs, _ = view.reset(options={"scenario": spec})
         planner.reset(spec.seed)
         planner.bind(sim)

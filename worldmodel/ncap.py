@@ -143,25 +143,24 @@ def run_bank(env, policy, specs, family: str, seed: int) -> list[dict]:
     return rows
 
 
-def specs_of(cfg) -> tuple[list, list]:
-    """(pedestrian runs, car-to-car runs) of ``cfg.ncap``."""
-    c = cfg.ncap
-    pedestrians = bank(tuple(c.tests), tuple(float(v) for v in c.speeds_kmh)) if c.tests else []
-    cars = car_bank(tuple(c.car_tests), tuple(float(o) for o in c.overlaps_pct), float(c.car_speed_step_kmh))
+def specs_of(c) -> tuple[list, list]:
+    """(pedestrian runs, car-to-car runs) of the typed ``ncap`` section ``c``."""
+    pedestrians = bank(tuple(c.tests), tuple(c.speeds_kmh)) if c.tests else []
+    cars = car_bank(tuple(c.car_tests), tuple(c.overlaps_pct), c.car_speed_step_kmh)
     return pedestrians, cars
 
 
 def run(cfg) -> dict:
     from tqdm import tqdm
 
-    validate(cfg)
+    typed = validate(cfg)
     set_threads(1)
-    takeover = float(cfg.ncap.takeover_ttc_s)
+    takeover = typed.ncap.takeover_ttc_s
     out = artifacts.runs_root(cfg) / ("eval_ncap" if takeover == 1.5 else f"eval_ncap_takeover{takeover:g}")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    pedestrians, cars = specs_of(cfg)
-    porav_step = float(cfg.env.step_s) if cfg.env.family == "porav" else 1.0 / 15.0
+    pedestrians, cars = specs_of(typed.ncap)
+    porav_step = typed.env.step_s if typed.env.family == "porav" else 1.0 / 15.0
     groups = [("porav", porav_step, porav_policies(cfg), "r2", takeover)]
     # family, step, policies, reward the env reports, takeover TTC (None: from the start, since when to act is theirs)
     groups += [(f, 0.1, peers.peer(f).ncap_policies(cfg), peers.peer(f).NCAP_REWARD, None) for f in peers.REGISTRY]

@@ -92,8 +92,8 @@ def peer_seeds(cfg, variant: str) -> list[int]:
     """The seeds a peer's agent trains with: the run's seed and, for Chae's DQN evaluated as seed ensembles
     (``evaluate.chae.ensemble`` k), seeds 0..k-1, so that the evaluation has its first ensemble."""
     family = preset_globals(variant).get("env", {}).get("family")
-    k = int(cfg.evaluate.chae.ensemble) if family == "chae" else 0
-    return sorted({int(cfg.seed), *range(k)})
+    k = cfg.evaluate.chae.ensemble if family == "chae" else 0
+    return sorted({cfg.seed, *range(k)})
 
 
 def eval_suffix(bank: str) -> str:
@@ -104,7 +104,7 @@ def steps(cfg) -> list[Step]:
     """The stages in order: every later stage only reads what the earlier ones wrote."""
     from . import collect, demonstrate, evaluate, train_agent, train_rnn, train_vae
 
-    seeds = [int(s) for s in cfg.seeds] or [int(cfg.seed)]
+    seeds = list(cfg.seeds) or [cfg.seed]
     agents = {AgentId(r, s, v) for v in cfg.agents for r in agent_preset(cfg, v).rewards for s in seeds}
     agents |= set(artifacts.trained_agents(cfg))
     peers = [PEERS[p] for p in cfg.peers]
@@ -118,7 +118,7 @@ def steps(cfg) -> list[Step]:
         if a.obs:  # another observation than its paper's (obs=NAME when it was trained)
             preset = OmegaConf.merge(preset, {"obs": a.obs})
         return Step(
-            a.key if a.seed != int(cfg.seed) or a.obs else a.policy,
+            a.key if a.seed != cfg.seed or a.obs else a.policy,
             "agent",
             train_agent.run,
             {**changes, "agent": preset},
@@ -134,7 +134,7 @@ def steps(cfg) -> list[Step]:
             changes = {**globals_, "evaluate": {"family": family, "bank": bank}}
             peer_steps.append(Step(f"eval_{family}{eval_suffix(bank)}", "eval", evaluate.run, changes))
     needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes)) for s in agent_steps)
-    if needs_demos and int(cfg.demos.episodes) < 1:
+    if needs_demos and cfg.demos.episodes < 1:
         users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes))]
         raise StageError(f"{', '.join(users)} learn from planner demonstrations: pass demos.episodes=N (e.g. 300)")
     return [

@@ -34,10 +34,10 @@ def make_exact_chooser(cfg):
 
     from .chooser import cfg_chooser
 
-    c, step_s = cfg_chooser(cfg), float(cfg.env.step_s)
+    c, step_s = cfg_chooser(cfg), cfg.env.step_s
     candidates = c.candidates(step_s)
     return ManoeuvreChooser(
-        candidates, ExactCosts(candidates), decide_steps_for(c.decide_s, step_s), float(c.margin), name=EXACT_CHOOSER
+        candidates, ExactCosts(candidates), decide_steps_for(c.decide_s, step_s), c.margin, name=EXACT_CHOOSER
     )
 
 

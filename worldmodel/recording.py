@@ -27,13 +27,14 @@ from .data import SCHEMA_VERSION, shard_name, write_shard
 log = logging.getLogger(__name__)
 
 # The env settings that shape the recorded frames; the rest of the env section (horizons, camera) is the dataset's.
-ENV_KEYS = {"image_size": int, "fov_deg": float, "mu": float, "occupants_per_car": int}
+ENV_KEYS = ("image_size", "fov_deg", "mu", "occupants_per_car")
 _ENV = None
 _ENV_KWARGS: dict | None = None
 
 
-def env_settings(cfg) -> dict:
-    return {key: cast(cfg.env[key]) for key, cast in ENV_KEYS.items()}
+def env_settings(typed) -> dict:
+    """The ``ENV_KEYS`` of the typed config's ``env`` (``validate(cfg)``)."""
+    return {key: getattr(typed.env, key) for key in ENV_KEYS}
 
 
 def _worker_env(settings: dict):

@@ -54,15 +54,16 @@ def episode_seed(seed: int, episode: int) -> int:
 
 def reset_options(cfg, episode: int) -> dict:
     """How training episode ``episode`` starts: a focus-mix scenario with probability ``agent.focus_share``,
-    else the paper's distributions from the episode's seed. Depends only on (seed, episode)."""
-    seed, share = int(cfg.seed), float(cfg.agent.focus_share)
+    else the paper's distributions from the episode's seed. Depends only on (seed, episode). ``cfg``: the typed
+    config (``validate``), or the composed one, whose values have the same types."""
+    seed, share = cfg.seed, cfg.agent.focus_share
     if share > 0:
         from envs import sample_focus_scenario
 
         rng = np.random.default_rng([seed, AGENT_FOCUS_EPISODES, episode])
         if rng.uniform() < share:
             f = cfg.demos.focus
-            spec = sample_focus_scenario(rng, float(f.hazard_share), tuple(f.speed_range), tuple(f.ttc_range))
+            spec = sample_focus_scenario(rng, f.hazard_share, tuple(f.speed_range), tuple(f.ttc_range))
             return {"options": {"scenario": spec}}
     return {"seed": episode_seed(seed, episode)}
 
@@ -71,7 +72,7 @@ def run(cfg) -> dict:
     from .agent_obs import WorldModelView
 
     typed = validate(cfg)
-    set_threads(cfg.threads)
+    set_threads(typed.threads)
     agent_id = artifacts.AgentId.of(cfg)
     name = agent_id.policy
     if typed.agent.learner == "chooser":
@@ -80,12 +81,12 @@ def run(cfg) -> dict:
         return run_peer(cfg, agent_id, agent_id.family)
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
-    action_map = ActionMap(str(cfg.agent.anchor), str(cfg.agent.steer), sim.params)
-    env = WorldModelView(sim, encoder, action_map)
-    seed_everything(int(cfg.seed))
     hp = typed.agent
+    action_map = ActionMap(hp.anchor, hp.steer, sim.params)
+    env = WorldModelView(sim, encoder, action_map)
+    seed_everything(typed.seed)
     obs_dim = encoder.dim
-    agent = DDPG(obs_dim, 2, hp, seed=int(cfg.seed), device=resolve_device(cfg.device))
+    agent = DDPG(obs_dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
     buffer = ReplayBuffer(hp.buffer_size, obs_dim, 2)
     history: deque = deque(maxlen=ROLLING)
     demos, demo_info = None, {}
@@ -94,7 +95,7 @@ def run(cfg) -> dict:
         held_out, _ = demonstration_buffer(cfg, encoder, action_map, agent_id.reward, hp, "validation")
         log.info("[%s] %d demonstration transitions from %d planner episodes", name, len(demos), demo_info["episodes"])
     window = NStepWindow(hp.n_step, hp.gamma)
-    scale = float(hp.reward_scale)
+    scale = hp.reward_scale
     current = EpisodeInProgress(env)
     losses: dict = {}
 
@@ -131,8 +132,8 @@ def run(cfg) -> dict:
                     "obs_dim": obs_dim,
                     "actor_hidden": list(hp.actor_hidden),
                     "action_map": action_map.to_dict(),
-                    "use_speed": bool(cfg.agent.use_speed),
-                    "frame_view": bool(cfg.agent.frame_view),
+                    "use_speed": hp.use_speed,
+                    "frame_view": hp.frame_view,
                     "reward": agent_id.reward,
                     "demonstrations": demo_info,
                     "cloned_rounds": cloned,
@@ -173,7 +174,7 @@ def run(cfg) -> dict:
             window.load_state_dict(progress["window"])
             losses = dict(progress["losses"])
         else:
-            obs, info = current.reset(**reset_options(cfg, episode))
+            obs, info = current.reset(**reset_options(typed, episode))
             ep_return = 0.0
         t0, steps_this_run = time.perf_counter(), 0
         with tqdm(total=hp.total_steps, initial=step, desc=f"agent {agent_id.reward}", unit="step") as bar:
@@ -203,7 +204,7 @@ def run(cfg) -> dict:
                     rolling = log_episode(writer, history, o, ep_return, len(current), step)
                     episode += 1
                     # the next episode starts before any save, so that a checkpoint here holds no finished one
-                    obs, info = current.reset(**reset_options(cfg, episode))
+                    obs, info = current.reset(**reset_options(typed, episode))
                     ep_return = 0.0
                     if step > hp.warmup_steps and len(history) >= min(ROLLING, 20) and rolling > best_return:
                         best_return = rolling
@@ -299,7 +300,8 @@ def run_peer(cfg, agent_id, family: str) -> dict:
     from . import peers
 
     peer = peers.peer(family)
-    seed_everything(int(cfg.seed))  # the process-wide generators too, which a checkpoint saves and restores
+    # the training seed, into the process-wide generators too, which a checkpoint saves and restores
+    seed_everything(agent_id.seed)
     record = artifacts.provenance(cfg, "agent")
     with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
         metrics = peer.train(cfg, run_, agent_id)

@@ -181,32 +181,32 @@ def fig2_strip(rnn, vae, store, lat: Latents, episode: int, times=(4, 8, 12)) ->
 
 
 def run(cfg) -> dict:
-    validate(cfg)
-    set_threads(cfg.threads)
+    typed = validate(cfg)
+    hp, seed = typed.rnn, typed.seed
+    set_threads(typed.threads)
     vae, vae_path = artifacts.load_vae(cfg, "best")
     store = artifacts.open_rollouts(cfg)
-    seed_everything(int(cfg.seed))
-    device = resolve_device(cfg.device)
+    seed_everything(seed)
+    device = resolve_device(typed.device)
     model = artifacts.build_rnn(cfg).to(device)  # built on the CPU first: the same initial weights on every device
-    opt = torch.optim.Adam(model.parameters(), lr=float(cfg.rnn.lr))
-    L, D, B = int(cfg.rnn.seq_len), int(cfg.vae.latent_dim), int(cfg.rnn.batch_size)
-    sample_inputs = bool(cfg.rnn.sample_inputs)
+    opt = torch.optim.Adam(model.parameters(), lr=hp.lr)
+    L, D, B = hp.seq_len, typed.vae.latent_dim, hp.batch_size
+    sample_inputs = hp.sample_inputs
     train_eps = store.episodes("train")
     val_eps = store.episodes("validation") or train_eps
     train_units = windows(store.lengths, train_eps, L)
     val_units = windows(store.lengths, val_eps, L)
-    epochs = int(cfg.rnn.epochs)
-    open_loop = int(cfg.rnn.open_loop_steps)
+    epochs = hp.epochs
+    open_loop = hp.open_loop_steps
 
     with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
         # after the run's checks: a refused resume must not cost an encoding
         lat_path, reencoded = ensure_latents(cfg, store, vae.to(device), vae_path)
         vae.cpu()  # the measurements after training decode on the CPU
         lat = Latents(lat_path)
-        if int(lat.f.attrs["latent_dim"]) != int(cfg.vae.latent_dim):
+        if int(lat.f.attrs["latent_dim"]) != D:
             raise StageError(
-                f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim="
-                f"{cfg.vae.latent_dim}; delete it to re-encode"
+                f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim={D}; delete it to re-encode"
             )
         if run_.state is not None:
             artifacts.check_rnn_architecture(run_.state, cfg, run_.last)
@@ -214,10 +214,10 @@ def run(cfg) -> dict:
 
         # what a resume or a loader checks the architecture against
         arch = {
-            "latent_dim": int(cfg.vae.latent_dim),
-            "hidden": int(cfg.rnn.hidden),
-            "head": str(cfg.rnn.head),
-            "residual": bool(cfg.rnn.residual),
+            "latent_dim": D,
+            "hidden": hp.hidden,
+            "head": hp.head,
+            "residual": hp.residual,
         }
 
         def snapshot(best: bool = False):
@@ -228,8 +228,8 @@ def run(cfg) -> dict:
         writer = run_.writer
         t0 = time.perf_counter()
         while epoch < epochs:
-            rng = np.random.default_rng([int(cfg.seed), epoch])
-            gen = torch.Generator().manual_seed(int(cfg.seed) * 1000 + epoch)
+            rng = np.random.default_rng([seed, epoch])
+            gen = torch.Generator().manual_seed(seed * 1000 + epoch)
             order = rng.permutation(len(train_units))
             n_batches = (len(order) + B - 1) // B
             bar = tqdm(total=n_batches, initial=batch_in_epoch, desc=f"rnn epoch {epoch + 1}/{epochs}", unit="batch")
@@ -243,10 +243,10 @@ def run(cfg) -> dict:
                 out, _ = model(z, a)
                 loss = masked_loss(model, out, z_next, mask)
                 if open_loop:
-                    starts = np.random.default_rng([int(cfg.seed), epoch, b, RNN_OPEN_LOOP_START])
+                    starts = np.random.default_rng([seed, epoch, b, RNN_OPEN_LOOP_START])
                     start = int(starts.integers(0, L - open_loop + 1))
                     dream_loss = open_loop_loss(model, z, a, z_next, mask, start, open_loop)
-                    loss = loss + float(cfg.rnn.open_loop_weight) * dream_loss
+                    loss = loss + hp.open_loop_weight * dream_loss
                 check_finite(loss.item(), "LSTM loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -267,7 +267,7 @@ def run(cfg) -> dict:
                 snapshot()
                 lat.close()
                 return run_.stopped(step)
-            val_loss = validation_loss(model, lat, val_units, L, D, B, int(cfg.seed), sample_inputs=sample_inputs)
+            val_loss = validation_loss(model, lat, val_units, L, D, B, seed, sample_inputs=sample_inputs)
             writer.add_scalar("loss/validation", val_loss, step)
             model.eval()
             writer.add_image(
@@ -296,7 +296,7 @@ def run(cfg) -> dict:
             "checkpoint": str(best_path),
             "epochs": epochs,
             "steps": step,
-            "head": str(cfg.rnn.head),
+            "head": hp.head,
             "validation_loss": best_val,
             "reencoded_latents": reencoded,
             **scores,

@@ -90,21 +90,21 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
 def run(cfg) -> dict:
     from .models.vae import vae_loss
 
-    validate(cfg)
-    set_threads(cfg.threads)
+    typed = validate(cfg)
+    set_threads(typed.threads)
     store = artifacts.open_rollouts(cfg)
     out = artifacts.vae_dir(cfg)
-    seed_everything(int(cfg.seed))
-    device = resolve_device(cfg.device)
+    seed_everything(typed.seed)
+    device = resolve_device(typed.device)
     model = artifacts.build_vae(cfg).to(device)  # built on the CPU first: the same initial weights on every device
-    opt = torch.optim.Adam(model.parameters(), lr=float(cfg.vae.lr))
-    epochs, batch_size = int(cfg.vae.epochs), int(cfg.vae.batch_size)
+    opt = torch.optim.Adam(model.parameters(), lr=typed.vae.lr)
+    epochs, batch_size = typed.vae.epochs, typed.vae.batch_size
     train_eps, val_eps = store.episodes("train"), store.episodes("validation") or store.episodes("train")
     per_epoch = sum(-(-store.lengths[i] // batch_size) for i in train_eps)  # upper bound for the bar
 
     with TrainingRun(cfg, "train_vae", out, artifacts.provenance(cfg, "vae")) as run_:
         if run_.state is None:
-            weights = class_weights(store, train_eps, float(cfg.vae.class_balance))
+            weights = class_weights(store, train_eps, typed.vae.class_balance)
         else:
             artifacts.check_vae_architecture(run_.state, cfg, run_.last)
             weights = run_.state.get("class_weights")
@@ -113,8 +113,8 @@ def run(cfg) -> dict:
 
         # what a resume or a loader checks the architecture against, and the loss weights to resume with
         arch = {
-            "latent_dim": int(cfg.vae.latent_dim),
-            "num_classes": int(cfg.vae.num_classes),
+            "latent_dim": typed.vae.latent_dim,
+            "num_classes": typed.vae.num_classes,
             "class_weights": weights,
         }
 
@@ -126,7 +126,7 @@ def run(cfg) -> dict:
         writer = run_.writer
         t0, frames_seen = time.perf_counter(), 0
         while epoch < epochs:
-            rng = np.random.default_rng([int(cfg.seed), epoch])
+            rng = np.random.default_rng([typed.seed, epoch])
             bar = tqdm(total=per_epoch, initial=batch_in_epoch, desc=f"vae epoch {epoch + 1}/{epochs}", unit="batch")
             for b, batch in enumerate(iter_frame_batches(store, train_eps, batch_size, rng)):
                 if b < batch_in_epoch:  # resuming mid-epoch: skip what was already trained on
@@ -138,8 +138,8 @@ def run(cfg) -> dict:
                     x,
                     mu,
                     logvar,
-                    float(cfg.vae.kl_weight),
-                    float(cfg.vae.free_bits),
+                    typed.vae.kl_weight,
+                    typed.vae.free_bits,
                     class_weights=weights_here,
                 )
                 check_finite(loss.item(), "VAE loss", step, run_.last)

@@ -19,7 +19,7 @@ def agent_preset(cfg, name: str):
     """The ``agent`` section as ``train_agent experiment=... agent=<name>`` would compose it: the schema's defaults,
     then the scale's ``agent`` keys, then the preset ``conf/agent/<name>.yaml`` (the order of base.yaml's defaults).
     The preset the config was composed with keeps its command-line overrides."""
-    if str(cfg.agent.variant) == name:
+    if cfg.agent.variant == name:
         return cfg.agent
     path = CONF_DIR / "agent" / f"{name}.yaml"
     if not path.exists():
@@ -67,17 +67,17 @@ def oracle_settings(cfg) -> dict:
     """``evaluate.oracle`` as plain keyword arguments of ``PrivilegedPlanner.from_settings``."""
     o = cfg.evaluate.oracle
     settings = {
-        "replan_every_s": float(o.replan_every_s),
-        "brake_first": int(o.brake_first),
-        "pedals": [float(x) for x in o.pedals],
-        "steers": [float(x) for x in o.steers],
-        "delays_s": [float(x) for x in o.delays_s],
-        "lane_change_s": [float(x) for x in o.lane_change_s],
+        "replan_every_s": o.replan_every_s,
+        "brake_first": o.brake_first,
+        "pedals": list(o.pedals),
+        "steers": list(o.steers),
+        "delays_s": list(o.delays_s),
+        "lane_change_s": list(o.lane_change_s),
     }
-    sides = [float(x) for x in o.sides]
+    sides = list(o.sides)
     if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
         settings["sides"] = sides
-    step_s = float(cfg.env.step_s)
+    step_s = cfg.env.step_s
     if step_s != 1.0 / 15.0:  # absent = the default step, for the same reason
         settings["step_s"] = step_s
     return settings
@@ -88,12 +88,12 @@ def teacher_settings(cfg) -> dict:
     frame, steering to ``demos.teacher_sides`` after ``demos.teacher_delays_s`` (``PrivilegedPlanner.from_settings``
     keyword arguments)."""
     settings = {k: v for k, v in oracle_settings(cfg).items() if k not in ("brake_first", "sides")}
-    sides = [float(x) for x in cfg.demos.teacher_sides]
+    sides = list(cfg.demos.teacher_sides)
     if sides != [1.0, -1.0]:  # absent = both sides, so records made before the option still match
         settings["sides"] = sides
     delays = cfg.demos.get("teacher_delays_s")
     if delays is not None:
-        settings["delays_s"] = [float(x) for x in delays]
+        settings["delays_s"] = list(delays)
     return settings
 
 
