@@ -154,7 +154,7 @@ def test_pipeline_plans_demonstrations_and_preset_variants(stage_cfg):
         pipeline.steps(stage_cfg("pipeline", "agents=[ddpg,dag]"))
     steps = pipeline.steps(stage_cfg("pipeline", "agents=[ddpg,dag]", "demos.episodes=3"))
     names = [s.name for s in steps]
-    assert names == ["collect", "vae", "rnn", "demos", "agent_r1_dag", "agent_r1", "agent_r2_dag", "agent_r2", "eval"]
+    assert names == ["collect", "vae", "rnn", "demos", "agent_r1", "agent_r2_dag", "agent_r2", "eval"]  # dag: R2 only
     dag = next(s for s in steps if s.name == "agent_r2_dag")
     # the preset wins over the scale (smoke sets total_steps 300; the preset clones only)
     assert dag.changes["agent"].total_steps == 0 and dag.changes["agent"].dagger_rounds == 2
