@@ -93,3 +93,55 @@ def test_every_peer_keeps_the_interface_and_imports_no_other_peer():
             assert not bad, f"{where} imports {bad}: share through peers/common.py"
     with pytest.raises(KeyError, match="known are chae, kim, merola"):
         peers.peer("porav")
+
+
+CASTS = {"int", "float", "str", "bool"}
+
+
+def _root(node):
+    """The name an attribute, subscript or method-call chain starts from (``cfg`` in ``cfg.agent.get("x")``)."""
+    while True:
+        if isinstance(node, ast.Attribute | ast.Subscript):
+            node = node.value
+        elif isinstance(node, ast.Call):
+            node = node.func
+        else:
+            return node.id if isinstance(node, ast.Name) else None
+
+
+def config_casts_in(path: Path, root: Path) -> list[str]:
+    """Casts of an untyped config value: ``int(cfg.x)``, or of a name bound to a part of ``cfg``
+    (``c = cfg.evaluate.kim`` ... ``int(c.trials)``), anywhere in the module."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    aliases, grew = {"cfg"}, True
+    while grew:
+        grew = False
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+                if node.targets[0].id not in aliases and _root(node.value) in aliases:
+                    aliases.add(node.targets[0].id)
+                    grew = True
+    return [
+        f"{path.relative_to(root)}:{node.lineno}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Name)
+        and node.func.id in CASTS
+        and len(node.args) == 1
+        and isinstance(node.args[0], ast.Attribute | ast.Subscript | ast.Call)
+        and _root(node.args[0]) in aliases
+    ]
+
+
+def test_stages_read_the_typed_config_not_casts_of_the_untyped_one():
+    """``validate(cfg)`` returns the typed config; at most 10 casts of untyped values are left in worldmodel/."""
+    casts = [c for path in sorted((ROOT / "worldmodel").rglob("*.py")) for c in config_casts_in(path, ROOT)]
+    assert len(casts) <= 10, f"{len(casts)} casts of untyped config values:\n" + "\n".join(casts)
+
+
+def test_the_cast_count_sees_aliases_and_method_calls(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text(
+        "def f(cfg, n):\n    c = cfg.evaluate.kim\n    return int(c.trials), float(cfg.get('x')), int(n.k)\n"
+    )
+    assert [c.split(":")[1] for c in config_casts_in(src, tmp_path)] == ["3", "3"]  # c.trials, cfg.get; not n.k

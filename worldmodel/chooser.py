@@ -52,6 +52,7 @@ from .chooser_labels import (  # noqa: F401
     validation_entries,
 )
 from .common import StageError, seed_everything, set_threads
+from .config import validate
 
 log = logging.getLogger(__name__)
 TARGETS = ("cost", "advantage", "policy")
@@ -260,32 +261,32 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     held-out cost, held-out mse))."""
     torch.manual_seed(int(seed))
     is_held = held_out_split(episode)
-    aux_weight = float(c.aux_weight)
+    aux_weight = c.aux_weight
     if aux_weight > 0 and state is None:
         raise StageError("chooser.aux_weight > 0 needs labels with the hazard state: relabel them")
     st = torch.from_numpy(state[~is_held] / STATE_SCALE) if aux_weight > 0 else None
     xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
     xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
-    members = int(c.ensemble)
+    members = c.ensemble
     mask_shape = MaskView(MASK_ROWS[c.mask_camera]).shape if c.mask_view else None
     scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target, mask_shape)
     vec = xt[:, : xt.shape[1] - scorer.mask_dim]
     scorer.mean.copy_(vec.mean(0))
     scorer.std.copy_(vec.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
-    opt = torch.optim.AdamW(scorer.parameters(), lr=float(c.lr), weight_decay=float(c.weight_decay))
+    opt = torch.optim.AdamW(scorer.parameters(), lr=c.lr, weight_decay=c.weight_decay)
     rng = np.random.default_rng([int(seed), CHOOSER_MINIBATCHES])
 
     def held_out() -> tuple[float, float]:
         scorer.eval()
         pred = scorer.predict(xv)
         scorer.train()
-        return float(policy_cost(pred, yv, ev, float(c.margin)).mean()), float(((pred - yv) ** 2).mean())
+        return float(policy_cost(pred, yv, ev, c.margin).mean()), float(((pred - yv) ** 2).mean())
 
     best, best_state, history = math.inf, None, []
-    for k in tqdm(range(int(c.steps)), desc="chooser scorer", unit="batch", disable=writer is None):
+    for k in tqdm(range(c.steps), desc="chooser scorer", unit="batch", disable=writer is None):
         loss = 0.0
         for m in range(members):  # each member its own minibatches
-            idx = torch.from_numpy(rng.integers(0, len(xt), size=int(c.batch_size)))
+            idx = torch.from_numpy(rng.integers(0, len(xt), size=c.batch_size))
             if aux_weight > 0:
                 out, guess = scorer.raw(xt[idx], m, aux=True)
                 loss = loss + scorer.loss(out, yt[idx]) + aux_weight * ((guess - st[idx]) ** 2).mean()
@@ -296,7 +297,7 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
         opt.step()
         if writer is not None and k % 50 == 0:
             writer.add_scalar("chooser/train_loss", loss.item() / members, k)
-        if (k + 1) % 250 == 0 or k + 1 == int(c.steps):
+        if (k + 1) % 250 == 0 or k + 1 == c.steps:
             cost, mse = held_out()
             if writer is not None:
                 writer.add_scalar("chooser/held_out_cost", cost, k)
@@ -330,14 +331,15 @@ def train(cfg, run_, agent_id) -> dict:
     """Label (or reuse labels), encode, fit the scorer; saves the chooser's checkpoint through ``run_``."""
     from .action_map import ActionMap
 
-    c = cfg_chooser(cfg)
-    set_threads(cfg.threads)
-    seed_everything(int(cfg.seed))
-    steps = decide_steps_for(c.decide_s, float(cfg.env.step_s))
-    candidates = c.candidates(float(cfg.env.step_s))
+    typed = validate(cfg)
+    c = typed.agent.chooser
+    set_threads(typed.threads)
+    seed_everything(typed.seed)
+    steps = decide_steps_for(c.decide_s, typed.env.step_s)
+    candidates = c.candidates(typed.env.step_s)
     data = labels(cfg)
     encoder = artifacts.load_world_model(cfg)
-    x = scorer_inputs(encoder, data, steps, bool(c.mask_view), c.mask_camera)
+    x = scorer_inputs(encoder, data, steps, c.mask_view, c.mask_camera)
     y = data["costs"].astype(np.float32)
     static = data.get(STATIC_KEY)
     if c.static_penalty > 0 and static is None:
@@ -359,14 +361,14 @@ def train(cfg, run_, agent_id) -> dict:
         scorer = scorer_from_state(run_.state)
         history = [(k["step"], k["held_out_cost"], k["held_out_mse"]) for k in run_.state["checks"]]
     else:
-        scorer, history = fit_scorer(x, y_fit, data["episode"], c, int(cfg.seed), run_.writer, run_.stop, data["state"])
+        scorer, history = fit_scorer(x, y_fit, data["episode"], c, typed.seed, run_.writer, run_.stop, data["state"])
     is_held = held_out_split(data["episode"])
     yv, ev = y[is_held], data["episode"][is_held]
     pred = scorer.predict(x[is_held])
     exact = policy_cost(yv, yv, ev, 0.0)
     braking = yv[np.r_[True, ev[1:] != ev[:-1]], 0]
     margins = {m: float(policy_cost(pred, yv, ev, m).mean()) for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
-    rule = {"min_brake_cost": float(c.min_brake_cost)}
+    rule = {"min_brake_cost": c.min_brake_cost}
     checks = [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history]
     state = {
         "learner": "chooser",
@@ -374,25 +376,25 @@ def train(cfg, run_, agent_id) -> dict:
         "checks": checks,
         "scorer": scorer.state_dict(),
         "in_dim": int(x.shape[1]),
-        "hidden": [int(h) for h in c.hidden],
-        "dropout": float(c.dropout),
-        "members": int(c.ensemble),
+        "hidden": list(c.hidden),
+        "dropout": c.dropout,
+        "members": c.ensemble,
         "target": c.target,
-        "mask_view": bool(c.mask_view),
+        "mask_view": c.mask_view,
         "mask_camera": c.mask_camera,
-        "tele_fov_deg": cfg.env.get("tele_fov_deg") if c.mask_view and c.mask_camera == "tele" else None,
+        "tele_fov_deg": typed.env.tele_fov_deg if c.mask_view and c.mask_camera == "tele" else None,
         "candidates": [vars(m) for m in candidates],
         "decide_steps": steps,
-        "margin": float(c.margin),
-        "min_brake_cost": float(c.min_brake_cost),
+        "margin": c.margin,
+        "min_brake_cost": c.min_brake_cost,
         "obs_dim": int(encoder.dim),
-        "use_speed": bool(cfg.agent.use_speed),
-        "frame_view": bool(cfg.agent.frame_view),
+        "use_speed": typed.agent.use_speed,
+        "frame_view": typed.agent.frame_view,
         "action_map": ActionMap().to_dict(),
         "reward": agent_id.reward,
-        "step": int(c.steps),
+        "step": c.steps,
         # a stopped fit is refitted from its first minibatch on resume: its curves are then purged from there
-        "log_step": -1 if run_.stop.requested else int(c.steps),
+        "log_step": -1 if run_.stop.requested else c.steps,
     }
     run_.save(state)
     return {

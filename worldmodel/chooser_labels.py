@@ -39,11 +39,11 @@ def labels_dir(cfg, source: str = "train") -> Path:
     ``.../validation-<hash>/`` for the validation bank's scenarios (independent of the training seed)."""
     settings = cfg_chooser(cfg).label_settings()
     if cfg.env.get("tele_fov_deg") is not None:  # the labels also hold the second camera's frames
-        settings["tele_fov_deg"] = float(cfg.env.tele_fov_deg)
+        settings["tele_fov_deg"] = cfg.env.tele_fov_deg
     if source == "validation":
         e = cfg.evaluate
-        settings = {**settings, "bank": [list(e.ttcs), list(e.speeds), list(e.hazards), int(e.per_cell)]}
-        settings["bank_seed"] = int(e.validation_seed)
+        settings = {**settings, "bank": [list(e.ttcs), list(e.speeds), list(e.hazards), e.per_cell]}
+        settings["bank_seed"] = e.validation_seed
         return artifacts.data_dir(cfg) / "chooser_labels" / f"validation-{artifacts.config_sha256(settings)[:10]}"
     seed = label_seed(cfg)
     return artifacts.data_dir(cfg) / "chooser_labels" / f"{artifacts.config_sha256(settings)[:10]}-seed{seed}"
@@ -52,7 +52,7 @@ def labels_dir(cfg, source: str = "train") -> Path:
 def label_seed(cfg) -> int:
     """The seed of the labelled scenarios: ``agent.chooser.label_seed``, or the training seed when that is unset."""
     seed = cfg.agent.chooser.get("label_seed")
-    return int(cfg.seed if seed is None else seed)
+    return cfg.seed if seed is None else seed
 
 
 def validation_entries(cfg):
@@ -64,8 +64,8 @@ def validation_entries(cfg):
         ttcs=tuple(e.ttcs),
         speeds=tuple(e.speeds),
         hazards=tuple(e.hazards),
-        per_cell=int(e.per_cell),
-        seed=int(e.validation_seed),
+        per_cell=e.per_cell,
+        seed=e.validation_seed,
     )
 
 
@@ -81,7 +81,7 @@ def label_scenario(seed: int, episode: int, c):
     from envs import sample_focus_scenario
 
     rng = np.random.default_rng([int(seed), CHOOSER_LABEL_EPISODES, int(episode)])
-    return sample_focus_scenario(rng, float(c.hazard_share), tuple(c.speed_range), tuple(c.ttc_range))
+    return sample_focus_scenario(rng, c.hazard_share, tuple(c.speed_range), tuple(c.ttc_range))
 
 
 def _label_shard(task) -> int:
@@ -91,13 +91,13 @@ def _label_shard(task) -> int:
 
     cfg = OmegaConf.create(cfg_dict)
     c = cfg_chooser(cfg)
-    step_s = float(cfg.env.step_s)
+    step_s = cfg.env.step_s
     candidates, steps = c.candidates(step_s), decide_steps_for(c.decide_s, step_s)
     env = make_env(cfg, camera=True)
     twin = env.planning_twin()
     parts = []
     bank = validation_entries(cfg) if source == "validation" else None
-    n = len(bank) if bank is not None else int(c.episodes)
+    n = len(bank) if bank is not None else c.episodes
     for e in range(shard * SHARD, min((shard + 1) * SHARD, n)):
         spec = bank[e].spec if bank is not None else label_scenario(label_seed(cfg), e, c)
         lab = cost_labels(env, spec, candidates, steps, twin)
@@ -122,7 +122,7 @@ def labels(cfg, source: str = "train") -> dict:
     meta = out / "settings.json"
     if not meta.exists():
         meta.write_text(json.dumps(settings, indent=1))
-    n = len(validation_entries(cfg)) if source == "validation" else int(c.episodes)
+    n = len(validation_entries(cfg)) if source == "validation" else c.episodes
     n_shards = math.ceil(n / SHARD)
     paths = [out / f"shard_{k:04d}.h5" for k in range(n_shards)]
     todo = [k for k, p in enumerate(paths) if not p.exists()]
@@ -135,12 +135,12 @@ def labels(cfg, source: str = "train") -> dict:
         with tqdm(
             total=sum(min(SHARD, n - k * SHARD) for k in todo), desc=f"chooser labels ({source})", unit="episode"
         ) as bar:
-            if int(c.num_workers) <= 1:
+            if c.num_workers <= 1:
                 for t in tasks:
                     k = _label_shard(t)
                     bar.update(min(SHARD, n - k * SHARD))
             else:
-                with mp.get_context("spawn").Pool(int(c.num_workers)) as pool:
+                with mp.get_context("spawn").Pool(c.num_workers) as pool:
                     for k in pool.imap_unordered(_label_shard, tasks):
                         bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)
