@@ -39,7 +39,7 @@ def env_settings(typed) -> dict:
 
 def _worker_env(settings: dict):
     """One camera env per process, built from ``settings["env"]`` and the horizons in ``settings``; rebuilt when a
-    dataset with other settings is recorded in the same process (a test session records several)."""
+    dataset with other settings is recorded in the same process (the tests record several)."""
     global _ENV, _ENV_KWARGS
     kwargs = {
         "camera": True,
