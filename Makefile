@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 EXPERIMENT ?= quick
 
-.PHONY: setup run test lint bench preview mutation headline clean-venv
+.PHONY: setup run test lint bench preview mutation headline peers clean-venv
 
 setup: $(VENV)/.installed
 
@@ -26,6 +26,17 @@ HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tel
 
 headline: setup
 	$(PY) -m worldmodel.pipeline $(HEADLINE)
+
+# The peer systems as their reports validated them (docs/results/chae/, kim/, merola/), at quick scale with their own
+# world model for the camera agents: Merola's DDQN; Kim's LIDAR agents (goal-unaware, goal-aware, planner-taught)
+# and its world-model agent; Chae's DQN as three ensembles of three seeds. Each family on its validation bank, then
+# once on its sealed test bank. agents=[] leaves the paper's family out, so this never touches the Porav test bank.
+# About 14 hours on 2 cores; resumable: run it again to continue where it stopped.
+PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,kim,ddpg_kim_fd,ddpg_wm_kim,chae] seeds=[0,1,2] \
+	banks=[validation,test] evaluate.chae.trials=1000 evaluate.chae.singles=false
+
+peers: setup
+	$(PY) -m worldmodel.pipeline $(PEERS_RUN)
 
 # Two workers, one per core; a file's tests stay on one worker, so module-scoped fixtures (the smoke pipeline) are
 # built once.

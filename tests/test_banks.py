@@ -112,7 +112,10 @@ def test_evaluating_the_test_bank_records_itself_and_a_validation_bank_does_not(
     assert not ledger.exists()
     c = stage_cfg("evaluate", *tiny, "evaluate.num_workers=1", "evaluate.bank=test")
     evaluate.run(c)
-    evaluate.run(c)
+    with pytest.raises(StageError, match="already judged experiment 't'.*evaluate.retest=true"):
+        evaluate.run(c)  # a second look at the sealed bank is refused before anything runs
+    assert len(banks.read_ledger(ledger)) == 1
+    evaluate.run(stage_cfg("evaluate", *tiny, "evaluate.num_workers=1", "evaluate.bank=test", "evaluate.retest=true"))
     rows = banks.read_ledger(ledger)
     assert len(rows) == 2 and banks.uses("porav", path=ledger) == 2
     assert rows[0]["family"] == "porav" and rows[0]["scenarios"] == "2" and rows[0]["scale"] == "smoke"

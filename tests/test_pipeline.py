@@ -14,7 +14,7 @@ import torch
 from envs import StraightLineBraking
 from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, train_agent, train_vae
 from worldmodel.common import StageError, make_env
-from worldmodel.config import compose
+from worldmodel.config import compose, validate
 from worldmodel.report import read_results_csv
 
 pytestmark = pytest.mark.slow  # every stage at scale=smoke, end to end
@@ -103,6 +103,23 @@ def test_the_pipeline_trains_every_seed_of_seeds(tmp_path):
     assert names == [
         "collect", "vae", "rnn", "agent_r1", "agent_r1/seed2", "agent_r2", "agent_r2/seed2", "eval", "eval_test"
     ]  # fmt: skip
+
+
+def test_a_run_of_peers_alone_leaves_the_paper_family_and_its_test_bank_alone(experiment):
+    """agents=[] on an experiment whose paper agents are trained and judged: none of them is checked, retrained or
+    evaluated again. Peers are named by family or by preset, train every seed of seeds (Chae: the members of one
+    ensemble per seed), and each family is evaluated on each bank right after its own agents."""
+    cfg = smoke_cfg(experiment, "pipeline", "agents=[]", "peers=[merola,ddpg_kim_fd,chae]", "seeds=[0,1]", BANKS)
+    names = [s.name for s in pipeline.steps(cfg)]
+    chae = ["agent_chae_dqn_chae", *(f"agent_chae_dqn_chae/seed{s}" for s in range(1, 6))]
+    assert names == [
+        "collect", "vae", "rnn",
+        "agent_merola_ddqn_merola", "agent_merola_ddqn_merola/seed1", "eval_merola", "eval_merola_test",
+        "agent_kim_unaware_ddpg_kim_fd", "agent_kim_unaware_ddpg_kim_fd/seed1", "eval_kim", "eval_kim_test",
+        *chae, "eval_chae", "eval_chae_test",
+    ]  # fmt: skip
+    with pytest.raises(StageError, match="peers"):
+        validate(smoke_cfg(experiment, "pipeline", "peers=[ddpg]"))  # the paper's own preset is no peer
 
 
 def test_the_pipeline_trains_a_preset_built_on_another_as_train_agent_would(tmp_path):
@@ -312,7 +329,8 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     root = tmp_path / "copy"
     shutil.copytree(experiment, root)
     for preset in ("ddqn_merola", "ddpg_kim", "ddpg_wm_kim", "dqn_chae"):
-        train_agent.run(smoke_cfg(root, "train_agent", f"agent={preset}"))
+        # ddpg_wm_kim trains for its 60k steps at every scale: cut to smoke's here
+        train_agent.run(smoke_cfg(root, "train_agent", f"agent={preset}", "agent.total_steps=300"))
     runs = root / "runs/t"
 
     # family kim: the LIDAR agent, the camera agent trained there and the paper's street agents, on the same trials

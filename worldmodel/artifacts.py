@@ -349,6 +349,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family)}
         settings = _config(cfg, "evaluate", "env")
         settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
+        settings["evaluate"].pop("retest")  # permission to use a test bank again, not a setting of the evaluation
         for other in ("chae", "kim", "merola"):  # another family's settings do not shape this evaluation
             if other != family:
                 settings["evaluate"].pop(other, None)

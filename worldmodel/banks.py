@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import functools
 import logging
 import subprocess
 from pathlib import Path
@@ -62,8 +63,11 @@ def sealed_seed_problem(seed: int) -> str | None:
     return None
 
 
+@functools.cache
 def commit() -> str:
-    """The checked-out commit, ``+dirty`` when tracked files differ from it; ``unknown`` outside git."""
+    """The checked-out commit, ``+dirty`` when tracked files differ from it; ``unknown`` outside git. Read once per
+    process, at its start (``config.hydra_main``): the code that ran is the code checked out when it started, even
+    if a commit lands while a long pipeline runs."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "--short=12", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
@@ -127,6 +131,32 @@ def record(
             writer.writeheader()
         writer.writerow(row)
     return row
+
+
+def judged(cfg, family: str) -> list[dict]:
+    """The ledger rows of ``family``'s test bank for this experiment: what that bank has already judged of it."""
+    return [
+        r
+        for r in read_ledger(ledger_path(cfg))
+        if r["experiment"] == cfg.experiment and r["family"] == family and int(r["bank_seed"]) == TEST_SEEDS[family]
+    ]
+
+
+def sealed_bank_problem(cfg, family: str) -> str | None:
+    """Why this evaluation may not run: ``family``'s test bank already judged this experiment (the ledger has its
+    row) and ``evaluate.retest`` does not say that a changed configuration is meant. None on a validation bank."""
+    if cfg.evaluate.bank != "test" or cfg.evaluate.retest:
+        return None
+    earlier = judged(cfg, family)
+    if not earlier:
+        return None
+    last = earlier[-1]
+    return (
+        f"the {family} test bank already judged experiment {cfg.experiment!r} ({len(earlier)} ledger row(s), the "
+        f"last on {last['date']} at commit {last['commit']}; {ledger_path(cfg)}); a test bank judges a "
+        "configuration once. Read its result in the evaluation's folder. To judge a changed configuration, give it "
+        "its own experiment name, or pass evaluate.retest=true to add its row beside the first"
+    )
 
 
 def ledger_path(cfg) -> Path:

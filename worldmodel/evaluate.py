@@ -22,7 +22,7 @@ import logging
 import time
 
 from . import artifacts, peers
-from .banks import record_evaluation
+from .banks import record_evaluation, sealed_bank_problem
 from .common import StageError, make_env, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
@@ -157,6 +157,9 @@ def run(cfg) -> dict:
 
     typed = validate(cfg)
     set_threads(1)  # one decision at a time: a single thread is fastest for batch-1 inference
+    sealed = sealed_bank_problem(cfg, typed.evaluate.family)
+    if sealed:
+        raise StageError(sealed)
     if typed.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
         return peers.peer(typed.evaluate.family).evaluate(cfg)
     if typed.evaluate.family == "ncap":

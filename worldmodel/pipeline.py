@@ -15,8 +15,9 @@ Agents are the presets of ``agents``, each with its rewards, at every seed of ``
 any other trained seed found on disk, so a seed sweep is rebuilt too when the world model changes. The evaluation
 runs once per bank of ``banks`` (worldmodel/banks.py): ``[validation]`` by default; ``test`` is for final numbers
 and records itself in the ledger. ``peers=[chae]`` adds a peer system (docs/design.md
-§10): its agent on its own scenario family (Chae's: seeds 0..k-1 for ``evaluate.chae.ensemble`` k), and that
-family's evaluation (``runs/NAME/eval_chae/``).
+§10), by family or by preset (``ddpg_kim_fd``): its agents on its own scenario family at every seed (Chae's: the
+members of one ensemble per seed), then that family's evaluation per bank (``runs/NAME/eval_chae/``).
+``agents=[]`` leaves the paper's family out: a run of peers alone never touches the Porav test bank.
 
 The collection is the root: its own settings check stops a run whose collection settings differ. Each stage's wall
 time and peak memory (this process and its workers, sampled every 0.2 s) are written to ``runs/NAME/pipeline.json``.
@@ -36,7 +37,7 @@ from omegaconf import OmegaConf
 from . import artifacts
 from .artifacts import AgentId
 from .common import StageError, atomic_write_text
-from .config import PEERS, agent_preset, hydra_main, preset_globals, validate
+from .config import agent_preset, hydra_main, peer_preset, preset_globals, validate
 
 log = logging.getLogger(__name__)
 
@@ -89,11 +90,15 @@ class Step:
 
 
 def peer_seeds(cfg, variant: str) -> list[int]:
-    """The seeds a peer's agent trains with: the run's seed and, for Chae's DQN evaluated as seed ensembles
-    (``evaluate.chae.ensemble`` k), seeds 0..k-1, so that the evaluation has its first ensemble."""
+    """The seeds a peer's agent trains with: those of ``seeds`` (``seed`` when empty). Chae's DQN, evaluated as
+    ensembles of ``evaluate.chae.ensemble`` k consecutive seeds, trains every member instead: ensemble s is seeds
+    s*k..s*k+k-1 and drives under seed s, so ``seeds=[0,1,2]`` gives three ensembles of three runs."""
+    seeds = list(cfg.seeds) or [cfg.seed]
     family = preset_globals(variant).get("env", {}).get("family")
     k = cfg.evaluate.chae.ensemble if family == "chae" else 0
-    return sorted({cfg.seed, *range(k)})
+    if k:
+        return sorted({m for s in seeds for m in range(s * k, s * k + k)})
+    return sorted(seeds)
 
 
 def eval_suffix(bank: str) -> str:
@@ -106,8 +111,10 @@ def steps(cfg) -> list[Step]:
 
     seeds = list(cfg.seeds) or [cfg.seed]
     agents = {AgentId(r, s, v) for v in cfg.agents for r in agent_preset(cfg, v).rewards for s in seeds}
-    agents |= set(artifacts.trained_agents(cfg))
-    peers = [PEERS[p] for p in cfg.peers]
+    porav = bool(cfg.agents)  # agents=[]: the paper's family is left out, its agents and its evaluations alike
+    if porav:
+        agents |= set(artifacts.trained_agents(cfg))
+    peers = [peer_preset(p) for p in cfg.peers]
     peer_agents = {AgentId(r, s, v) for v in peers for r in agent_preset(cfg, v).rewards for s in peer_seeds(cfg, v)}
     for family in {a.family for a in peer_agents}:
         peer_agents |= set(artifacts.trained_agents(cfg, family))
@@ -126,10 +133,11 @@ def steps(cfg) -> list[Step]:
         )
 
     agent_steps = [agent_step(a) for a in sorted(agents)]
-    peer_steps = [agent_step(a) for a in sorted(peer_agents)]
-    for v in dict.fromkeys(peers):  # one evaluation per peer family and bank, after its agents
-        globals_ = preset_globals(v)
-        family = globals_.get("env", {}).get("family", "porav")
+    peer_steps = []
+    family_of = {v: preset_globals(v)["env"]["family"] for v in peers}
+    for family in dict.fromkeys(family_of.values()):  # in the order of peers: each family's agents, then its banks
+        peer_steps += [agent_step(a) for a in sorted(peer_agents) if a.family == family]
+        globals_ = preset_globals(peer_preset(family))  # evaluated as its paper's preset sets the family up
         for bank in cfg.banks:
             changes = {**globals_, "evaluate": {"family": family, "bank": bank}}
             peer_steps.append(Step(f"eval_{family}{eval_suffix(bank)}", "eval", evaluate.run, changes))
@@ -143,7 +151,7 @@ def steps(cfg) -> list[Step]:
         Step("rnn", "rnn", train_rnn.run),
         *([Step("demos", "demos", demonstrate.run)] if needs_demos else []),
         *agent_steps,
-        *[Step(f"eval{eval_suffix(b)}", "eval", evaluate.run, {"evaluate": {"bank": b}}) for b in cfg.banks],
+        *[Step(f"eval{eval_suffix(b)}", "eval", evaluate.run, {"evaluate": {"bank": b}}) for b in cfg.banks if porav],
         *peer_steps,
     ]
 
@@ -196,15 +204,12 @@ def run(cfg) -> dict:
             "scale": OmegaConf.select(cfg, "scale_name", default=None),
         }
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
-    ev = artifacts.eval_dir(OmegaConf.merge(cfg, {"evaluate": {"bank": cfg.banks[-1]}}))
+    evaluations = [artifacts.eval_dir(OmegaConf.merge(cfg, s.changes)) for s in steps(cfg) if s.kind == "eval"]
     log.info(
-        "[pipeline] done in %.0f s (this run). Stage times: %s\n  tables:   %s\n  heatmaps: %s\n  summary:  %s\n"
-        "  TensorBoard: .venv/bin/tensorboard --logdir %s",
+        "[pipeline] done in %.0f s (this run). Stage times: %s\n%s  TensorBoard: .venv/bin/tensorboard --logdir %s",
         time.perf_counter() - t_all,
         timing_path,
-        ev / "tables.md",
-        ev / "heatmaps.png",
-        ev / "summary.json",
+        "".join(f"  tables: {ev / 'tables.md'}\n" for ev in evaluations),
         cfg.paths.runs,
     )
     return timings

@@ -41,6 +41,7 @@ from .entry import (  # noqa: F401
     compose,
     hydra_main,
     oracle_settings,
+    peer_preset,
     preset_globals,
     section,
     teacher_settings,

@@ -63,6 +63,16 @@ def preset_globals(name: str) -> dict:
     return {k: v for k, v in preset.items() if k not in ("agent", "defaults")}
 
 
+def peer_preset(name: str) -> str | None:
+    """The agent preset a ``peers`` entry names: a peer family's paper preset (``kim`` -> ddpg_kim), or any preset
+    of a peer family by its own name (``ddpg_kim_fd``); None when it is neither."""
+    from ..peers import REGISTRY
+
+    if name in REGISTRY:
+        return REGISTRY[name]
+    return name if preset_globals(name).get("env", {}).get("family") in REGISTRY else None
+
+
 def oracle_settings(cfg) -> dict:
     """``evaluate.oracle`` as plain keyword arguments of ``PrivilegedPlanner.from_settings``."""
     o = cfg.evaluate.oracle
@@ -154,6 +164,9 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
         @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=stage)
         def main(cfg):
             return_freed_memory()
+            from ..banks import commit
+
+            commit()  # the ledger names the code checked out now, when the run starts
             try:
                 return run(cfg)
             except StageError as err:

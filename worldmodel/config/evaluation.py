@@ -157,6 +157,9 @@ class EvaluateConfig(Checked):
     # checkpoints, as often as needed; "test", the sealed test bank, for final numbers only: each evaluation on it
     # is recorded in the ledger (paths.ledger) and goes to runs/NAME/eval_test/
     bank: str = "validation"
+    # true: evaluate on a test bank that the ledger already records for this experiment and family, adding a second
+    # row; for a configuration changed after its test result (the first row stays). False: such a run is refused
+    retest: bool = False
     validation_seed: int = 4711  # the default validation bank (runs/NAME/eval/); others go to eval_seed<N>/
     num_workers: int = 2  # processes; results are identical to 1
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added

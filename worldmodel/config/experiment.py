@@ -32,14 +32,16 @@ class ExperimentConfig(Checked):
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
     # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
-    # ddpg: the paper's agent (R1 and R2); chooser: the camera agent that beats braking (R2; docs/design.md §5)
+    # ddpg: the paper's agent (R1 and R2); chooser: the camera agent that beats braking (R2; docs/design.md §5).
+    # Empty: the paper's family is left out, neither trained nor evaluated (a run of peers alone)
     agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
     # training seeds of every preset in agents; empty: seed alone (a seed trained before is kept either way)
     seeds: list[int] = field(default_factory=list)
     # the banks the pipeline's evaluations run on, in order (worldmodel/banks.py): validation for everyday runs;
     # add test only for final numbers, since the ledger records every evaluation on a test bank
     banks: list[str] = field(default_factory=lambda: ["validation"])
-    # peer systems the pipeline also trains and evaluates on their own scenario family (pipeline peers=[chae])
+    # peer systems the pipeline also trains, at every seed of seeds, and evaluates on their own scenario family, per
+    # bank of banks: a family (chae: its paper's preset) or another preset of one (ddpg_kim_fd); empty: none
     peers: list[str] = field(default_factory=list)
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
@@ -72,9 +74,15 @@ class ExperimentConfig(Checked):
 
         if not self.banks or any(b not in BANKS for b in self.banks):
             yield ConfigValueError("banks", list(self.banks), f"give some of {', '.join(BANKS)}")
-        unknown = [p for p in self.peers if p not in PEERS]
+        from .entry import peer_preset
+
+        unknown = [p for p in self.peers if peer_preset(p) is None]
         if unknown:
-            yield ConfigValueError("peers", list(self.peers), f"known peer systems: {', '.join(PEERS)}")
+            yield ConfigValueError(
+                "peers",
+                list(self.peers),
+                f"name a peer system ({', '.join(PEERS)}) or an agent preset of one (e.g. ddpg_kim_fd)",
+            )
         if a.bc_weight > 0 and a.demo_share == 0:
             yield ConfigValueError(
                 "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"
