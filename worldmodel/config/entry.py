@@ -10,7 +10,7 @@ from dataclasses import fields, is_dataclass
 
 from omegaconf import OmegaConf
 
-from ..common import CONF_DIR, ConfigValueError, StageError, resolve_device, return_freed_memory
+from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
 from .agent import AgentConfig
 from .experiment import ExperimentConfig
 
@@ -115,7 +115,9 @@ def validate(cfg) -> ExperimentConfig:
     except ConfigValueError as err:
         raise StageError(f"config {err}") from None
     if isinstance(typed, ExperimentConfig):
-        resolve_device(typed.device)  # a CUDA device this machine lacks stops here, before any work
+        # a CUDA device this machine lacks, or bf16 off CUDA, stops here, before any work
+        check_amp(typed.amp, resolve_device(typed.device))
+        resolve_device(typed.decision_device, "decision_device")
     return typed
 
 
