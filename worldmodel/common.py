@@ -245,6 +245,15 @@ def resolve_workers(value: int | str) -> int:
     return usable_cores() if value == "auto" else int(value)
 
 
+def resolve_loader_workers(value: int | str, device) -> int:
+    """The ``loader_workers`` setting as a number for ``device``: ``auto`` reads in the training process on the CPU
+    (0: its cores are busy training), and ahead of a CUDA device in the usable cores less the training one, at
+    most 4."""
+    if value != "auto":
+        return int(value)
+    return 0 if device.type != "cuda" else max(0, min(4, usable_cores() - 1))
+
+
 def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:
     """Load a checkpoint written by ``atomic_torch_save``; a missing or unreadable one is a StageError."""
     import torch
