@@ -530,13 +530,16 @@ def load_rnn(cfg, which: str = "best"):
     return model.eval(), path
 
 
-def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None = None):
+def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None = None, device=None):
     """VAE + LSTM behind the agent's observation encoder (with speed as ``use_speed``, default ``agent.use_speed``,
-    and the frame's hazard profiles as ``frame_view``, default ``agent.frame_view``)."""
+    and the frame's hazard profiles as ``frame_view``, default ``agent.frame_view``), on ``device`` (default: the
+    CPU, where single decisions are fastest to date)."""
     from .agent_obs import WorldModelEncoder
 
     vae, _ = load_vae(cfg, "best")
     rnn, _ = load_rnn(cfg, "best")
+    if device is not None:
+        vae, rnn = vae.to(device), rnn.to(device)
     return WorldModelEncoder(
         vae,
         rnn,

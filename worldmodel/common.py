@@ -193,6 +193,11 @@ def resolve_device(setting: str, key: str = "device"):
     return torch.device(setting)
 
 
+def decision_device(cfg):
+    """Where evaluation's single decisions run: the ``decision_device`` setting (the CPU where a config lacks it)."""
+    return resolve_device(getattr(cfg, "decision_device", "cpu"), "decision_device")
+
+
 AMP_SETTINGS = ("off", "bf16")  # the ``amp`` setting
 
 
@@ -230,14 +235,14 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def worker_count_problems(obj, *keys: str) -> Iterator[ConfigValueError]:
-    """A worker count is a positive integer or ``auto``."""
+def worker_count_problems(obj, *keys: str, prefix: str = "") -> Iterator[ConfigValueError]:
+    """A worker count is a positive integer or ``auto``; ``prefix`` names a subsection (``chooser.``)."""
     for key in keys:
         value = getattr(obj, key)
         if value == "auto":
             continue
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            yield ConfigValueError(key, value, "it must be a positive integer or auto (the usable cores)")
+            yield ConfigValueError(prefix + key, value, "it must be a positive integer or auto (the usable cores)")
 
 
 def resolve_workers(value: int | str) -> int:

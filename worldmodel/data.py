@@ -285,10 +285,20 @@ def loaded_frame_batches(
     """``iter_frame_batches``'s batches, the same frames in the same order, as uint8 tensors read ahead by
     ``workers`` processes of a torch ``DataLoader`` (in page-locked memory with ``pin_memory``, so that copies to a
     GPU overlap its work). Only the reading is parallel: the shuffle is drawn here, before any worker starts."""
+    import torch
     from torch.utils.data import DataLoader
 
     pools = _Pools(store, frame_pools(store, episodes, rng, block, buffer_blocks), block)
-    loader = DataLoader(pools, batch_size=None, shuffle=False, num_workers=workers, pin_memory=pin_memory)
+    # its own generator: the loader draws its workers' seeds from it, and from the global one (which the VAE's
+    # sampling reads) without it
+    loader = DataLoader(
+        pools,
+        batch_size=None,
+        shuffle=False,
+        num_workers=workers,
+        pin_memory=pin_memory,
+        generator=torch.Generator(),
+    )
     for frames in loader:
         yield from batches_of(frames, batch_size, drop_last)
 

@@ -25,8 +25,6 @@ import torch
 
 from envs import CLASS_NAMES, NUM_CLASSES, PALETTE
 
-from .common import module_device
-
 # the metric itself, all of which the notebook and the tests also read through this module
 from .action_effect import (  # noqa: F401
     ACTIONS,
@@ -42,6 +40,7 @@ from .action_effect import (  # noqa: F401
     summarise_effect,
     write_effect_rows,
 )
+from .common import module_device
 
 HORIZON_KEYS = ("lstm", "persistence", "persistence_vae", "ceiling")
 VEHICLES, PEDESTRIANS = CLASS_NAMES.index("Vehicles"), CLASS_NAMES.index("Pedestrians")

@@ -73,7 +73,7 @@ class ChooserConfig(Checked):
         from envs.chooser import chooser_candidates
 
         yield from _positive(self, "episodes", "decide_s", "lr", "batch_size", "steps")
-        yield from worker_count_problems(self, "num_workers")
+        yield from worker_count_problems(self, "num_workers", prefix="chooser.")
         if not 0.0 <= self.hazard_share <= 1.0:
             yield ConfigValueError("chooser.hazard_share", self.hazard_share, "it must be in [0, 1]")
         for key in ("speed_range", "ttc_range"):
