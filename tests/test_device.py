@@ -79,6 +79,7 @@ def test_the_gpu_check_runs_its_cpu_half(tmp_path):
     assert result["tiny"] and result["device"] == "cpu"
     assert result["vae_frames_per_s"]["cpu"] > 0 and result["lstm_frames_per_s"]["cpu"] > 0
     assert result["ddpg"]["cpu"]["updates_per_s"] > 0 and result["ddpg"]["cpu"]["decisions_per_s"] > 0
+    assert result["decisions_per_s"]["cpu"] > 0  # the whole decision: frame, world model and actor
     assert "speedup" not in result  # nothing to compare the CPU with
 
 
