@@ -27,10 +27,15 @@ def agent_preset(cfg, name: str):
     preset = _load_preset(name)
     if _global_preset(path):
         preset = preset.get("agent", OmegaConf.create())
-    scale = OmegaConf.create()
-    if cfg.get("scale_name"):
-        scale = OmegaConf.load(CONF_DIR / "scale" / f"{cfg.scale_name}.yaml").get("agent", OmegaConf.create())
+    scale = _scale_agent(cfg.scale_name) if cfg.get("scale_name") else OmegaConf.create()
     return OmegaConf.merge(OmegaConf.structured(AgentConfig), scale, preset)
+
+
+def _scale_agent(name: str):
+    """The ``agent`` section a scale preset sets, with what the scales its ``defaults`` name set under it."""
+    scale = OmegaConf.load(CONF_DIR / "scale" / f"{name}.yaml")
+    parents = [_scale_agent(str(p)) for p in scale.get("defaults", []) if str(p) != "_self_"]
+    return OmegaConf.merge(OmegaConf.create(), *parents, scale.get("agent", OmegaConf.create()))
 
 
 def _global_preset(path) -> bool:
