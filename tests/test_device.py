@@ -171,3 +171,14 @@ def test_a_smoke_vae_trained_through_loader_workers_is_the_default_run_bit_for_b
         train_vae.run(compose("train_vae", [*paths, "threads=1", f"loader_workers={workers}"]))
         weights[workers] = torch.load(root / "runs/t/vae/last.pt", weights_only=False)["model"]
     assert all(torch.equal(weights[0][k], weights[2][k]) for k in weights[0])
+
+
+def test_the_gpu_scale_is_the_paper_scale_with_larger_batches_and_its_own_hashes(tmp_path):
+    from worldmodel.config import agent_preset
+
+    paths = [f"paths.runs_root={tmp_path}", f"paths.data_root={tmp_path}"]
+    paper, gpu = (compose("pipeline", [f"scale={s}", *paths]) for s in ("paper", "paper_gpu"))
+    assert (gpu.vae.batch_size, gpu.rnn.batch_size) == (256, 256) and gpu.collect.episodes == paper.collect.episodes
+    assert agent_preset(gpu, "chooser").total_steps == agent_preset(paper, "chooser").total_steps == 40000
+    for stage in ("vae", "rnn"):  # another batch trains another model
+        assert artifacts.provenance(gpu, stage)["config"] != artifacts.provenance(paper, stage)["config"]
