@@ -6,7 +6,9 @@
 1. the smoke pipeline, end to end, with ``device=<device>`` (``--no-pipeline`` skips it);
 2. VAE and LSTM training steps at the paper-scale batch (``conf/scale/paper.yaml``) on synthetic batches of the
    real shapes, on the device and on the CPU: frames per second each;
-3. 1,000 DDPG updates at the agent's batch and 1,000 single decisions (batch of 1), on each.
+3. 1,000 DDPG updates at the agent's batch and 1,000 single decisions of its actor (batch of 1), on each;
+4. 1,000 whole decisions (frame -> VAE -> LSTM -> actor, batch of 1) on each: the CPU's fast path against the
+   module path on the device, the number that ``decision_device`` is chosen by.
 
 Writes one JSON file: ``$OUT/gpu_check.json`` when ``OUT`` is set (the lent GPU machine's output folder), else
 ``benchmarks/results/gpu_check.json``. Numbers measured with ``--tiny`` are not measurements: the file says so.
@@ -128,6 +130,29 @@ def ddpg_rates(cfg, device, updates: int, decisions: int, warmup: int) -> dict:
     }
 
 
+def decisions_per_s(cfg, device, decisions: int, warmup: int) -> float:
+    """Whole decisions per second at batch 1, as evaluation makes them: a frame through the VAE's mean and one LSTM
+    step to the actor's action, on ``device`` (the fast path on the CPU, where it passes its self-test)."""
+    import numpy as np
+    import torch
+
+    from worldmodel import artifacts
+    from worldmodel.agent_obs import LearnedPolicy, WorldModelEncoder
+    from worldmodel.models.ddpg import Actor
+
+    torch.manual_seed(0)
+    vae, rnn = artifacts.build_vae(cfg).eval().to(device), artifacts.build_rnn(cfg).eval().to(device)
+    encoder = WorldModelEncoder(vae, rnn, use_speed=True)
+    policy = LearnedPolicy("check", encoder, Actor(encoder.dim, 2).to(device))
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, int(cfg.vae.num_classes), (16, 64, 64), dtype=np.uint8)
+    speed = np.array([10.0], np.float32)
+    k = iter(range(10**9))
+    return 1.0 / _timed(
+        lambda: policy.act({"seg": frames[next(k) % 16], "speed": speed}, {}), decisions, warmup, device
+    )
+
+
 def smoke_pipeline(device: str) -> dict:
     """The smoke pipeline in a fresh folder, as a user would run it: its wall time and exit status."""
     with tempfile.TemporaryDirectory() as root:
@@ -183,6 +208,7 @@ def main(argv: list[str] | None = None) -> dict:
         ("vae_frames_per_s", lambda d: vae_frames_per_s(cfg, d, size["vae"], size["warmup"])),
         ("lstm_frames_per_s", lambda d: lstm_frames_per_s(cfg, d, size["lstm"], size["warmup"])),
         ("ddpg", lambda d: ddpg_rates(cfg, d, size["updates"], size["decisions"], size["warmup"])),
+        ("decisions_per_s", lambda d: decisions_per_s(cfg, d, size["decisions"], size["warmup"])),
     ):
         out[name] = {str(d): measure(d) for d in targets}
         print(f"{name}: {out[name]}", flush=True)
@@ -192,6 +218,7 @@ def main(argv: list[str] | None = None) -> dict:
             "lstm": out["lstm_frames_per_s"][str(device)] / out["lstm_frames_per_s"]["cpu"],
             "ddpg_updates": out["ddpg"][str(device)]["updates_per_s"] / out["ddpg"]["cpu"]["updates_per_s"],
             "decisions": out["ddpg"][str(device)]["decisions_per_s"] / out["ddpg"]["cpu"]["decisions_per_s"],
+            "whole_decisions": out["decisions_per_s"][str(device)] / out["decisions_per_s"]["cpu"],
         }
     folder = args.out or (Path(os.environ["OUT"]) if os.environ.get("OUT") else RESULTS_DIR)
     folder.mkdir(parents=True, exist_ok=True)

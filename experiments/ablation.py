@@ -20,6 +20,7 @@ import math
 from pathlib import Path
 
 from worldmodel import artifacts, evaluate, policies, train_agent
+from worldmodel.common import resolve_workers
 from worldmodel.config import compose
 from worldmodel.report import _mean, overall_achievable_share, paired_bootstrap, read_results_csv, write_results_csv
 
@@ -138,7 +139,7 @@ def main(argv=None) -> int:
     out = artifacts.runs_root(cfg) / "ablation"
     out.mkdir(parents=True, exist_ok=True)
     entries = evaluate.bank(cfg)
-    workers = int(cfg.evaluate.num_workers)
+    workers = resolve_workers(cfg.evaluate.num_workers)
 
     rows = []
     for name in ("braking", "oracle"):

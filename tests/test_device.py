@@ -6,11 +6,12 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
 from worldmodel import artifacts, train_vae
-from worldmodel.common import StageError, resolve_device, to_cpu
+from worldmodel.common import StageError, resolve_device, resolve_loader_workers, resolve_workers, to_cpu, usable_cores
 from worldmodel.config import compose, validate
 
 pytestmark = pytest.mark.skipif(torch.cuda.is_available(), reason="pins the behaviour of a machine without CUDA")
@@ -78,4 +79,106 @@ def test_the_gpu_check_runs_its_cpu_half(tmp_path):
     assert result["tiny"] and result["device"] == "cpu"
     assert result["vae_frames_per_s"]["cpu"] > 0 and result["lstm_frames_per_s"]["cpu"] > 0
     assert result["ddpg"]["cpu"]["updates_per_s"] > 0 and result["ddpg"]["cpu"]["decisions_per_s"] > 0
+    assert result["decisions_per_s"]["cpu"] > 0  # the whole decision: frame, world model and actor
     assert "speedup" not in result  # nothing to compare the CPU with
+
+
+def test_the_new_settings_are_refused_naming_the_key_and_the_fix():
+    for override, message in (
+        ("amp=fp16", "config amp='fp16' is impossible: use off or bf16"),
+        ("amp=bf16", "amp=bf16 runs on a CUDA device only, and this run's device is cpu: use amp=off"),
+        ("loader_workers=-1", "config loader_workers=-1 is impossible: use auto or a number >= 0"),
+        ("decision_device=gpu", "config decision_device='gpu' is impossible: use auto, cpu, cuda or cuda:N"),
+        ("decision_device=cuda", "decision_device=cuda: torch sees no CUDA .* use decision_device=cpu"),
+        ("collect.num_workers=0", "config collect.num_workers=0 is impossible: it must be a positive integer or auto"),
+        ("evaluate.num_workers=many", "config evaluate.num_workers='many' is impossible: .* or auto"),
+        ("agent.chooser.num_workers=-2", "config agent.chooser.num_workers=-2 is impossible: .* or auto"),
+        ("demos.num_workers=0", "config demos.num_workers=0 is impossible: .* or auto"),
+    ):
+        with pytest.raises(StageError, match=message):
+            validate(compose("pipeline", [override]))
+    typed = validate(compose("pipeline", ["amp=off", "loader_workers=3", "decision_device=auto"]))
+    assert (typed.amp, typed.loader_workers, typed.decision_device) == ("off", 3, "auto")
+
+
+def test_amp_bf16_on_the_cpu_stops_the_stage_with_status_2(tmp_path):
+    root = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=t", "scale=smoke"]
+    done = subprocess.run(
+        [sys.executable, "-m", "worldmodel.train_vae", *root, "amp=bf16"], capture_output=True, text=True
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "amp=bf16" in done.stderr + done.stdout and "amp=off" in done.stderr + done.stdout
+
+
+def test_auto_worker_counts_are_the_usable_cores():
+    assert usable_cores() >= 1 and resolve_workers("auto") == usable_cores() and resolve_workers(3) == 3
+    typed = validate(compose("pipeline", ["scale=paper"]))
+    for section in (typed.collect, typed.demos, typed.evaluate, typed.agent.chooser):
+        assert section.num_workers == "auto" and resolve_workers(section.num_workers) >= 1
+    cpu = torch.device("cpu")
+    assert resolve_loader_workers("auto", cpu) == 0 and resolve_loader_workers(2, cpu) == 2
+    assert 0 <= resolve_loader_workers("auto", torch.device("cuda")) <= 4
+
+
+def test_no_worker_count_amp_or_loader_setting_enters_a_provenance_hash(tmp_path):
+    def sha(stage, *overrides):
+        cfg = compose("pipeline", [f"paths.runs_root={tmp_path}", f"paths.data_root={tmp_path}", *overrides])
+        return artifacts.provenance(cfg, stage)["config"]
+
+    settings = (
+        "amp=bf16",
+        "loader_workers=3",
+        "decision_device=cuda",
+        "collect.num_workers=7",
+        "demos.num_workers=auto",
+        "evaluate.num_workers=5",
+        "agent.chooser.num_workers=auto",
+    )
+    for stage in ("vae", "rnn", "agent", "eval"):
+        assert sha(stage) == sha(stage, *settings)
+    chooser = ("agent=chooser",)
+    assert sha("agent", *chooser, "agent.chooser.num_workers=1") == sha(
+        "agent", *chooser, "agent.chooser.num_workers=auto"
+    )
+
+
+def test_loader_workers_read_the_same_batches_in_the_same_order(smoke_builds):
+    """The DataLoader path gives what the training process reads itself: the same frames, the same order."""
+    from worldmodel.data import iter_frame_batches, loaded_frame_batches
+
+    store = artifacts.open_rollouts(
+        compose("train_vae", [f"paths.data_root={smoke_builds('rollouts')}/data", "experiment=t", "scale=smoke"])
+    )
+    episodes = store.episodes("train")
+    read = list(iter_frame_batches(store, episodes, 16, np.random.default_rng(7), block=8, buffer_blocks=3))
+    loaded = list(
+        loaded_frame_batches(
+            store, episodes, 16, np.random.default_rng(7), 2, pin_memory=False, block=8, buffer_blocks=3
+        )
+    )
+    assert len(read) == len(loaded) > 1
+    assert all(np.array_equal(a, b.numpy()) for a, b in zip(read, loaded))
+
+
+def test_a_smoke_vae_trained_through_loader_workers_is_the_default_run_bit_for_bit(smoke_builds, tmp_path):
+    import shutil
+
+    weights = {}
+    for workers in (0, 2):
+        root = tmp_path / str(workers)
+        shutil.copytree(smoke_builds("rollouts"), root)
+        paths = [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke"]
+        train_vae.run(compose("train_vae", [*paths, "threads=1", f"loader_workers={workers}"]))
+        weights[workers] = torch.load(root / "runs/t/vae/last.pt", weights_only=False)["model"]
+    assert all(torch.equal(weights[0][k], weights[2][k]) for k in weights[0])
+
+
+def test_the_gpu_scale_is_the_paper_scale_with_larger_batches_and_its_own_hashes(tmp_path):
+    from worldmodel.config import agent_preset
+
+    paths = [f"paths.runs_root={tmp_path}", f"paths.data_root={tmp_path}"]
+    paper, gpu = (compose("pipeline", [f"scale={s}", *paths]) for s in ("paper", "paper_gpu"))
+    assert (gpu.vae.batch_size, gpu.rnn.batch_size) == (256, 256) and gpu.collect.episodes == paper.collect.episodes
+    assert agent_preset(gpu, "chooser").total_steps == agent_preset(paper, "chooser").total_steps == 40000
+    for stage in ("vae", "rnn"):  # another batch trains another model
+        assert artifacts.provenance(gpu, stage)["config"] != artifacts.provenance(paper, stage)["config"]

@@ -40,7 +40,7 @@ class WorldModelEncoder:
         # the hazard profiles of the raw frame (envs/views.py), appended after the world model's part
         self.frame_view = HazardView(IMAGE_SIZE) if frame_view else None
         self.dim = self.decision.dim + (self.frame_view.dim if self.frame_view else 0)
-        self._out = torch.zeros(1, self.dim)
+        self._out = torch.zeros(1, self.dim, device=next(vae.parameters()).device)
 
     def reset(self) -> None:
         self.decision.reset()
@@ -67,7 +67,7 @@ class WorldModelEncoder:
     def encode(self, obs: dict) -> np.ndarray:
         # inference_mode is not needed (nothing here requires grad) but measured ~15 us faster per decision
         with torch.inference_mode():
-            return self.encode_tensor(obs)[0].numpy().copy()
+            return self.encode_tensor(obs)[0].cpu().numpy().copy()
 
 
 def encode_episode(encoder: WorldModelEncoder, seg: np.ndarray, speed: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -129,7 +129,7 @@ class LearnedPolicy:
         with torch.inference_mode():
             x = self.encoder.encode_tensor(obs)
             a = self.decide(x)
-            action = a[0].numpy().astype(np.float32)  # astype copies: the buffer is reused
+            action = a[0].cpu().numpy().astype(np.float32)  # astype copies: the buffer is reused
         if not self.action_map.identity:
             action = self.action_map.to_env(action, float(np.asarray(obs["speed"]).reshape(-1)[0]))
         self.encoder.note_action(action)

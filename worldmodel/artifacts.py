@@ -236,6 +236,7 @@ def _config(cfg, *keys: str) -> dict:
     return {key: _section(cfg, key) for key in keys}
 
 
+RECORDED_WORKERS = 2  # the chooser's labelling processes in the runs recorded while the count was hashed
 RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
 # Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
 # they are left out of the hash and older runs stay current.
@@ -330,6 +331,10 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         uses_world_model = cfg.agent.get("obs", "worldmodel") == "worldmodel"
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
+        chooser = settings["agent"].get("chooser")
+        if isinstance(chooser, dict) and chooser.get("num_workers") is not None:
+            # the labels are the same for any worker count (tested): hashed as 2, what the recorded runs hold
+            chooser["num_workers"] = RECORDED_WORKERS
         if uses_demos(cfg) and not uses_world_model:
             # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/peers/kim/): what
             # makes them is part of its settings, not an input on disk
@@ -526,13 +531,16 @@ def load_rnn(cfg, which: str = "best"):
     return model.eval(), path
 
 
-def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None = None):
+def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None = None, device=None):
     """VAE + LSTM behind the agent's observation encoder (with speed as ``use_speed``, default ``agent.use_speed``,
-    and the frame's hazard profiles as ``frame_view``, default ``agent.frame_view``)."""
+    and the frame's hazard profiles as ``frame_view``, default ``agent.frame_view``), on ``device`` (default: the
+    CPU, where single decisions are fastest to date)."""
     from .agent_obs import WorldModelEncoder
 
     vae, _ = load_vae(cfg, "best")
     rnn, _ = load_rnn(cfg, "best")
+    if device is not None:
+        vae, rnn = vae.to(device), rnn.to(device)
     return WorldModelEncoder(
         vae,
         rnn,

@@ -51,7 +51,7 @@ from .chooser_labels import (  # noqa: F401
     labels_dir,
     validation_entries,
 )
-from .common import StageError, seed_everything, set_threads
+from .common import StageError, resolve_device, seed_everything, set_threads
 from .config import validate
 
 log = logging.getLogger(__name__)
@@ -158,8 +158,8 @@ class Scorer(nn.Module):
     def predict(self, x: np.ndarray | torch.Tensor, chunk: int = PREDICT_CHUNK) -> np.ndarray:
         """The predicted costs of many inputs, ``chunk`` rows at a time: the frame band's convolutions over a whole
         held-out split at once took ~12 GB with 30,000 labelled episodes, and the rows do not interact."""
-        x = torch.as_tensor(x)
-        return torch.cat([self(x[i : i + chunk]) for i in range(0, len(x), chunk)]).numpy()
+        x, device = torch.as_tensor(x), self.mean.device
+        return torch.cat([self(x[i : i + chunk].to(device)).cpu() for i in range(0, len(x), chunk)]).numpy()
 
 
 def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarray:
@@ -254,18 +254,22 @@ def held_out_split(episode: np.ndarray) -> np.ndarray:
 STATE_SCALE = np.array([1.0, 10.0, 5.0, 5.0, 5.0, 1.0, 10.0, 5.0, 5.0, 5.0], np.float32)  # ~unit targets
 
 
-def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, writer=None, stop=None, state=None):
+def fit_scorer(
+    x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, writer=None, stop=None, state=None, device="cpu"
+):
     """Fit a ``Scorer`` on the training split (its ``target`` loss, plus ``c.aux_weight`` times the squared error
     of its guess of the privileged hazard ``state``, which shapes what its first layer perceives); keep the
     checkpoint whose chooser costs least on the held-out split. Returns (scorer, history of (minibatch,
-    held-out cost, held-out mse))."""
+    held-out cost, held-out mse)). The scorer and the training split live on ``device``; the minibatches are
+    drawn on the CPU, the same on every device (dropout's masks are the device's own)."""
+    device = torch.device(device)
     torch.manual_seed(int(seed))
     is_held = held_out_split(episode)
     aux_weight = c.aux_weight
     if aux_weight > 0 and state is None:
         raise StageError("chooser.aux_weight > 0 needs labels with the hazard state: relabel them")
-    st = torch.from_numpy(state[~is_held] / STATE_SCALE) if aux_weight > 0 else None
-    xt, yt = torch.from_numpy(x[~is_held]), torch.from_numpy(y[~is_held])
+    st = torch.from_numpy(state[~is_held] / STATE_SCALE).to(device) if aux_weight > 0 else None
+    xt, yt = torch.from_numpy(x[~is_held]).to(device), torch.from_numpy(y[~is_held]).to(device)
     xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
     members = c.ensemble
     mask_shape = MaskView(MASK_ROWS[c.mask_camera]).shape if c.mask_view else None
@@ -273,6 +277,7 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     vec = xt[:, : xt.shape[1] - scorer.mask_dim]
     scorer.mean.copy_(vec.mean(0))
     scorer.std.copy_(vec.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
+    scorer.to(device)  # built on the CPU from the seed: the same initial weights on every device
     opt = torch.optim.AdamW(scorer.parameters(), lr=c.lr, weight_decay=c.weight_decay)
     rng = np.random.default_rng([int(seed), CHOOSER_MINIBATCHES])
 
@@ -286,7 +291,7 @@ def fit_scorer(x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, 
     for k in tqdm(range(c.steps), desc="chooser scorer", unit="batch", disable=writer is None):
         loss = 0.0
         for m in range(members):  # each member its own minibatches
-            idx = torch.from_numpy(rng.integers(0, len(xt), size=c.batch_size))
+            idx = torch.from_numpy(rng.integers(0, len(xt), size=c.batch_size)).to(device)
             if aux_weight > 0:
                 out, guess = scorer.raw(xt[idx], m, aux=True)
                 loss = loss + scorer.loss(out, yt[idx]) + aux_weight * ((guess - st[idx]) ** 2).mean()
@@ -361,7 +366,10 @@ def train(cfg, run_, agent_id) -> dict:
         scorer = scorer_from_state(run_.state)
         history = [(k["step"], k["held_out_cost"], k["held_out_mse"]) for k in run_.state["checks"]]
     else:
-        scorer, history = fit_scorer(x, y_fit, data["episode"], c, typed.seed, run_.writer, run_.stop, data["state"])
+        device = resolve_device(typed.device)
+        scorer, history = fit_scorer(
+            x, y_fit, data["episode"], c, typed.seed, run_.writer, run_.stop, data["state"], device
+        )
     is_held = held_out_split(data["episode"])
     yv, ev = y[is_held], data["episode"][is_held]
     pred = scorer.predict(x[is_held])
@@ -451,7 +459,7 @@ class LearnedScorer:
                 )
             x = np.concatenate([x, self.mask(obs[self.mask_obs])[None]], axis=1)
         with torch.inference_mode():
-            return self.scorer(torch.from_numpy(x))[0].numpy()
+            return self.scorer(torch.from_numpy(x).to(self.scorer.mean.device))[0].cpu().numpy()
 
 
 def scorer_from_state(state: dict) -> Scorer:
@@ -470,11 +478,11 @@ def scorer_from_state(state: dict) -> Scorer:
     return scorer.eval()
 
 
-def build_policy(name: str, encoder, state: dict, margin: float | None = None) -> ManoeuvreChooser:
-    """A chooser checkpoint as a scripted-policy (``reset``, ``act``)."""
+def build_policy(name: str, encoder, state: dict, margin: float | None = None, device="cpu") -> ManoeuvreChooser:
+    """A chooser checkpoint as a scripted-policy (``reset``, ``act``), its scorer on ``device``."""
     candidates = [Manoeuvre(**m) for m in state["candidates"]]
     camera = str(state.get("mask_camera", "wide"))
-    scorer = scorer_from_state(state)
+    scorer = scorer_from_state(state).to(device)
     if encoder.dim + 1 + scorer.mask_dim != int(state["in_dim"]):
         raise StageError(
             f"the chooser {name} expects {int(state['in_dim']) - 1} world-model features, the world model gives "

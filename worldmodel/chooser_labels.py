@@ -24,7 +24,7 @@ from envs.chooser import cost_labels, decide_steps_for
 from envs.streams import CHOOSER_LABEL_EPISODES
 
 from . import artifacts
-from .common import StageError, atomic_output, make_env
+from .common import StageError, atomic_output, make_env, resolve_workers
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -135,12 +135,13 @@ def labels(cfg, source: str = "train") -> dict:
         with tqdm(
             total=sum(min(SHARD, n - k * SHARD) for k in todo), desc=f"chooser labels ({source})", unit="episode"
         ) as bar:
-            if c.num_workers <= 1:
+            workers = min(resolve_workers(c.num_workers), len(tasks))
+            if workers <= 1:
                 for t in tasks:
                     k = _label_shard(t)
                     bar.update(min(SHARD, n - k * SHARD))
             else:
-                with mp.get_context("spawn").Pool(c.num_workers) as pool:
+                with mp.get_context("spawn").Pool(workers) as pool:
                     for k in pool.imap_unordered(_label_shard, tasks):
                         bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)

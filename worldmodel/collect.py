@@ -16,6 +16,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from . import artifacts
+from .common import resolve_workers
 from .config import hydra_main, validate
 from .data import SCHEMA_VERSION
 from .recording import env_settings, record_dataset
@@ -62,7 +63,7 @@ def run(cfg) -> dict:
         spec_of,
         autopilot_of,
         resume=typed.resume,
-        num_workers=typed.collect.num_workers,
+        num_workers=resolve_workers(typed.collect.num_workers),
         validation_fraction=typed.collect.validation_fraction,
         label="collect",
     )

@@ -171,14 +171,15 @@ def to_cpu(obj: Any) -> Any:
 DEVICE_SETTING = re.compile(r"auto|cpu|cuda(:\d+)?")
 
 
-def resolve_device(setting: str):
-    """The torch device of the ``device`` setting: ``auto`` is CUDA when torch sees it and the CPU otherwise. A CUDA
-    device this machine lacks stops the stage before any work (a StageError, exit status 2), naming the setting."""
+def resolve_device(setting: str, key: str = "device"):
+    """The torch device of the ``device`` setting (or of ``key``, another setting of its form): ``auto`` is CUDA
+    when torch sees it and the CPU otherwise. A CUDA device this machine lacks stops the stage before any work (a
+    StageError, exit status 2), naming the setting."""
     import torch
 
     setting = str(setting)
     if not DEVICE_SETTING.fullmatch(setting):
-        raise StageError(f"device={setting}: use auto, cpu, cuda or cuda:N")
+        raise StageError(f"{key}={setting}: use auto, cpu, cuda or cuda:N")
     if setting == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if setting.startswith("cuda"):
@@ -186,10 +187,76 @@ def resolve_device(setting: str):
         index = int(setting.partition(":")[2] or 0)
         if index >= count:
             raise StageError(
-                f"device={setting}: torch sees {count or 'no'} CUDA device{'s' if count != 1 else ''} on this machine "
-                f"(torch {torch.__version__}); use device=cpu (or device=auto, which picks CUDA only where it exists)"
+                f"{key}={setting}: torch sees {count or 'no'} CUDA device{'s' if count != 1 else ''} on this machine "
+                f"(torch {torch.__version__}); use {key}=cpu (or {key}=auto, which picks CUDA only where it exists)"
             )
     return torch.device(setting)
+
+
+def decision_device(cfg):
+    """Where evaluation's single decisions run: the ``decision_device`` setting (the CPU where a config lacks it)."""
+    return resolve_device(getattr(cfg, "decision_device", "cpu"), "decision_device")
+
+
+AMP_SETTINGS = ("off", "bf16")  # the ``amp`` setting
+
+
+def check_amp(amp: str, device) -> None:
+    """Refuse ``amp=bf16`` off CUDA: on the CPU it would silently train another model more slowly, not faster."""
+    if amp == "bf16" and device.type != "cuda":
+        raise StageError(
+            f"amp=bf16 runs on a CUDA device only, and this run's device is {device}: use amp=off (or device=cuda "
+            "on a machine with a GPU)"
+        )
+
+
+def autocast(device, amp: str):
+    """The context that runs a forward pass and its loss in ``amp``'s precision: bf16 autocast on CUDA, else
+    nothing at all, so a run without it computes exactly what it did before the setting."""
+    import torch
+
+    if amp == "bf16" and device.type == "cuda":
+        return torch.autocast(device_type="cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def module_device(module):
+    """The device a module's parameters live on."""
+    return next(module.parameters()).device
+
+
+# ----------------------------------------------------------------------------- worker counts
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS tells it, as under taskset or a SLURM
+    allocation), else the machine's count."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
+def worker_count_problems(obj, *keys: str, prefix: str = "") -> Iterator[ConfigValueError]:
+    """A worker count is a positive integer or ``auto``; ``prefix`` names a subsection (``chooser.``)."""
+    for key in keys:
+        value = getattr(obj, key)
+        if value == "auto":
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            yield ConfigValueError(prefix + key, value, "it must be a positive integer or auto (the usable cores)")
+
+
+def resolve_workers(value: int | str) -> int:
+    """A worker-count setting as a number: ``auto`` is the usable cores (``usable_cores``)."""
+    return usable_cores() if value == "auto" else int(value)
+
+
+def resolve_loader_workers(value: int | str, device) -> int:
+    """The ``loader_workers`` setting as a number for ``device``: ``auto`` reads in the training process on the CPU
+    (0: its cores are busy training), and ahead of a CUDA device in the usable cores less the training one, at
+    most 4."""
+    if value != "auto":
+        return int(value)
+    return 0 if device.type != "cuda" else max(0, min(4, usable_cores() - 1))
 
 
 def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:

@@ -207,6 +207,36 @@ class RolloutStore:
         self._handles = {}
 
 
+def frame_pools(
+    store: RolloutStore, episodes: list[int], rng: np.random.Generator, block: int = 32, buffer_blocks: int = 16
+) -> list[tuple[list[tuple[int, int]], np.ndarray]]:
+    """The shuffle of one pass over ``episodes``, drawn from ``rng`` before any frame is read: random contiguous
+    blocks of ``block`` frames, ``buffer_blocks`` at a time in a pool, each pool with the permutation of its
+    frames. Every reader of the pass (this process or loader workers) reads the same pools in the same order."""
+    units = [(i, s) for i in episodes for s in range(0, store.lengths[i], block)]
+    order = rng.permutation(len(units))
+    pools = []
+    for first in range(0, len(order), buffer_blocks):
+        blocks = [units[u] for u in order[first : first + buffer_blocks]]
+        frames = sum(min(block, store.lengths[i] - s) for i, s in blocks)
+        pools.append((blocks, rng.permutation(frames)))
+    return pools
+
+
+def read_pool(store: RolloutStore, pool: tuple[list[tuple[int, int]], np.ndarray], block: int = 32) -> np.ndarray:
+    """A pool's frames, read and shuffled."""
+    blocks, permutation = pool
+    return np.concatenate([store.read(i, "seg", slice(s, s + block)) for i, s in blocks])[permutation]
+
+
+def batches_of(frames, batch_size: int, drop_last: bool = False) -> Iterator:
+    for b in range(0, len(frames), batch_size):
+        batch = frames[b : b + batch_size]
+        if len(batch) < batch_size and drop_last:
+            continue
+        yield batch
+
+
 def iter_frame_batches(
     store: RolloutStore,
     episodes: list[int],
@@ -216,28 +246,61 @@ def iter_frame_batches(
     buffer_blocks: int = 16,
     drop_last: bool = False,
 ) -> Iterator[np.ndarray]:
-    """Stream shuffled frame batches: random contiguous blocks pooled in a small shuffle buffer.
+    """Stream shuffled frame batches: random contiguous blocks pooled in a small shuffle buffer (``frame_pools``).
 
     Memory is bounded by ``buffer_blocks * block`` frames whatever the dataset size (hardmaru's loader held
     the whole dataset in RAM and ran out of memory for users).
     """
-    units = [(i, s) for i in episodes for s in range(0, store.lengths[i], block)]
-    order = rng.permutation(len(units))
-    pool: list[np.ndarray] = []
-    pooled = 0
-    for n, u in enumerate(order):
-        i, s = units[u]
-        pool.append(store.read(i, "seg", slice(s, s + block)))
-        pooled += len(pool[-1])
-        if len(pool) >= buffer_blocks or n == len(order) - 1:
-            frames = np.concatenate(pool)
-            frames = frames[rng.permutation(len(frames))]
-            pool, pooled = [], 0
-            for b in range(0, len(frames), batch_size):
-                batch = frames[b : b + batch_size]
-                if len(batch) < batch_size and drop_last:
-                    continue
-                yield batch
+    for pool in frame_pools(store, episodes, rng, block, buffer_blocks):
+        yield from batches_of(read_pool(store, pool, block), batch_size, drop_last)
+
+
+class _Pools:
+    """``frame_pools`` as a torch map-style dataset: item k is pool k's frames, as a uint8 tensor. Each loader
+    worker opens its own HDF5 handles (``RolloutStore`` drops inherited ones)."""
+
+    def __init__(self, store: RolloutStore, pools: list, block: int):
+        self.store, self.pools, self.block = store, pools, block
+
+    def __len__(self) -> int:
+        return len(self.pools)
+
+    def __getitem__(self, k: int):
+        import torch
+
+        return torch.from_numpy(read_pool(self.store, self.pools[k], self.block))
+
+
+def loaded_frame_batches(
+    store: RolloutStore,
+    episodes: list[int],
+    batch_size: int,
+    rng: np.random.Generator,
+    workers: int,
+    pin_memory: bool,
+    block: int = 32,
+    buffer_blocks: int = 16,
+    drop_last: bool = False,
+) -> Iterator:
+    """``iter_frame_batches``'s batches, the same frames in the same order, as uint8 tensors read ahead by
+    ``workers`` processes of a torch ``DataLoader`` (in page-locked memory with ``pin_memory``, so that copies to a
+    GPU overlap its work). Only the reading is parallel: the shuffle is drawn here, before any worker starts."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    pools = _Pools(store, frame_pools(store, episodes, rng, block, buffer_blocks), block)
+    # its own generator: the loader draws its workers' seeds from it, and from the global one (which the VAE's
+    # sampling reads) without it
+    loader = DataLoader(
+        pools,
+        batch_size=None,
+        shuffle=False,
+        num_workers=workers,
+        pin_memory=pin_memory,
+        generator=torch.Generator(),
+    )
+    for frames in loader:
+        yield from batches_of(frames, batch_size, drop_last)
 
 
 # ----------------------------------------------------------------------------- CLI

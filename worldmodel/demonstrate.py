@@ -19,7 +19,7 @@ import numpy as np
 from envs.streams import DEMO_SCENARIOS
 
 from . import artifacts
-from .common import StageError
+from .common import StageError, resolve_workers
 from .config import hydra_main, teacher_settings, validate
 from .data import SCHEMA_VERSION
 from .recording import env_settings, record_dataset
@@ -69,7 +69,7 @@ def run(cfg) -> dict:
         spec_of,
         planner_of,
         resume=typed.resume,
-        num_workers=typed.demos.num_workers,
+        num_workers=resolve_workers(typed.demos.num_workers),
         validation_fraction=0.1,
         label="demonstrate",
     )

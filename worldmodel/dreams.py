@@ -40,6 +40,7 @@ from .action_effect import (  # noqa: F401
     summarise_effect,
     write_effect_rows,
 )
+from .common import module_device
 
 HORIZON_KEYS = ("lstm", "persistence", "persistence_vae", "ceiling")
 VEHICLES, PEDESTRIANS = CLASS_NAMES.index("Vehicles"), CLASS_NAMES.index("Pedestrians")
@@ -50,13 +51,13 @@ log = logging.getLogger(__name__)
 @torch.inference_mode()
 def decode_classes(vae, z: torch.Tensor, chunk: int = 64) -> np.ndarray:
     """Latents ``(..., D)`` -> class maps ``(..., H, W)`` uint8, in zero-padded chunks of one size (oneDNN keeps
-    primitives per input shape)."""
-    flat = z.reshape(-1, z.shape[-1]).float()
+    primitives per input shape). Decoded on the VAE's device."""
+    flat = z.reshape(-1, z.shape[-1]).float().to(module_device(vae))
     n = len(flat)
-    padded = torch.zeros((-(-n // chunk) * chunk, flat.shape[1]), dtype=flat.dtype)
+    padded = torch.zeros((-(-n // chunk) * chunk, flat.shape[1]), dtype=flat.dtype, device=flat.device)
     padded[:n] = flat
     maps = torch.cat([vae.decode(part).argmax(1).to(torch.uint8) for part in padded.split(chunk)])[:n]
-    return maps.reshape(*z.shape[:-1], *maps.shape[1:]).numpy()
+    return maps.reshape(*z.shape[:-1], *maps.shape[1:]).cpu().numpy()
 
 
 @torch.inference_mode()
@@ -74,15 +75,16 @@ def imagine(rnn, z0: torch.Tensor, state, actions: torch.Tensor) -> torch.Tensor
 @torch.inference_mode()
 def dream_branches(vae, rnn, bank: dict) -> np.ndarray:
     """Decoded dreams ``(N, A, horizon, H, W)`` under :data:`ACTIONS`, from each branch point of ``bank``: the
-    LSTM reads the real context (z, a) and then dreams from the branch point's latent."""
-    ctx = torch.from_numpy(bank["context_seg"])
+    LSTM reads the real context (z, a) and then dreams from the branch point's latent. Both models on one device."""
+    device = module_device(rnn)
+    ctx = torch.from_numpy(bank["context_seg"]).to(device)
     N, C1 = ctx.shape[:2]
     mu, _ = vae.encode(ctx.reshape(N * C1, *ctx.shape[2:]))
     mu = mu.reshape(N, C1, -1)
-    _, state = rnn(mu[:, :-1], torch.from_numpy(bank["context_action"]))
+    _, state = rnn(mu[:, :-1], torch.from_numpy(bank["context_action"]).to(device))
     A, K = bank["seg"].shape[1:3]
     state = tuple(s.repeat_interleave(A, 0) for s in state)
-    plans = torch.tensor(list(ACTIONS.values()), dtype=torch.float32)[None, :, None].expand(N, A, K, 2)
+    plans = torch.tensor(list(ACTIONS.values()), dtype=torch.float32, device=device)[None, :, None].expand(N, A, K, 2)
     z = imagine(rnn, mu[:, -1].repeat_interleave(A, 0), state, plans.reshape(N * A, K, 2))
     return decode_classes(vae, z).reshape(N, A, K, *bank["seg"].shape[3:])
 
@@ -91,9 +93,9 @@ def dream_branches(vae, rnn, bank: dict) -> np.ndarray:
 def reconstruct_classes(vae, seg: np.ndarray, chunk: int = 64) -> np.ndarray:
     """The VAE's reconstruction (encode to the mean latent, decode) of class maps ``(..., H, W)``, in zero-padded
     chunks of one size: the best a dream decoded by this VAE could show."""
-    flat = torch.from_numpy(np.ascontiguousarray(seg.reshape(-1, *seg.shape[-2:])))
+    flat = torch.from_numpy(np.ascontiguousarray(seg.reshape(-1, *seg.shape[-2:]))).to(module_device(vae))
     n = len(flat)
-    padded = torch.zeros((-(-n // chunk) * chunk, *flat.shape[1:]), dtype=flat.dtype)
+    padded = torch.zeros((-(-n // chunk) * chunk, *flat.shape[1:]), dtype=flat.dtype, device=flat.device)
     padded[:n] = flat
     mu = torch.cat([vae.encode(part)[0] for part in padded.split(chunk)])[:n]
     return decode_classes(vae, mu, chunk).reshape(seg.shape)
@@ -166,6 +168,7 @@ def horizon_quality(vae, rnn, store, lat, episodes: list[int], horizon: int = 10
 
     conf = {key: np.zeros((horizon, NUM_CLASSES, NUM_CLASSES), np.int64) for key in HORIZON_KEYS}
     starts_per_k = np.zeros(horizon, int)
+    device = module_device(rnn)
     for i in episodes:
         mu_np, _, act_np = lat.episode(i)
         seg = store.read(i, "seg")
@@ -174,7 +177,7 @@ def horizon_quality(vae, rnn, store, lat, episodes: list[int], horizon: int = 10
         K = min(horizon, T - 1)
         if len(starts) == 0 or K < 1:
             continue
-        mu, act = torch.from_numpy(mu_np), torch.from_numpy(act_np)
+        mu, act = torch.from_numpy(mu_np).to(device), torch.from_numpy(act_np).to(device)
         # the LSTM state after reading (z_s, a_s) for s < t, at every t
         h, c = rnn.initial_state(1)
         hs, cs = [h], [c]
@@ -417,13 +420,16 @@ def run(cfg) -> dict:
     import json
 
     from . import artifacts
-    from .common import atomic_write_text, set_threads
+    from .common import atomic_write_text, resolve_device, set_threads
     from .config import validate
     from .latents import Latents
 
-    set_threads(validate(cfg).threads)
+    typed = validate(cfg)
+    set_threads(typed.threads)
+    device = resolve_device(typed.device)
     vae, _ = artifacts.load_vae(cfg, "best")
     rnn, rnn_path = artifacts.load_rnn(cfg, "best")
+    vae, rnn = vae.to(device), rnn.to(device)
     store = artifacts.open_rollouts(cfg)
     lat = Latents(artifacts.latents_path(cfg))
     rows: list[dict] = []

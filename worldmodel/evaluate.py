@@ -23,7 +23,7 @@ import time
 
 from . import artifacts, peers
 from .banks import record_evaluation, sealed_bank_problem
-from .common import StageError, make_env, set_threads
+from .common import StageError, make_env, resolve_workers, set_threads
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
 from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
@@ -170,7 +170,7 @@ def run(cfg) -> dict:
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()
 
-    workers = typed.evaluate.num_workers
+    workers = resolve_workers(typed.evaluate.num_workers)
     agents = [a.key for a in artifacts.trained_agents(cfg)]
     record = artifacts.provenance(cfg, "eval")
     for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs

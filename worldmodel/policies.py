@@ -60,14 +60,17 @@ def learned_policy(cfg, agent: AgentId, state: dict | None = None):
     """(policy, training seed, model hashes) for a trained world-model agent; ``state``: its checkpoint, if the
     caller has already loaded it (they are large: the replay memory is in them)."""
     from .agent_obs import LearnedPolicy
+    from .common import decision_device
 
+    device = decision_device(cfg)
     actor, state = artifacts.load_actor(cfg, agent, state=state)
     # each agent acts as it was trained: its own input (speed or not) and its own action map
-    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
+    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim), device=device)
     if actor is None:  # a chooser (agent.learner=chooser)
         from .chooser import build_policy
 
-        return build_policy(agent.policy, encoder, state), agent.seed, artifacts.models_of(cfg, agent)
+        return build_policy(agent.policy, encoder, state, device=device), agent.seed, artifacts.models_of(cfg, agent)
+    actor = actor.to(device)
     policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
     return policy, agent.seed, artifacts.models_of(cfg, agent)
 

@@ -26,7 +26,7 @@ from envs import CLASS_NAMES, NUM_CLASSES
 from envs.streams import RNN_OPEN_LOOP_START, RNN_VALIDATION_INPUTS
 
 from . import artifacts, dreams
-from .common import StageError, check_finite, resolve_device, seed_everything, set_threads
+from .common import StageError, autocast, check_finite, module_device, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
 from .latents import Latents, encode_dataset, is_current
 from .training import TrainingRun
@@ -114,12 +114,13 @@ def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frame
     conf = {k: np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64) for k in ("model", "persistence", "reconstruction")}
     sq_err = {"model": 0.0, "persistence": 0.0}
     n = 0
+    device = module_device(rnn)
     for i in episodes:
         mu, _, act = lat.episode(i)
         if len(mu) < 2:
             continue
-        z = torch.from_numpy(mu).unsqueeze(0)
-        a = torch.from_numpy(act).unsqueeze(0)
+        z = torch.from_numpy(mu).unsqueeze(0).to(device)
+        a = torch.from_numpy(act).unsqueeze(0).to(device)
         out, _ = rnn(z[:, :-1], a[:, :-1])
         zhat = rnn.predict(out)[0]
         target = torch.from_numpy(store.read(i, "seg")[1:])
@@ -148,9 +149,9 @@ def _decode_classes(vae, z: torch.Tensor, chunk: int = 64) -> torch.Tensor:
     """Class maps of ``z`` decoded in zero-padded chunks of one size: oneDNN keeps ~9 MB of primitives per input
     shape, and decoding each episode whole (one shape per episode length) grew this stage by gigabytes."""
     n = len(z)
-    padded = torch.zeros((-(-n // chunk) * chunk, z.shape[1]), dtype=z.dtype)
+    padded = torch.zeros((-(-n // chunk) * chunk, z.shape[1]), dtype=z.dtype, device=z.device)
     padded[:n] = z
-    return torch.cat([vae.decode(part).argmax(1) for part in padded.split(chunk)])[:n]
+    return torch.cat([vae.decode(part).argmax(1) for part in padded.split(chunk)])[:n].cpu()
 
 
 def _num(x) -> float | None:
@@ -164,7 +165,8 @@ def fig2_strip(rnn, vae, store, lat: Latents, episode: int, times=(4, 8, 12)) ->
 
     mu, _, act = lat.episode(episode)
     T = len(mu)
-    out, _ = rnn(torch.from_numpy(mu[:-1]).unsqueeze(0), torch.from_numpy(act[:-1]).unsqueeze(0))
+    device = module_device(rnn)
+    out, _ = rnn(torch.from_numpy(mu[:-1]).unsqueeze(0).to(device), torch.from_numpy(act[:-1]).unsqueeze(0).to(device))
     zhat = rnn.predict(out)[0]
     seg = store.read(episode, "seg")
     rows = []
@@ -172,8 +174,9 @@ def fig2_strip(rnn, vae, store, lat: Latents, episode: int, times=(4, 8, 12)) ->
         t = min(max(1, t), T - 2)
         if t < 1:
             continue
-        dec = vae.decode(torch.stack([torch.from_numpy(mu[t - 1]), torch.from_numpy(mu[t]), zhat[t]])).argmax(1)
-        panels = [PALETTE[d] for d in dec.numpy()] + [PALETTE[seg[t + 1]]]
+        pair = torch.from_numpy(mu[t - 1 : t + 1]).to(device)
+        dec = vae.decode(torch.stack([pair[0], pair[1], zhat[t]])).argmax(1)
+        panels = [PALETTE[d] for d in dec.cpu().numpy()] + [PALETTE[seg[t + 1]]]
         rows.append(np.concatenate(panels, axis=1))
     if not rows:
         return np.zeros((64, 256, 3), np.uint8)
@@ -202,7 +205,6 @@ def run(cfg) -> dict:
     with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
         # after the run's checks: a refused resume must not cost an encoding
         lat_path, reencoded = ensure_latents(cfg, store, vae.to(device), vae_path)
-        vae.cpu()  # the measurements after training decode on the CPU
         lat = Latents(lat_path)
         if int(lat.f.attrs["latent_dim"]) != D:
             raise StageError(
@@ -240,13 +242,14 @@ def run(cfg) -> dict:
                 if b < batch_in_epoch:
                     continue
                 z, a, z_next, mask = (t.to(device, non_blocking=True) for t in (z, a, z_next, mask))
-                out, _ = model(z, a)
-                loss = masked_loss(model, out, z_next, mask)
-                if open_loop:
-                    starts = np.random.default_rng([seed, epoch, b, RNN_OPEN_LOOP_START])
-                    start = int(starts.integers(0, L - open_loop + 1))
-                    dream_loss = open_loop_loss(model, z, a, z_next, mask, start, open_loop)
-                    loss = loss + hp.open_loop_weight * dream_loss
+                with autocast(device, typed.amp):
+                    out, _ = model(z, a)
+                    loss = masked_loss(model, out, z_next, mask)
+                    if open_loop:
+                        starts = np.random.default_rng([seed, epoch, b, RNN_OPEN_LOOP_START])
+                        start = int(starts.integers(0, L - open_loop + 1))
+                        dream_loss = open_loop_loss(model, z, a, z_next, mask, start, open_loop)
+                        loss = loss + hp.open_loop_weight * dream_loss
                 check_finite(loss.item(), "LSTM loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -285,6 +288,7 @@ def run(cfg) -> dict:
             log.info("[rnn] epoch %d: validation loss %.4f", epoch, val_loss)
 
         model, best_path = artifacts.load_rnn(cfg, "best")
+        model.to(device)  # the measurements run where training did
         scores = prediction_iou(model, vae, store, lat, val_eps)
         effect_rows: list[dict] = []
         validation = store.episodes("validation", branches=False)

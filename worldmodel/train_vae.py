@@ -18,9 +18,9 @@ import torch
 from envs import CLASS_NAMES, NUM_CLASSES
 
 from . import artifacts
-from .common import check_finite, resolve_device, seed_everything, set_threads
+from .common import autocast, check_finite, resolve_device, resolve_loader_workers, seed_everything, set_threads
 from .config import hydra_main, validate
-from .data import RolloutStore, iter_frame_batches
+from .data import RolloutStore, iter_frame_batches, loaded_frame_batches
 from .training import TrainingRun
 
 log = logging.getLogger(__name__)
@@ -87,6 +87,14 @@ def evaluate(model, store: RolloutStore, episodes: list[int], batch_size: int, m
     }
 
 
+def frame_batches(store: RolloutStore, episodes: list[int], batch_size: int, rng, workers: int, device):
+    """The training batches of one epoch as uint8 tensors: read in this process (``workers`` 0), or by loader
+    workers into pinned memory on CUDA; the same frames in the same order either way."""
+    if workers == 0:
+        return (torch.from_numpy(batch) for batch in iter_frame_batches(store, episodes, batch_size, rng))
+    return loaded_frame_batches(store, episodes, batch_size, rng, workers, pin_memory=device.type == "cuda")
+
+
 def run(cfg) -> dict:
     from .models.vae import vae_loss
 
@@ -96,6 +104,7 @@ def run(cfg) -> dict:
     out = artifacts.vae_dir(cfg)
     seed_everything(typed.seed)
     device = resolve_device(typed.device)
+    loader_workers = resolve_loader_workers(typed.loader_workers, device)
     model = artifacts.build_vae(cfg).to(device)  # built on the CPU first: the same initial weights on every device
     opt = torch.optim.Adam(model.parameters(), lr=typed.vae.lr)
     epochs, batch_size = typed.vae.epochs, typed.vae.batch_size
@@ -128,20 +137,21 @@ def run(cfg) -> dict:
         while epoch < epochs:
             rng = np.random.default_rng([typed.seed, epoch])
             bar = tqdm(total=per_epoch, initial=batch_in_epoch, desc=f"vae epoch {epoch + 1}/{epochs}", unit="batch")
-            for b, batch in enumerate(iter_frame_batches(store, train_eps, batch_size, rng)):
+            for b, batch in enumerate(frame_batches(store, train_eps, batch_size, rng, loader_workers, device)):
                 if b < batch_in_epoch:  # resuming mid-epoch: skip what was already trained on
                     continue
-                x = torch.from_numpy(batch).to(device, non_blocking=True)
-                logits, mu, logvar = model(x)
-                loss, recon, kl = vae_loss(
-                    logits,
-                    x,
-                    mu,
-                    logvar,
-                    typed.vae.kl_weight,
-                    typed.vae.free_bits,
-                    class_weights=weights_here,
-                )
+                x = batch.to(device, non_blocking=True)
+                with autocast(device, typed.amp):
+                    logits, mu, logvar = model(x)
+                    loss, recon, kl = vae_loss(
+                        logits,
+                        x,
+                        mu,
+                        logvar,
+                        typed.vae.kl_weight,
+                        typed.vae.free_bits,
+                        class_weights=weights_here,
+                    )
                 check_finite(loss.item(), "VAE loss", step, run_.last)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
 
-from ..common import Checked, ConfigValueError
+from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
 from ..models.ddpg import DDPGConfig
 from ..models.dqn import DQNConfig
@@ -26,7 +26,8 @@ class ChooserConfig(Checked):
     # the seed of the labelled scenarios; null: the training seed. Set, the seeds share one label set and differ
     # only in the scorer's initialisation and minibatches
     label_seed: int | None = None
-    num_workers: int = 2
+    # labelling processes; auto: the cores this process may use. The same labels for any count (tested)
+    num_workers: int | str = "auto"
     # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
     hazard_share: float = 0.85
     speed_range: list[float] = field(default_factory=lambda: [8.0, 30.0])
@@ -71,7 +72,8 @@ class ChooserConfig(Checked):
     def problems(self):
         from envs.chooser import chooser_candidates
 
-        yield from _positive(self, "episodes", "num_workers", "decide_s", "lr", "batch_size", "steps")
+        yield from _positive(self, "episodes", "decide_s", "lr", "batch_size", "steps")
+        yield from worker_count_problems(self, "num_workers", prefix="chooser.")
         if not 0.0 <= self.hazard_share <= 1.0:
             yield ConfigValueError("chooser.hazard_share", self.hazard_share, "it must be in [0, 1]")
         for key in ("speed_range", "ttc_range"):

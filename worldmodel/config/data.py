@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..common import Checked, ConfigValueError
+from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
 
 
@@ -81,7 +81,8 @@ class CollectConfig(Checked):
     """Phase 0 (``worldmodel.collect``)."""
 
     episodes: int = 120
-    num_workers: int = 2
+    # simulator processes; auto: the cores this process may use. The shards are the same for any count (tested)
+    num_workers: int | str = "auto"
     episodes_per_shard: int = 16
     max_episode_s: float = 15.0  # the paper's 15 s sequences at 15 FPS
     validation_fraction: float = 0.1  # share of episodes held out, stored in split.json
@@ -89,7 +90,8 @@ class CollectConfig(Checked):
     branch: BranchConfig = field(default_factory=BranchConfig)
 
     def problems(self):
-        yield from _positive(self, "episodes", "num_workers", "episodes_per_shard", "max_episode_s")
+        yield from _positive(self, "episodes", "episodes_per_shard", "max_episode_s")
+        yield from worker_count_problems(self, "num_workers")
         if not 0.0 <= self.validation_fraction < 1.0:
             yield ConfigValueError("validation_fraction", self.validation_fraction, "it must be in [0, 1)")
 
@@ -127,7 +129,8 @@ class DemosConfig(Checked):
     learns from the frames, through the frozen world model."""
 
     episodes: int = 0  # 0 = no demonstrations (the paper's configuration)
-    num_workers: int = 2
+    # simulator processes; auto: the cores this process may use. The same demonstrations for any count (tested)
+    num_workers: int | str = "auto"
     episodes_per_shard: int = 25
     focus: FocusConfig = field(default_factory=FocusConfig)
     # the sides evaluate.oracle's planner may steer to (1 right, -1 left); one side removes the ambiguity that a
@@ -138,7 +141,8 @@ class DemosConfig(Checked):
     teacher_delays_s: list[float] | None = None
 
     def problems(self):
-        yield from _positive(self, "num_workers", "episodes_per_shard")
+        yield from _positive(self, "episodes_per_shard")
+        yield from worker_count_problems(self, "num_workers")
         if self.teacher_delays_s is not None and (
             not self.teacher_delays_s or any(float(d) < 0 for d in self.teacher_delays_s)
         ):

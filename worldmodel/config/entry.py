@@ -10,7 +10,7 @@ from dataclasses import fields, is_dataclass
 
 from omegaconf import OmegaConf
 
-from ..common import CONF_DIR, ConfigValueError, StageError, resolve_device, return_freed_memory
+from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
 from .agent import AgentConfig
 from .experiment import ExperimentConfig
 
@@ -27,10 +27,15 @@ def agent_preset(cfg, name: str):
     preset = _load_preset(name)
     if _global_preset(path):
         preset = preset.get("agent", OmegaConf.create())
-    scale = OmegaConf.create()
-    if cfg.get("scale_name"):
-        scale = OmegaConf.load(CONF_DIR / "scale" / f"{cfg.scale_name}.yaml").get("agent", OmegaConf.create())
+    scale = _scale_agent(cfg.scale_name) if cfg.get("scale_name") else OmegaConf.create()
     return OmegaConf.merge(OmegaConf.structured(AgentConfig), scale, preset)
+
+
+def _scale_agent(name: str):
+    """The ``agent`` section a scale preset sets, with what the scales its ``defaults`` name set under it."""
+    scale = OmegaConf.load(CONF_DIR / "scale" / f"{name}.yaml")
+    parents = [_scale_agent(str(p)) for p in scale.get("defaults", []) if str(p) != "_self_"]
+    return OmegaConf.merge(OmegaConf.create(), *parents, scale.get("agent", OmegaConf.create()))
 
 
 def _global_preset(path) -> bool:
@@ -125,7 +130,9 @@ def validate(cfg) -> ExperimentConfig:
     except ConfigValueError as err:
         raise StageError(f"config {err}") from None
     if isinstance(typed, ExperimentConfig):
-        resolve_device(typed.device)  # a CUDA device this machine lacks stops here, before any work
+        # a CUDA device this machine lacks, or bf16 off CUDA, stops here, before any work
+        check_amp(typed.amp, resolve_device(typed.device))
+        resolve_device(typed.decision_device, "decision_device")
     return typed
 
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
 
-from ..common import Checked, ConfigValueError
+from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
 
 
@@ -161,7 +161,8 @@ class EvaluateConfig(Checked):
     # row; for a configuration changed after its test result (the first row stays). False: such a run is refused
     retest: bool = False
     validation_seed: int = 4711  # the default validation bank (runs/NAME/eval/); others go to eval_seed<N>/
-    num_workers: int = 2  # processes; results are identical to 1
+    # processes; auto: the cores this process may use. Results are identical for any count (tested)
+    num_workers: int | str = "auto"
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
     oracle: OracleConfig = field(default_factory=OracleConfig)
@@ -172,7 +173,8 @@ class EvaluateConfig(Checked):
     merola: MerolaEvalConfig = field(default_factory=MerolaEvalConfig)
 
     def problems(self):
-        yield from _positive(self, "per_cell", "num_workers")
+        yield from _positive(self, "per_cell")
+        yield from worker_count_problems(self, "num_workers")
         for key in ("ttcs", "speeds", "hazards"):
             if not getattr(self, key):
                 yield ConfigValueError(key, [], "it must not be empty")

@@ -28,6 +28,18 @@ class ExperimentConfig(Checked):
     # where torch trains and decides: auto (CUDA when torch sees it, else the CPU), cpu, cuda or cuda:N. Never part of
     # a provenance hash: checkpoints hold CPU tensors, so a model trained on one device loads on any other
     device: str = "auto"
+    # where evaluation's batch-1 decisions run (the same values as device): cpu keeps the fast decision path of
+    # worldmodel/models/fast_decision.py, which a GPU has to beat per decision, not per batch; benchmarks/gpu_check.py
+    # measures 1,000 decisions on each. Never part of a provenance hash: the decisions are the same numbers
+    decision_device: str = "cpu"
+    # mixed precision of the VAE's and the LSTM's training: off (float32) or bf16 (bfloat16 autocast, CUDA only;
+    # refused elsewhere). Off by default: bf16 trains a slightly different model, and nothing has measured how much.
+    # Never part of a provenance hash, like device
+    amp: str = "off"
+    # processes that read and decompress the VAE's HDF5 frames ahead of a CUDA device, into pinned memory; the data
+    # and their order are the same for any count. auto: none on the CPU (the training process reads them, as its
+    # cores are busy training), and the usable cores less one, at most 4, on CUDA
+    loader_workers: int | str = "auto"
     # load an artifact whose recorded inputs (dataset, VAE, LSTM) differ from the current ones, with a warning
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
@@ -56,10 +68,19 @@ class ExperimentConfig(Checked):
 
     def problems(self):
         yield from _positive(self, "threads")
-        from ..common import DEVICE_SETTING
+        from ..common import AMP_SETTINGS, DEVICE_SETTING
 
-        if not DEVICE_SETTING.fullmatch(str(self.device)):
-            yield ConfigValueError("device", self.device, "use auto, cpu, cuda or cuda:N")
+        for key in ("device", "decision_device"):
+            if not DEVICE_SETTING.fullmatch(str(getattr(self, key))):
+                yield ConfigValueError(key, getattr(self, key), "use auto, cpu, cuda or cuda:N")
+        if self.amp not in AMP_SETTINGS:
+            yield ConfigValueError("amp", self.amp, f"use {' or '.join(AMP_SETTINGS)} (bf16: CUDA only)")
+        if self.loader_workers != "auto" and (
+            isinstance(self.loader_workers, bool) or not isinstance(self.loader_workers, int) or self.loader_workers < 0
+        ):
+            yield ConfigValueError(
+                "loader_workers", self.loader_workers, "use auto or a number >= 0 (0: read in the training process)"
+            )
         a = self.agent
         for key in ("demo_share", "bc_pretrain_steps", "bc_weight"):
             if getattr(a, key) > 0 and self.demos.episodes < 1:

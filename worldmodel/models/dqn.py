@@ -228,8 +228,9 @@ class DQN:
     """Online and target Q-networks, their optimiser and learning-rate schedule, the replay and trauma memories,
     and the agent's own random generator."""
 
-    def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, seed: int):
+    def __init__(self, obs_dim: int, n_actions: int, cfg: DQNConfig, seed: int, device="cpu"):
         self.obs_dim, self.n_actions, self.cfg = int(obs_dim), int(n_actions), cfg
+        self.device = torch.device(device)
         self.rng = np.random.default_rng(seed)
         self.steps = 0  # transitions remembered: the clock of epsilon and of warm-up
         self.updates = 0
@@ -240,6 +241,9 @@ class DQN:
             self.q_network, self.target_network = QNetwork(*shape), QNetwork(*shape)
         self.target_network.load_state_dict(self.q_network.state_dict())
         self.target_network.requires_grad_(False)  # moved only by hard copies
+        # built on the CPU from the seed, then moved: the same initial weights on every device
+        self.q_network.to(self.device)
+        self.target_network.to(self.device)
 
         optimizer = {"rmsprop": torch.optim.RMSprop, "adam": torch.optim.Adam}[cfg.optimizer]
         self.optimizer = optimizer(self.q_network.parameters(), lr=cfg.lr)
@@ -261,8 +265,8 @@ class DQN:
     @torch.no_grad()
     def q_values(self, obs: np.ndarray) -> np.ndarray:
         """Q(obs, .) from the online network, for one observation (n_actions,) or a batch (n, n_actions)."""
-        values = self.q_network(torch.as_tensor(obs, dtype=torch.float32))
-        return (unsquash(values) if self.cfg.value_rescale else values).numpy()
+        values = self.q_network(torch.as_tensor(obs, dtype=torch.float32).to(self.device))
+        return (unsquash(values) if self.cfg.value_rescale else values).cpu().numpy()
 
     def act(self, obs: np.ndarray, step: int | None = None, explore: bool = True) -> int:
         """A uniformly random action with probability ``epsilon(step)`` if ``explore``, else the greedy one."""
@@ -295,9 +299,9 @@ class DQN:
     def td_targets(self, reward: torch.Tensor, next_obs: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
         """y = r + gamma (1 - terminated) Q'(s', a'), a' = argmax Q'(s', .) (DQN) or argmax Q(s', .) (Double DQN)
         (with ``value_rescale``, y = h(r + gamma (1 - terminated) h^-1(Q'(s', a'))), the networks holding h(Q))."""
-        reward = torch.as_tensor(reward, dtype=torch.float32)
-        next_obs = torch.as_tensor(next_obs, dtype=torch.float32)
-        terminated = torch.as_tensor(terminated, dtype=torch.float32)
+        reward = torch.as_tensor(reward, dtype=torch.float32).to(self.device)
+        next_obs = torch.as_tensor(next_obs, dtype=torch.float32).to(self.device)
+        terminated = torch.as_tensor(terminated, dtype=torch.float32).to(self.device)
         next_q = self.target_network(next_obs)
         if self.cfg.double:
             next_action = self.q_network(next_obs).argmax(dim=1, keepdim=True)
@@ -326,6 +330,8 @@ class DQN:
             n_trauma = min(cfg.trauma_batch, len(self.trauma))
             trauma = self.trauma.sample(n_trauma, self.rng, replace=False)
             batch = {name: torch.cat([batch[name], trauma[name]]) for name in batch}
+        # drawn on the CPU from the agent's generator, then moved: the same minibatches on every device
+        batch = {name: value.to(self.device, non_blocking=True) for name, value in batch.items()}
 
         target = self.td_targets(batch["rewards"], batch["next_obs"], batch["terminated"])
         q = self.q_network(batch["obs"]).gather(1, batch["actions"].unsqueeze(1)).squeeze(1)

@@ -10,7 +10,8 @@ Two paths compute the same numbers (tests/test_fast_inference.py holds them to f
   ``_reorder_linear_weight``; MKL's ``addmm`` stands in where they are missing), parameter version counters,
   ``as_strided`` im2col and an ``embedding_bag`` lookup.
 
-``decision_path(vae, rnn, use_speed, path="auto")`` picks one. ``auto`` takes the fast path only after a
+``decision_path(vae, rnn, use_speed, path="auto")`` picks one; modules on a GPU (``decision_device``) always take
+the module path, which runs wherever they are. ``auto`` takes the fast path only after a
 self-test: it must build, run, and agree with the module path on a fixed sequence of frames and actions.
 Anything else (a missing op, an exception, a mismatch) falls back to the module path with a warning saying
 why, so a torch upgrade can slow the agent down but not break it.
@@ -357,15 +358,16 @@ class ModuleDecision:
         self.vae, self.rnn, self.use_speed = vae, rnn, bool(use_speed)
         self.C, self.D, self.A = vae.num_classes, vae.latent_dim, rnn.action_dim
         self.dim = 2 * self.D + (1 if self.use_speed else 0)
+        self.device = next(vae.parameters()).device  # where the modules are: the CPU unless decision_device says
         self.reset()
 
     def reset(self) -> None:
         self._state = self.rnn.initial_state(1)
-        self._action = torch.zeros(1, self.A)
-        self.out = torch.zeros(1, self.dim)
+        self._action = torch.zeros(1, self.A, device=self.device)
+        self.out = torch.zeros(1, self.dim, device=self.device)
 
     def note_action(self, action) -> None:
-        self._action = torch.as_tensor(np.asarray(action, dtype=np.float32).reshape(1, self.A))
+        self._action = torch.as_tensor(np.asarray(action, dtype=np.float32).reshape(1, self.A)).to(self.device)
 
     @property
     def state(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -374,11 +376,11 @@ class ModuleDecision:
     @torch.no_grad()
     def encode(self, seg, speed=None) -> torch.Tensor:
         seg = check_class_map(seg, self.C)
-        z, _ = self.vae.encode(seg.unsqueeze(0))
+        z, _ = self.vae.encode(seg.unsqueeze(0).to(self.device))
         out, self._state = self.rnn.step(z, self._action, self._state)
         parts = [z, self.rnn.predict(out)]
         if self.use_speed:
-            parts.append(torch.as_tensor(np.asarray(speed, dtype=np.float32)).reshape(1, 1) / 30.0)
+            parts.append(torch.as_tensor(np.asarray(speed, dtype=np.float32)).reshape(1, 1).to(self.device) / 30.0)
         self.out = torch.cat(parts, dim=1)
         return self.out
 
@@ -388,10 +390,11 @@ class ModuleActor:
 
     def __init__(self, actor):
         self.actor = actor
+        self.device = next(actor.parameters()).device
 
     @torch.no_grad()
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        return self.actor(x)
+        return self.actor(x.to(self.device))
 
 
 def _self_test(vae, rnn, use_speed: bool, onednn: bool, steps: int = 4) -> tuple[FastDecision | None, str | None]:
@@ -424,7 +427,7 @@ def decision_path(vae, rnn, use_speed: bool = False, path: str = "auto", onednn_
     """
     if path not in PATHS:
         raise ValueError(f"decision path {path!r}: use one of {', '.join(PATHS)}")
-    if path == "module":
+    if path == "module" or next(vae.parameters()).device.type != "cpu":  # the fast path is the CPU's
         return ModuleDecision(vae, rnn, use_speed)
     onednn = _onednn_linear_available(onednn_ops)
     if path == "fast":
@@ -443,7 +446,7 @@ def decision_path(vae, rnn, use_speed: bool = False, path: str = "auto", onednn_
 
 def actor_path(actor, path: str = "auto"):
     """``FastActor`` for the project's ``Actor`` (unless ``path='module'`` or it cannot be built), else the module."""
-    if path != "module" and type(actor) is Actor:
+    if path != "module" and type(actor) is Actor and next(actor.parameters()).device.type == "cpu":
         try:
             return FastActor(actor)
         except Exception as err:

@@ -44,7 +44,7 @@ from envs.streams import MEROLA_TRAINING_EPISODES
 
 from .. import artifacts
 from ..artifacts import AgentId
-from ..common import StageError, make_env
+from ..common import StageError, decision_device, make_env, resolve_device
 from ..stats import wilson
 from .common import (
     DQNPolicy,
@@ -166,7 +166,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     see = observer(cfg, typed.agent.obs)
     env = family_env(cfg)
     hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
-    agent = DQN(see.dim, len(ACTIONS), hp, typed.seed)
+    agent = DQN(see.dim, len(ACTIONS), hp, typed.seed, device=resolve_device(typed.device))
     episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "collision": [], "scenario": []})
 
     def snapshot():
@@ -234,7 +234,7 @@ def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
             f"gives {see.dim} (the VAE changed?); retrain it with "
             f"`python -m worldmodel.train_agent experiment={cfg.experiment} agent=ddqn_merola seed={agent_id.seed}`"
         )
-    agent = DQN(see.dim, len(ACTIONS), DQNConfig(**state["dqn_config"]), agent_id.seed)
+    agent = DQN(see.dim, len(ACTIONS), DQNConfig(**state["dqn_config"]), agent_id.seed, device=decision_device(cfg))
     agent.load_state_dict(state["agent"])
     return DQNPolicy(agent_id.policy, agent, see, agent_id.seed, merola_action)
 

@@ -18,7 +18,7 @@ from envs.chae import (
 
 from ... import artifacts
 from ...artifacts import AgentId
-from ...common import StageError
+from ...common import StageError, decision_device
 from ..common import DQNPolicy
 from .observe import observer
 
@@ -137,6 +137,6 @@ def policy_from_state(cfg, agent_id: AgentId, state: dict) -> DQNPolicy:
         hp = OmegaConf.to_object(
             OmegaConf.merge(OmegaConf.structured(DQNConfig), agent_preset(cfg, agent_id.variant).dqn)
         )
-    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, agent_id.seed)
+    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, agent_id.seed, device=decision_device(cfg))
     agent.load_state_dict(state["agent"])
     return DQNPolicy(agent_id.policy, agent, see, agent_id.seed)

@@ -12,7 +12,7 @@ from envs.chae import BRAKE_LEVELS, TTC_RANGE, ChaeSpec, brake_action, sample_ch
 from envs.streams import CHAE_TRAINING_EPISODES
 
 from ...artifacts import AgentId
-from ...common import StageError, atomic_torch_save, atomic_write_bytes
+from ...common import StageError, atomic_torch_save, atomic_write_bytes, resolve_device
 from ..common import DQNPolicy, dqn_checkpoint, dqn_config, play_dqn_episode, resume_dqn
 from .observe import HistoryObserver, family_env, observer
 from .report import ROLLING
@@ -59,7 +59,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
-    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, typed.seed)
+    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, typed.seed, device=resolve_device(typed.device))
     episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "end": []})
     curve.setdefault("validation", [])
     first_validation = int(np.ceil(sel.start * episodes))

@@ -12,7 +12,7 @@ from envs.streams import KIM_TRAINING_EPISODES
 
 from ... import artifacts
 from ...artifacts import AgentId
-from ...common import StageError
+from ...common import StageError, decision_device, resolve_device
 from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
 from .teach import learn_from_planner
 
@@ -39,7 +39,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     total = hp.peer_total_steps
     see = observer(typed, agent_id.reward)
     env = family_env(cfg, agent_id.reward)
-    agent = DDPG(see.dim, 2, hp, seed=typed.seed)
+    agent = DDPG(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
     buffer = ReplayBuffer(hp.buffer_size, see.dim, 2)
     step, episode, curve = 0, 0, {"return": [], "crash": [], "end": []}
     if run_.state is not None:
@@ -194,6 +194,6 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
             f"agent=ddpg_kim reward={agent_id.reward} seed={agent_id.seed}`"
         )
     hp = DDPGConfig(**state["ddpg_config"])  # as it was trained, whatever the evaluation's agent section says
-    agent = DDPG(see.dim, 2, hp, agent_id.seed)
+    agent = DDPG(see.dim, 2, hp, agent_id.seed, device=decision_device(cfg))
     agent.load_state_dict(state["agent"])
     return LidarPolicy(agent_id.policy, agent, see, agent_id.seed), False
