@@ -162,3 +162,15 @@ def test_the_check_sees_sessions_issues_and_dates(tmp_path):
         "notebooks/n.ipynb:cell 0 line 2",
     }, hits
     assert {h.split(": ")[1] for h in hits} == {"numbered session", "issue number", "date"}
+
+
+def test_the_docs_stay_short_enough_to_read():
+    """The README leads a newcomer in at most 250 lines; each results report is at most 200, with longer
+    investigations in its notes/."""
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 250
+    long = {
+        str(p.relative_to(ROOT)): n
+        for p in (ROOT / "docs" / "results").glob("*/README.md")
+        if (n := len(p.read_text().splitlines())) > 200
+    }
+    assert not long, f"reports over 200 lines (move investigations to notes/): {long}"
