@@ -35,8 +35,6 @@ from .data import (  # noqa: F401
     PathsConfig,
 )
 from .entry import (  # noqa: F401
-    _global_preset,
-    _load_preset,
     agent_preset,
     compose,
     hydra_main,

@@ -3,6 +3,7 @@ settings, ``compose`` for tests and notebooks and ``hydra_main`` for the stage c
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 from collections.abc import Callable
@@ -11,61 +12,50 @@ from dataclasses import fields, is_dataclass
 from omegaconf import OmegaConf
 
 from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
-from .agent import AgentConfig
 from .experiment import ExperimentConfig
 
 
 def agent_preset(cfg, name: str):
-    """The ``agent`` section as ``train_agent experiment=... agent=<name>`` would compose it: the schema's defaults,
-    then the scale's ``agent`` keys, then the preset ``conf/agent/<name>.yaml`` (the order of base.yaml's defaults).
-    The preset the config was composed with keeps its command-line overrides."""
+    """The ``agent`` section as ``train_agent scale=<cfg's scale> agent=<name>`` composes it (Hydra's own defaults
+    lists: the schema, the scale, then the preset and the presets it builds on). The preset the config was composed
+    with keeps its command-line overrides."""
     if cfg.agent.variant == name:
         return cfg.agent
-    path = CONF_DIR / "agent" / f"{name}.yaml"
-    if not path.exists():
-        raise StageError(f"agent variant {name!r} has no preset {path}: restore it, or move its runs aside")
-    preset = _load_preset(name)
-    if _global_preset(path):
-        preset = preset.get("agent", OmegaConf.create())
-    scale = _scale_agent(cfg.scale_name) if cfg.get("scale_name") else OmegaConf.create()
-    return OmegaConf.merge(OmegaConf.structured(AgentConfig), scale, preset)
-
-
-def _scale_agent(name: str):
-    """The ``agent`` section a scale preset sets, with what the scales its ``defaults`` name set under it."""
-    scale = OmegaConf.load(CONF_DIR / "scale" / f"{name}.yaml")
-    parents = [_scale_agent(str(p)) for p in scale.get("defaults", []) if str(p) != "_self_"]
-    return OmegaConf.merge(OmegaConf.create(), *parents, scale.get("agent", OmegaConf.create()))
-
-
-def _global_preset(path) -> bool:
-    return path.read_text().lstrip().startswith("# @package _global_")
-
-
-def _load_preset(name: str):
-    """A preset file with the presets its ``defaults`` list names merged under it: ``NAME`` (same group, same
-    package) or ``/agent/NAME@agent`` (an agent preset placed under a global preset's ``agent`` key)."""
-    preset = OmegaConf.load(CONF_DIR / "agent" / f"{name}.yaml")
-    parents = []
-    for entry in preset.pop("defaults", []):
-        if not isinstance(entry, str) or entry == "_self_":
-            continue
-        if entry.startswith("/agent/"):
-            parent, _, package = entry.removeprefix("/agent/").partition("@")
-            parents.append(OmegaConf.create({package: _load_preset(parent)}) if package else _load_preset(parent))
-        else:
-            parents.append(_load_preset(entry))
-    return OmegaConf.merge(*parents, preset) if parents else preset
+    return _composed_preset(name, cfg.get("scale_name")).agent
 
 
 def preset_globals(name: str) -> dict:
     """What an agent preset sets outside ``agent`` (a peer's preset, ``# @package _global_``, also picks its
-    scenario family, step and reward: conf/agent/dqn_chae.yaml)."""
-    path = CONF_DIR / "agent" / f"{name}.yaml"
-    if not path.exists() or not _global_preset(path):
-        return {}
-    preset = OmegaConf.to_container(_load_preset(name))
-    return {k: v for k, v in preset.items() if k not in ("agent", "defaults")}
+    scenario family, step and reward: conf/agent/dqn_chae.yaml): every value composing it changes there."""
+    base = OmegaConf.to_container(_composed_preset(None, None), resolve=False)
+    preset = OmegaConf.to_container(_composed_preset(name, None), resolve=False)
+    return _changed({k: v for k, v in base.items() if k != "agent"}, {k: v for k, v in preset.items() if k != "agent"})
+
+
+def _changed(before: dict, after: dict) -> dict:
+    """The keys of ``after`` whose values differ from ``before``'s, nested sections compared key by key."""
+    out = {}
+    for key, value in after.items():
+        if isinstance(value, dict) and isinstance(before.get(key), dict):
+            inner = _changed(before[key], value)
+            if inner:
+                out[key] = inner
+        elif before.get(key, _changed) != value:
+            out[key] = value
+    return out
+
+
+@functools.cache
+def _composed_preset(name: str | None, scale: str | None):
+    """``train_agent``'s config composed with ``agent=<name>`` (the default preset when None) at ``scale`` (none
+    when None); cached, since the pipeline asks for each preset many times."""
+    if name is not None and not (CONF_DIR / "agent" / f"{name}.yaml").exists():
+        raise StageError(
+            f"agent variant {name!r} has no preset {CONF_DIR / 'agent' / name}.yaml: restore it, or move its runs aside"
+        )
+    overrides = [f"agent={name}"] if name else []
+    overrides.append(f"scale={scale}" if scale else "~scale")
+    return compose("train_agent", overrides)
 
 
 def peer_preset(name: str) -> str | None:
@@ -146,7 +136,10 @@ def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
     """Compose the real Hydra config of ``stage`` (for tests and notebooks)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
 
+    if GlobalHydra.instance().is_initialized():  # inside a stage's hydra.main: its search path is CONF_DIR already
+        return hydra_compose(config_name=stage, overrides=list(overrides))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return hydra_compose(config_name=stage, overrides=list(overrides))
 
