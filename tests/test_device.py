@@ -28,13 +28,19 @@ def test_auto_is_the_cpu_here_and_a_cuda_request_is_refused_naming_the_fix():
         validate(compose("train_vae", ["device=cuda"]))
 
 
-def test_a_cuda_request_stops_the_stage_before_any_work_with_status_2(tmp_path):
+def run_stage(tmp_path, stage: str, *overrides: str) -> tuple[int, str]:
+    """(exit status, output) of ``python -m worldmodel.<stage>`` at smoke scale in ``tmp_path``."""
     root = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=t", "scale=smoke"]
     done = subprocess.run(
-        [sys.executable, "-m", "worldmodel.collect", *root, "device=cuda"], capture_output=True, text=True
+        [sys.executable, "-m", f"worldmodel.{stage}", *root, *overrides], capture_output=True, text=True
     )
-    assert done.returncode == 2, done.stderr[-2000:]
-    assert "device=cuda" in done.stderr + done.stdout and "device=cpu" in done.stderr + done.stdout
+    return done.returncode, done.stderr + done.stdout
+
+
+def test_a_cuda_request_stops_the_stage_before_any_work_with_status_2(tmp_path):
+    status, output = run_stage(tmp_path, "collect", "device=cuda")
+    assert status == 2, output[-2000:]
+    assert "device=cuda" in output and "device=cpu" in output
     assert not (tmp_path / "data" / "t" / "rollouts").exists()  # nothing was collected
 
 
@@ -102,12 +108,9 @@ def test_the_new_settings_are_refused_naming_the_key_and_the_fix():
 
 
 def test_amp_bf16_on_the_cpu_stops_the_stage_with_status_2(tmp_path):
-    root = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=t", "scale=smoke"]
-    done = subprocess.run(
-        [sys.executable, "-m", "worldmodel.train_vae", *root, "amp=bf16"], capture_output=True, text=True
-    )
-    assert done.returncode == 2, done.stderr[-2000:]
-    assert "amp=bf16" in done.stderr + done.stdout and "amp=off" in done.stderr + done.stdout
+    status, output = run_stage(tmp_path, "train_vae", "amp=bf16")
+    assert status == 2, output[-2000:]
+    assert "amp=bf16" in output and "amp=off" in output
 
 
 def test_auto_worker_counts_are_the_usable_cores():
