@@ -27,6 +27,9 @@ def results(tmp_path_factory):
 
     evaluate.run(cfg())
     evaluate.run(cfg("evaluate.bank=test"))
+    stages = {"collect": 90.0, "agent_r1": 300.0, "agent_r1/seed1": 360.0, "eval": 30.0, "eval_test": 30.0}
+    timings = {name: {"wall_s": wall, "peak_rss_mb": 1.0, "scale": "smoke"} for name, wall in stages.items()}
+    (root / "runs/t/pipeline.json").write_text(json.dumps(timings))  # as a pipeline run would have left it
     out = root / "docs" / "results" / "x"
     published.publish(root / "runs/t/eval", out / "validation", "make tiny")
     published.publish(root / "runs/t/eval_test", out / "test", "make tiny")
@@ -60,6 +63,9 @@ def test_the_headline_gives_both_banks_with_intervals(results):
     assert data["policies"]["oracle"]["test"]["share"] == 100.0
     text = (out / "headline.md").read_text()
     assert "test bank: seed 56171" in text and "Planner after 1 frame" in text
+    assert data["world_model"] == {"vae_sha": [], "rnn_sha": []}  # scripted policies only: no world model
+    # what the run cost, stage by stage, each preset's seeds together
+    assert "| agent_r1 | 2 | 5.0–6.0 | 11.0 |" in text and "| **all stages** | 5 |  | 13.5 |" in text
 
 
 def test_recheck_names_an_edited_number(results, tmp_path):
