@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 EXPERIMENT ?= quick
 
-.PHONY: setup run test lint bench preview mutation headline peers clean-venv
+.PHONY: setup run test lint bench preview mutation headline peers ncap clean-venv
 
 setup: $(VENV)/.installed
 
@@ -37,6 +37,11 @@ PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,kim,ddpg_kim_f
 
 peers: setup
 	$(PY) -m worldmodel.pipeline $(PEERS_RUN)
+
+# The Euro NCAP bank for every policy of both experiments, after `make headline` and `make peers` (docs/results/ncap/).
+ncap: setup
+	$(PY) -m worldmodel.ncap experiment=headline scale=paper
+	$(PY) -m worldmodel.ncap experiment=peers scale=quick
 
 # Two workers, one per core; a file's tests stay on one worker, so module-scoped fixtures (the smoke pipeline) are
 # built once.

@@ -380,3 +380,5 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     assert summary["braking"]["pedestrian_avoided_pct"] == 100.0  # braking from TTC 1.5 s stops in time
     tables = (runs / "eval_ncap/tables.md").read_text()
     assert "CCRb 6 m/s², 12 m" in tables and (runs / "eval_ncap/ncap.png").exists()
+    published.publish(runs / "eval_ncap", root / "docs/ncap/smoke", "ncap")  # its rows give its tables again
+    assert published.recheck(root / "docs") == []

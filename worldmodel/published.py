@@ -57,11 +57,16 @@ def _typed(text: str):
     return None if text == "" else text
 
 
+NCAP = "ncap"  # the Euro NCAP bank (worldmodel/ncap.py): a fixed protocol, neither a validation nor a test bank
+NCAP_TEXT = ("policy", "family", "kind", "test", "variant", "end", "verdict")  # kept as written, empty included
+
+
 def read_rows(path: Path, family: str) -> list[dict]:
     if family == "porav":
         return report.read_results_csv(path)
+    text = NCAP_TEXT if family == NCAP else ()
     with gzip.open(path, "rt", newline="") if Path(path).suffix == ".gz" else open(path, newline="") as fh:
-        return [{k: _typed(v) for k, v in r.items()} for r in csv.DictReader(fh)]
+        return [{k: v if k in text else _typed(v) for k, v in r.items()} for r in csv.DictReader(fh)]
 
 
 def render_tables(rows: list[dict], meta: dict) -> str:
@@ -71,6 +76,10 @@ def render_tables(rows: list[dict], meta: dict) -> str:
         return report.tables_markdown(rows)
     if family == ACTION_EFFECT:
         return action_effect_tables(rows, how)
+    if family == NCAP:
+        from . import ncap
+
+        return ncap.tables(rows, {**ncap.summarise(rows), **how})
     from . import peers
 
     if family not in peers.REGISTRY:
@@ -79,11 +88,13 @@ def render_tables(rows: list[dict], meta: dict) -> str:
 
 
 def family_of(eval_dir: Path) -> str:
-    return next((f for f in banks.FAMILIES[1:] if eval_dir.name.startswith(f"eval_{f}")), "porav")
+    return next((f for f in (*banks.FAMILIES[1:], NCAP) if eval_dir.name.startswith(f"eval_{f}")), "porav")
 
 
-def bank_of(eval_dir: Path, family: str) -> tuple[str, int]:
-    """(bank, seed) from an evaluation folder's name (``artifacts.eval_dir``)."""
+def bank_of(eval_dir: Path, family: str) -> tuple[str, int | None]:
+    """(bank, seed) from an evaluation folder's name (``artifacts.eval_dir``); the NCAP protocol has no seed."""
+    if family == NCAP:
+        return NCAP, None
     name = eval_dir.name.removeprefix("eval").removeprefix(f"_{family}" if family != "porav" else "")
     if name == "_test" or name.startswith("_test_"):
         return "test", banks.TEST_SEEDS[family]
@@ -140,7 +151,7 @@ def publish(eval_dir: Path, stem: Path, command: str) -> Path:
         "bank_seed": seed,
         "experiment": eval_dir.parent.name,
         "command": command,
-        "render": summary.get("render", {}),
+        "render": summary.get("render", {"takeover_ttc_s": summary.get("takeover_ttc_s")} if family == NCAP else {}),
     }
     raw = (eval_dir / "results.csv").read_bytes()
     rows = read_rows(eval_dir / "results.csv", family)
