@@ -77,7 +77,7 @@ def render_tables(rows: list[dict], meta: dict) -> str:
     if family == ACTION_EFFECT:
         return action_effect_tables(rows, how)
     if family == NCAP:
-        from . import ncap
+        from .report import ncap
 
         return ncap.tables(rows, {**ncap.summarise(rows), **how})
     from . import peers
