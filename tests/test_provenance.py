@@ -22,6 +22,7 @@ PRESETS = (
     "ddpg_kim_fd",
     "ddqn_merola",
     "ddpg_wm_kim",
+    "kim_chooser",
 )
 PINNED = {
     "quick/vae": "3d10eeb7fb9e341a",
@@ -38,6 +39,7 @@ PINNED = {
     "quick/ddpg_kim_fd/kim_aware": "bd0fd231c6654e46",
     "quick/ddqn_merola/merola": "5932fd469b5cfc70",
     "quick/ddpg_wm_kim/kim_unaware": "4caedff63ac61f61",
+    "quick/kim_chooser/kim_unaware": "e9d3a5ec385af551",
     "quick/eval/porav/validation": "824450fb4750e975",
     "quick/eval/porav/test": "065f42ca3ab337bd",
     "quick/eval/chae/validation": "d4511a14cff48918",
@@ -60,6 +62,7 @@ PINNED = {
     "paper/ddpg_kim_fd/kim_aware": "5f29221c7b60c0ed",
     "paper/ddqn_merola/merola": "cdd7513661851a4c",
     "paper/ddpg_wm_kim/kim_unaware": "ce8dc4ab32f1c332",
+    "paper/kim_chooser/kim_unaware": "012d188975dcdfd0",
     "paper/eval/porav/validation": "66629d99bb06c2ae",
     "paper/eval/porav/test": "ff9bf81bd778998d",
     "paper/eval/chae/validation": "77ebe01e9088736f",
