@@ -95,7 +95,8 @@ def test_train_agent_fits_the_chooser_once_labelled_and_the_family_evaluation_dr
     """train_agent agent=kim_chooser for two seeds: the labels are made once, in the experiment's data folder, and
     the second seed reads them; each seed's folder holds its checkpoint and the provenance the pipeline compares, so
     the pipeline finds both complete and a rerun keeps the fitted scorer; a changed setting makes the run stale.
-    Then evaluate.family=kim drives each seed in closed loop beside braking, one row set per seed."""
+    Then evaluate.family=kim drives each seed in closed loop beside braking, one row set per seed; the Euro NCAP
+    bank, whose kim group acts from each test's start, does not."""
     import csv
 
     from worldmodel import evaluate, pipeline, train_agent
@@ -137,3 +138,5 @@ def test_train_agent_fits_the_chooser_once_labelled_and_the_family_evaluation_dr
     for seed in ("0", "1"):
         chooser = [r for r in rows if r["policy"] == "agent_kim_unaware_kim_chooser" and r["policy_seed"] == seed]
         assert sorted((r["scenario"], r["trial"]) for r in chooser) == trials
+    # a takeover policy: the NCAP group that acts from each test's start leaves it out
+    assert [p.name for p, *_ in kim.ncap_policies(cfg("evaluate"))] == ["aeb3m"]
