@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 LEARNER = "kim_chooser"
 REWARD = "kim_unaware"  # the cost whose zero is an avoided runner: the chooser learns it and nothing else
 HELD_OUT = 0.15  # the share of labelled episodes, the last ones, on which the epoch is chosen
-LR = 1e-3
+LR = 1e-3  # Adam's
 BATCH = 128  # labelled states per minibatch, about
 
 
