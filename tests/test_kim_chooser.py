@@ -1,17 +1,19 @@
-"""experiments/kim_chooser.py: the chooser's outcome on labelled braking states is what it does in closed loop, which
-is what lets its scorer be chosen, and its ceiling read, without simulating (docs/results/kim/README.md)."""
+"""The LIDAR chooser on family kim (worldmodel/peers/kim/chooser.py, agent=kim_chooser): its outcome on labelled
+braking states is what it does in closed loop, which is what lets its scorer be chosen, and its ceiling read,
+without simulating (docs/results/kim/README.md); and it trains through train_agent and is evaluated with the family."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from envs import StraightLineBraking
 from envs.chooser import switch_choice
-from experiments import kim_chooser
 from worldmodel.config import compose
 from worldmodel.peers import kim
+from worldmodel.peers.kim import chooser as kim_chooser
 
 DECIDE_STEPS = 3
 
@@ -41,7 +43,7 @@ def late_switches(data: dict, predicted: np.ndarray, margin: float) -> int:
 def labelled():
     cfg = compose("train_agent", ["agent=ddpg_kim", "scale=smoke", "threads=1", "evaluate.kim.trials=3"])
     specs = kim.bank(cfg.evaluate.kim)
-    return cfg, specs, kim_chooser.labels(cfg, specs, DECIDE_STEPS)
+    return cfg, specs, kim_chooser.label_episodes(cfg, specs, DECIDE_STEPS)
 
 
 def test_labels_hold_braking_and_every_candidate_at_each_decision_step(labelled):
@@ -66,7 +68,9 @@ def test_offline_outcomes_are_the_closed_loop_ones(labelled):
     assert late_switches(data, predicted, margin) >= 1
     offline = kim_chooser.outcomes(data["cost"], predicted, data["episode"], margin)
     env = kim.family_env(cfg, kim_chooser.REWARD)
-    chooser = kim_chooser.chooser_policy(cfg, scorer, DECIDE_STEPS, margin, env.step_s)
+    see = kim.observer(cfg, kim_chooser.REWARD)
+    moves = kim_chooser.candidates(env.step_s)
+    chooser = kim_chooser.chooser_policy(see, scorer, DECIDE_STEPS, margin, moves, "chooser")
     seen = []  # what the scorer reads in closed loop, decision by decision
     hook = scorer.register_forward_pre_hook(lambda _, args: seen.append(args[0].numpy().copy()))
     rows = kim.run_policy(env, chooser, specs)
@@ -85,3 +89,54 @@ def test_offline_outcomes_are_the_closed_loop_ones(labelled):
     # braking's outcome is each episode's first label of candidate 0
     first = np.flatnonzero(np.r_[True, np.diff(data["episode"]) != 0])
     np.testing.assert_allclose([r["iss_kmh"] for r in braking], data["cost"][first, 0], rtol=1e-5)
+
+
+def test_train_agent_fits_the_chooser_once_labelled_and_the_family_evaluation_drives_every_seed(tmp_path):
+    """train_agent agent=kim_chooser for two seeds: the labels are made once, in the experiment's data folder, and
+    the second seed reads them; each seed's folder holds its checkpoint and the provenance the pipeline compares, so
+    the pipeline finds both complete and a rerun keeps the fitted scorer; a changed setting makes the run stale.
+    Then evaluate.family=kim drives each seed in closed loop beside braking, one row set per seed; the Euro NCAP
+    bank, whose kim group acts from each test's start, does not."""
+    import csv
+
+    from worldmodel import evaluate, pipeline, train_agent
+    from worldmodel.artifacts import AgentId
+
+    base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
+
+    def cfg(stage, *overrides):
+        return compose(stage, [*base, "threads=1", *overrides])
+
+    first = train_agent.run(cfg("train_agent", "agent=kim_chooser"))
+    (stored,) = (tmp_path / "data/k/kim_chooser_labels").iterdir()
+    made = stored.stat().st_mtime_ns
+    second = train_agent.run(cfg("train_agent", "agent=kim_chooser", "seed=1"))
+    assert stored.stat().st_mtime_ns == made  # seed 1 labelled nothing
+    assert first["labelled_episodes"] == second["labelled_episodes"] == 6  # scale=smoke's
+    assert first["labelled_states"] == second["labelled_states"]
+    assert 1 <= first["kept_epoch"] <= 3
+
+    run_dir = tmp_path / "runs/k/agent_kim_unaware_kim_chooser/seed0"
+    assert {"last.pt", "metrics.json", "provenance.json"} <= {p.name for p in run_dir.iterdir()}
+    steps = pipeline.steps(cfg("pipeline", "agents=[kim_chooser]", "seeds=[0,1]"))
+    mine = [s for s in steps if s.agent is not None and s.agent.variant == "kim_chooser"]
+    assert [s.agent for s in mine] == [AgentId("kim_unaware", s, "kim_chooser") for s in (0, 1)]
+    pipeline_cfg = cfg("pipeline", "agents=[kim_chooser]")
+    for step in mine:
+        assert pipeline.status(OmegaConf.merge(pipeline_cfg, step.changes), step) == ("complete", [])
+    saved = (run_dir / "last.pt").stat().st_mtime_ns
+    assert train_agent.run(cfg("train_agent", "agent=kim_chooser", "resume=true")) == first
+    assert (run_dir / "last.pt").stat().st_mtime_ns == saved  # kept, not refitted
+    changed = cfg("pipeline", "agent=kim_chooser", "agents=[kim_chooser]", "agent.kim_chooser.margin=0.5")
+    (step,) = [s for s in pipeline.steps(changed) if s.agent == AgentId("kim_unaware", 0, "kim_chooser")]
+    assert pipeline.status(OmegaConf.merge(changed, step.changes), step) == ("stale", ["its config changed"])
+
+    evaluate.run(cfg("evaluate", "evaluate.family=kim", "evaluate.kim.policies=[braking]"))
+    rows = list(csv.DictReader(open(tmp_path / "runs/k/eval_kim/results.csv")))
+    trials = sorted((r["scenario"], r["trial"]) for r in rows if r["policy"] == "braking")
+    assert len(trials) == len(kim.bank(cfg("evaluate").evaluate.kim))  # every trial of the bank, once
+    for seed in ("0", "1"):
+        chooser = [r for r in rows if r["policy"] == "agent_kim_unaware_kim_chooser" and r["policy_seed"] == seed]
+        assert sorted((r["scenario"], r["trial"]) for r in chooser) == trials
+    # a takeover policy: the NCAP group that acts from each test's start leaves it out
+    assert [p.name for p, *_ in kim.ncap_policies(cfg("evaluate"))] == ["aeb3m"]

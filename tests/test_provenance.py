@@ -22,6 +22,7 @@ PRESETS = (
     "ddpg_kim_fd",
     "ddqn_merola",
     "ddpg_wm_kim",
+    "kim_chooser",
 )
 PINNED = {
     "quick/vae": "3d10eeb7fb9e341a",
@@ -37,6 +38,7 @@ PINNED = {
     "quick/ddpg_kim_fd/kim_unaware": "880e1c5cc55fa065",
     "quick/ddqn_merola/merola": "5932fd469b5cfc70",
     "quick/ddpg_wm_kim/kim_unaware": "93495741c874f052",
+    "quick/kim_chooser/kim_unaware": "e9d3a5ec385af551",
     "quick/eval/porav/validation": "824450fb4750e975",
     "quick/eval/porav/test": "065f42ca3ab337bd",
     "quick/eval/chae/validation": "d4511a14cff48918",
@@ -58,6 +60,7 @@ PINNED = {
     "paper/ddpg_kim_fd/kim_unaware": "46de41f5e2f6c6d3",
     "paper/ddqn_merola/merola": "cdd7513661851a4c",
     "paper/ddpg_wm_kim/kim_unaware": "761705858e99be2b",
+    "paper/kim_chooser/kim_unaware": "012d188975dcdfd0",
     "paper/eval/porav/validation": "66629d99bb06c2ae",
     "paper/eval/porav/test": "ff9bf81bd778998d",
     "paper/eval/chae/validation": "77ebe01e9088736f",

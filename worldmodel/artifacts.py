@@ -277,6 +277,8 @@ def _drop_added_defaults(settings: dict) -> dict:
     if isinstance(agent, dict) and agent.get("learner") != "dqn":
         agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners
         agent.pop("episodes", None)
+    if isinstance(agent, dict) and agent.get("learner") != "kim_chooser":
+        agent.pop("kim_chooser", None)  # nor do the LIDAR chooser's
     dqn = agent.get("dqn") if isinstance(agent, dict) else None
     if isinstance(dqn, dict):
         for key, off in DQN_OPTIONS_OFF.items():

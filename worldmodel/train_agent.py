@@ -77,7 +77,7 @@ def run(cfg) -> dict:
     name = agent_id.policy
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
-    if typed.agent.learner == "dqn" or typed.agent.obs == "lidar":  # Chae's or Merola's DQN, Kim's LIDAR DDPG
+    if typed.agent.learner == "dqn" or typed.agent.obs == "lidar":  # Chae's or Merola's DQN, Kim's LIDAR agents
         return run_peer(cfg, agent_id, agent_id.family)
     encoder = artifacts.load_world_model(cfg)
     sim = make_env(cfg)
@@ -295,8 +295,8 @@ def run_chooser(cfg, agent_id) -> dict:
 
 def run_peer(cfg, agent_id, family: str) -> dict:
     """A peer system's learner on its own scenario family (``worldmodel/peers/<family>``): Chae et al.'s braking
-    DQN (``agent.learner=dqn``) or Kim et al.'s LIDAR DDPG (``agent.obs=lidar``). Its ``train`` returns the metrics,
-    with ``summary`` (a line for the log)."""
+    DQN (``agent.learner=dqn``) or Kim et al.'s LIDAR agents (``agent.obs=lidar``: the DDPG, the chooser). Its
+    ``train`` returns the metrics, with ``summary`` (a line for the log)."""
     from . import peers
 
     peer = peers.peer(family)

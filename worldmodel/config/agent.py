@@ -125,7 +125,34 @@ class ChooserConfig(Checked):
         }
 
 
-LEARNERS = ("ddpg", "chooser", "dqn")
+@dataclass
+class KimChooserConfig(Checked):
+    """The LIDAR chooser on family kim (``agent.learner=kim_chooser``, ``agent=kim_chooser``;
+    worldmodel/peers/kim/chooser.py): it brakes, and switches once to the manoeuvre whose ``kim_unaware`` cost
+    (ISS) an MLP predicts lowest from the LIDAR view. The defaults made the figures of docs/results/kim/."""
+
+    # labelled straight-line braking episodes of the training distribution, the last 15 % held out to choose the
+    # epoch; shared by every training seed. 1,500: about a point more than 800 (docs/results/kim/)
+    episodes: int = 1500
+    # the seed of the labelled scenarios, the same for every training seed: the seeds differ only in the scorer's
+    # initialisation and minibatches
+    label_seed: int = 0
+    decide_s: float = 0.3  # s: the chooser may switch only this early, then it keeps braking
+    hidden: int = 256  # units of each of the scorer's two hidden layers
+    epochs: int = 60  # passes over the training labels; the epoch kept is the one that avoids most on the held out
+    margin: float = 0.0  # ISS (km/h) of predicted saving by which a switch must beat braking
+
+    def problems(self):
+        for err in _positive(self, "decide_s", "hidden", "epochs"):
+            yield ConfigValueError(f"kim_chooser.{err.key}", err.value, err.requirement)
+        if self.episodes < 2:
+            yield ConfigValueError("kim_chooser.episodes", self.episodes, "it must be >= 2 (one to fit, one held out)")
+        for key in ("label_seed", "margin"):
+            if getattr(self, key) < 0:
+                yield ConfigValueError(f"kim_chooser.{key}", getattr(self, key), "it must be >= 0")
+
+
+LEARNERS = ("ddpg", "chooser", "dqn", "kim_chooser")
 # what an agent sees: the world model's [z, zhat(, speed)] from the camera, or Chae's privileged 15-value
 # pedestrian history (envs/chae.py); a DDPG or chooser agent always sees the world model
 # LIDAR scans (Kim), or Merola's last 4 camera frames as frozen VAE means or ResNet-18 features
@@ -248,9 +275,11 @@ class AgentConfig(DDPGConfig):
     # lists r2 alone, since its R1 run would be the same network under another name
     rewards: list[str] = field(default_factory=lambda: ["r1", "r2"])
     # "ddpg" (the paper's learner, with the options above) or "chooser" (agent.chooser: costs of manoeuvres learnt
-    # from the simulator's labels; R2 only, and none of the DDPG keys apply)
+    # from the simulator's labels; R2 only, and none of the DDPG keys apply); "dqn" and "kim_chooser" below
     learner: str = "ddpg"
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
+    # learner "kim_chooser" (worldmodel/peers/kim/chooser.py): the chooser on family kim, from the LIDAR
+    kim_chooser: KimChooserConfig = field(default_factory=KimChooserConfig)
     # learner "dqn" (worldmodel/peers/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
     episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
@@ -297,6 +326,7 @@ class AgentConfig(DDPGConfig):
             "ddpg": ("worldmodel", "lidar"),
             "chooser": ("worldmodel",),
             "dqn": ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"),
+            "kim_chooser": ("lidar",),
         }
         if self.learner in seen_by and self.obs not in seen_by[self.learner]:
             yield ConfigValueError(

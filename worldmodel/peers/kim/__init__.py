@@ -2,6 +2,7 @@
 
     python -m worldmodel.train_agent experiment=NAME agent=ddpg_kim [reward=kim_aware] [seed=K]
     python -m worldmodel.train_agent experiment=NAME agent=ddpg_wm_kim [seed=K]     # the camera agent
+    python -m worldmodel.train_agent experiment=NAME agent=kim_chooser [seed=K]     # the LIDAR chooser
     python -m worldmodel.evaluate experiment=NAME evaluate.family=kim
 
 Training (``train_agent`` with ``agent.obs=lidar``): ``agent.peer_total_steps`` steps of family ``kim``
@@ -13,18 +14,22 @@ paper. The action is (desired speed, steering angle), mapped onto our controls b
 ``runs/NAME/agent_kim_unaware_ddpg_kim/seedK/`` (and ``agent_kim_aware_ddpg_kim``), resumable, with TensorBoard
 (return, rolling avoidance) and ``metrics.json`` with the learning curve.
 
+The LIDAR chooser (``agent=kim_chooser``, ``chooser``) is no DDPG: it brakes and switches once to the manoeuvre
+whose cost an MLP predicts lowest from the LIDAR view, learnt from exact costs re-simulated on braking's states.
+
 Evaluation (``evaluate.family=kim``): Table 2's layout, avoidance % (no collision of any kind in the episode) and
 mean injury (minus the summed Sobhani ISS, as the paper's table gives it) per scenario and overall, for every
-LIDAR agent, every world-model agent trained on the family (``agent=ddpg_wm_kim``: camera frames, at the world
-model's 1/15 s steps), the paper's street-trained agents as they are (``evaluate.kim.world_model_agents``), AEB-3m,
-straight-line braking and the privileged planner, on ``evaluate.kim.trials`` seeded trials per
-scenario (the first ``paper_trials`` of them make the paper-sized table), with 95 % Wilson intervals and pairwise
-paired permutation tests on per-trial injury. Writes ``runs/NAME/eval_kim/``.
+LIDAR agent (the chooser among them), every world-model agent trained on the family (``agent=ddpg_wm_kim``: camera
+frames, at the world model's 1/15 s steps), the paper's street-trained agents as they are
+(``evaluate.kim.world_model_agents``), AEB-3m, straight-line braking and the privileged planner, on
+``evaluate.kim.trials`` seeded trials per scenario (the first ``paper_trials`` of them make the paper-sized table),
+with 95 % Wilson intervals and pairwise paired permutation tests on per-trial injury. Writes ``runs/NAME/eval_kim/``.
 
 The modules: ``observe`` (the LIDAR observer, the family's env and its training scenarios), ``teach`` (the planner
 as teacher: demonstrations, cloning, DAgger), ``trainer`` (``train``, ``summary``, the trained LIDAR policy),
-``evaluation`` (the trial bank, ``run_policy``, ``evaluate``, the NCAP policies) and ``report`` (the summary,
-Table 2's tables and the figure).
+``chooser`` (the LIDAR chooser's labels, scorer and policy; imported when used, as it needs torch), ``evaluation``
+(the trial bank, ``run_policy``, ``evaluate``, the NCAP policies) and ``report`` (the summary, Table 2's tables
+and the figure).
 """
 
 from .evaluation import COLUMNS, bank, draw_suffix, evaluate, ncap_policies, run_policy, scripted

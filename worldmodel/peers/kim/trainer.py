@@ -21,7 +21,8 @@ CHECKPOINT_EPISODES = 200
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
-    """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.peer_total_steps`` steps."""
+    """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.peer_total_steps`` steps, or the
+    LIDAR chooser (``agent.learner=kim_chooser``, ``chooser.train``)."""
     from tqdm import tqdm
 
     from ...config import validate
@@ -33,6 +34,10 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             f"the LIDAR agent learns on family kim: use reward=kim_unaware or kim_aware, not {agent_id.reward}"
         )
     typed = validate(cfg)
+    if typed.agent.learner == "kim_chooser":
+        from . import chooser
+
+        return chooser.train(cfg, run_, agent_id)
     hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
     if not hp.lidar_scans:
         raise StageError("obs=lidar needs the LIDAR front end: agent.lidar_scans=4 (agent=ddpg_kim sets it)")
@@ -143,6 +148,10 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
 
 def summary(metrics: dict) -> str:
     """One log line for a finished training run."""
+    if metrics.get("learner") == "kim_chooser":
+        from .chooser import summary as chooser_summary
+
+        return chooser_summary(metrics)
     steps, episodes, avoided = metrics["steps"], metrics["episodes"], metrics["recent_avoidance"]
     return f"{steps} steps, {episodes} episodes; avoidance in the last 100: {avoided}"
 
@@ -167,12 +176,17 @@ class LidarPolicy:
 
 
 def load_policy(cfg, agent_id: AgentId) -> tuple:
-    """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim), or a world-model agent
-    (agent=ddpg_wm_kim) that acts from camera frames at the world model's step length."""
+    """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim), the LIDAR chooser
+    (agent=kim_chooser), or a world-model agent (agent=ddpg_wm_kim) that acts from camera frames at the world
+    model's step length."""
     from ...models.ddpg import DDPG, DDPGConfig
     from ...policies import learned_policy
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
+    if state.get("learner") == "kim_chooser":
+        from .chooser import policy
+
+        return policy(state, agent_id.policy), False
     if state.get("obs", "worldmodel") == "worldmodel":
         return learned_policy(cfg, agent_id, state)[0], True
     if state.get("obs") != "lidar":
