@@ -20,7 +20,7 @@ run: setup
 # The paper's family at paper scale, as one experiment (docs/results/porav/README.md): one world model; the paper's
 # DDPG with R1 and R2, the best DDPG-actor variant (dag), the chooser and the two-camera chooser, three seeds each;
 # evaluated on the validation bank, then once on the sealed test bank (recorded in docs/results/ledger.csv).
-# About 7 hours on 2 cores; resumable: run it again to continue where it stopped.
+# About 5 hours on 2 cores (docs/results/porav/headline.md: each stage); resumable: run it again to continue.
 HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tele] seeds=[0,1,2] \
 	banks=[validation,test] demos.episodes=500 evaluate.policies=[braking,oracle,oracle_brake1,oracle_brake2]
 
