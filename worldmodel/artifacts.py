@@ -257,6 +257,8 @@ ADDED_DEFAULTS = {
     },
 }
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
+# Agent keys that only their own learner reads.
+LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",)}
 DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
 # Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are
 # put back before hashing, so those runs stay current. (Removed keys that were also added defaults simply stay out.)
@@ -274,11 +276,10 @@ def _drop_added_defaults(settings: dict) -> dict:
             for key, value in removed.items():
                 part.setdefault(key, value)
     agent = settings.get("agent")
-    if isinstance(agent, dict) and agent.get("learner") != "dqn":
-        agent.pop("dqn", None)  # the DQN learner's keys do not shape the other learners
-        agent.pop("episodes", None)
-    if isinstance(agent, dict) and agent.get("learner") != "kim_chooser":
-        agent.pop("kim_chooser", None)  # nor do the LIDAR chooser's
+    for learner, keys in LEARNER_KEYS.items():  # one learner's keys do not shape the others
+        if isinstance(agent, dict) and agent.get("learner") != learner:
+            for key in keys:
+                agent.pop(key, None)
     dqn = agent.get("dqn") if isinstance(agent, dict) else None
     if isinstance(dqn, dict):
         for key, off in DQN_OPTIONS_OFF.items():
@@ -334,8 +335,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
         chooser = settings["agent"].get("chooser")
-        if isinstance(chooser, dict) and chooser.get("num_workers") is not None:
-            # the labels are the same for any worker count (tested): hashed as 2, what the recorded runs hold
+        if isinstance(chooser, dict) and chooser.get("num_workers") is not None:  # labels equal for any count (tested)
             chooser["num_workers"] = RECORDED_WORKERS
         if uses_demos(cfg) and not uses_world_model:
             # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/peers/kim/): what
@@ -539,10 +539,7 @@ def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None
     CPU, where single decisions are fastest to date)."""
     from .agent_obs import WorldModelEncoder
 
-    vae, _ = load_vae(cfg, "best")
-    rnn, _ = load_rnn(cfg, "best")
-    if device is not None:
-        vae, rnn = vae.to(device), rnn.to(device)
+    vae, rnn = (load(cfg, "best")[0].to(device or "cpu") for load in (load_vae, load_rnn))
     return WorldModelEncoder(
         vae,
         rnn,
@@ -551,14 +548,11 @@ def load_world_model(cfg, use_speed: bool | None = None, frame_view: bool | None
     )
 
 
-def agent_uses_speed(state: dict, latent_dim: int) -> bool:
-    """Whether an agent's checkpoint was trained with speed in its input (older ones tell by their input size)."""
-    return bool(state.get("use_speed", state["obs_dim"] == 2 * int(latent_dim) + 1))
-
-
 def agent_input(state: dict, latent_dim: int) -> dict:
-    """The encoder settings an agent's checkpoint was trained with: ``load_world_model``'s keyword arguments."""
-    return {"use_speed": agent_uses_speed(state, latent_dim), "frame_view": bool(state.get("frame_view", False))}
+    """The encoder settings an agent's checkpoint was trained with: ``load_world_model``'s keyword arguments (older
+    checkpoints tell speed in their input by its size)."""
+    speed = bool(state.get("use_speed", state["obs_dim"] == 2 * int(latent_dim) + 1))
+    return {"use_speed": speed, "frame_view": bool(state.get("frame_view", False))}
 
 
 def load_actor(cfg, agent: AgentId, which: str = "last", state: dict | None = None):
