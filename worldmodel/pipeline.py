@@ -179,7 +179,8 @@ def run(cfg) -> dict:
     timing_path = artifacts.runs_root(cfg) / "pipeline.json"
     timings = json.loads(timing_path.read_text()) if timing_path.exists() else {}
     t_all = time.perf_counter()
-    for step in steps(cfg):
+    planned = steps(cfg)
+    for step in planned:
         stage_cfg = OmegaConf.merge(cfg, {"resume": True}, step.changes)
         state, reasons = status(stage_cfg, step)
         if state == "complete":
@@ -204,7 +205,7 @@ def run(cfg) -> dict:
             "scale": OmegaConf.select(cfg, "scale_name", default=None),
         }
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
-    evaluations = [artifacts.eval_dir(OmegaConf.merge(cfg, s.changes)) for s in steps(cfg) if s.kind == "eval"]
+    evaluations = [artifacts.eval_dir(OmegaConf.merge(cfg, s.changes)) for s in planned if s.kind == "eval"]
     log.info(
         "[pipeline] done in %.0f s (this run). Stage times: %s\n%s  TensorBoard: .venv/bin/tensorboard --logdir %s",
         time.perf_counter() - t_all,
