@@ -12,7 +12,6 @@ import contextlib
 import json
 import logging
 import math
-import multiprocessing as mp
 import time
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from envs.chooser import cost_labels, decide_steps_for
 from envs.streams import CHOOSER_LABEL_EPISODES
 
 from . import artifacts
-from .common import StageError, atomic_output, make_env, resolve_workers
+from .common import StageError, atomic_output, make_env, resolve_workers, worker_pool
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -141,7 +140,7 @@ def labels(cfg, source: str = "train") -> dict:
                     k = _label_shard(t)
                     bar.update(min(SHARD, n - k * SHARD))
             else:
-                with mp.get_context("spawn").Pool(workers) as pool:
+                with worker_pool(workers) as pool:
                     for k in pool.imap_unordered(_label_shard, tasks):
                         bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)
