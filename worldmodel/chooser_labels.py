@@ -106,7 +106,22 @@ def _label_shard(task) -> int:
     with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
         for key in parts[0]:
             f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
+        f.attrs["episodes"] = [shard * SHARD, min((shard + 1) * SHARD, n)]
     return shard
+
+
+def _shard_holds(path: Path, first: int, stop: int) -> bool:
+    """Whether the shard at ``path`` holds the labels of episodes [first, stop). A shard labelled while another
+    number of episodes was asked for holds another range, and is labelled again. (Shards from before the range was
+    recorded are judged by their last episode.)"""
+    try:
+        with h5py.File(path, "r") as f:
+            if "episodes" in f.attrs:
+                return [int(x) for x in f.attrs["episodes"]] == [first, stop]
+            episode = f["episode"][...]
+            return len(episode) > 0 and int(episode.max()) == stop - 1
+    except (OSError, KeyError):
+        return True  # unreadable: reading it names the file and what to do
 
 
 def labels(cfg, source: str = "train") -> dict:
@@ -124,7 +139,7 @@ def labels(cfg, source: str = "train") -> dict:
     n = len(validation_entries(cfg)) if source == "validation" else c.episodes
     n_shards = math.ceil(n / SHARD)
     paths = [out / f"shard_{k:04d}.h5" for k in range(n_shards)]
-    todo = [k for k, p in enumerate(paths) if not p.exists()]
+    todo = [k for k, p in enumerate(paths) if not (p.exists() and _shard_holds(p, k * SHARD, min((k + 1) * SHARD, n)))]
     if todo:
         from omegaconf import OmegaConf
 
