@@ -126,7 +126,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--thresholds", type=float, nargs="*", default=[], help="closing speeds, m/s")
     parser.add_argument("--readings", type=int, default=5, help="readings the line is fitted to (2..5)")
-    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
+    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.chae.select's)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--run", type=Path, help="runs/NAME holding agent_chae_dqn_chae/seedK, for --ensembles")
     parser.add_argument("--ensembles", nargs="*", default=[], help="seed groups such as 0,1,2 (with --run)")

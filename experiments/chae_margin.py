@@ -112,7 +112,7 @@ def main(argv=None) -> None:
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
     parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the ensemble's members")
     parser.add_argument("--margins", type=float, nargs="+", required=True)
-    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.select's; 2017 is the test draw)")
+    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.chae.select's)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
     parser.add_argument(

@@ -3,11 +3,11 @@
     python -m experiments.chae_reselect runs/NAME --seeds 0 1 2 --out runs/NAME_reselected \
         [--shortlist 4] [--draw 98] [--trials 500]
 
-Training's own selection (``agent.select``) scores every validated checkpoint on 200 trials per TTC and keeps the
+Training's own selection (``agent.chae.select``) scores every validated checkpoint on 200 trials per TTC and keeps the
 one inside both bars with the fewest needless stops. At 200 trials a bump is 0.5 %, so checkpoints whose true rate
 at TTC 1.5 s is anywhere from 0 to 2 % pass alike, and ensembles of such members miss the 1 % bar on fresh draws
-(docs/results/chae/notes/checkpoint_selection_and_rescoring.md). For runs trained with ``agent.select.keep=true``
-this applies ``agent.select.rescore``'s rule afterwards (``peers.chae.rescore_kept``):
+(docs/results/chae/notes/checkpoint_selection_and_rescoring.md). For runs trained with ``agent.chae.select.keep=true``
+this applies ``agent.chae.select.rescore``'s rule afterwards (``peers.chae.rescore_kept``):
 
 1. the candidates are the kept checkpoints inside both bars on training's selection draw (if none, the run keeps
    its ``best.pt``);

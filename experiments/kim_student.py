@@ -299,7 +299,7 @@ def main(argv=None) -> None:
     parser.add_argument("--student", default="ddpg_kim_dag", help="collect: the cloned student's agent.variant")
     parser.add_argument("--out", "--data", dest="data", type=Path, default=Path("runs/kim_student/steps.npz"))
     parser.add_argument("--input", choices=("lidar", "state"), default="lidar", help="fit, drive, dagger: its view")
-    parser.add_argument("--steer-weight", type=float, default=1.0, help="as agent.bc_steer_weight")
+    parser.add_argument("--steer-weight", type=float, default=1.0, help="as agent.kim.bc_steer_weight")
     parser.add_argument("--rounds", type=int, default=2, help="dagger: rounds before the last fit")
     parser.add_argument("--students", default="student", help="compare: student (drive) or dagger<rounds>")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. experiment=kimfd scale=quick seed=0")

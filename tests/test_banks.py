@@ -64,7 +64,7 @@ def test_each_bank_writes_its_own_folder():
         (f"evaluate.validation_seed={banks.TEST_SEEDS['porav']}", "evaluate.validation_seed"),
         (f"evaluate.kim.seed={banks.TEST_SEEDS['kim']}", "evaluate.kim.seed"),
         (f"evaluate.chae.seed={banks.TEST_SEEDS['porav']}", "evaluate.chae.seed"),  # any family's test seed
-        (f"agent.select.seed={banks.TEST_SEEDS['chae']}", "agent.select.seed"),  # Chae's checkpoint selection
+        (f"agent.chae.select.seed={banks.TEST_SEEDS['chae']}", "agent.chae.select.seed"),  # Chae's checkpoint selection
     ],
 )
 def test_a_test_seed_is_refused_as_a_validation_draw(override, key):

@@ -207,7 +207,7 @@ def test_evaluation_records_the_bump_and_runs_on_to_measure_contact():
 
 
 def test_checkpoint_selection_by_chaes_metrics():
-    """best.pt's rule (agent.select): among checkpoints bumping in <= max_bump % at every TTC, fewest needless
+    """best.pt's rule (agent.chae.select): among checkpoints bumping in <= max_bump % at every TTC, fewest needless
     stops; if none is that safe, the one bumping least; the earliest wins a tie."""
     from worldmodel.peers.chae import selected
 
@@ -226,10 +226,11 @@ def test_checkpoint_selection_by_chaes_metrics():
 @pytest.fixture(scope="module")
 def kept_run(tmp_path_factory):
     """A smoke dqn_chae run that validated every 4 episodes and kept each validated checkpoint
-    (agent.select.keep), at its planned 12 episodes (no extension)."""
+    (agent.chae.select.keep), at its planned 12 episodes (no extension)."""
     from worldmodel import train_agent
 
-    chosen = smoke_dqn_chae(tmp_path_factory.mktemp("chosen"), "agent.select.keep=true", "agent.select.extend_blocks=0")
+    keep = ("agent.chae.select.keep=true", "agent.chae.select.extend_blocks=0")
+    chosen = smoke_dqn_chae(tmp_path_factory.mktemp("chosen"), *keep)
     train_agent.run(chosen)
     return chosen
 
@@ -246,7 +247,7 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
     from worldmodel.peers.chae import load_policy, validated_path
 
     cfg = smoke_dqn_chae
-    chosen, plain = kept_run, cfg(tmp_path / "plain", "agent.select.every=0")
+    chosen, plain = kept_run, cfg(tmp_path / "plain", "agent.chae.select.every=0")
     train_agent.run(plain)
     agent = AgentId.of(chosen)
     load = lambda c, which: torch.load(agent.dir(c) / f"{which}.pt", weights_only=False)  # noqa: E731
@@ -271,12 +272,12 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
         moved = [not torch.equal(w, last["agent"]["q_network"][n]) for n, w in best["agent"]["q_network"].items()]
         assert last["episode"] == 12 and any(moved)
     with pytest.raises(StageError, match="evaluate.chae.seed"):
-        train_agent.run(cfg(tmp_path / "clash", "agent.select.seed=2017"))
+        train_agent.run(cfg(tmp_path / "clash", "agent.chae.select.seed=2017"))
 
 
 def test_rescoring_keeps_the_checkpoint_with_the_most_room_under_both_bars():
-    """agent.select.rescore's rule (and experiments.chae_reselect's): candidates inside both bars on training's draw,
-    the fewest bumps at TTC 1.5 s first; then the smallest max(bumps / 1 %, stops / 5 %) on the larger draw, the
+    """agent.chae.select.rescore's rule (and experiments.chae_reselect's): candidates inside both bars on training's
+    draw, the fewest bumps at TTC 1.5 s first; then the smallest max(bumps / 1 %, stops / 5 %) on the larger draw, the
     later on a tie."""
     from worldmodel.peers.chae import rescore_choice, rescore_shortlist, room
 
@@ -303,7 +304,7 @@ def test_rescoring_keeps_the_checkpoint_with_the_most_room_under_both_bars():
 
 
 def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(tmp_path):
-    """agent.select.rescore: the shortlisted kept checkpoints drive the rescoring draw after the last episode, and
+    """agent.chae.select.rescore: the shortlisted kept checkpoints drive the rescoring draw after the last episode, and
     best.pt is the chosen one's file; without keep, or on the evaluation's draw, it is refused."""
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
@@ -311,9 +312,10 @@ def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(
     from worldmodel.peers.chae import validated_path
 
     # smoke's 12 episodes learn neither bar: let every checkpoint be a candidate
-    bars = ("agent.select.max_bump=100", "agent.select.max_stops=100")
-    rescore = ("agent.select.keep=true", *bars, "agent.select.rescore=2")
-    cfg = smoke_dqn_chae(tmp_path, *rescore, "agent.select.rescore_trials=3", "agent.select.rescore_ttcs=[1.5,3.1]")
+    bars = ("agent.chae.select.max_bump=100", "agent.chae.select.max_stops=100")
+    rescore = ("agent.chae.select.keep=true", *bars, "agent.chae.select.rescore=2")
+    draw = ("agent.chae.select.rescore_trials=3", "agent.chae.select.rescore_ttcs=[1.5,3.1]")
+    cfg = smoke_dqn_chae(tmp_path, *rescore, *draw)
     train_agent.run(cfg)
     run = AgentId.of(cfg).dir(cfg)
     metrics = json.loads((run / "metrics.json").read_text())
@@ -328,15 +330,16 @@ def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(
     chosen = validated_path(run, record["chosen"]["episode"]).read_bytes()
     assert (run / "best.pt").read_bytes() == chosen
     with pytest.raises(StageError, match="keep=true"):
-        train_agent.run(smoke_dqn_chae(tmp_path / "no_keep", "agent.select.keep=false", "agent.select.rescore=2"))
+        no_keep = ("agent.chae.select.keep=false", "agent.chae.select.rescore=2")
+        train_agent.run(smoke_dqn_chae(tmp_path / "no_keep", *no_keep))
     with pytest.raises(StageError, match="select.rescore_ttcs"):
-        train_agent.run(smoke_dqn_chae(tmp_path / "bad_ttcs", *rescore, "agent.select.rescore_ttcs=[]"))
+        train_agent.run(smoke_dqn_chae(tmp_path / "bad_ttcs", *rescore, "agent.chae.select.rescore_ttcs=[]"))
     with pytest.raises(StageError, match="rescore_seed"):
-        train_agent.run(smoke_dqn_chae(tmp_path / "clash", *rescore, "agent.select.rescore_seed=2017"))
+        train_agent.run(smoke_dqn_chae(tmp_path / "clash", *rescore, "agent.chae.select.rescore_seed=2017"))
 
 
 def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_both_bars(tmp_path):
-    """agent.select.extend: after the planned episodes, a run whose rescoring chose nothing inside both bars trains
+    """agent.chae.select.extend: after the planned episodes, a run whose rescoring chose nothing inside both bars trains
     another block, validating and keeping as before, and is rescored again, until a member is found or the blocks
     run out; with bars everything passes, the run ends at its planned length. Bad settings are refused."""
     from worldmodel import train_agent
@@ -345,13 +348,14 @@ def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_bo
     from worldmodel.peers.chae import first_target
 
     def trained(root, *bars):
-        cfg = smoke_dqn_chae(root, "agent.select.rescore=2", "agent.select.rescore_trials=2", *bars)
-        assert (cfg.agent.select.extend, cfg.agent.select.extend_blocks) == (4, 2)  # smoke's block, the preset's cap
+        cfg = smoke_dqn_chae(root, "agent.chae.select.rescore=2", "agent.chae.select.rescore_trials=2", *bars)
+        sel = cfg.agent.chae.select
+        assert (sel.extend, sel.extend_blocks) == (4, 2)  # smoke's block, the preset's cap
         train_agent.run(cfg)
         run = AgentId.of(cfg).dir(cfg)
         return json.loads((run / "metrics.json").read_text()), run
 
-    metrics, run = trained(tmp_path / "strict", "agent.select.max_bump=0", "agent.select.max_stops=0")
+    metrics, run = trained(tmp_path / "strict", "agent.chae.select.max_bump=0", "agent.chae.select.max_stops=0")
     gates = metrics["gates"]
     assert 1 <= len(gates) <= 3 and not any(g["member"] for g in gates[:-1])
     assert gates[-1]["member"] or len(gates) == 3  # stopped by a member, or after the last block
@@ -365,14 +369,15 @@ def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_bo
             run / "validated" / f"episode{metrics['selected']['episode']:05d}.pt"
         ).read_bytes()
 
-    loose, _ = trained(tmp_path / "loose", "agent.select.max_bump=100", "agent.select.max_stops=100")
+    loose, _ = trained(tmp_path / "loose", "agent.chae.select.max_bump=100", "agent.chae.select.max_stops=100")
     assert loose["gates"] == [{"episode": 12, "member": True}] and loose["episodes"] == 12 and loose["extended"] == 0
 
     # a finished run without the extension, resumed with it, trains on exactly as one that had it from the start
-    strict = ("agent.select.rescore=2", "agent.select.rescore_trials=2", "agent.select.max_bump=0")
-    cfg = smoke_dqn_chae(tmp_path / "later", *strict, "agent.select.max_stops=0", "agent.select.extend_blocks=0")
+    strict = ("agent.chae.select.rescore=2", "agent.chae.select.rescore_trials=2", "agent.chae.select.max_bump=0")
+    once = ("agent.chae.select.max_stops=0", "agent.chae.select.extend_blocks=0")
+    cfg = smoke_dqn_chae(tmp_path / "later", *strict, *once)
     train_agent.run(cfg)
-    train_agent.run(smoke_dqn_chae(tmp_path / "later", *strict, "agent.select.max_stops=0", "resume=true"))
+    train_agent.run(smoke_dqn_chae(tmp_path / "later", *strict, "agent.chae.select.max_stops=0", "resume=true"))
     later = json.loads((AgentId.of(cfg).dir(cfg) / "metrics.json").read_text())
     assert later["curve"] == metrics["curve"] and later["gates"] == metrics["gates"]
     # a run resumed inside a block finishes it before it is rescored
@@ -381,9 +386,9 @@ def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_bo
     ) == 12
 
     with pytest.raises(StageError, match="select.extend"):
-        train_agent.run(smoke_dqn_chae(tmp_path / "no_rescore", "agent.select.rescore=0"))
+        train_agent.run(smoke_dqn_chae(tmp_path / "no_rescore", "agent.chae.select.rescore=0"))
     with pytest.raises(StageError, match="select.extend"):
-        train_agent.run(smoke_dqn_chae(tmp_path / "odd_block", "agent.select.extend=6"))
+        train_agent.run(smoke_dqn_chae(tmp_path / "odd_block", "agent.chae.select.extend=6"))
 
 
 def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, tmp_path):
@@ -534,7 +539,7 @@ def test_the_bars_are_judged_run_by_run():
 
 
 def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_papers(tmp_path):
-    """agent.chae_ttc_range: the schema's default draws the paper's episodes exactly; the preset's lower bound of
+    """agent.chae.ttc_range: the schema's default draws the paper's episodes exactly; the preset's lower bound of
     1.3 s rescales only the TTC of the same draws, and it reaches the training loop (the trained network differs).
     An empty or inverted range is refused, naming the key."""
     import torch
@@ -546,7 +551,7 @@ def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_p
     from worldmodel.peers.chae import episode_scenario
 
     def cfg(root, *extra):
-        return smoke_dqn_chae(root, "agent.select.every=0", *extra)
+        return smoke_dqn_chae(root, "agent.chae.select.every=0", *extra)
 
     for episode in range(50):
         (paper, _), (wide, _) = episode_scenario(3, episode), episode_scenario(3, episode, [1.3, 4.0])
@@ -560,13 +565,13 @@ def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_p
         assert wide.ttc == pytest.approx(1.3 + (paper.ttc - 1.5) * 2.7 / 2.5)
     assert min(episode_scenario(3, e, [1.3, 4.0])[0].ttc for e in range(50)) < 1.5
 
-    assert AgentConfig().chae_ttc_range == [1.5, 4.0]  # the schema's
-    default, wide = cfg(tmp_path / "paper", "agent.chae_ttc_range=[1.5,4.0]"), cfg(tmp_path / "wide")
-    assert list(wide.agent.chae_ttc_range) == [1.3, 4.0]  # the preset's
+    assert AgentConfig().chae.ttc_range == [1.5, 4.0]  # the schema's
+    default, wide = cfg(tmp_path / "paper", "agent.chae.ttc_range=[1.5,4.0]"), cfg(tmp_path / "wide")
+    assert list(wide.agent.chae.ttc_range) == [1.3, 4.0]  # the preset's
     assert artifacts.provenance(wide, "agent") != artifacts.provenance(default, "agent")
     for bad in ("[2.0,1.5]", "[1.5]", "[0.0,4.0]", "[1.5,6.0]"):
-        with pytest.raises(StageError, match="agent.chae_ttc_range"):
-            validate(cfg(tmp_path / "bad", f"agent.chae_ttc_range={bad}"))
+        with pytest.raises(StageError, match="agent.chae.ttc_range"):
+            validate(cfg(tmp_path / "bad", f"agent.chae.ttc_range={bad}"))
     train_agent.run(default)
     train_agent.run(wide)
     nets = [
@@ -576,7 +581,7 @@ def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_p
 
 
 def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluation(tmp_path):
-    """agent.chae_noise_m: the preset's 0.05 m and any other value are different runs; a run trained without noise
+    """agent.chae.noise_m: the preset's 0.05 m and any other value are different runs; a run trained without noise
     records it, and the policy evaluation loads from that checkpoint sees the exact relative position (the same
     reading whatever the observer's seed), where the default's readings differ by seed. A negative noise is
     refused."""
@@ -590,17 +595,17 @@ def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluatio
     from worldmodel.peers.chae import family_env, load_policy, observer
 
     def cfg(root, *extra):
-        return smoke_dqn_chae(root, "agent.select.every=0", *extra)
+        return smoke_dqn_chae(root, "agent.chae.select.every=0", *extra)
 
-    default, exact = cfg(tmp_path / "paper"), cfg(tmp_path / "exact", "agent.chae_noise_m=0")
-    assert default.agent.chae_noise_m == 0.05  # the preset's
-    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae_noise_m=0.05"), "agent") == (
+    default, exact = cfg(tmp_path / "paper"), cfg(tmp_path / "exact", "agent.chae.noise_m=0")
+    assert default.agent.chae.noise_m == 0.05  # the preset's
+    assert artifacts.provenance(cfg(tmp_path / "paper", "agent.chae.noise_m=0.05"), "agent") == (
         artifacts.provenance(default, "agent")
     )
-    for other in (exact, cfg(tmp_path / "first_twenty", "agent.chae_noise_m=0.1")):
+    for other in (exact, cfg(tmp_path / "first_twenty", "agent.chae.noise_m=0.1")):
         assert artifacts.provenance(other, "agent") != artifacts.provenance(default, "agent")
-    with pytest.raises(StageError, match="agent.chae_noise_m"):
-        validate(cfg(tmp_path / "bad", "agent.chae_noise_m=-0.1"))
+    with pytest.raises(StageError, match="agent.chae.noise_m"):
+        validate(cfg(tmp_path / "bad", "agent.chae.noise_m=-0.1"))
     train_agent.run(exact)
     agent_id = AgentId.of(exact)
     assert torch.load(agent_id.dir(exact) / "last.pt", weights_only=False)["noise_m"] == 0.0

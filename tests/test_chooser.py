@@ -203,6 +203,24 @@ def test_labels_are_reproducible_for_any_worker_count(trained, stage_cfg, tmp_pa
         chooser.labels(again)
 
 
+def test_more_episodes_label_what_a_shard_lacks(trained, tmp_path):
+    """Labels made for 4 episodes and then asked for 5: the shard is labelled again in full, so the labels hold
+    every episode asked for and the first four as they were."""
+    from worldmodel.config import compose
+
+    root, base, cfg, _ = trained
+    shutil.copytree(root / "data", tmp_path / "data")
+    paths = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs"]
+    more = compose("train_agent", [*paths, *base[2:], *OVERRIDES, "agent.chooser.num_workers=1"])
+    more.agent.chooser.episodes = 5
+    assert (chooser.labels_dir(more) / "shard_0000.h5").exists()  # the 4-episode shard, where 5 are asked for
+    four, five = chooser.labels(cfg), chooser.labels(more)
+    assert sorted(set(five["episode"].tolist())) == [0, 1, 2, 3, 4]
+    kept = five["episode"] < 4
+    for key in chooser.LABEL_KEYS:
+        np.testing.assert_array_equal(five[key][kept], four[key])
+
+
 def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     """Evaluation finds the chooser, and its live scores on a labelled episode equal the scorer applied offline to
     the encoded labels (same world-model state, same frame band, same normalisation)."""

@@ -463,8 +463,8 @@ def test_cloning_fits_a_known_state_to_action_map():
 
 
 def test_weighted_cloning_fits_the_weighted_samples():
-    """agent.bc_steer_weight's loss: a sample of weight 0 does not pull the actor, so a step on (a, b) weighted (1, 0)
-    is a step on a alone; equal weights are the plain mean."""
+    """agent.kim.bc_steer_weight's loss: a sample of weight 0 does not pull the actor, so a step on (a, b) weighted
+    (1, 0) is a step on a alone; equal weights are the plain mean."""
     obs, target = torch.randn(2, 4), torch.tensor([[0.5, -0.5], [-0.9, 0.9]])
     twins = [DDPG(4, 2, DDPGConfig(**SMALL), seed=1) for _ in range(4)]
     twins[0].clone(obs, target, torch.tensor([1.0, 0.0]))

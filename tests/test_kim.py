@@ -353,7 +353,7 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     """agent=ddpg_kim with planner demonstrations: the demonstrations are the planner's own episodes (the same
     outcomes as the planner driving those scenarios, through the inverse of Kim's action map), drawn again
     identically; cloning and a DAgger round give a checkpoint without reinforcement learning
-    (agent.peer_total_steps=0), whose provenance names what made its demonstrations; the preset ddpg_kim_fd then
+    (agent.kim.total_steps=0), whose provenance names what made its demonstrations; the preset ddpg_kim_fd then
     learns by DDPG from the same demonstrations after its cloning."""
     from worldmodel import artifacts, train_agent
     from worldmodel.common import StageError
@@ -364,10 +364,10 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
         base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
         return compose("train_agent", [*base, "threads=1", f"agent={agent}", *overrides])
 
-    with pytest.raises(StageError, match="peer_total_steps"):
-        validate(cfg("agent.peer_total_steps=0"))
+    with pytest.raises(StageError, match="agent.kim.total_steps"):
+        validate(cfg("agent.kim.total_steps=0"))
     learn = ["demos.episodes=4", "agent.bc_pretrain_steps=60", "agent.dagger_rounds=1", "agent.dagger_episodes=1"]
-    c = cfg(*learn, "agent.peer_total_steps=0", "agent.variant=ddpg_kim_dag")
+    c = cfg(*learn, "agent.kim.total_steps=0", "agent.variant=ddpg_kim_dag")
     hp = validate(c).agent
     env = kim.family_env(c, "kim_unaware")
     see = kim.LidarObserver(goal=False)
@@ -389,7 +389,7 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     run_dir = tmp_path / "runs/k/agent_kim_unaware_ddpg_kim_dag/seed0"
     recorded = artifacts.read_provenance(run_dir)
     assert artifacts.differences(recorded, artifacts.provenance(c, "agent")) == []
-    changed = cfg(*learn[1:], "demos.episodes=5", "agent.peer_total_steps=0", "agent.variant=ddpg_kim_dag")
+    changed = cfg(*learn[1:], "demos.episodes=5", "agent.kim.total_steps=0", "agent.variant=ddpg_kim_dag")
     assert artifacts.differences(recorded, artifacts.provenance(changed, "agent")) != []
 
     preset = cfg(*learn, agent="ddpg_kim_fd")
@@ -433,7 +433,7 @@ def test_the_bank_can_draw_where_the_runner_crosses_the_ego_and_keeps_everything
 
 
 def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
-    """agent.kim_impact_offset_spread (preset ddpg_kim_fd_anywhere): training episodes, demonstrations and DAgger
+    """agent.kim.impact_offset_spread (preset ddpg_kim_fd_anywhere): training episodes, demonstrations and DAgger
     rounds draw the runner's crossing anywhere along the ego, the other fields as without it; 0 (every other
     preset) keeps the middle; a spread beyond the ego is refused."""
     from worldmodel.common import StageError
@@ -455,5 +455,5 @@ def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
     assert all(abs(sample(np.random.default_rng(i), 9.0).impact_offset) <= 2.25 for i in range(20))  # on the ego
     with pytest.raises(ValueError, match="impact_offset_spread"):
         sample(np.random.default_rng(0), -1.0)
-    with pytest.raises(StageError, match="kim_impact_offset_spread"):
-        validate(compose("train_agent", ["agent=ddpg_kim_fd", "agent.kim_impact_offset_spread=3"]))
+    with pytest.raises(StageError, match="agent.kim.impact_offset_spread"):
+        validate(compose("train_agent", ["agent=ddpg_kim_fd", "agent.kim.impact_offset_spread=3"]))

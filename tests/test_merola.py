@@ -156,7 +156,7 @@ def test_the_nine_actions_are_brake_none_throttle_by_left_straight_right():
 
 
 def test_resnet_observation_refuses_without_weights_and_loads_a_state_dict(tmp_path):
-    with pytest.raises(StageError, match="agent.resnet_weights"):
+    with pytest.raises(StageError, match="agent.merola.resnet_weights"):
         load_resnet18(None)
     with pytest.raises(StageError, match="no such file"):
         load_resnet18(str(tmp_path / "missing.pth"))

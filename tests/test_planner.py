@@ -176,9 +176,9 @@ def test_a_teacher_without_later_starts_labels_what_to_do_now(tmp_path):
     for bad in ("[]", "[-0.1]"):
         with pytest.raises(StageError, match="demos.teacher_delays_s"):
             validate(cfg(f"demos.teacher_delays_s={bad}"))
-    with pytest.raises(StageError, match="agent.bc_steer_weight"):
-        validate(cfg("agent.bc_steer_weight=0"))
-    with pytest.raises(StageError, match="agent.bc_steer_weight"):
-        validate(cfg("agent=dag", "agent.bc_steer_weight=5"))  # a camera student: no steering label here
-    assert artifacts.provenance(cfg("agent.bc_steer_weight=1"), "agent") == artifacts.provenance(default, "agent")
-    assert artifacts.provenance(cfg("agent.bc_steer_weight=5"), "agent") != artifacts.provenance(default, "agent")
+    with pytest.raises(StageError, match="agent.kim.bc_steer_weight"):
+        validate(cfg("agent.kim.bc_steer_weight=0"))
+    with pytest.raises(StageError, match="agent.kim.bc_steer_weight"):
+        validate(cfg("agent=dag", "agent.kim.bc_steer_weight=5"))  # a camera student: no steering label here
+    assert artifacts.provenance(cfg("agent.kim.bc_steer_weight=1"), "agent") == artifacts.provenance(default, "agent")
+    assert artifacts.provenance(cfg("agent.kim.bc_steer_weight=5"), "agent") != artifacts.provenance(default, "agent")

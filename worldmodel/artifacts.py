@@ -35,6 +35,7 @@ from typing import Any
 from envs.rewards import REWARDS
 
 from .common import StageError, atomic_write_text, load_checkpoint, stage_command
+from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded
 
 log = logging.getLogger(__name__)
 
@@ -236,88 +237,6 @@ def _config(cfg, *keys: str) -> dict:
     return {key: _section(cfg, key) for key in keys}
 
 
-RECORDED_WORKERS = 2  # the chooser's labelling processes in the runs recorded while the count was hashed
-RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
-# Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
-# they are left out of the hash and older runs stay current.
-ADDED_DEFAULTS = {
-    "env": {"step_s": 1.0 / 15.0, "family": "porav", "tele_fov_deg": None},
-    "agent": {
-        "obs": "worldmodel",
-        "paper_obs": "worldmodel",
-        "episodes": 3000,
-        "lidar_scans": 0,
-        "lidar_rays": 36,
-        "peer_total_steps": 100_000,
-        "resnet_weights": None,
-        "kim_impact_offset_spread": 0.0,
-        "bc_steer_weight": 1.0,
-        "chae_ttc_range": [1.5, 4.0],
-        "chae_noise_m": 0.1,
-    },
-}
-# DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
-# Agent keys that only their own learner reads.
-LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",)}
-DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
-# Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are
-# put back before hashing, so those runs stay current. (Removed keys that were also added defaults simply stay out.)
-REMOVED_KEYS = {
-    ("agent", "dqn"): {"trauma_lead": 0},
-    ("evaluate", "chae"): {"ensemble_pool": 0, "ensemble_vote": False},
-}
-
-
-def _drop_added_defaults(settings: dict) -> dict:
-    for (section, sub), removed in REMOVED_KEYS.items():
-        part = settings.get(section, {})
-        part = part.get(sub) if isinstance(part, dict) else None
-        if isinstance(part, dict):
-            for key, value in removed.items():
-                part.setdefault(key, value)
-    agent = settings.get("agent")
-    for learner, keys in LEARNER_KEYS.items():  # one learner's keys do not shape the others
-        if isinstance(agent, dict) and agent.get("learner") != learner:
-            for key in keys:
-                agent.pop(key, None)
-    dqn = agent.get("dqn") if isinstance(agent, dict) else None
-    if isinstance(dqn, dict):
-        for key, off in DQN_OPTIONS_OFF.items():
-            if key in dqn and dqn[key] == off:
-                dqn.pop(key)  # off: the DQN as before the option
-    chooses = isinstance(agent, dict) and agent.get("learner") == "dqn" and settings.get("reward") == "chae"
-    if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
-        agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
-    select = agent.get("select") if isinstance(agent, dict) else None
-    if isinstance(select, dict) and not (select.get("extend") and select.get("extend_blocks")):
-        select.pop("extend", None)  # off: the run's length as before the option
-        select.pop("extend_blocks", None)
-    if isinstance(select, dict) and not select.get("rescore"):
-        for key in ("keep", "rescore", "rescore_seed", "rescore_trials", "rescore_ttcs", "max_stops"):
-            select.pop(key, None)  # no rescoring: best.pt chosen as before the option (keeping files changes nothing)
-    chooser = agent.get("chooser") if isinstance(agent, dict) else None
-    for key in ("min_brake_cost", "static_penalty"):
-        if isinstance(chooser, dict) and not chooser.get(key):
-            chooser.pop(key, None)  # off: the chooser as before the option
-    if isinstance(chooser, dict) and chooser.get("label_seed", 0) is None:
-        chooser.pop("label_seed")  # each seed its own labels, as before the option
-    if isinstance(chooser, dict) and chooser.get("mask_camera") == "wide":
-        chooser.pop("mask_camera")  # the world model's camera, as before the second one
-    evaluate = settings.get("evaluate")
-    if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
-        evaluate.pop("family", None)  # the paper's bank, as before the families existed
-        evaluate.pop("chae", None)
-        evaluate.pop("kim", None)
-        evaluate.pop("merola", None)
-    for section, defaults in ADDED_DEFAULTS.items():
-        values = settings.get(section)
-        if isinstance(values, dict):
-            for key, default in defaults.items():
-                if key in values and values[key] == default:
-                    values.pop(key)
-    return settings
-
-
 def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
     """The current inputs of ``stage`` (``vae``, ``rnn``, ``agent``, ``eval``) and the hash of its config keys."""
     if stage == "vae":
@@ -362,7 +281,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
                 settings["evaluate"].pop(other, None)
     else:
         raise ValueError(f"no provenance for stage {stage!r}")
-    return {"inputs": inputs, "config": config_sha256(_drop_added_defaults(settings))}
+    return {"inputs": inputs, "config": config_sha256(as_recorded(settings))}
 
 
 def read_provenance(directory: Path) -> dict | None:

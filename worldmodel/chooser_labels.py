@@ -12,7 +12,6 @@ import contextlib
 import json
 import logging
 import math
-import multiprocessing as mp
 import time
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from envs.chooser import cost_labels, decide_steps_for
 from envs.streams import CHOOSER_LABEL_EPISODES
 
 from . import artifacts
-from .common import StageError, atomic_output, make_env, resolve_workers
+from .common import StageError, atomic_output, make_env, resolve_workers, worker_pool
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -107,7 +106,22 @@ def _label_shard(task) -> int:
     with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
         for key in parts[0]:
             f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
+        f.attrs["episodes"] = [shard * SHARD, min((shard + 1) * SHARD, n)]
     return shard
+
+
+def _shard_holds(path: Path, first: int, stop: int) -> bool:
+    """Whether the shard at ``path`` holds the labels of episodes [first, stop). A shard labelled while another
+    number of episodes was asked for holds another range, and is labelled again. (Shards from before the range was
+    recorded are judged by their last episode.)"""
+    try:
+        with h5py.File(path, "r") as f:
+            if "episodes" in f.attrs:
+                return [int(x) for x in f.attrs["episodes"]] == [first, stop]
+            episode = f["episode"][...]
+            return len(episode) > 0 and int(episode.max()) == stop - 1
+    except (OSError, KeyError):
+        return True  # unreadable: reading it names the file and what to do
 
 
 def labels(cfg, source: str = "train") -> dict:
@@ -125,7 +139,7 @@ def labels(cfg, source: str = "train") -> dict:
     n = len(validation_entries(cfg)) if source == "validation" else c.episodes
     n_shards = math.ceil(n / SHARD)
     paths = [out / f"shard_{k:04d}.h5" for k in range(n_shards)]
-    todo = [k for k, p in enumerate(paths) if not p.exists()]
+    todo = [k for k, p in enumerate(paths) if not (p.exists() and _shard_holds(p, k * SHARD, min((k + 1) * SHARD, n)))]
     if todo:
         from omegaconf import OmegaConf
 
@@ -141,7 +155,7 @@ def labels(cfg, source: str = "train") -> dict:
                     k = _label_shard(t)
                     bar.update(min(SHARD, n - k * SHARD))
             else:
-                with mp.get_context("spawn").Pool(workers) as pool:
+                with worker_pool(workers) as pool:
                     for k in pool.imap_unordered(_label_shard, tasks):
                         bar.update(min(SHARD, n - k * SHARD))
         log.info("[chooser] labelled %d shards in %s in %.0f s", len(todo), out, time.perf_counter() - t0)

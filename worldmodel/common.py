@@ -250,6 +250,21 @@ def resolve_workers(value: int | str) -> int:
     return usable_cores() if value == "auto" else int(value)
 
 
+@contextlib.contextmanager
+def worker_pool(workers: int):
+    """A ``multiprocessing`` pool of ``workers`` spawned processes. When the block ends normally the pool is closed
+    and joined: every worker exits on its own and runs its exit handlers, which unlink and unregister the named
+    semaphores it created (tqdm's lock, made by any tqdm, even a disabled one). ``Pool``'s own context manager
+    terminates its workers instead, and the resource tracker then reports those semaphores as leaked when the run
+    ends. An exception in the block still terminates the workers at once."""
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(workers) as pool:
+        yield pool
+        pool.close()
+        pool.join()
+
+
 def resolve_loader_workers(value: int | str, device) -> int:
     """The ``loader_workers`` setting as a number for ``device``: ``auto`` reads in the training process on the CPU
     (0: its cores are busy training), and ahead of a CUDA device in the usable cores less the training one, at

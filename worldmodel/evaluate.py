@@ -23,7 +23,7 @@ import time
 
 from . import artifacts, peers
 from .banks import record_evaluation, sealed_bank_problem
-from .common import StageError, make_env, resolve_workers, set_threads
+from .common import StageError, make_env, resolve_workers, set_threads, worker_pool
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
 from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
@@ -100,8 +100,6 @@ def _run_chunk(task) -> list[dict]:
 
 def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
     """Rows of one policy over ``entries``, in bank order, using ``workers`` processes."""
-    import multiprocessing as mp
-
     from omegaconf import OmegaConf
     from tqdm import tqdm
 
@@ -121,7 +119,7 @@ def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
             finally:
                 env.close()
         else:
-            with mp.get_context("spawn").Pool(workers) as pool:
+            with worker_pool(workers) as pool:
                 for part in pool.imap(_run_chunk, tasks):
                     rows += part
                     bar.update(len(part))

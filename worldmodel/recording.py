@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 
 from envs.streams import DATASET_SPLIT, RECORDING_BRANCHES
 
-from .common import StageError, atomic_write_text, clean_temporaries
+from .common import StageError, atomic_write_text, clean_temporaries, worker_pool
 from .data import SCHEMA_VERSION, shard_name, write_shard
 
 log = logging.getLogger(__name__)
@@ -252,7 +251,7 @@ def record_dataset(
                 new_stats.append(record_shard(task))
                 bar.update(len(task[3]))
         else:
-            with mp.get_context("spawn").Pool(workers) as pool:
+            with worker_pool(workers) as pool:
                 for stats in pool.imap_unordered(record_shard, todo):
                     new_stats.append(stats)
                     bar.update(len(stats["lengths"]) - len(stats["branches"]))

@@ -1,5 +1,5 @@
-"""The agent sections: every learner's keys (DDPG, the chooser, the DQN) with Chae's checkpoint selection, and
-the reward."""
+"""The agent sections: every learner's keys (DDPG, the chooser, the DQN), each peer's training keys (Chae's with its
+checkpoint selection, Kim's, Merola's), and the reward."""
 
 from __future__ import annotations
 
@@ -161,7 +161,7 @@ OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "fram
 
 @dataclass
 class SelectConfig(Checked):
-    """Checkpoint selection for the dqn learner on family chae (``worldmodel/peers/chae/``). Every ``every``
+    """Checkpoint selection for Chae's DQN (``agent.chae.select``; ``worldmodel/peers/chae/``). Every ``every``
     episodes once ``start`` of the run has passed, the greedy agent drives a validation draw of Chae's trials
     (``trials`` Scenario-1 trials at each TTC of ``ttcs`` and as many Scenario-2 trials, seeded by ``seed``: never
     the evaluation's ``evaluate.chae.seed``), and ``best.pt`` keeps the checkpoint that, among those bumping in at
@@ -170,7 +170,7 @@ class SelectConfig(Checked):
     km/h, and successive checkpoints of one run differ there (docs/results/chae/)."""
 
     every: int = 250  # episodes between validations; 0 = off, evaluation loads last.pt
-    start: float = 0.25  # the share of agent.episodes before the first validation
+    start: float = 0.25  # the share of agent.chae.episodes before the first validation
     seed: int = 99
     trials: int = 200
     ttcs: list[float] = field(default_factory=lambda: [1.5, 1.7, 1.9])
@@ -193,52 +193,122 @@ class SelectConfig(Checked):
     extend_blocks: int = 0
 
     def problems(self):
-        yield from _positive(self, "trials")
-        yield from _draw_problems(self, "seed", "select.")
-        yield from _draw_problems(self, "rescore_seed", "select.")
+        for err in _positive(self, "trials"):
+            yield ConfigValueError(f"chae.select.{err.key}", err.value, err.requirement)
+        yield from _draw_problems(self, "seed", "chae.select.")
+        yield from _draw_problems(self, "rescore_seed", "chae.select.")
         if self.seed < 0:
-            yield ConfigValueError("select.seed", self.seed, "it must be >= 0")
+            yield ConfigValueError("chae.select.seed", self.seed, "it must be >= 0")
         if self.every < 0:
-            yield ConfigValueError("select.every", self.every, "it must be >= 0 episodes (0 = off)")
+            yield ConfigValueError("chae.select.every", self.every, "it must be >= 0 episodes (0 = off)")
         if not 0.0 <= self.start <= 1.0:
-            yield ConfigValueError("select.start", self.start, "it must be a share of the run, in [0, 1]")
+            yield ConfigValueError("chae.select.start", self.start, "it must be a share of the run, in [0, 1]")
         if not self.ttcs or any(not 0.0 < float(t) < 5.0 for t in self.ttcs):
-            yield ConfigValueError("select.ttcs", list(self.ttcs), "use a non-empty list of TTCs in (0, 5) s")
+            yield ConfigValueError("chae.select.ttcs", list(self.ttcs), "use a non-empty list of TTCs in (0, 5) s")
         if not 0.0 <= self.max_bump <= 100.0:
-            yield ConfigValueError("select.max_bump", self.max_bump, "it must be a rate in [0, 100] %")
+            yield ConfigValueError("chae.select.max_bump", self.max_bump, "it must be a rate in [0, 100] %")
         if not 0.0 <= self.max_stops <= 100.0:
-            yield ConfigValueError("select.max_stops", self.max_stops, "it must be a rate in [0, 100] %")
+            yield ConfigValueError("chae.select.max_stops", self.max_stops, "it must be a rate in [0, 100] %")
         if self.rescore < 0:
-            yield ConfigValueError("select.rescore", self.rescore, "it must be >= 0 checkpoints (0 = off)")
+            yield ConfigValueError("chae.select.rescore", self.rescore, "it must be >= 0 checkpoints (0 = off)")
         if self.rescore and not self.keep:
             yield ConfigValueError(
-                "select.rescore", self.rescore, "it reads the kept checkpoints back: set agent.select.keep=true too"
+                "chae.select.rescore",
+                self.rescore,
+                "it reads the kept checkpoints back: set agent.chae.select.keep=true too",
             )
         if self.rescore and self.rescore_seed == self.seed:
             yield ConfigValueError(
-                "select.rescore_seed", self.rescore_seed, "it must differ from agent.select.seed (a new draw)"
+                "chae.select.rescore_seed", self.rescore_seed, "it must differ from agent.chae.select.seed (a new draw)"
             )
         yield from _positive(self, "rescore_trials")
         if self.extend < 0:
-            yield ConfigValueError("select.extend", self.extend, "it must be >= 0 episodes per block (0 = off)")
+            yield ConfigValueError("chae.select.extend", self.extend, "it must be >= 0 episodes per block (0 = off)")
         if self.extend_blocks < 0:
-            yield ConfigValueError("select.extend_blocks", self.extend_blocks, "it must be >= 0 blocks")
+            yield ConfigValueError("chae.select.extend_blocks", self.extend_blocks, "it must be >= 0 blocks")
         if self.extend and self.extend_blocks and not self.rescore:
             yield ConfigValueError(
-                "select.extend",
+                "chae.select.extend",
                 self.extend,
-                "it trains on until the rescoring finds a member: set agent.select.rescore too",
+                "it trains on until the rescoring finds a member: set agent.chae.select.rescore too",
             )
         if self.extend and self.extend_blocks and self.every and self.extend % self.every:
             yield ConfigValueError(
-                "select.extend", self.extend, f"use a multiple of agent.select.every ({self.every}) episodes"
+                "chae.select.extend", self.extend, f"use a multiple of agent.chae.select.every ({self.every}) episodes"
             )
         if self.rescore_ttcs is not None and (
             not self.rescore_ttcs or any(not 0.0 < float(t) < 5.0 for t in self.rescore_ttcs)
         ):
             yield ConfigValueError(
-                "select.rescore_ttcs", list(self.rescore_ttcs), "use null or a non-empty list of TTCs in (0, 5) s"
+                "chae.select.rescore_ttcs", list(self.rescore_ttcs), "use null or a non-empty list of TTCs in (0, 5) s"
             )
+
+
+@dataclass
+class ChaeAgentConfig(Checked):
+    """Chae et al.'s DQN (``agent=dqn_chae``, family chae; worldmodel/peers/chae/): how long it trains, what it is
+    trained on, and the checkpoint it keeps."""
+
+    episodes: int = 6000  # training episodes (~40 steps each)
+    # s, the training TTCs, U(lo, hi); evaluation keeps its own. The paper's 1.5-4 s; dqn_chae trains from 1.3 s, so
+    # that TTC 1.5 s, the bar's edge, is not training's edge (docs/results/chae/)
+    ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
+    # m, std of the noise on the pedestrian's position in Chae's state (the paper: "slight"); a checkpoint records
+    # it. 0.1 keeps older runs current; dqn_chae sets 0.05, where Chae's Table I points (docs/results/chae/)
+    noise_m: float = 0.1
+    select: SelectConfig = field(default_factory=SelectConfig)  # which checkpoint best.pt keeps
+
+    def problems(self):
+        for err in _positive(self, "episodes"):
+            yield ConfigValueError(f"chae.{err.key}", err.value, err.requirement)
+        ttcs = [float(t) for t in self.ttc_range]
+        if len(ttcs) != 2 or not 0.0 < ttcs[0] < ttcs[1] <= 5.0:
+            yield ConfigValueError(
+                "chae.ttc_range",
+                list(self.ttc_range),
+                "use [lo, hi] with 0 < lo < hi <= 5 s (beyond 5 s the trigger would lie behind the ego)",
+            )
+        if not 0.0 <= self.noise_m <= 1.0:
+            yield ConfigValueError(
+                "chae.noise_m", self.noise_m, "it must be in [0, 1] m (0: the exact relative position)"
+            )
+
+
+@dataclass
+class KimAgentConfig(Checked):
+    """Kim et al.'s LIDAR agents (``agent=ddpg_kim`` and its variants, family kim; worldmodel/peers/kim/)."""
+
+    # environment steps of training (the paper: 100k); a key of its own, so that a scale can shrink it while the
+    # preset keeps the paper's other settings
+    total_steps: int = 100_000
+    # m: training draws the runner's crossing uniformly within this of the ego's middle (envs.kim.sample; the paper
+    # does not say); 0 = the middle. Evaluate with the same evaluate.kim.impact_offset_spread
+    impact_offset_spread: float = 0.0
+    # the cloning loss's weight on labels that steer (|steering| > 0.15 of full); 1 = plain least squares. The
+    # planner steers on ~6 % of its labels, and a least-squares student under-steers (docs/results/kim/)
+    bc_steer_weight: float = 1.0
+
+    def problems(self):
+        if not 0.0 <= self.impact_offset_spread <= KIM_CAR_LENGTH / 2:
+            yield ConfigValueError(
+                "kim.impact_offset_spread",
+                self.impact_offset_spread,
+                f"it must be in [0, {KIM_CAR_LENGTH / 2:g}] m (half the ego)",
+            )
+        if self.bc_steer_weight <= 0:
+            yield ConfigValueError("kim.bc_steer_weight", self.bc_steer_weight, "it must be > 0")
+
+
+@dataclass
+class MerolaAgentConfig(Checked):
+    """Merola et al.'s DDQN (``agent=ddqn_merola``, family merola; worldmodel/peers/merola.py)."""
+
+    # environment steps of training, whole episodes (the paper: 360k); a key of its own, so that a scale can shrink
+    # it while the preset keeps the paper's other settings. 100k: what two cores afford (docs/results/merola/)
+    total_steps: int = 100_000
+    # obs=frames_resnet: a local ResNet-18 state dict with torchvision's names (ImageNet weights cannot be
+    # downloaded here; worldmodel/models/resnet.py refuses to run without them)
+    resnet_weights: str | None = None
 
 
 @dataclass
@@ -267,9 +337,6 @@ class AgentConfig(DDPGConfig):
     # labels every state it reaches, and the actor is cloned again on everything so far
     dagger_rounds: int = 0
     dagger_episodes: int = 100
-    # Kim's LIDAR agent: the cloning loss's weight on labels that steer (|steering| > 0.15 of full); 1 = plain least
-    # squares. The planner steers on ~6 % of its labels, and a least-squares student under-steers (docs/results/kim/)
-    bc_steer_weight: float = 1.0
     reward_scale: float = 1.0  # rewards are multiplied by this in the replay (the optimum does not change)
     # the rewards the pipeline trains this preset with (`agents:`); a student that only clones the R2 planner
     # lists r2 alone, since its R1 run would be the same network under another name
@@ -282,27 +349,14 @@ class AgentConfig(DDPGConfig):
     kim_chooser: KimChooserConfig = field(default_factory=KimChooserConfig)
     # learner "dqn" (worldmodel/peers/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
-    episodes: int = 6000  # the dqn learner's training episodes (family chae: ~40 steps each)
-    select: SelectConfig = field(default_factory=SelectConfig)  # the dqn learner on family chae: best.pt
-    # the training steps of a LIDAR ddpg peer (Kim et al.: 100k) and of ddqn_merola (Merola et al.: 360k): a key of
-    # its own, so that a scale can shrink it while the peer's preset keeps the paper's other settings
-    peer_total_steps: int = 100_000
-    # m: family kim's training draws the runner's crossing uniformly within this of the ego's middle (envs.kim.sample;
-    # the paper does not say); 0 = the middle. Evaluate with the same evaluate.kim.impact_offset_spread
-    kim_impact_offset_spread: float = 0.0
-    # s, family chae's training TTCs, U(lo, hi); evaluation keeps its own. The paper's 1.5-4 s; dqn_chae trains
-    # from 1.3 s, so that TTC 1.5 s, the bar's edge, is not training's edge (docs/results/chae/)
-    chae_ttc_range: list[float] = field(default_factory=lambda: [1.5, 4.0])
-    # m, std of the noise on the pedestrian's position in Chae's state (the paper: "slight"); a checkpoint records
-    # it. 0.1 keeps older runs current; dqn_chae sets 0.05, where Chae's Table I points (docs/results/chae/)
-    chae_noise_m: float = 0.1
+    # each peer's own training keys: Chae's DQN, Kim's LIDAR agents, Merola's DDQN
+    chae: ChaeAgentConfig = field(default_factory=ChaeAgentConfig)
+    kim: KimAgentConfig = field(default_factory=KimAgentConfig)
+    merola: MerolaAgentConfig = field(default_factory=MerolaAgentConfig)
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
     paper_obs: str = "worldmodel"
-    # obs=frames_resnet: a local ResNet-18 state dict with torchvision's names (ImageNet weights cannot be
-    # downloaded here; worldmodel/models/resnet.py refuses to run without them)
-    resnet_weights: str | None = None
 
     def problems(self):
         from ..action_map import ANCHORS, STEERS
@@ -311,11 +365,11 @@ class AgentConfig(DDPGConfig):
             yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
 
         yield from super().problems()
-        yield from _positive(self, "checkpoint_every", "reward_scale", "episodes")
+        yield from _positive(self, "checkpoint_every", "reward_scale")
         clones = self.learner == "ddpg" and self.bc_pretrain_steps > 0  # 0 steps: the cloned actor alone
-        for key, applies in (("total_steps", self.learner == "ddpg"), ("peer_total_steps", True)):
-            steps = getattr(self, key)
-            if applies and (steps < 0 or (steps == 0 and not clones)):
+        for key, section in (("total_steps", self), ("kim.total_steps", self.kim), ("merola.total_steps", self.merola)):
+            steps = section.total_steps
+            if (section is not self or self.learner == "ddpg") and (steps < 0 or (steps == 0 and not clones)):
                 yield ConfigValueError(key, steps, "it must be > 0 (or 0 with a ddpg learner's bc_pretrain_steps > 0)")
         if not self.variant.replace("_", "").isalnum() or not self.variant.islower():
             yield ConfigValueError("variant", self.variant, "it must be a lower-case name of letters, digits and _")
@@ -335,30 +389,13 @@ class AgentConfig(DDPGConfig):
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
-        if not 0.0 <= self.kim_impact_offset_spread <= KIM_CAR_LENGTH / 2:
-            yield ConfigValueError(
-                "kim_impact_offset_spread",
-                self.kim_impact_offset_spread,
-                f"it must be in [0, {KIM_CAR_LENGTH / 2:g}] m (half the ego)",
-            )
-        ttcs = [float(t) for t in self.chae_ttc_range]
-        if len(ttcs) != 2 or not 0.0 < ttcs[0] < ttcs[1] <= 5.0:
-            yield ConfigValueError(
-                "chae_ttc_range",
-                list(self.chae_ttc_range),
-                "use [lo, hi] with 0 < lo < hi <= 5 s (beyond 5 s the trigger would lie behind the ego)",
-            )
-        if not 0.0 <= self.chae_noise_m <= 1.0:
-            yield ConfigValueError(
-                "chae_noise_m", self.chae_noise_m, "it must be in [0, 1] m (0: the exact relative position)"
-            )
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
-        if self.bc_steer_weight <= 0 or (self.bc_steer_weight != 1.0 and self.obs != "lidar"):
+        if self.kim.bc_steer_weight != 1.0 and self.obs != "lidar":
             yield ConfigValueError(
-                "bc_steer_weight",
-                self.bc_steer_weight,
-                "it must be > 0, and 1 unless the agent sees the LIDAR (obs=lidar)",
+                "kim.bc_steer_weight",
+                self.kim.bc_steer_weight,
+                "it must be 1 unless the agent sees the LIDAR (obs=lidar)",
             )
         if self.dagger_rounds and not self.bc_pretrain_steps:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "DAgger clones: set bc_pretrain_steps > 0")

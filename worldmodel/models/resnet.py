@@ -3,7 +3,7 @@
 Merola et al. feed ImageNet-trained ResNet-18 features of RGB frames to their Double DQN. ImageNet weights cannot be
 downloaded on the machines this project targets, and torchvision is not a dependency, so this module defines the
 network itself with torchvision's parameter names: a user who has ``resnet18-f37072fd.pth`` (torchvision's
-ImageNet checkpoint) or any state dict with those names gives its path as ``agent.resnet_weights``, and
+ImageNet checkpoint) or any state dict with those names gives its path as ``agent.merola.resnet_weights``, and
 ``load_resnet18`` refuses clearly when none is given, rather than extracting features with random weights.
 
 Our camera gives class maps, not RGB: they are coloured with the CARLA palette (``envs.camera.colorize``) and
@@ -68,12 +68,12 @@ def load_resnet18(path: str | None) -> ResNet18Features:
     if not path:
         raise StageError(
             "obs=frames_resnet needs ImageNet ResNet-18 weights, and they cannot be downloaded here: give a local "
-            "file with agent.resnet_weights=/path/to/resnet18-f37072fd.pth (torchvision's checkpoint), or use the "
-            "default obs=frames_vae"
+            "file with agent.merola.resnet_weights=/path/to/resnet18-f37072fd.pth (torchvision's checkpoint), or use "
+            "the default obs=frames_vae"
         )
     p = Path(path)
     if not p.is_file():
-        raise StageError(f"agent.resnet_weights={path}: no such file; give the path of a ResNet-18 state dict")
+        raise StageError(f"agent.merola.resnet_weights={path}: no such file; give the path of a ResNet-18 state dict")
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as err:  # a truncated or foreign file

@@ -3,7 +3,7 @@
     python -m worldmodel.train_agent experiment=NAME agent=ddqn_merola [seed=K] [obs=frames_resnet]
     python -m worldmodel.evaluate experiment=NAME evaluate.family=merola
 
-Training (``train_agent`` with ``agent.variant=ddqn_merola``): ``agent.peer_total_steps`` steps (whole episodes) drawn
+Training (``train_agent`` with ``agent.variant=ddqn_merola``): ``agent.merola.total_steps`` steps (whole episodes) drawn
 from
 ``envs.merola.sample`` (lead car braking, junction crossing, oncoming drift; 60 steps of 0.1 s), reward ``merola``,
 nine actions {brake, none, throttle} × {left, straight, right} (pedal -1 / 0 / +1, steer -0.5 / 0 / +0.5), Double
@@ -13,7 +13,7 @@ DQN from ``worldmodel/models/dqn.py`` with one update per step. The observation 
 * ``frames_vae`` (default): the frozen VAE's means of the last 4 frames (4 × 128), the first frame repeated at the
   start of an episode;
 * ``frames_resnet``: the last 4 frames, coloured, through a frozen ResNet-18 (``worldmodel/models/resnet.py``)
-  whose weights the user supplies (``agent.resnet_weights``); the 2×2×512 maps of the 4 frames are concatenated.
+  whose weights the user supplies (``agent.merola.resnet_weights``); the 2×2×512 maps of the 4 frames are concatenated.
 
 Runs: ``runs/NAME/agent_merola_ddqn_merola[-OBS]/seedK/`` with ``last.pt`` (network, optimiser, replay, RNG,
 episode) every ``CHECKPOINT_EPISODES``, TensorBoard and ``metrics.json`` with the learning curve.
@@ -131,7 +131,7 @@ def observer(cfg, obs: str) -> FrameStack:
     if obs == "frames_resnet":
         from ..models.resnet import load_resnet18
 
-        net = load_resnet18(cfg.agent.get("resnet_weights"))
+        net = load_resnet18(cfg.agent.merola.resnet_weights)
         with torch.inference_mode():
             per_frame = net(torch.zeros(1, 3, 64, 64)).numel()
         return FrameStack(resnet_features(net), per_frame)
@@ -152,7 +152,7 @@ def episode_scenario(seed: int, episode: int) -> MerolaSpec:
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
-    """``train_agent`` for ``agent.variant=ddqn_merola``: episodes of family merola until ``agent.peer_total_steps``
+    """``train_agent`` for ``agent.variant=ddqn_merola``: episodes of family merola until ``agent.merola.total_steps``
     steps have been taken; the learning rate decays over exactly that many updates."""
     from tqdm import tqdm
 
@@ -162,7 +162,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     if agent_id.reward != "merola":
         raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
     typed = validate(cfg)
-    total = typed.agent.peer_total_steps
+    total = typed.agent.merola.total_steps
     see = observer(cfg, typed.agent.obs)
     env = family_env(cfg)
     hp = dataclasses.replace(dqn_config(cfg), total_steps=total)

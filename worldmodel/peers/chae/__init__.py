@@ -3,10 +3,10 @@
     python -m worldmodel.train_agent experiment=NAME agent=dqn_chae [seed=K] [obs=worldmodel]
     python -m worldmodel.evaluate experiment=NAME evaluate.family=chae
 
-Training (``train_agent`` with ``agent.learner=dqn``): ``agent.episodes`` episodes drawn from the paper's distribution
-(``envs.chae.sample_chae``: Scenario 1 or 2, TTC ~ U(1.5, 4) s, 10-60 km/h), 0.1 s steps, Chae's four brake levels
-and reward Eq. 8; ``worldmodel/models/dqn.py`` learns from one update per step. A transition into a bump is a
-trauma. The observation is Chae's 15-value pedestrian history (``agent.obs=pedestrian_history``, the paper's,
+Training (``train_agent`` with ``agent.learner=dqn``): ``agent.chae.episodes`` episodes drawn from the paper's
+distribution (``envs.chae.sample_chae``: Scenario 1 or 2, TTC ~ U(1.5, 4) s, 10-60 km/h), 0.1 s steps, Chae's four
+brake levels and reward Eq. 8; ``worldmodel/models/dqn.py`` learns from one update per step. A transition into a
+bump is a trauma. The observation is Chae's 15-value pedestrian history (``agent.obs=pedestrian_history``, the paper's,
 privileged: it reads the simulator as their perception module would deliver it) or our world model's
 [z, zhat, speed] from the camera (``obs=worldmodel``). Runs: ``runs/NAME/agent_chae_dqn_chae[-worldmodel]/seedK/``
 with ``last.pt`` (network, optimiser, both memories, RNG, episode) every ``checkpoint_every_episodes``, TensorBoard

@@ -22,8 +22,8 @@ log = logging.getLogger(__name__)
 
 def bank(c) -> list[tuple[int, ChaeSpec]]:
     """(scenario, spec): Scenario 1 at every TTC of ``c.ttcs`` and Scenario 2, ``c.trials`` each, seeded (``c``: a
-    typed section such as ``evaluate.chae`` or ``agent.select``, or anything with an int ``seed`` and ``trials`` and
-    float ``ttcs``)."""
+    typed section such as ``evaluate.chae`` or ``agent.chae.select``, or anything with an int ``seed`` and ``trials``
+    and float ``ttcs``)."""
     out = []
     for ttc in c.ttcs:
         rng = np.random.default_rng([c.seed, round(ttc * 100)])

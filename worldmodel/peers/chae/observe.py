@@ -53,10 +53,10 @@ class WorldModelObserver:
 
 
 def observer(cfg, obs: str, noise_m: float | None = None):
-    """What a dqn agent sees; Chae's state with ``noise_m`` (default: ``agent.chae_noise_m``, training's, a float
+    """What a dqn agent sees; Chae's state with ``noise_m`` (default: ``agent.chae.noise_m``, training's, a float
     in the schema)."""
     if obs == "pedestrian_history":
-        return HistoryObserver(cfg.agent.chae_noise_m if noise_m is None else noise_m)
+        return HistoryObserver(cfg.agent.chae.noise_m if noise_m is None else noise_m)
     return WorldModelObserver(artifacts.load_world_model(cfg, use_speed=True, frame_view=False))
 
 

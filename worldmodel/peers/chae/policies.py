@@ -101,7 +101,7 @@ SCRIPTED = {
 
 
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
-    """A trained dqn agent, built with the hyperparameters it was trained with: the checkpoint ``agent.select``
+    """A trained dqn agent, built with the hyperparameters it was trained with: the checkpoint ``agent.chae.select``
     chose on its validation draw (``best.pt``) when the run validated, else the last one."""
     state = artifacts.load_agent_state(cfg, agent_id, "last")
     # last.pt says whether the run validated (a best.pt alone could be left from another run's settings); a chae
@@ -123,7 +123,7 @@ def policy_from_state(cfg, agent_id: AgentId, state: dict) -> DQNPolicy:
         raise StageError(
             f"{agent_id.dir(cfg)} is not a dqn agent; delete it or move it out of {artifacts.runs_root(cfg)}"
         )
-    # checkpoints from before agent.chae_noise_m were all trained at the default 0.1 m
+    # checkpoints from before agent.chae.noise_m were all trained at the default 0.1 m
     see = observer(cfg, state["obs"], noise_m=state.get("noise_m", 0.1))
     if see.dim != state["obs_dim"]:
         raise StageError(

@@ -1,4 +1,4 @@
-"""Checkpoint selection for Chae's DQN (``agent.select``): the validation draw a checkpoint is scored on during
+"""Checkpoint selection for Chae's DQN (``agent.chae.select``): the validation draw a checkpoint is scored on during
 training, the choice of ``best.pt``, and the rescoring of the kept checkpoints on a draw of their own."""
 
 from __future__ import annotations
@@ -14,13 +14,13 @@ from .report import summarise
 
 
 def validated_path(run_dir, episode: int):
-    """Where ``agent.select.keep`` keeps the checkpoint validated after ``episode`` episodes."""
+    """Where ``agent.chae.select.keep`` keeps the checkpoint validated after ``episode`` episodes."""
     return run_dir / "validated" / f"episode{int(episode):05d}.pt"
 
 
 class Validation:
-    """``agent.select``'s validation draw (``bank`` on its own seed), driven greedily by a checkpoint; ``sel``: the
-    typed ``agent.select``."""
+    """``agent.chae.select``'s validation draw (``bank`` on its own seed), driven greedily by a checkpoint; ``sel``: the
+    typed ``agent.chae.select``."""
 
     def __init__(self, sel, env):
         self.ttcs = sel.ttcs
@@ -71,16 +71,16 @@ def rescore_choice(rescored: list[dict], max_bump: float, max_stops: float) -> d
 
 
 def member_found(rescored: dict | None, sel) -> bool:
-    """Whether the rescoring chose a checkpoint inside both bars on its draw (``agent.select.extend`` stops);
-    ``sel``: the typed ``agent.select``."""
+    """Whether the rescoring chose a checkpoint inside both bars on its draw (``agent.chae.select.extend`` stops);
+    ``sel``: the typed ``agent.chae.select``."""
     chosen = (rescored or {}).get("chosen")
     return chosen is not None and room(chosen, sel.max_bump, sel.max_stops) <= 1.0
 
 
 def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, cache: dict | None = None) -> dict:
-    """``agent.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
+    """``agent.chae.select.rescore``: the shortlisted kept checkpoints of the run in ``run_dir`` on the rescoring draw
     (``sel``: the run's select settings, with float bars and TTCs and int counts, default the typed
-    ``agent.select`` of ``cfg``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
+    ``agent.chae.select`` of ``cfg``) at ``sel.rescore_ttcs`` (None: ``ttcs[0]``).
     Returns the draw, every shortlisted checkpoint's bumps per TTC, their highest and the needless stops, and the
     chosen one (None: no candidate). ``cache`` (str(episode) -> entry) holds checkpoints already rescored on this
     draw, and takes the new ones."""
@@ -88,7 +88,7 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
 
     from ...config import validate
 
-    sel = sel or validate(cfg).agent.select
+    sel = sel or validate(cfg).agent.chae.select
     corner, max_bump, max_stops = sel.ttcs[0], sel.max_bump, sel.max_stops
     ttcs = getattr(sel, "rescore_ttcs", None) or [corner]
     entries = bank(SimpleNamespace(seed=sel.rescore_seed, trials=sel.rescore_trials, ttcs=ttcs))
@@ -100,7 +100,7 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
             continue
         path = validated_path(run_dir, score["episode"])
         if not path.exists():
-            raise StageError(f"{path} is missing: rescoring reads the checkpoints agent.select.keep=true keeps")
+            raise StageError(f"{path} is missing: rescoring reads the checkpoints agent.chae.select.keep=true keeps")
         policy = policy_from_state(cfg, agent_id, torch.load(path, map_location="cpu", weights_only=False))
         env = env or family_env(cfg, camera=policy.see.camera, end_on_bump=False)
         s = summarise(run_policy(env, policy, entries, leave=False), ttcs)["policies"][policy.name]

@@ -24,7 +24,7 @@ CHECKPOINT_EPISODES = 100
 
 def episode_scenario(seed: int, episode: int, ttc_range=TTC_RANGE) -> tuple[ChaeSpec, int]:
     """Training episode ``episode``'s scenario and observation-noise seed: a function of (seed, episode) and the
-    TTC range (``agent.chae_ttc_range``) only, so a resumed run draws what an uninterrupted one would."""
+    TTC range (``agent.chae.ttc_range``) only, so a resumed run draws what an uninterrupted one would."""
     rng = np.random.default_rng([int(seed), CHAE_TRAINING_EPISODES, int(episode)])
     return sample_chae(rng, ttc_range=(float(ttc_range[0]), float(ttc_range[1]))), int(rng.integers(2**31))
 
@@ -35,7 +35,7 @@ def bumped(terminated: bool, info: dict) -> bool:
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
-    """``train_agent`` for ``agent.learner=dqn``: ``agent.episodes`` episodes of family chae."""
+    """``train_agent`` for ``agent.learner=dqn``: ``agent.chae.episodes`` episodes of family chae."""
     from tqdm import tqdm
 
     from ...config import validate
@@ -47,15 +47,15 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         )
     typed = validate(cfg)
     a = typed.agent
-    episodes = a.episodes
-    sel = a.select
+    episodes = a.chae.episodes
+    sel = a.chae.select
     for key in ("seed", "rescore_seed") if sel.rescore else ("seed",):
         if sel.every and getattr(sel, key) == typed.evaluate.chae.seed:
             raise StageError(
-                f"agent.select.{key}={getattr(sel, key)} is the evaluation's draw (evaluate.chae.seed): checkpoints "
-                f"must be chosen on other trials; give agent.select.{key} another value"
+                f"agent.chae.select.{key}={getattr(sel, key)} is the evaluation's draw (evaluate.chae.seed): "
+                f"checkpoints must be chosen on other trials; give agent.chae.select.{key} another value"
             )
-    see = observer(cfg, a.obs, noise_m=a.chae_noise_m)
+    see = observer(cfg, a.obs, noise_m=a.chae.noise_m)
     see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
     env = family_env(cfg, see.camera)
     hp = dqn_config(cfg)
@@ -79,7 +79,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     def play_episode():
         """One training episode, logged; a validation (or a checkpoint) when it falls due."""
         nonlocal episode, loss
-        spec, view_seed = episode_scenario(typed.seed, episode, a.chae_ttc_range)
+        spec, view_seed = episode_scenario(typed.seed, episode, a.chae.ttc_range)
         ret, outcome, loss = play_dqn_episode(env, agent, see, spec, brake_action, bumped, view_seed, loss)
         end = outcome["end"]
         curve["return"].append(float(ret))
@@ -116,7 +116,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
                 chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
         return chosen, rescored
 
-    # training on needs the rescoring's verdict: without validation (agent.select.every=0) there is none
+    # training on needs the rescoring's verdict: without validation (agent.chae.select.every=0) there is none
     block, blocks = (sel.extend, sel.extend_blocks) if validation is not None and sel.rescore else (0, 0)
     # the planned episodes, then whole blocks until the rescoring finds a member inside both bars
     target = first_target(episode, episodes, block)

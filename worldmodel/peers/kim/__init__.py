@@ -5,7 +5,7 @@
     python -m worldmodel.train_agent experiment=NAME agent=kim_chooser [seed=K]     # the LIDAR chooser
     python -m worldmodel.evaluate experiment=NAME evaluate.family=kim
 
-Training (``train_agent`` with ``agent.obs=lidar``): ``agent.peer_total_steps`` steps of family ``kim``
+Training (``train_agent`` with ``agent.obs=lidar``): ``agent.kim.total_steps`` steps of family ``kim``
 (envs/kim.py: the three scenarios, lanes and neutral cars drawn uniformly, the ego at U(10, 50) km/h), 0.1 s steps;
 the existing DDPG (worldmodel/models/ddpg.py) with Kim's 1-D convolutions over the LIDAR's angle
 (``agent.lidar_scans``). The observation is the last 4 scans of the 36-ray LIDAR and the previous action

@@ -106,7 +106,7 @@ def labels_path(cfg, typed):
         "decide_steps": decide_steps_for(c.decide_s, typed.env.step_s),
         "candidates": [vars(m) for m in candidates(typed.env.step_s)],
         "lidar": [a.lidar_scans, a.lidar_rays, a.use_speed],
-        "impact_offset_spread": a.kim_impact_offset_spread,
+        "impact_offset_spread": a.kim.impact_offset_spread,
         "env": section(cfg, "env"),
     }
     name = f"{artifacts.config_sha256(settings)[:10]}-seed{c.label_seed}.npz"

@@ -66,14 +66,14 @@ def family_env(cfg, reward: str, camera: bool = False, step_s: float = 0.1):
 
 
 def training_scenario(cfg, *stream: int, seed: int | None = None) -> KimSpec:
-    """A scenario of the training distribution (``agent.kim_impact_offset_spread`` says where the runner may
+    """A scenario of the training distribution (``agent.kim.impact_offset_spread`` says where the runner may
     strike), a function of (seed, ``stream``) only, so a resumed run draws what an uninterrupted one would;
     ``stream`` starts with a tag of envs/streams.py (``KIM_TRAINING_EPISODES`` and the others) and its indices;
     ``seed``: another than the training seed (labels shared by every seed). ``cfg``: the typed config
     (``validate(cfg)``; called once per episode, so the caller validates) or the composed one, whose schema gives
     the same int seed and float spread."""
     rng = np.random.default_rng([cfg.seed if seed is None else seed, *map(int, stream)])
-    return sample_kim(rng, cfg.agent.kim_impact_offset_spread)
+    return sample_kim(rng, cfg.agent.kim.impact_offset_spread)
 
 
 def ddpg_config(cfg):

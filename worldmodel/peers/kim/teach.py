@@ -15,7 +15,7 @@ from .observe import LidarObserver, training_scenario
 
 log = logging.getLogger(__name__)
 HELD_OUT_SHARE = 0.1  # the last tenth of the demonstration episodes (at least one) stops the cloning early
-STEERING_LABEL = 0.15  # a label steers (agent.bc_steer_weight) above this share of full steering; the planner: 0.3+
+STEERING_LABEL = 0.15  # a label steers (agent.kim.bc_steer_weight) above this share of full steering; the planner: 0.3+
 
 
 def teacher(cfg):
@@ -122,7 +122,7 @@ def learn_from_planner(cfg, env, see: LidarObserver, agent, hp, writer, cloned: 
             inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])
             info[f"dagger_round{round_}"] = {"labels": len(x), "student_avoidance": student}
             log.info("DAgger round %d: the student avoided %.1f %%, %d labels", round_, student, len(x))
-        w = hp.bc_steer_weight
+        w = hp.kim.bc_steer_weight
         weights = None if w == 1.0 else np.where(np.abs(targets[:, 1]) > STEERING_LABEL, w, 1.0)  # None: as before
         clone(agent, inputs, targets, hp, writer, round_, held_out, weights)
         info[f"after_cloning_round{round_}"] = cloning_fit(agent, held_out)

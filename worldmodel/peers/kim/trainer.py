@@ -21,7 +21,7 @@ CHECKPOINT_EPISODES = 200
 
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
-    """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.peer_total_steps`` steps, or the
+    """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.kim.total_steps`` steps, or the
     LIDAR chooser (``agent.learner=kim_chooser``, ``chooser.train``)."""
     from tqdm import tqdm
 
@@ -41,7 +41,7 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
     if not hp.lidar_scans:
         raise StageError("obs=lidar needs the LIDAR front end: agent.lidar_scans=4 (agent=ddpg_kim sets it)")
-    total = hp.peer_total_steps
+    total = hp.kim.total_steps
     see = observer(typed, agent_id.reward)
     env = family_env(cfg, agent_id.reward)
     agent = DDPG(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))

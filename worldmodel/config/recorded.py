@@ -1,0 +1,116 @@
+"""What a run's config hash covers: a stage's settings in the layout the recorded runs were hashed with.
+
+Options added to a section at their off value, keys removed or moved since a run was recorded, and keys that only
+another learner reads are brought back to that layout before hashing (``artifacts.provenance``), so a change of
+the config's shape alone never makes a recorded run stale. A change of what a run computes must change its hash.
+"""
+
+from __future__ import annotations
+
+RECORDED_WORKERS = 2  # the chooser's labelling processes in the runs recorded while the count was hashed
+RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
+# Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
+# they are left out of the hash and older runs stay current.
+ADDED_DEFAULTS = {
+    "env": {"step_s": 1.0 / 15.0, "family": "porav", "tele_fov_deg": None},
+    "agent": {
+        "obs": "worldmodel",
+        "paper_obs": "worldmodel",
+        "episodes": 3000,
+        "lidar_scans": 0,
+        "lidar_rays": 36,
+        "peer_total_steps": 100_000,
+        "resnet_weights": None,
+        "kim_impact_offset_spread": 0.0,
+        "bc_steer_weight": 1.0,
+        "chae_ttc_range": [1.5, 4.0],
+        "chae_noise_m": 0.1,
+    },
+}
+# Agent keys that only their own learner reads.
+LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",)}
+# DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
+DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
+# Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are
+# put back before hashing, so those runs stay current. (Removed keys that were also added defaults simply stay out.)
+REMOVED_KEYS = {
+    ("agent", "dqn"): {"trauma_lead": 0},
+    ("evaluate", "chae"): {"ensemble_pool": 0, "ensemble_vote": False},
+}
+# Agent keys that moved into a peer's own section, at their old names: they are put back there before hashing, so the
+# runs recorded before the move stay current. Kim's and Merola's total_steps were one key, peer_total_steps.
+MOVED_KEYS = {
+    ("chae", "episodes"): "episodes",
+    ("chae", "ttc_range"): "chae_ttc_range",
+    ("chae", "noise_m"): "chae_noise_m",
+    ("chae", "select"): "select",
+    ("kim", "impact_offset_spread"): "kim_impact_offset_spread",
+    ("kim", "bc_steer_weight"): "bc_steer_weight",
+    ("merola", "resnet_weights"): "resnet_weights",
+}
+
+
+def _legacy_layout(agent) -> None:
+    if not isinstance(agent, dict):
+        return
+    sections = {name: agent.pop(name, None) or {} for name in ("chae", "kim", "merola")}
+    for (section, key), old in MOVED_KEYS.items():
+        if key in sections[section]:
+            agent[old] = sections[section][key]
+    # one peer trained at a time: Merola's camera frames, else Kim's (a scale set both alike)
+    steps = sections["merola" if str(agent.get("obs", "")).startswith("frames") else "kim"].get("total_steps")
+    if steps is not None:
+        agent["peer_total_steps"] = steps
+
+
+def as_recorded(settings: dict) -> dict:
+    """``settings`` (a stage's config sections, plain dicts) as the runs recorded so far hashed them: moved keys
+    back at their old names, added options at their off values left out, removed keys put back."""
+    _legacy_layout(settings.get("agent"))
+    for (section, sub), removed in REMOVED_KEYS.items():
+        part = settings.get(section, {})
+        part = part.get(sub) if isinstance(part, dict) else None
+        if isinstance(part, dict):
+            for key, value in removed.items():
+                part.setdefault(key, value)
+    agent = settings.get("agent")
+    for learner, keys in LEARNER_KEYS.items():  # one learner's keys do not shape the others
+        if isinstance(agent, dict) and agent.get("learner") != learner:
+            for key in keys:
+                agent.pop(key, None)
+    dqn = agent.get("dqn") if isinstance(agent, dict) else None
+    if isinstance(dqn, dict):
+        for key, off in DQN_OPTIONS_OFF.items():
+            if key in dqn and dqn[key] == off:
+                dqn.pop(key)  # off: the DQN as before the option
+    chooses = isinstance(agent, dict) and agent.get("learner") == "dqn" and settings.get("reward") == "chae"
+    if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
+        agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
+    select = agent.get("select") if isinstance(agent, dict) else None
+    if isinstance(select, dict) and not (select.get("extend") and select.get("extend_blocks")):
+        select.pop("extend", None)  # off: the run's length as before the option
+        select.pop("extend_blocks", None)
+    if isinstance(select, dict) and not select.get("rescore"):
+        for key in ("keep", "rescore", "rescore_seed", "rescore_trials", "rescore_ttcs", "max_stops"):
+            select.pop(key, None)  # no rescoring: best.pt chosen as before the option (keeping files changes nothing)
+    chooser = agent.get("chooser") if isinstance(agent, dict) else None
+    for key in ("min_brake_cost", "static_penalty"):
+        if isinstance(chooser, dict) and not chooser.get(key):
+            chooser.pop(key, None)  # off: the chooser as before the option
+    if isinstance(chooser, dict) and chooser.get("label_seed", 0) is None:
+        chooser.pop("label_seed")  # each seed its own labels, as before the option
+    if isinstance(chooser, dict) and chooser.get("mask_camera") == "wide":
+        chooser.pop("mask_camera")  # the world model's camera, as before the second one
+    evaluate = settings.get("evaluate")
+    if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
+        evaluate.pop("family", None)  # the paper's bank, as before the families existed
+        evaluate.pop("chae", None)
+        evaluate.pop("kim", None)
+        evaluate.pop("merola", None)
+    for section, defaults in ADDED_DEFAULTS.items():
+        values = settings.get(section)
+        if isinstance(values, dict):
+            for key, default in defaults.items():
+                if key in values and values[key] == default:
+                    values.pop(key)
+    return settings
