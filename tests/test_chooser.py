@@ -204,17 +204,21 @@ def test_labels_are_reproducible_for_any_worker_count(trained, stage_cfg, tmp_pa
 
 
 def test_more_episodes_label_what_a_shard_lacks(trained, tmp_path):
-    """Labels made for 4 episodes and then asked for 5: the shard is labelled again in full, so the labels hold
-    every episode asked for and the first four as they were."""
+    """Labels made for 4 episodes are read again as they are; asked for 5, the shard is labelled again in full, so
+    the labels hold every episode asked for and the first four as they were."""
     from worldmodel.config import compose
 
     root, base, cfg, _ = trained
     shutil.copytree(root / "data", tmp_path / "data")
     paths = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs"]
-    more = compose("train_agent", [*paths, *base[2:], *OVERRIDES, "agent.chooser.num_workers=1"])
+    same = compose("train_agent", [*paths, *base[2:], *OVERRIDES, "agent.chooser.num_workers=1"])
+    shard = chooser.labels_dir(same) / "shard_0000.h5"
+    made = shard.read_bytes()
+    four = chooser.labels(same)
+    assert shard.read_bytes() == made  # the episodes it holds are the ones asked for: read, not labelled again
+    more = same.copy()
     more.agent.chooser.episodes = 5
-    assert (chooser.labels_dir(more) / "shard_0000.h5").exists()  # the 4-episode shard, where 5 are asked for
-    four, five = chooser.labels(cfg), chooser.labels(more)
+    five = chooser.labels(more)
     assert sorted(set(five["episode"].tolist())) == [0, 1, 2, 3, 4]
     kept = five["episode"] < 4
     for key in chooser.LABEL_KEYS:

@@ -96,8 +96,8 @@ def _label_shard(task) -> int:
     twin = env.planning_twin()
     parts = []
     bank = validation_entries(cfg) if source == "validation" else None
-    n = len(bank) if bank is not None else c.episodes
-    for e in range(shard * SHARD, min((shard + 1) * SHARD, n)):
+    first, stop = shard * SHARD, min((shard + 1) * SHARD, len(bank) if bank is not None else c.episodes)
+    for e in range(first, stop):
         spec = bank[e].spec if bank is not None else label_scenario(label_seed(cfg), e, c)
         lab = cost_labels(env, spec, candidates, steps, twin)
         n = len(lab["speed"])
@@ -106,7 +106,7 @@ def _label_shard(task) -> int:
     with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
         for key in parts[0]:
             f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
-        f.attrs["episodes"] = [shard * SHARD, min((shard + 1) * SHARD, n)]
+        f.attrs["episodes"] = [first, stop]
     return shard
 
 
