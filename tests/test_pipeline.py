@@ -15,6 +15,7 @@ from envs import StraightLineBraking
 from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose, validate
+from worldmodel.peers import common as peers_common
 from worldmodel.report import read_results_csv
 
 pytestmark = pytest.mark.slow  # every stage at scale=smoke, end to end
@@ -343,6 +344,20 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     assert sorted(r["policy"] for r in rows) == sorted(kim_names * 3)  # 1 trial x 3 scenarios each
     kim_trials = {p: sorted((r["scenario"], r["ego_speed"]) for r in rows if r["policy"] == p) for p in kim_names}
     assert all(t == kim_trials["braking"] for t in kim_trials.values())
+    # on the sealed bank, the ledger names each agent's models: the world model for those that see through it
+    kim = ("evaluate.family=kim", "evaluate.kim.trials=1", "evaluate.kim.policies=[braking]", "evaluate.bank=test")
+    evaluate.run(smoke_cfg(root, "evaluate", *kim))
+    (row,) = [r for r in banks.read_ledger(root / "ledger.csv") if r["family"] == "kim"]
+    listed = dict(p.rstrip(")").split(" (") if " (" in p else (p, "") for p in row["policies"].split("; "))
+    world_model = smoke_cfg(root, "evaluate")
+    vae, rnn = artifacts.short(artifacts.vae_id(world_model)), artifacts.short(artifacts.rnn_id(world_model))
+    assert listed["agent_kim_unaware_ddpg_wm_kim/seed0"].startswith(f"vae={vae}, rnn={rnn}, actor=")
+    assert listed["agent_r1/seed0"].startswith(f"vae={vae}, rnn={rnn}, actor=")
+    assert listed["agent_kim_unaware_ddpg_kim/seed0"].startswith("actor=")  # the LIDAR: no world model
+    chae = peers_common.models_of(world_model, "agent_chae_dqn_chae_ensemble3/seed0")  # seeds 0-2; 0 trained
+    assert chae == {
+        "members": f"{artifacts.actor_id(world_model, artifacts.AgentId.parse('agent_chae_dqn_chae/seed0'))[:12]}+-+-"
+    }
     metrics = json.loads((runs / "agent_merola_ddqn_merola/seed0/metrics.json").read_text())
     assert metrics["steps"] >= 300 and len(metrics["curve"]["return"]) == metrics["episodes"]
 

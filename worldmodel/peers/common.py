@@ -8,6 +8,7 @@ import copy
 import csv
 import dataclasses
 import json
+import re
 import time
 from pathlib import Path
 
@@ -132,16 +133,42 @@ def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:
     return summary
 
 
+ENSEMBLE_KEY = re.compile(r"^(?P<policy>agent_.+)_ensemble(?P<k>\d+)/seed(?P<group>\d+)$")  # chae/policies.ensembles
+
+
+def models_of(cfg, key: str, actor: str | None = None) -> dict[str, str | None]:
+    """A trained agent's short model hashes for the ledger: the world model it sees through (the VAE alone for
+    frozen-VAE frames, the VAE and the LSTM for the world model's observation), then its own checkpoint (``actor``,
+    the evaluation's record of it; read from disk for an agent of another family, such as the paper's agents)."""
+    from ..config import agent_preset
+
+    ensemble = ENSEMBLE_KEY.match(key)
+    if ensemble:  # Chae's ensemble k of group g: its members are seeds g*k .. g*k+k-1 of the policy
+        k, group = int(ensemble["k"]), int(ensemble["group"])
+        members = (models_of(cfg, f"{ensemble['policy']}/seed{s}")["actor"] for s in range(group * k, group * k + k))
+        return {"members": "+".join(m or "-" for m in members)}
+    agent = artifacts.AgentId.parse(key)
+    actor = actor or artifacts.actor_id(cfg, agent)
+    obs = agent.obs or agent_preset(cfg, agent.variant).obs
+    models = {}
+    if obs in ("worldmodel", "frames_vae"):
+        models["vae"] = artifacts.short(artifacts.vae_id(cfg))
+    if obs == "worldmodel":
+        models["rnn"] = artifacts.short(artifacts.rnn_id(cfg))
+    return {**models, "actor": artifacts.short(actor)}
+
+
 def record_if_test(cfg, family: str, rows: list[dict], record: dict, headline: dict[str, str]) -> None:
-    """On the sealed test bank, a ledger row: every policy of ``rows`` (trained ones with their checkpoint's hash
-    from the provenance ``record``) and its headline figure."""
+    """On the sealed test bank, a ledger row: every policy of ``rows`` (trained ones with their models' hashes,
+    ``models_of``) and its headline figure."""
     from ..banks import record_evaluation
 
-    trained = {key: {"actor": artifacts.short(h)} for key, h in record["inputs"].items()}
     policies: dict[str, dict] = {}
     for r in rows:
-        key = f"{r['policy']}/seed{r['policy_seed']}" if str(r["policy"]).startswith("agent_") else str(r["policy"])
-        policies.setdefault(key, trained.get(key, {}))
+        trained = str(r["policy"]).startswith("agent_")
+        key = f"{r['policy']}/seed{r['policy_seed']}" if trained else str(r["policy"])
+        if key not in policies:
+            policies[key] = models_of(cfg, key, record["inputs"].get(key)) if trained else {}
     first = (rows[0]["policy"], rows[0]["policy_seed"]) if rows else None
     scenarios = sum(1 for r in rows if (r["policy"], r["policy_seed"]) == first)  # every policy runs them all
     record_evaluation(cfg, family, scenarios, policies, headline)
