@@ -536,6 +536,10 @@ def test_the_bars_are_judged_run_by_run():
     }
     assert got == {0: (1.0, 1.5, 5.0, True), 1: (2.0, 1.7, 0.0, False), 2: (0.0, 1.5, 6.0, False)}
     assert bars_per_run(rows, [1.3]) == []
+    # each judged rate carries its Wilson 95 % interval: 2 in 100 is [0.55, 7.0] %, 0 in 100 is [0, 3.7] %
+    second = bars_per_run(rows, [1.3, 1.5, 1.7])[1]
+    assert second["max_bump_ci95"] == pytest.approx([0.55, 7.0], abs=0.01)
+    assert second["stops_ci95"] == pytest.approx([0.0, 3.70], abs=0.01)
 
 
 def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_papers(tmp_path):

@@ -457,3 +457,38 @@ def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
         sample(np.random.default_rng(0), -1.0)
     with pytest.raises(StageError, match="agent.kim.impact_offset_spread"):
         validate(compose("train_agent", ["agent=ddpg_kim_fd", "agent.kim.impact_offset_spread=3"]))
+
+
+def test_the_share_of_the_achievable_avoidance_runs_from_braking_to_the_planner():
+    """On 3 scenarios x 20 trials braking avoids 10 of 20, the planner 18 and a two-seed agent 12 and 16 (14 on
+    average): shares 0, 100 and 50, the seeds 25 and 75, an interval around the point; the tables show them."""
+    from worldmodel.peers.kim.report import render_tables, summarise
+
+    def rows(policy, seed, avoided):
+        return [
+            {
+                "policy": policy,
+                "policy_seed": seed,
+                "scenario": s,
+                "trial": t,
+                "avoided": int(t < avoided),
+                "iss_kmh": 0.0 if t < avoided else 4.0,
+                "iss_ms": 0.0,
+                "rear_ended": 0,
+            }
+            for s in SCENARIOS
+            for t in range(20)
+        ]
+
+    bank = rows("braking", 0, 10) + rows("oracle", 0, 18) + rows("agent", 0, 12) + rows("agent", 1, 16)
+    shares = summarise(bank, paper_trials=5)["shares"]
+    assert shares["braking"]["share"] == 0.0 and shares["oracle"]["share"] == 100.0
+    agent = shares["agent"]
+    assert agent["share"] == pytest.approx(50.0) and agent["gain_pts"] == pytest.approx(40.0)
+    assert agent["by_seed"] == {0: pytest.approx(25.0), 1: pytest.approx(75.0)}
+    low, high = agent["interval"]
+    assert low < 50.0 < high
+    tables = render_tables(bank, {"trials": 20, "paper_trials": 5})
+    assert f"| agent | 0,1 | 70.0 | 50.0 [{low:.1f}, {high:.1f}] | 25.0 / 75.0 |" in tables
+    without_planner = [r for r in bank if r["policy"] != "oracle"]
+    assert summarise(without_planner, paper_trials=5)["shares"] == {}

@@ -10,6 +10,7 @@ import numpy as np
 from envs.chae import SAFETY_LINE_M
 
 from ...artifacts import AgentId
+from ...stats import wilson
 
 PAPER_TABLE_I = {0.9: 61.29, 1.1: 18.85, 1.3: 0.74}  # bump rate, %; 0 from 1.5 s on (10,000 trials per TTC)
 PHYSICS_BAND = {
@@ -65,10 +66,8 @@ def bars_per_run(rows: list[dict], ttcs: list[float]) -> list[dict]:
     out = []
     for policy, seed in dict.fromkeys((r["policy"], r["policy_seed"]) for r in rows) if late else ():
         mine = [r for r in rows if r["policy"] == policy and r["policy_seed"] == seed]
-        bumps = {
-            t: 100 * float(np.mean([r["bump"] for r in mine if r["scenario"] == 1 and abs(r["ttc"] - t) < 1e-9]))
-            for t in late
-        }
+        trials = {t: [r["bump"] for r in mine if r["scenario"] == 1 and abs(r["ttc"] - t) < 1e-9] for t in late}
+        bumps = {t: 100 * float(np.mean(b)) for t, b in trials.items()}
         worst = max(late, key=lambda t: (bumps[t], -t))  # the earliest of equal rates
         s2 = [r["end"] == "stop" for r in mine if r["scenario"] == 2]
         stops = 100 * float(np.mean(s2)) if s2 else None
@@ -79,7 +78,9 @@ def bars_per_run(rows: list[dict], ttcs: list[float]) -> list[dict]:
                 "seed": int(seed),
                 "max_bump": bumps[worst],
                 "at_ttc": worst,
+                "max_bump_ci95": list(wilson(int(sum(trials[worst])), len(trials[worst]))),
                 "stops": stops,
+                "stops_ci95": list(wilson(int(sum(s2)), len(s2))) if s2 else None,
                 "inside": bool(inside),
             }
         )
@@ -129,15 +130,23 @@ def tables(summary: dict, trials: int) -> str:
             f"## The bars, run by run: bumps <= {BAR_BUMP:g} % at every TTC from {BAR_FROM_TTC:g} s, needless stops "
             f"<= {BAR_STOPS:g} %",
             "",
-            f"| policy | seed | highest bump rate from {BAR_FROM_TTC:g} s, % (at TTC, s) | needless stops % | inside |",
+            f"| policy | seed | highest bump rate from {BAR_FROM_TTC:g} s, % [95 %] (at TTC, s) | needless stops % "
+            "[95 %] | inside |",
             "|---|---:|---:|---:|---|",
         ]
+
+        def rate(value, interval):
+            return "–" if value is None else f"{value:.1f} [{interval[0]:.1f}, {interval[1]:.1f}]"
+
         for r in summary["runs"]:
-            stops = "–" if r["stops"] is None else f"{r['stops']:.1f}"
+            bump, stops = rate(r["max_bump"], r["max_bump_ci95"]), rate(r["stops"], r["stops_ci95"])
             verdict = "yes" if r["inside"] else "no"
-            lines.append(
-                f"| {r['policy']} | {r['seed']} | {r['max_bump']:.1f} ({r['at_ttc']:g}) | {stops} | {verdict} |"
-            )
+            lines.append(f"| {r['policy']} | {r['seed']} | {bump} ({r['at_ttc']:g}) | {stops} | {verdict} |")
+        lines += [
+            "",
+            "Wilson 95 % intervals; the bars judge the rates themselves. An ensemble's seed is its index: ensemble 0 "
+            "of three holds training seeds 0-2, ensemble 1 seeds 3-5, and so on.",
+        ]
     lines += [
         "",
         "Stopping distance (Fig. 7 layout): `stopping_distance.png`, the gap from the front bumper to the "

@@ -17,7 +17,7 @@ from envs.streams import KIM_BANK_CROSSING
 from ... import artifacts
 from ..common import drawn, record_if_test, seal, world_model_step_s, write_rows
 from .observe import FAMILY, GOAL_REWARDS, family_env
-from .report import figure, summarise, tables
+from .report import CEILING, FLOOR, figure, summarise, tables
 from .trainer import load_policy
 
 log = logging.getLogger(__name__)
@@ -189,6 +189,9 @@ def evaluate(cfg) -> dict:
         writer.add_scalar(f"kim/{policy}/avoidance", s["all"]["overall"]["avoidance"], 0)
     writer.close()
     headline = {p: f"avoidance {s['all']['overall']['avoidance']:.1f} %" for p, s in summary["policies"].items()}
+    for p, share in summary["shares"].items():
+        if p not in (FLOOR, CEILING) and share["share"] is not None:
+            headline[p] += f", share {share['share']:.1f} %"
     record_if_test(cfg, "kim", rows, record, headline)
     seal(out, summary, record, t0)
     log.info(

@@ -1,13 +1,18 @@
-"""Kim et al.'s evaluation as Table 2: the per-policy summary with intervals and paired tests, its markdown tables
-beside the published ones, and the avoidance figure."""
+"""Kim et al.'s evaluation as Table 2: the per-policy summary with intervals and paired tests, each policy's share
+of the achievable avoidance, its markdown tables beside the published ones, and the avoidance figure."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from envs.kim import SCENARIOS
 
-from ...stats import paired_permutation_p, wilson
+from ...stats import paired_bootstrap_ci, paired_permutation_p, wilson
+
+FLOOR, CEILING = "braking", "oracle"  # 0 % and 100 % of the achievable avoidance: braking, the privileged planner
+BOOTSTRAP = 2000  # paired resamples of the trials behind each share's interval, as for the paper's family
 
 # Table 2 (avoidance %, mean injury) per scenario 1 / 2 / 3 / all, as published
 PAPER_TABLE_2 = {
@@ -56,6 +61,58 @@ def summarise(rows: list[dict], paper_trials: int) -> dict:
             if keys:
                 tests[f"{a} vs {b}"] = paired_permutation_p([xa[k] for k in keys], [xb[k] for k in keys])
     out["paired_p"] = tests
+    out["shares"] = achievable_shares(rows)
+    return out
+
+
+def _avoided(rows: list[dict], policy: str, seed: int | None = None) -> dict:
+    """(scenario, trial) -> the share of ``policy``'s seeds (or of ``seed`` alone) that avoided the runner there."""
+    acc: dict = {}
+    for r in rows:
+        if r["policy"] == policy and (seed is None or r["policy_seed"] == seed):
+            acc.setdefault((r["scenario"], r["trial"]), []).append(float(r["avoided"]))
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+def _share(mine, floor, ceiling, axis=-1):
+    """100 (mine - floor) / (ceiling - floor) of the mean avoidance; NaN where the planner gains nothing on braking."""
+    gain = np.mean(ceiling, axis=axis) - np.mean(floor, axis=axis)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(gain > 0, 100.0 * (np.mean(mine, axis=axis) - np.mean(floor, axis=axis)) / gain, np.nan)
+
+
+def _finite(x) -> float | None:
+    return float(x) if math.isfinite(float(x)) else None
+
+
+def achievable_shares(rows: list[dict]) -> dict:
+    """policy -> its share of the achievable avoidance, 100 (policy - braking) / (planner - braking) of the overall
+    avoidance, with a paired-bootstrap 95 % interval over the trials (each resample draws the same trials for the
+    policy, braking and the planner; a policy's seeds are averaged per trial) and each seed's share on its own rows.
+    Empty without braking and the planner on the same trials."""
+    floor, ceiling = _avoided(rows, FLOOR), _avoided(rows, CEILING)
+    out: dict = {}
+    for policy in dict.fromkeys(r["policy"] for r in rows):
+        mine = _avoided(rows, policy)
+        keys = sorted(set(mine) & set(floor) & set(ceiling))
+        if not keys:
+            continue
+        samples = [np.array([d[k] for k in keys]) for d in (mine, floor, ceiling)]
+        point = _finite(_share(*samples))
+        interval = paired_bootstrap_ci(samples, _share, BOOTSTRAP, seed=0) if point is not None else (math.nan,) * 2
+        seeds = sorted({r["policy_seed"] for r in rows if r["policy"] == policy})
+        by_seed = {}
+        for seed in seeds if len(seeds) > 1 else ():
+            own = _avoided(rows, policy, seed)
+            common = sorted(set(own) & set(floor) & set(ceiling))
+            by_seed[seed] = _finite(_share(*(np.array([d[k] for k in common]) for d in (own, floor, ceiling))))
+        out[policy] = {
+            "trials": len(keys),
+            "gain_pts": 100.0 * float(np.mean(samples[2]) - np.mean(samples[1])),
+            "share": point,
+            "interval": [_finite(x) for x in interval],
+            "by_seed": by_seed,
+        }
     return out
 
 
@@ -115,11 +172,44 @@ def tables(summary: dict, trials: int, paper_trials: int) -> str:
             + " | ".join(cells)
             + f" | {o['injury_kmh']:.2f} | {o['injury_ms']:.2f} | {o['rear_ended']:.1f} |"
         )
+    lines += _share_lines(summary.get("shares", {}), pol)
     lines += ["", "## Pairwise tests (paired sign-flip permutation test on per-trial ISS, 10,000 flips)", ""]
     lines += ["| pair | p |", "|---|---:|"]
     lines += [f"| {pair} | {p:.4f} |" for pair, p in summary["paired_p"].items()]
     lines.append("")
     return "\n".join(lines)
+
+
+def _share_lines(shares: dict, pol: dict) -> list[str]:
+    if not shares:
+        return ["", "No share of the achievable avoidance: it needs braking and the planner (oracle) on the trials."]
+    gain = next(iter(shares.values()))["gain_pts"]
+    lines = [
+        "",
+        "## Share of the achievable avoidance",
+        "",
+        f"100 × (policy − braking) / (planner − braking) of the overall avoidance: 0 is braking, 100 the privileged "
+        f"planner, which avoids {gain:.1f} points more than braking here. 95 % paired-bootstrap interval over the "
+        f"trials ({BOOTSTRAP:,} resamples drawing the same trials for the policy, braking and the planner; a policy's "
+        "seeds averaged per trial); each seed's share from its own rows.",
+        "",
+        "| policy | seeds | avoided % | share % [95 %] | each seed's share % |",
+        "|---|---|---:|---:|---:|",
+    ]
+
+    def fmt(v):
+        return "–" if v is None else f"{v:.1f}"
+
+    for name, s in shares.items():
+        low, high = s["interval"]
+        interval = "" if low is None or high is None else f" [{low:.1f}, {high:.1f}]"
+        seeds = " / ".join(fmt(v) for v in s["by_seed"].values()) or "–"
+        avoided = pol[name]["all"]["overall"]["avoidance"]
+        lines.append(
+            f"| {name} | {','.join(map(str, pol[name]['seeds']))} | {avoided:.1f} | {fmt(s['share'])}{interval} | "
+            f"{seeds} |"
+        )
+    return lines
 
 
 def figure(summary: dict, path) -> None:
