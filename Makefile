@@ -38,10 +38,13 @@ PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,kim,ddpg_kim_f
 peers: setup
 	$(PY) -m worldmodel.pipeline $(PEERS_RUN)
 
-# The Euro NCAP bank for every policy of both experiments, after `make headline` and `make peers` (docs/results/ncap/).
+# The Euro NCAP bank for every policy of both experiments, after `make headline` and `make peers` (docs/results/ncap/):
+# the paper's policies taking over at TTC 1.5 s and at 0.75 s, the peers driving from the start, Chae's agents as the
+# three ensembles its report judges.
 ncap: setup
 	$(PY) -m worldmodel.ncap experiment=headline scale=paper
-	$(PY) -m worldmodel.ncap experiment=peers scale=quick
+	$(PY) -m worldmodel.ncap experiment=headline scale=paper ncap.takeover_ttc_s=0.75
+	$(PY) -m worldmodel.ncap experiment=peers scale=quick evaluate.chae.singles=false
 
 # Two workers, one per core; a file's tests stay on one worker, so module-scoped fixtures (the smoke pipeline) are
 # built once.

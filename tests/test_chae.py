@@ -454,6 +454,11 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     assert chosen == ((q0 + q1) / 2).argmax(1).tolist()
     assert chosen != q0.argmax(1).tolist() or chosen != q1.argmax(1).tolist()  # not simply one member
     assert chae.ensembles(agents, members, 3) == []  # seed 2 missing: no partial ensemble
+    # the Euro NCAP bank drives the agents as the family's evaluation does: alone and in ensembles, or ensembles only
+    for singles, expected in (("true", [("agent_chae_dqn_chae", 0), ("agent_chae_dqn_chae", 1)]), ("false", [])):
+        ncap_cfg = cfg("ncap", "evaluate.chae.ensemble=2", f"evaluate.chae.singles={singles}")
+        learned = [(p.name, seed) for p, seed, *_ in chae.ncap_policies(ncap_cfg) if hasattr(p, "agent")]
+        assert learned == [*expected, ("agent_chae_dqn_chae_ensemble2", 0)]
 
     summary = chae.evaluate(ev)
     rows = list(csv.DictReader(open(tmp_path / "runs/e/eval_chae/results.csv")))

@@ -105,12 +105,8 @@ def evaluate(cfg) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     entries = bank(c)
-    agents = artifacts.trained_agents(cfg, family="chae")
     record = artifacts.provenance(cfg, "eval")
-    learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
-    if c.ensemble:
-        grouped = ensembles(agents, learned, c.ensemble)
-        learned = learned + grouped if c.singles else grouped
+    agents, learned = driven(cfg, c)  # fail fast, before any trial runs
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
     for name in c.policies:
@@ -155,11 +151,23 @@ def evaluate(cfg) -> dict:
     return summary
 
 
+def driven(cfg, c) -> tuple[list, list]:
+    """(the trained dqn agents, the policies that drive): each agent alone and, with ``c.ensemble``, their mean-Q
+    ensembles, or the ensembles only when ``c.singles`` is false (``c``: the typed ``evaluate.chae``)."""
+    agents = artifacts.trained_agents(cfg, family=FAMILY)
+    learned = [load_policy(cfg, a) for a in agents]
+    if c.ensemble:
+        grouped = ensembles(agents, learned, c.ensemble)
+        learned = learned + grouped if c.singles else grouped
+    return agents, learned
+
+
 def ncap_policies(cfg) -> list[tuple]:
-    """TTC braking, latest-safe braking and every dqn agent on the NCAP bank: pedestrian tests only, but the
+    """TTC braking, latest-safe braking and the dqn agents as the family's evaluation drives them (alone, in
+    ensembles, or both: ``evaluate.chae.ensemble`` and ``singles``) on the NCAP bank: pedestrian tests only, but the
     camera variant, which sees cars too."""
+    from ...config import validate
+
     out = [(TTCBraking(), 0, False, False), (LatestSafeBraking(), 0, False, False)]
-    for agent in artifacts.trained_agents(cfg, family=FAMILY):
-        policy = load_policy(cfg, agent)
-        out.append((policy, agent.seed, policy.see.camera, policy.see.camera))
-    return out
+    _, learned = driven(cfg, validate(cfg).evaluate.chae)
+    return out + [(p, p.policy_seed, p.see.camera, p.see.camera) for p in learned]
