@@ -220,6 +220,37 @@ def test_agent_built_on_another_vae_refuses_to_load(new_vae):
         evaluate.run(cfg)
 
 
+def test_an_agent_on_the_frozen_vaes_frames_is_stale_on_another_vae(experiment, new_vae, tmp_path):
+    """ddqn_merola sees the frozen VAE's means of its frames (obs=frames_vae): it records the VAE as its input, a new
+    VAE makes it stale for the pipeline and refuses its checkpoint, and a run recorded before the VAE was an input
+    (no input at all) is taken as built on the current VAE."""
+    from worldmodel.peers import merola
+
+    root = tmp_path / "copy"
+    shutil.copytree(experiment, root)
+    preset = ("agent=ddqn_merola", "agent.total_steps=100")
+    train_agent.run(smoke_cfg(root, "train_agent", *preset))
+    cfg = smoke_cfg(root, "train_agent", *preset)
+    agent = artifacts.AgentId.of(cfg)
+    run_dir = agent.dir(cfg)
+    assert artifacts.read_provenance(run_dir)["inputs"] == {"vae": artifacts.vae_id(cfg)}
+
+    shutil.rmtree(root / "runs/t/vae")
+    shutil.copytree(new_vae / "runs/t/vae", root / "runs/t/vae")  # another VAE, as a rebuild would leave it
+    current = artifacts.provenance(cfg, "agent", agent)
+    assert [r.split(" ")[0] for r in artifacts.differences(artifacts.read_provenance(run_dir), current)] == ["vae"]
+    with pytest.raises(StageError, match=r"agent_merola_ddqn_merola/seed0/last.pt is stale: it was built on vae"):
+        merola.load_policy(smoke_cfg(root, "evaluate", "evaluate.family=merola"), agent)
+
+    # recorded before the VAE was an input: no input at all, in the record and in the checkpoint
+    record = artifacts.read_provenance(run_dir)
+    artifacts.write_provenance(run_dir, {**record, "inputs": {}})
+    state = torch.load(run_dir / "last.pt", weights_only=False)
+    torch.save({**state, "provenance": {**state["provenance"], "inputs": {}}}, run_dir / "last.pt")
+    assert artifacts.differences(artifacts.read_provenance(run_dir), current) == []
+    merola.load_policy(smoke_cfg(root, "evaluate", "evaluate.family=merola"), agent)
+
+
 def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
     # shorter agents and no planner in the evaluation keep the rebuild quick; the new VAE alone makes them stale
     cfg = smoke_cfg(new_vae, "pipeline", "vae.kl_weight=0.5", "agent.total_steps=150", "evaluate.policies=[braking]")

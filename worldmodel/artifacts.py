@@ -35,7 +35,7 @@ from typing import Any
 from envs.rewards import REWARDS
 
 from .common import StageError, atomic_write_text, load_checkpoint, stage_command
-from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded
+from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded, inputs_as_recorded
 
 log = logging.getLogger(__name__)
 
@@ -251,7 +251,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
     elif stage == "agent":
         agent = agent or AgentId.of(cfg)
         uses_world_model = cfg.agent.get("obs", "worldmodel") == "worldmodel"
-        inputs = {"vae": vae_id(cfg), "rnn": rnn_id(cfg)} if uses_world_model else {}
+        inputs = {name: identity(cfg) for name, identity in world_model_inputs(cfg.agent.get("obs", "worldmodel"))}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
         chooser = settings["agent"].get("chooser")
         if isinstance(chooser, dict) and chooser.get("num_workers") is not None:  # labels equal for any count (tested)
@@ -301,12 +301,13 @@ def differences(recorded: dict | None, current: dict) -> list[str]:
     if recorded is None:
         return ["no record of its inputs"]
     out = []
+    inputs = inputs_as_recorded(recorded.get("inputs", {}), current["inputs"])
     for name, now in current["inputs"].items():
-        then = recorded.get("inputs", {}).get(name)
+        then = inputs.get(name)
         if then != now:
             out.append(f"{name} {short(then) or 'absent'} -> {short(now) or 'absent'}")
-    for name in set(recorded.get("inputs", {})) - set(current["inputs"]):
-        out.append(f"{name} {short(recorded['inputs'][name])} -> absent")
+    for name in set(inputs) - set(current["inputs"]):
+        out.append(f"{name} {short(inputs[name])} -> absent")
     if recorded.get("config") != current["config"]:
         out.append("its config changed")
     return out
@@ -335,8 +336,8 @@ def check_inputs(cfg, what: str, path: Path, state: dict, inputs: dict[str, Path
     Inputs whose file is absent are not compared (data may be deleted after training). A mismatch is a
     StageError naming both files and how to rebuild, or a warning under ``allow_stale=true``.
     """
-    recorded = (state.get("provenance") or {}).get("inputs", {})
     current = {name: _identity(file) for name, file in inputs.items()}
+    recorded = inputs_as_recorded((state.get("provenance") or {}).get("inputs", {}), current)
     stale = [name for name, now in current.items() if now is not None and recorded.get(name) != now]
     if not stale:
         return
@@ -488,14 +489,22 @@ def load_actor(cfg, agent: AgentId, which: str = "last", state: dict | None = No
     return actor.eval(), state
 
 
+def world_model_inputs(obs: str) -> list[tuple[str, Any]]:
+    """(name, identity function) of the world-model parts an agent's observation ``obs`` reads: the VAE and the LSTM
+    for the world model's view, the VAE alone for the frozen VAE's means of the frames (``frames_vae``), none for a
+    privileged or LIDAR view or ResNet features."""
+    if obs == "worldmodel":
+        return [("vae", vae_id), ("rnn", rnn_id)]
+    return [("vae", vae_id)] if obs == "frames_vae" else []
+
+
 def load_agent_state(cfg, agent: AgentId, which: str = "last") -> dict:
     """An agent's checkpoint, after checking that it was built on the current VAE and LSTM."""
     path = agent.dir(cfg) / f"{which}.pt"
     state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
     rebuild = f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} seed={agent.seed}"
-    # an agent on a privileged observation (Chae's pedestrian history) is built on no world model
-    uses_world_model = state.get("obs", "worldmodel") == "worldmodel"
-    inputs = {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"} if uses_world_model else {}
+    files = {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"}
+    inputs = {name: files[name] for name, _ in world_model_inputs(state.get("obs", "worldmodel"))}
     check_inputs(cfg, f"The agent {agent.key}", path, state, inputs, rebuild)
     return state
 

@@ -114,3 +114,13 @@ def as_recorded(settings: dict) -> dict:
                 if key in values and values[key] == default:
                     values.pop(key)
     return settings
+
+
+def inputs_as_recorded(recorded: dict, current: dict) -> dict:
+    """The input identities a run recorded (``recorded``), against the ``current`` ones: an agent that sees the
+    frozen VAE's means of its frames (``obs=frames_vae``, Merola's) recorded no input before the VAE became one, so
+    a record without any input is taken as built on the current VAE. Every such run on disk was trained on the VAE
+    of its experiment, which nothing rebuilt; from now on the VAE is recorded and a new one makes the agent stale."""
+    if not recorded and set(current) == {"vae"}:
+        return dict(current)
+    return recorded
