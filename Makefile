@@ -3,6 +3,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 EXPERIMENT ?= quick
+# more overrides for run, headline and peers: `make peers ARGS=plan=true` lists each step's state, running nothing
+ARGS ?=
 
 .PHONY: setup run test lint bench preview mutation headline peers ncap clean-venv
 
@@ -15,7 +17,7 @@ $(VENV)/.installed: requirements.lock requirements-dev.lock pyproject.toml
 	touch $@
 
 run: setup
-	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick
+	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick $(ARGS)
 
 # The paper's family at paper scale, as one experiment (docs/results/porav/README.md): one world model; the paper's
 # DDPG with R1 and R2, the best DDPG-actor variant (dag), the chooser and the two-camera chooser, three seeds each;
@@ -25,7 +27,7 @@ HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tel
 	banks=[validation,test] demos.episodes=500 evaluate.policies=[braking,oracle,oracle_brake1,oracle_brake2]
 
 headline: setup
-	$(PY) -m worldmodel.pipeline $(HEADLINE)
+	$(PY) -m worldmodel.pipeline $(HEADLINE) $(ARGS)
 
 # The peer systems as their reports validated them (docs/results/chae/, kim/, merola/), at quick scale with their own
 # world model for the camera agents: Merola's DDQN; Kim's LIDAR agents (goal-unaware, goal-aware, planner-taught),
@@ -36,7 +38,7 @@ PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,kim,ddpg_kim_f
 	seeds=[0,1,2] banks=[validation,test] evaluate.chae.trials=1000 evaluate.chae.singles=false
 
 peers: setup
-	$(PY) -m worldmodel.pipeline $(PEERS_RUN)
+	$(PY) -m worldmodel.pipeline $(PEERS_RUN) $(ARGS)
 
 # The Euro NCAP bank for every policy of both experiments, after `make headline` and `make peers` (docs/results/ncap/):
 # the paper's policies taking over at TTC 1.5 s and at 0.75 s, the peers driving from the start, Chae's agents as the

@@ -418,3 +418,44 @@ def test_leftover_temporary_checkpoint_is_removed_on_start(tmp_path):
     with training.TrainingRun(cfg, "train_vae", tmp_path, record={"inputs": {}, "config": "c"}) as run:
         assert run.state["step"] == 3
     assert not stale.exists() and keep.exists() and (tmp_path / "last.pt").exists()
+
+
+# ----------------------------------------------------------------------------- the pipeline
+def test_an_interrupted_pipeline_step_keeps_its_time_and_a_resume_adds_to_it(rollouts, world_model, tmp_path):
+    """Ctrl-C in an agent step: pipeline.json records the time so far (not complete), plan=true shows it, and the
+    rerun that finishes the step adds to it (two invocations). A step resumed after a kill -9, which recorded
+    nothing, says that its time is a lower bound."""
+    import json
+
+    from worldmodel import pipeline
+
+    runs = agent_runs(world_model, tmp_path)
+    args = ("agents=[ddpg]", "evaluate.policies=[braking]")
+    timings = runs / "t/pipeline.json"
+    with Stage("pipeline", rollouts, runs, *args) as run:
+        run.wait_until(
+            lambda: (p := run.progress(AGENT_BAR)) is not None and p[0] >= WARMUP + 20, "20 steps past the warm-up"
+        )
+        run.signal(signal.SIGINT)
+        assert run.finish() == 0, run.output
+    first = json.loads(timings.read_text())["agent_r1"]
+    assert "agent_r1 was interrupted" in run.output
+    assert (first["complete"], first["invocations"], first["untimed_part"]) == (False, 1, False)
+    assert first["wall_s"] > 0
+
+    rows = {r["step"]: r for r in pipeline.run(smoke("pipeline", rollouts, runs, *args, "plan=true"))["plan"]}
+    assert (rows["agent_r1"]["state"], rows["agent_r1"]["wall_s"]) == ("resume", first["wall_s"])
+    assert rows["vae"]["state"] == rows["rnn"]["state"] == "complete" and rows["agent_r2"]["state"] == "fresh"
+    assert not (runs / "t/agent_r1/seed0/metrics.json").exists()  # the plan ran nothing
+
+    with Stage("pipeline", rollouts, runs, *args) as run:  # finishes agent_r1, then dies inside agent_r2
+        run.wait_until(lambda: re.search(r"agent r2:\s*\d+%\|[^|]*\|\s*[1-9]", run.output), "agent_r2 training")
+        run.signal(signal.SIGKILL)
+        run.finish()
+    pipeline.run(smoke("pipeline", rollouts, runs, *args))
+    recorded = json.loads(timings.read_text())
+    r1, r2 = recorded["agent_r1"], recorded["agent_r2"]
+    assert (r1["complete"], r1["invocations"], r1["untimed_part"]) == (True, 2, False)
+    assert r1["wall_s"] > first["wall_s"]
+    assert (r2["complete"], r2["invocations"], r2["untimed_part"]) == (True, 1, True)
+    assert recorded["eval"]["complete"] and not recorded["eval"]["untimed_part"]

@@ -99,6 +99,28 @@ def test_second_run_skips_finished_stages(experiment, caplog):
     assert "agent_r2_chooser: share " in row["headline"]
 
 
+def test_the_plan_says_what_a_run_would_do_and_runs_nothing(experiment, tmp_path):
+    """plan=true on a finished experiment: every step complete with its recorded time. With the LSTM unfinished, the
+    LSTM resumes and the steps that read it are complete now but checked again after it; nothing is written."""
+    done = pipeline.run(smoke_cfg(experiment, "pipeline", BANKS, "plan=true"))["plan"]
+    timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
+    assert [(r["step"], r["state"], r["wall_s"]) for r in done] == [
+        (name, "complete", timings[name]["wall_s"]) for name in timings
+    ]
+    root = tmp_path / "copy"
+    shutil.copytree(experiment, root)
+    (root / "runs/t/rnn/metrics.json").unlink()  # as if the LSTM had been stopped before it finished
+    before = sorted((p, p.stat().st_mtime_ns) for p in root.rglob("*"))
+    rows = {r["step"]: r for r in pipeline.run(smoke_cfg(root, "pipeline", BANKS, "plan=true"))["plan"]}
+    assert {name: r["state"] for name, r in rows.items()} == {
+        "collect": "complete", "vae": "complete", "rnn": "resume", "agent_r1": "after", "agent_r2": "after",
+        "agent_r2_chooser": "after", "eval": "after", "eval_test": "after",
+    }  # fmt: skip
+    assert rows["agent_r1"]["reasons"] == ["checked again once rnn ran"]
+    assert rows["eval"]["reasons"] == ["checked again once agent_r1, agent_r2_chooser, agent_r2 ran"]  # their order
+    assert sorted((p, p.stat().st_mtime_ns) for p in root.rglob("*")) == before
+
+
 def test_the_pipeline_trains_every_seed_of_seeds(tmp_path):
     names = [s.name for s in pipeline.steps(smoke_cfg(tmp_path, "pipeline", "agents=[ddpg]", "seeds=[0,2]", BANKS))]
     assert names == [

@@ -124,3 +124,18 @@ def test_gzip_rows_read_back_like_plain_ones(tmp_path):
     assert gzip.decompress((tmp_path / "r.csv.gz").read_bytes()).startswith(b"policy,")
     back = read_results_csv(tmp_path / "r.csv.gz")
     assert back[0]["scenario_id"] == 1 and back[0]["pedestrian_injury"] != back[0]["pedestrian_injury"]
+
+
+def test_the_stage_time_table_leaves_out_unfinished_steps_and_marks_lower_bounds():
+    """A step interrupted and not finished has no time yet; one resumed after a part no record timed is marked."""
+    timings = {
+        "vae": {"wall_s": 120.0, "complete": True, "untimed_part": False},
+        "agent_r1": {"wall_s": 300.0},  # a record written before steps said whether they finished
+        "agent_r1/seed1": {"wall_s": 600.0, "complete": True, "untimed_part": True},
+        "agent_r1/seed2": {"wall_s": 50.0, "complete": False, "untimed_part": False},
+    }
+    table = "\n".join(published.stage_time_table(timings))
+    assert "| vae | 1 | 2.0 | 2.0 |" in table
+    assert "| agent_r1 \\* | 2 | 5.0–10.0 | 15.0 |" in table
+    assert "| **all stages** | 3 |  | 17.0 |" in table
+    assert table.endswith("at least this long.")

@@ -174,10 +174,61 @@ def status(cfg, step: Step) -> tuple[str, list[str]]:
     return ("complete" if done else "resume"), []
 
 
+PRODUCED_BY = {"rollouts": "collect", "vae": "vae", "rnn": "rnn", "demos": "demos"}  # a provenance input -> its step
+
+
+def plan(cfg) -> list[dict]:
+    """What ``run`` would do now, step by step, running nothing: each step's state (``status``; ``after`` for a step
+    complete now whose input a step before it will rebuild or finish, so that it is checked again then) with the
+    reasons, and the wall time ``pipeline.json`` recorded for it (so far, for a step interrupted and not finished)."""
+    timings = _timings(cfg)
+    planned = steps(cfg)
+    step_of = {**PRODUCED_BY, **{s.agent.key: s.name for s in planned if s.agent is not None}}
+    to_run: set[str] = set()
+    rows = []
+    for step in planned:
+        stage_cfg = OmegaConf.merge(cfg, {"resume": True}, step.changes)
+        state, reasons = status(stage_cfg, step)
+        if state == "complete" and step.kind not in ("collect", "demos"):
+            inputs = artifacts.provenance(stage_cfg, step.kind, step.agent)["inputs"]
+            runs_first = {step_of[name] for name in inputs if step_of.get(name) in to_run}
+            first = [s.name for s in planned if s.name in runs_first]  # in the order they run
+            if first:
+                state, reasons = "after", [f"checked again once {', '.join(first)} ran"]
+        if state != "complete":
+            to_run.add(step.name)
+        record = timings.get(step.name, {})
+        took = record.get("wall_s") if state == "complete" or record.get("complete") is False else None
+        rows.append({"step": step.name, "state": state, "reasons": reasons, "wall_s": took})
+    return rows
+
+
+def plan_text(rows: list[dict]) -> str:
+    width = max(len(r["step"]) for r in rows)
+    lines = []
+    for r in rows:
+        took = "" if r["wall_s"] is None else f"{r['wall_s']:.0f} s" + ("" if r["state"] == "complete" else " so far")
+        lines.append(f"  {r['step']:<{width}}  {r['state']:<8}  {took:>14}  {'; '.join(r['reasons'])}".rstrip())
+    done = [r for r in rows if r["state"] == "complete"]
+    recorded = sum(r["wall_s"] or 0 for r in done)
+    left = len(rows) - len(done)
+    lines.append(f"  {len(done)} of {len(rows)} steps complete ({recorded:.0f} s recorded); {left} to run")
+    return "\n".join(lines)
+
+
+def _timings(cfg) -> dict:
+    path = artifacts.runs_root(cfg) / "pipeline.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
 def run(cfg) -> dict:
     validate(cfg)
+    if cfg.plan:
+        rows = plan(cfg)
+        log.info("[pipeline] plan=true: what a run would do now; nothing runs\n%s", plan_text(rows))
+        return {"plan": rows}
     timing_path = artifacts.runs_root(cfg) / "pipeline.json"
-    timings = json.loads(timing_path.read_text()) if timing_path.exists() else {}
+    timings = _timings(cfg)
     t_all = time.perf_counter()
     planned = steps(cfg)
     for step in planned:
@@ -193,18 +244,26 @@ def run(cfg) -> dict:
             log.info("[pipeline] %s: stale (%s); set aside in %s, rebuilding", step.name, "; ".join(reasons), moved)
         else:
             log.info("[pipeline] %s: running", step.name)
+        # an interrupted step's record holds its time so far; resumed, the step adds to it
+        before = timings.get(step.name, {}) if state == "resume" else {}
+        before = before if before.get("complete") is False else {}
         t0 = time.perf_counter()
         with PeakMemory() as mem:
             result = step.run(stage_cfg)
-        if isinstance(result, dict) and result.get("stopped"):
-            log.info("[pipeline] %s was interrupted; rerun the pipeline to continue.", step.name)
-            return timings
+        stopped = isinstance(result, dict) and bool(result.get("stopped"))
         timings[step.name] = {
-            "wall_s": round(time.perf_counter() - t0, 1),
-            "peak_rss_mb": round(mem.peak_mb, 1),
+            "wall_s": round(before.get("wall_s", 0.0) + time.perf_counter() - t0, 1),
+            "peak_rss_mb": round(max(before.get("peak_rss_mb", 0.0), mem.peak_mb), 1),
             "scale": OmegaConf.select(cfg, "scale_name", default=None),
+            "invocations": before.get("invocations", 0) + 1,
+            "complete": not stopped,
+            # resumed from a part that no record times (a process killed outright): wall_s is a lower bound
+            "untimed_part": bool(before.get("untimed_part")) if before else state == "resume",
         }
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
+        if stopped:
+            log.info("[pipeline] %s was interrupted; rerun the pipeline to continue.", step.name)
+            return timings
     evaluations = [artifacts.eval_dir(OmegaConf.merge(cfg, s.changes)) for s in planned if s.kind == "eval"]
     log.info(
         "[pipeline] done in %.0f s (this run). Stage times: %s\n%s  TensorBoard: .venv/bin/tensorboard --logdir %s",

@@ -304,8 +304,14 @@ def headline(directory: Path) -> tuple[str, dict]:
 def stage_time_table(timings: dict) -> list[str]:
     """Wall time per stage of the run, each agent preset's seeds together: what a full reproduction costs."""
     groups: dict[str, list[float]] = {}
+    untimed = set()
     for name, t in timings.items():
-        groups.setdefault(re.sub(r"/seed\d+$", "", name), []).append(float(t["wall_s"]))
+        if t.get("complete") is False:
+            continue  # interrupted and not finished yet
+        stage = re.sub(r"/seed\d+$", "", name)
+        groups.setdefault(stage, []).append(float(t["wall_s"]))
+        if t.get("untimed_part"):
+            untimed.add(stage)
     total = sum(sum(v) for v in groups.values())
     lines = [
         "Wall time per stage, as the run recorded it (`stage_times.json`: the run's `pipeline.json`):",
@@ -315,8 +321,14 @@ def stage_time_table(timings: dict) -> list[str]:
     ]
     for name, walls in groups.items():
         each = f"{min(walls) / 60:.1f}" if len(walls) == 1 else f"{min(walls) / 60:.1f}–{max(walls) / 60:.1f}"
-        lines.append(report._md_row([name, str(len(walls)), each, f"{sum(walls) / 60:.1f}"]))
+        label = f"{name} \\*" if name in untimed else name
+        lines.append(report._md_row([label, str(len(walls)), each, f"{sum(walls) / 60:.1f}"]))
     lines.append(report._md_row(["**all stages**", str(sum(map(len, groups.values()))), "", f"{total / 60:.1f}"]))
+    if untimed:
+        lines += [
+            "",
+            "\\* resumed from a part whose time no record holds (a process killed outright): at least this long.",
+        ]
     return lines
 
 

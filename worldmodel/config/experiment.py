@@ -55,6 +55,9 @@ class ExperimentConfig(Checked):
     # peer systems the pipeline also trains, at every seed of seeds, and evaluates on their own scenario family, per
     # bank of banks: a family (chae: its paper's preset) or another preset of one (ddpg_kim_fd); empty: none
     peers: list[str] = field(default_factory=list)
+    # the pipeline only: list each step's state (complete, resume, fresh, stale and why, or after a step that runs
+    # first) and the recorded wall time of the finished ones, and run nothing; for a long run, where it stands
+    plan: bool = False
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     demos: DemosConfig = field(default_factory=DemosConfig)
