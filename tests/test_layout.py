@@ -145,3 +145,10 @@ def test_the_cast_count_sees_aliases_and_method_calls(tmp_path):
         "def f(cfg, n):\n    c = cfg.evaluate.kim\n    return int(c.trials), float(cfg.get('x')), int(n.k)\n"
     )
     assert [c.split(":")[1] for c in config_casts_in(src, tmp_path)] == ["3", "3"]  # c.trials, cfg.get; not n.k
+
+
+def test_the_tests_readme_names_every_test_file():
+    """tests/README.md's table says what each test file holds; a new file is listed there too."""
+    listed = (ROOT / "tests/README.md").read_text()
+    missing = [p.name for p in sorted((ROOT / "tests").glob("test_*.py")) if f"`{p.name}`" not in listed]
+    assert missing == [], f"add {', '.join(missing)} to the table in tests/README.md"
