@@ -100,13 +100,21 @@ def test_second_run_skips_finished_stages(experiment, caplog):
 
 
 def test_the_plan_says_what_a_run_would_do_and_runs_nothing(experiment, tmp_path):
-    """plan=true on a finished experiment: every step complete with its recorded time. With the LSTM unfinished, the
-    LSTM resumes and the steps that read it are complete now but checked again after it; nothing is written."""
+    """plan=true on a finished experiment: every step complete with its recorded time; a new seed's time to go is
+    that of its finished seeds. With the LSTM unfinished, the LSTM resumes and the steps that read it are complete
+    now but checked again after it; nothing is written."""
     done = pipeline.run(smoke_cfg(experiment, "pipeline", BANKS, "plan=true"))["plan"]
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
     assert [(r["step"], r["state"], r["wall_s"]) for r in done] == [
         (name, "complete", timings[name]["wall_s"]) for name in timings
     ]
+    # a new seed: its time to go is its finished seeds' (the median of one)
+    seeds = {
+        r["step"]: r for r in pipeline.run(smoke_cfg(experiment, "pipeline", BANKS, "seeds=[0,1]", "plan=true"))["plan"]
+    }
+    new_seed = seeds["agent_r1/seed1"]
+    assert (new_seed["state"], new_seed["estimate_s"]) == ("fresh", timings["agent_r1"]["wall_s"])
+    assert seeds["agent_r1"]["estimate_s"] is None  # complete: nothing to go
     root = tmp_path / "copy"
     shutil.copytree(experiment, root)
     (root / "runs/t/rnn/metrics.json").unlink()  # as if the LSTM had been stopped before it finished

@@ -27,11 +27,13 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from . import artifacts
@@ -199,8 +201,25 @@ def plan(cfg) -> list[dict]:
             to_run.add(step.name)
         record = timings.get(step.name, {})
         took = record.get("wall_s") if state == "complete" or record.get("complete") is False else None
-        rows.append({"step": step.name, "state": state, "reasons": reasons, "wall_s": took})
+        rows.append({"step": step.name, "state": state, "reasons": reasons, "wall_s": took, "estimate_s": None})
+    for row in rows:
+        if row["state"] in ("fresh", "stale", "resume"):
+            row["estimate_s"] = _estimate(row, timings)
     return rows
+
+
+def _estimate(row: dict, timings: dict) -> float | None:
+    """A step's time still to go by its finished seeds: the median of their recorded times (a resumed step less its
+    time so far); None when no other seed of it has finished."""
+    stage = re.sub(r"/seed\d+$", "", row["step"])
+    walls = [
+        t["wall_s"]
+        for name, t in timings.items()
+        if name != row["step"] and re.sub(r"/seed\d+$", "", name) == stage and t.get("complete", True)
+    ]
+    if not walls:
+        return None
+    return max(0.0, float(np.median(walls)) - (row["wall_s"] or 0.0))
 
 
 def plan_text(rows: list[dict]) -> str:
@@ -208,11 +227,20 @@ def plan_text(rows: list[dict]) -> str:
     lines = []
     for r in rows:
         took = "" if r["wall_s"] is None else f"{r['wall_s']:.0f} s" + ("" if r["state"] == "complete" else " so far")
-        lines.append(f"  {r['step']:<{width}}  {r['state']:<8}  {took:>14}  {'; '.join(r['reasons'])}".rstrip())
+        to_go = "" if r["estimate_s"] is None else f"~{r['estimate_s'] / 60:.0f} min to go"
+        notes = "; ".join([*([to_go] if to_go else []), *r["reasons"]])
+        lines.append(f"  {r['step']:<{width}}  {r['state']:<8}  {took:>14}  {notes}".rstrip())
     done = [r for r in rows if r["state"] == "complete"]
     recorded = sum(r["wall_s"] or 0 for r in done)
-    left = len(rows) - len(done)
-    lines.append(f"  {len(done)} of {len(rows)} steps complete ({recorded:.0f} s recorded); {left} to run")
+    left = [r for r in rows if r["state"] != "complete"]
+    known = [r["estimate_s"] for r in left if r["estimate_s"] is not None]
+    summary = f"  {len(done)} of {len(rows)} steps complete ({recorded:.0f} s recorded); {len(left)} to run"
+    if known:
+        summary += (
+            f": ~{sum(known) / 3600:.1f} h for the {len(known)} whose other seeds finished (the median of their "
+            f"times), {len(left) - len(known)} with none to go by"
+        )
+    lines.append(summary)
     return "\n".join(lines)
 
 
