@@ -328,6 +328,11 @@ def return_freed_memory(threshold: int = 1 << 20) -> bool:
         return False
 
 
+def percent(share: float | None) -> str:
+    """A share in [0, 1] as a log line's percentage; "n/a" without one (no episode to count)."""
+    return "n/a" if share is None else f"{100 * share:.0f} %"
+
+
 def set_threads(n: int) -> None:
     import torch
 

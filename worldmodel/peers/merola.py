@@ -44,7 +44,7 @@ from envs.streams import MEROLA_TRAINING_EPISODES
 
 from .. import artifacts
 from ..artifacts import AgentId
-from ..common import StageError, decision_device, make_env, resolve_device
+from ..common import StageError, decision_device, make_env, percent, resolve_device
 from ..stats import wilson
 from .common import (
     DQNPolicy,
@@ -214,9 +214,10 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
 
 
 def summary(metrics: dict) -> str:
+    ret = metrics["recent_return"]
     return (
-        f"{metrics['episodes']} episodes; last 100: return {metrics['recent_return']}, "
-        f"collisions {metrics['recent_collision_rate']}"
+        f"{metrics['episodes']} episodes; last 100: return {'n/a' if ret is None else f'{ret:.1f}'}, "
+        f"collisions {percent(metrics['recent_collision_rate'])}"
     )
 
 

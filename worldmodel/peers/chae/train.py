@@ -12,7 +12,7 @@ from envs.chae import BRAKE_LEVELS, TTC_RANGE, ChaeSpec, brake_action, sample_ch
 from envs.streams import CHAE_TRAINING_EPISODES
 
 from ...artifacts import AgentId
-from ...common import StageError, atomic_torch_save, atomic_write_bytes, resolve_device
+from ...common import StageError, atomic_torch_save, atomic_write_bytes, percent, resolve_device
 from ..common import DQNPolicy, dqn_checkpoint, dqn_config, play_dqn_episode, resume_dqn
 from .observe import HistoryObserver, family_env, observer
 from .report import ROLLING
@@ -173,7 +173,7 @@ def first_target(episode: int, episodes: int, block: int) -> int:
 
 def summary(metrics: dict) -> str:
     """One log line for a finished training run."""
-    line = f"{metrics['episodes']} episodes; bumps in the last 100: {metrics['recent_bump_rate']}"
+    line = f"{metrics['episodes']} episodes; bumps in the last 100: {percent(metrics['recent_bump_rate'])}"
     chosen = metrics.get("selected")
     if chosen:
         line += (

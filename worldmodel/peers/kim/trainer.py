@@ -12,7 +12,7 @@ from envs.streams import KIM_TRAINING_EPISODES
 
 from ... import artifacts
 from ...artifacts import AgentId
-from ...common import StageError, decision_device, resolve_device
+from ...common import StageError, decision_device, percent, resolve_device
 from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
 from .teach import learn_from_planner
 
@@ -153,7 +153,7 @@ def summary(metrics: dict) -> str:
 
         return chooser_summary(metrics)
     steps, episodes, avoided = metrics["steps"], metrics["episodes"], metrics["recent_avoidance"]
-    return f"{steps} steps, {episodes} episodes; avoidance in the last 100: {avoided}"
+    return f"{steps} steps, {episodes} episodes; avoidance in the last 100: {percent(avoided)}"
 
 
 # ----------------------------------------------------------------------------- policies
