@@ -53,7 +53,6 @@ from .rows import (
 from .summary import (
     CEILING,
     MIN_ACHIEVABLE_GAIN,
-    _share,
     achievable_share_grids,
     cells_above_baseline,
     improvement_grids,
@@ -61,6 +60,7 @@ from .summary import (
     paired_bootstrap,
     policy_seeds,
     seed_spread,
+    share_of_gain,
     summarize,
 )
 from .tables import MISSING, _fmt, _md_row, tables_markdown
@@ -80,7 +80,7 @@ __all__ = [
     "_fmt",
     "_md_row",
     "_mean",
-    "_share",
+    "share_of_gain",
     "achievable_share_grids",
     "cells_above_baseline",
     "grid_of",

@@ -213,7 +213,7 @@ def improvement_grids(rows: Sequence[dict], baseline: str = "braking") -> dict[s
     return out
 
 
-def _share(base, policy, ceiling):
+def share_of_gain(base, policy, ceiling):
     """100 (base - policy) / (base - ceiling), NaN where the gap is under ``MIN_ACHIEVABLE_GAIN``: of numbers, a
     float; of arrays (a bootstrap's resamples), an array."""
     gain = np.asarray(base, dtype=float) - ceiling
@@ -245,7 +245,7 @@ def achievable_share_grids(
         if policy == baseline:
             continue
         mine = totals(policy)
-        arr = _share(base, mine, top) if base.size else base
+        arr = share_of_gain(base, mine, top) if base.size else base
         out[policy] = (ttcs, speeds, np.asarray(arr, dtype=float))
     return out
 
@@ -258,7 +258,7 @@ def overall_achievable_share(
     def total(p):
         return _mean([r for r in rows if r["policy"] == p], "total_injury")
 
-    return _share(total(baseline), total(policy), total(ceiling))
+    return share_of_gain(total(baseline), total(policy), total(ceiling))
 
 
 def paired_bootstrap(
@@ -290,12 +290,12 @@ def paired_bootstrap(
     risks = [np.array([d[i] for i in ids]) for d in (p, b, o)]
 
     def share(mine, base, top, axis=-1):  # a resample with too little to gain has no share, as a bank has none
-        return _share(base.mean(axis), mine.mean(axis), top.mean(axis))
+        return share_of_gain(base.mean(axis), mine.mean(axis), top.mean(axis))
 
     def difference(mine, base, axis=-1):
         return 100.0 * (mine.mean(axis) - base.mean(axis))
 
-    point = _share(risks[1].mean(), risks[0].mean(), risks[2].mean())
+    point = share_of_gain(risks[1].mean(), risks[0].mean(), risks[2].mean())
     share_ci = stats.paired_bootstrap_ci(risks, share, n, seed) if math.isfinite(point) else (math.nan, math.nan)
     return {
         "scenarios": len(ids),

@@ -9,6 +9,7 @@ import numpy as np
 
 from envs.kim import SCENARIOS
 
+from ...report import share_of_gain
 from ...stats import paired_bootstrap_ci, paired_permutation_p, wilson
 
 FLOOR, CEILING = "braking", "oracle"  # 0 % and 100 % of the achievable avoidance: braking, the privileged planner
@@ -65,20 +66,19 @@ def summarise(rows: list[dict], paper_trials: int) -> dict:
     return out
 
 
-def _avoided(rows: list[dict], policy: str, seed: int | None = None) -> dict:
-    """(scenario, trial) -> the share of ``policy``'s seeds (or of ``seed`` alone) that avoided the runner there."""
+def _missed(rows: list[dict], policy: str, seed: int | None = None) -> dict:
+    """(scenario, trial) -> the share of ``policy``'s seeds (or of ``seed`` alone) that did not avoid the runner."""
     acc: dict = {}
     for r in rows:
         if r["policy"] == policy and (seed is None or r["policy_seed"] == seed):
-            acc.setdefault((r["scenario"], r["trial"]), []).append(float(r["avoided"]))
+            acc.setdefault((r["scenario"], r["trial"]), []).append(1.0 - float(r["avoided"]))
     return {k: float(np.mean(v)) for k, v in acc.items()}
 
 
 def _share(mine, floor, ceiling, axis=-1):
-    """100 (mine - floor) / (ceiling - floor) of the mean avoidance; NaN where the planner gains nothing on braking."""
-    gain = np.mean(ceiling, axis=axis) - np.mean(floor, axis=axis)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(gain > 0, 100.0 * (np.mean(mine, axis=axis) - np.mean(floor, axis=axis)) / gain, np.nan)
+    """100 (policy - braking) / (planner - braking) of the mean avoidance, as the paper's family computes its share
+    on the risk: here on the rate of runners not avoided. NaN where the planner gains under half a point."""
+    return share_of_gain(np.mean(floor, axis=axis), np.mean(mine, axis=axis), np.mean(ceiling, axis=axis))
 
 
 def _finite(x) -> float | None:
@@ -90,10 +90,10 @@ def achievable_shares(rows: list[dict]) -> dict:
     avoidance, with a paired-bootstrap 95 % interval over the trials (each resample draws the same trials for the
     policy, braking and the planner; a policy's seeds are averaged per trial) and each seed's share on its own rows.
     Empty without braking and the planner on the same trials."""
-    floor, ceiling = _avoided(rows, FLOOR), _avoided(rows, CEILING)
+    floor, ceiling = _missed(rows, FLOOR), _missed(rows, CEILING)
     out: dict = {}
     for policy in dict.fromkeys(r["policy"] for r in rows):
-        mine = _avoided(rows, policy)
+        mine = _missed(rows, policy)
         keys = sorted(set(mine) & set(floor) & set(ceiling))
         if not keys:
             continue
@@ -103,12 +103,12 @@ def achievable_shares(rows: list[dict]) -> dict:
         seeds = sorted({r["policy_seed"] for r in rows if r["policy"] == policy})
         by_seed = {}
         for seed in seeds if len(seeds) > 1 else ():
-            own = _avoided(rows, policy, seed)
+            own = _missed(rows, policy, seed)
             common = sorted(set(own) & set(floor) & set(ceiling))
             by_seed[seed] = _finite(_share(*(np.array([d[k] for k in common]) for d in (own, floor, ceiling))))
         out[policy] = {
             "trials": len(keys),
-            "gain_pts": 100.0 * float(np.mean(samples[2]) - np.mean(samples[1])),
+            "gain_pts": 100.0 * float(np.mean(samples[1]) - np.mean(samples[2])),
             "share": point,
             "interval": [_finite(x) for x in interval],
             "by_seed": by_seed,
