@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import re
 
 import pytest
 
@@ -109,6 +110,24 @@ def test_the_readme_table_sits_between_its_markers():
 def test_every_committed_table_is_what_its_rows_give():
     """docs/results as committed: every published evaluation and headline recomputes from its rows."""
     assert published.recheck(published.RESULTS) == []
+
+
+def test_every_table_without_rows_says_so_at_its_top():
+    """A committed table that ``recheck`` cannot recompute (no rows beside it) says so before anything else, so that
+    no reader takes it for a sealed result. The reports (README.md) are read by people and checked by hand."""
+    unmarked = []
+    for path in sorted(published.RESULTS.rglob("*.md")):
+        text = path.read_text()
+        if path.name == "README.md" or not re.search(r"^\|\s*-{3}", text, re.M):
+            continue
+        stem = path.name.removesuffix(published.TABLES)
+        if (path.parent / (stem + published.ROWS)).exists():
+            continue
+        if path.name == "headline.md" and any(path.parent.glob("*" + published.ROWS)):
+            continue
+        if "rows are not committed" not in " ".join(text[:1500].split()):
+            unmarked.append(str(path.relative_to(published.RESULTS)))
+    assert unmarked == [], f"tables without rows that do not say so: {unmarked}"
 
 
 def test_the_readme_result_table_is_the_generated_one():
