@@ -130,6 +130,30 @@ def test_every_table_without_rows_says_so_at_its_top():
     assert unmarked == [], f"tables without rows that do not say so: {unmarked}"
 
 
+def test_every_number_in_a_reports_headline_tables_is_in_its_committed_tables():
+    """A report copies its headline tables by hand from the tables its rows give (``*.tables.md``, ``headline.md``):
+    every decimal number in the table rows of its "## Headline" section must appear there, so that a slip in the
+    copying, or a report left behind by a new publication, fails here."""
+    decimal = re.compile(r"[-−]?\d+\.\d+")
+    directories = sorted({p.parent for p in published.RESULTS.rglob("*" + published.ROWS)})
+    assert directories, "no published rows under docs/results"
+    for directory in directories:
+        report = (directory / "README.md").read_text()
+        assert "\n## Headline" in report, f"{directory}/README.md has no '## Headline' section"
+        section = report.split("\n## Headline", 1)[1].split("\n## ", 1)[0]
+        tables = [*directory.glob("*" + published.TABLES), *directory.glob("headline.md")]
+        known = {n.replace("−", "-") for t in tables for n in decimal.findall(t.read_text())}
+        quoted = [
+            (n, line.split("|")[1].strip())
+            for line in section.splitlines()
+            if line.startswith("|")
+            for n in decimal.findall(line)
+        ]
+        assert quoted, f"{directory}/README.md: its headline section quotes no table"
+        missing = [(n, row) for n, row in quoted if n.replace("−", "-") not in known]
+        assert missing == [], f"{directory}/README.md quotes numbers its committed tables do not hold: {missing[:5]}"
+
+
 def test_the_readme_result_table_is_the_generated_one():
     text = published.README.read_text()
     assert published.readme_with_table(text, published.readme_table()) == text, (
