@@ -12,7 +12,7 @@ from dataclasses import fields, is_dataclass
 from omegaconf import OmegaConf
 
 from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
-from .experiment import ExperimentConfig
+from .experiment import PEERS, ExperimentConfig
 
 
 def agent_preset(cfg, name: str):
@@ -120,6 +120,9 @@ def validate(cfg) -> ExperimentConfig:
     except ConfigValueError as err:
         raise StageError(f"config {err}") from None
     if isinstance(typed, ExperimentConfig):
+        if any(peer_preset(p) is None for p in typed.peers):
+            requirement = f"name a peer system ({', '.join(PEERS)}) or an agent preset of one (e.g. ddpg_kim_fd)"
+            raise StageError(f"config {ConfigValueError('peers', list(typed.peers), requirement)}")
         # a CUDA device this machine lacks, or bf16 off CUDA, stops here, before any work
         check_amp(typed.amp, resolve_device(typed.device))
         resolve_device(typed.decision_device, "decision_device")

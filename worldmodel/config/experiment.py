@@ -98,15 +98,7 @@ class ExperimentConfig(Checked):
 
         if not self.banks or any(b not in BANKS for b in self.banks):
             yield ConfigValueError("banks", list(self.banks), f"give some of {', '.join(BANKS)}")
-        from .entry import peer_preset
-
-        unknown = [p for p in self.peers if peer_preset(p) is None]
-        if unknown:
-            yield ConfigValueError(
-                "peers",
-                list(self.peers),
-                f"name a peer system ({', '.join(PEERS)}) or an agent preset of one (e.g. ddpg_kim_fd)",
-            )
+        # whether each `peers` entry names a peer's preset needs the presets composed: config.validate checks it
         if a.bc_weight > 0 and a.demo_share == 0:
             yield ConfigValueError(
                 "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"
