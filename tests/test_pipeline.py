@@ -458,3 +458,5 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     assert "CCRb 6 m/s², 12 m" in tables and (runs / "eval_ncap/ncap.png").exists()
     published.publish(runs / "eval_ncap", root / "docs/ncap/smoke", "ncap")  # its rows give its tables again
     assert published.recheck(root / "docs") == []
+    # the bank runs after the pipeline, not in it: the experiment's stage times are not what made these rows
+    assert (runs / "pipeline.json").exists() and not (root / "docs/ncap" / published.STAGE_TIMES).exists()

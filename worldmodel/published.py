@@ -161,7 +161,9 @@ def publish(eval_dir: Path, stem: Path, command: str) -> Path:
         raise RecheckError(f"the rows no longer give the evaluation's tables ({diff}): evaluate again, then publish")
     stem.parent.mkdir(parents=True, exist_ok=True)
     timings = eval_dir.parent / "pipeline.json"
-    if timings.exists():  # what each stage of the run cost, for the headline's table
+    # What each stage of the run cost, for the headline's table. The NCAP bank runs outside the pipeline, after
+    # it: its experiment's stage times are not what made these rows.
+    if timings.exists() and family != NCAP:
         atomic_write_text(stem.parent / STAGE_TIMES, timings.read_text())
     atomic_write_bytes(stem.with_name(stem.name + ROWS), gzip.compress(raw, compresslevel=9, mtime=0))
     atomic_write_text(stem.with_name(stem.name + META), json.dumps(meta, indent=2) + "\n")
