@@ -45,7 +45,7 @@ import time
 
 import numpy as np
 
-from envs import UrbanCollisionEnv, test_bank
+from envs import UrbanCollisionEnv, scenario_bank
 from envs.scenario import sample_scenario
 
 from .common import rss_mb, write
@@ -153,10 +153,10 @@ def reset_cost(camera: bool, resets: int) -> dict:
 
 
 def visibility(per_cell: int) -> dict:
-    """Share of test-bank scenarios whose hazard covers >= 1 pixel of the onset frame, per TTC x speed."""
+    """Share of bank-2018 scenarios whose hazard covers >= 1 pixel of the onset frame, per TTC x speed."""
     env = UrbanCollisionEnv(camera=True)
     cells: dict[str, list[int]] = {}
-    for entry in test_bank(per_cell=per_cell):
+    for entry in scenario_bank(per_cell=per_cell, seed=2018):
         env.reset(options={"scenario": entry.spec})
         key = f"{entry.hazard}|{entry.ttc}|{entry.speed:g}"
         cells.setdefault(key, []).append(int(env.hazard_pixels() > 0))

@@ -256,7 +256,7 @@ def visibility_tables(vis: dict) -> str:
     out = [
         "### Hazard visible at onset",
         "",
-        f"Share of test-bank scenarios whose hazard covers at least one pixel of the first (onset) frame, "
+        f"Share of bank-2018 scenarios whose hazard covers at least one pixel of the first (onset) frame, "
         f"field of view {fmt(vis.get('fov_deg'), 0)}°, {vis.get('per_cell', '?')} scenario(s) per cell; "
         f"overall **{100 * vis.get('overall', float('nan')):.0f}%**. Rows: TTC (s); columns: ego speed (m/s). "
         "No target in docs/design.md; a hazard the camera cannot see at onset cannot be avoided by a vision policy.",

@@ -12,7 +12,7 @@ from .env import DT, UrbanCollisionEnv
 from .injury import occupant_injury, pedestrian_injury
 from .policies import NoisyAutopilot, StraightLineBraking
 from .rollout import Episode, rollout
-from .scenario import BankEntry, ScenarioSpec, sample_focus_scenario, sample_scenario, test_bank
+from .scenario import BankEntry, ScenarioSpec, sample_focus_scenario, sample_scenario, scenario_bank
 from .scene import CLASS_NAMES, NUM_CLASSES, PALETTE
 
 ENV_ID = "UrbanCollision-v0"
@@ -36,5 +36,5 @@ __all__ = [
     "rollout",
     "sample_focus_scenario",
     "sample_scenario",
-    "test_bank",
+    "scenario_bank",
 ]

@@ -15,7 +15,7 @@ import argparse
 
 import numpy as np
 
-from envs import UrbanCollisionEnv, test_bank
+from envs import UrbanCollisionEnv, scenario_bank
 from envs.chooser import BRAKE
 
 FRAMES = 3
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     entries = [
         e
-        for e in test_bank(per_cell=args.per_cell, seed=4711)
+        for e in scenario_bank(per_cell=args.per_cell, seed=4711)
         if e.hazard == "pedestrian" and e.speed >= 20.0 and e.ttc <= 1.1
     ]
     fovs = [float(f) for f in args.fovs.split(",")]

@@ -8,8 +8,8 @@ privileged scripted policies and, if asked, seed ensembles of trained runs, on o
 The rule fits a line to the pedestrian's lateral distance over the last ``--readings`` readings of the agent's
 view (``--rule-noise-m``, default 0.1 m) and brakes fully, from then on, once the pedestrian closes in faster
 than the threshold (m/s).
-Every policy drives the same trials (``peers.chae.bank``; draw 99 is checkpoint selection's, 2017 the test draw:
-do not choose on it) in the training env, which ends at the first bump. Prints per policy the bump rate at TTC
+Every policy drives the same trials (``peers.chae.bank``; draw 99 is checkpoint selection's, 2017 the
+default validation draw) in the training env, which ends at the first bump. Prints per policy the bump rate at TTC
 1.5, 1.7, 1.9 s, Scenario 2's needless stops, and the mean Eq. 8 return per trial as training counts it, so that
 a rule inside the bars can be set beside what the learner is paid to do. ``evaluate.family=chae`` drives the
 chosen threshold as ``closing_braking`` (docs/results/chae/README.md). ``--noise-m`` makes the ensembles act on
@@ -31,6 +31,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+
+from worldmodel.banks import validation_draw
 
 TTCS = [1.5, 1.7, 1.9]
 
@@ -126,7 +128,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--thresholds", type=float, nargs="*", default=[], help="closing speeds, m/s")
     parser.add_argument("--readings", type=int, default=5, help="readings the line is fitted to (2..5)")
-    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.chae.select's)")
+    parser.add_argument("--draw", type=validation_draw, default=99, help="bank seed (99: agent.chae.select's)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--run", type=Path, help="runs/NAME holding agent_chae_dqn_chae/seedK, for --ensembles")
     parser.add_argument("--ensembles", nargs="*", default=[], help="seed groups such as 0,1,2 (with --run)")

@@ -21,6 +21,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from worldmodel.banks import validation_draw
+
 TTCS = [1.5, 1.7, 1.9]
 NO_BRAKE = 3  # the index of 0 m/s^2 in envs.chae.BRAKE_LEVELS
 
@@ -112,7 +114,7 @@ def main(argv=None) -> None:
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
     parser.add_argument("--seeds", type=int, nargs="+", required=True, help="the ensemble's members")
     parser.add_argument("--margins", type=float, nargs="+", required=True)
-    parser.add_argument("--draw", type=int, default=99, help="bank seed (99: agent.chae.select's)")
+    parser.add_argument("--draw", type=validation_draw, default=99, help="bank seed (99: agent.chae.select's)")
     parser.add_argument("--trials", type=int, default=200, help="per TTC and in Scenario 2")
     parser.add_argument("--ttcs", type=float, nargs="+", default=TTCS, help="Scenario 1's TTCs, s")
     parser.add_argument(

@@ -30,6 +30,8 @@ import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
+from worldmodel.banks import validation_draw
+
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -37,7 +39,9 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", required=True)
     parser.add_argument("--out", type=Path, required=True, help="a new runs/NAME2 for the rechosen runs")
     parser.add_argument("--shortlist", type=int, default=4)
-    parser.add_argument("--draw", type=int, default=98, help="bank seed: not 99 (training's), 102/103, 2017")
+    parser.add_argument(
+        "--draw", type=validation_draw, default=98, help="bank seed: not 99 (training's), 102/103, 2017"
+    )
     parser.add_argument("--trials", type=int, default=500, help="per TTC and in Scenario 2")
     parser.add_argument("--ttcs", type=float, nargs="+", default=[1.5], help="the TTCs rescored, s")
     args = parser.parse_args(argv)

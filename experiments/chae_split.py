@@ -18,6 +18,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from worldmodel.banks import validation_draw
+
 from .chae_margin import VoteEnsemble
 
 FULL = 0  # the index of -9.8 m/s^2 in envs.chae.BRAKE_LEVELS (levels are ordered hardest first)
@@ -45,7 +47,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="runs/NAME, holding agent_chae_dqn_chae/seedK")
     parser.add_argument("--seeds", type=int, nargs=3, required=True, help="the ensemble's three members")
-    parser.add_argument("--draw", type=int, required=True, help="bank seed (not 2017, the test draw)")
+    parser.add_argument("--draw", type=validation_draw, required=True, help="bank seed, a validation draw")
     parser.add_argument("--trials", type=int, default=1000)
     parser.add_argument("--ttc", type=float, default=1.5)
     parser.add_argument("--average", choices=("q", "vote"), default="vote")

@@ -29,6 +29,7 @@ import torch
 
 from worldmodel import artifacts, chooser
 from worldmodel.artifacts import AgentId
+from worldmodel.banks import validation_draw
 from worldmodel.config import compose
 
 log = logging.getLogger("chooser_floor")
@@ -153,7 +154,10 @@ def main(argv=None) -> int:
     cfg = compose("train_agent", base)
     margins = [float(m) for m in args.margins.split(",")] if args.margins else [float(cfg.agent.chooser.margin)]
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    banks = [int(v) for v in args.validation_seeds.split(",")] if args.validation_seeds else [None]
+    try:
+        banks = [validation_draw(v) for v in args.validation_seeds.split(",")] if args.validation_seeds else [None]
+    except argparse.ArgumentTypeError as err:
+        parser.error(f"--validation-seeds: {err}")
     val, cells, per_bank = pooled_validation(base, banks, seeds)
     costs, episode, static = val["costs"], val["episode"], val.get(chooser.STATIC_KEY)
     braking = costs[np.r_[True, episode[1:] != episode[:-1]], 0]

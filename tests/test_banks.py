@@ -3,6 +3,7 @@ and the ledger that records every evaluation on a test bank."""
 
 from __future__ import annotations
 
+import importlib
 import re
 from types import SimpleNamespace
 
@@ -137,3 +138,22 @@ def test_an_evaluation_is_judged_again_only_when_its_own_settings_change(tmp_pat
     assert sha() != sha("evaluate.per_cell=7")
     kim = ("evaluate.family=kim",)
     assert sha(*kim) == sha(*kim, "evaluate.merola.trials=7") != sha(*kim, "evaluate.kim.trials=7")
+
+
+@pytest.mark.parametrize(
+    "module,args",
+    [
+        ("chae_split", ["runs/x", "--seeds", "0", "1", "2", "--draw", "88384"]),
+        ("chae_detector", ["--thresholds", "1.0", "--draw", "88384"]),
+        ("chae_margin", ["runs/x", "--seeds", "0", "--margins", "0", "--draw", "88384"]),
+        ("chae_reselect", ["runs/x", "--seeds", "0", "--out", "runs/y", "--draw", "88384"]),
+        ("chooser_floor", ["--validation-seeds", "4711,56171"]),
+    ],
+)
+def test_the_experiments_refuse_a_sealed_draw(module, args, capsys):
+    """The investigations' scripts choose settings, so a sealed test seed is refused before any work."""
+    main = importlib.import_module(f"experiments.{module}").main
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2
+    assert "is a sealed test seed: choose a validation draw" in capsys.readouterr().err

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv, rollout
-from envs import test_bank as make_bank
+from envs import scenario_bank as make_bank
 from envs.planner import Manoeuvre, PrivilegedPlanner, candidate_manoeuvres
 from worldmodel.common import StageError
 from worldmodel.config import compose, oracle_settings, validate

@@ -64,6 +64,18 @@ def sealed_seed_problem(seed: int) -> str | None:
     return None
 
 
+def validation_draw(text: str) -> int:
+    """An argparse ``type`` for a script's bank seed: a whole number that is not a sealed test seed, since the
+    experiments' draws choose settings and a test bank may only judge them."""
+    import argparse
+
+    seed = int(text)
+    why = sealed_seed_problem(seed)
+    if why:
+        raise argparse.ArgumentTypeError(why.split(";")[0] + ": choose a validation draw (worldmodel/banks.py)")
+    return seed
+
+
 @functools.cache
 def commit() -> str:
     """The checked-out commit, ``+dirty`` when tracked files differ from it; ``unknown`` outside git. Read once per

@@ -56,10 +56,10 @@ def label_seed(cfg) -> int:
 
 def validation_entries(cfg):
     """The validation bank (``evaluate.bank=validation``): the same grid and seed as evaluation draws."""
-    from envs import test_bank
+    from envs import scenario_bank
 
     e = cfg.evaluate
-    return test_bank(
+    return scenario_bank(
         ttcs=tuple(e.ttcs),
         speeds=tuple(e.speeds),
         hazards=tuple(e.hazards),

@@ -1,9 +1,10 @@
-"""Evaluation on the seeded test bank: straight-line braking, the privileged planner and every trained agent.
+"""Evaluation on a seeded scenario bank: straight-line braking, the privileged planner and every trained agent.
 
     python -m worldmodel.evaluate experiment=NAME scale=...
 
-The bank (docs/design.md §6; ``envs.test_bank``) sweeps hazard kind x TTC x speed with ``evaluate.per_cell``
-seeded scenarios per cell; every policy sees exactly the same scenarios. Writes ``runs/NAME/eval/``:
+The bank (docs/design.md §6; ``envs.scenario_bank``), a validation bank unless ``evaluate.bank=test``, sweeps
+hazard kind x TTC x speed with ``evaluate.per_cell`` seeded scenarios per cell; every policy sees exactly the same
+scenarios. Writes ``runs/NAME/eval/`` (``eval_test/`` on the test bank):
 ``results.csv`` (one row per scenario and policy), ``summary.json``, ``tables.md`` (paper Tables I-III),
 ``heatmaps.png`` (Fig. 5 layout) and the same figures in TensorBoard.
 
@@ -35,13 +36,13 @@ def bank(cfg):
     """The scenarios of ``evaluate.bank``: a validation bank, or the sealed test bank (the same grid, drawn from
     another seed; worldmodel/banks.py). ``cfg``: the typed config (``validate``), or the composed one, whose values
     have the same types."""
-    from envs import test_bank
+    from envs import scenario_bank
 
     from .banks import draw_seed
 
     e = cfg.evaluate
     seed = draw_seed(e.bank, "porav", e.validation_seed)
-    return test_bank(
+    return scenario_bank(
         ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=e.per_cell, seed=int(seed)
     )
 

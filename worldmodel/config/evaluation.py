@@ -166,7 +166,7 @@ class EvaluateConfig(Checked):
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
     oracle: OracleConfig = field(default_factory=OracleConfig)
-    # which scenario family to evaluate: porav (the test bank above), chae, kim or merola (evaluate.<family>)
+    # which scenario family to evaluate: porav (the bank above), chae, kim or merola (evaluate.<family>)
     family: str = "porav"
     chae: ChaeEvalConfig = field(default_factory=ChaeEvalConfig)
     kim: KimEvalConfig = field(default_factory=KimEvalConfig)

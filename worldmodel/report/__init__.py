@@ -1,6 +1,6 @@
-"""Reports of the evaluation test bank: CSV, JSON summary, the paper's Tables I–III and a Fig. 5-style heatmap.
+"""Reports of an evaluation bank: CSV, JSON summary, the paper's Tables I–III and a Fig. 5-style heatmap.
 
-Input is one *row* (a dict) per test scenario and policy, as produced by the evaluation stage::
+Input is one *row* (a dict) per scenario and policy, as produced by the evaluation stage::
 
     policy, scenario_id, hazard, ttc, speed, seed,
     pedestrian_collision, vehicle_collision, static_collision, lane_departure,   # 0/1
