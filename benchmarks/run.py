@@ -7,6 +7,9 @@
 
 ``--tiny`` passes seconds-long sizes, to check that the scripts work; its numbers are not measurements and
 RESULTS.md says so. Targets are docs/design.md §7.
+
+A section of RESULTS.md written by hand (an A/B timing, a measurement no JSON holds) carries the line ``BY_HAND``
+right under its ``## `` heading; rewriting the file keeps every such section, in its order, after the generated ones.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from .common import RESULTS_DIR, machine
 
 REPORT = Path(__file__).resolve().parent / "RESULTS.md"
 ORDER = ("env", "stages", "decision")
+BY_HAND = "<!-- written by hand: benchmarks.run keeps this section -->"
 
 # Sizes passed to each benchmark's main(argv) per preset ("full" = the benchmark's own defaults).
 PRESETS = {
@@ -516,9 +520,27 @@ def section_other(name: str, d: dict) -> str:
 SECTIONS = {"env": section_env, "stages": section_stages, "decision": section_decision}
 
 
-def write_report(command: str) -> Path:
+def hand_written_sections(text: str) -> list[str]:
+    """The sections of a RESULTS.md text marked ``BY_HAND``: each from its ``## `` heading to the next heading of
+    that level, or to the end."""
+    sections, current = [], None
+    for line in text.splitlines():
+        if line.startswith("## "):
+            if current:
+                sections.append(current)
+            current = [line]
+        elif current is not None:
+            current.append(line)
+    if current:
+        sections.append(current)
+    return ["\n".join(s).rstrip() + "\n" for s in sections if len(s) > 1 and s[1].strip() == BY_HAND]
+
+
+def write_report(command: str, results_dir: Path = RESULTS_DIR, report: Path = REPORT) -> Path:
+    """Rewrite ``report`` from the JSONs in ``results_dir``, keeping its sections written by hand."""
+    kept = hand_written_sections(report.read_text()) if report.exists() else []
     results = {}
-    for path in sorted(RESULTS_DIR.glob("*.json")):
+    for path in sorted(results_dir.glob("*.json")):
         try:
             results[path.stem] = json.loads(path.read_text())
         except json.JSONDecodeError as err:
@@ -561,8 +583,8 @@ def write_report(command: str) -> Path:
         ]
     if summary:
         head += ["## Summary against the targets", "", table(["what", "measured", "target", "status"], summary), ""]
-    REPORT.write_text("\n".join(head + sections).rstrip() + "\n")
-    return REPORT
+    report.write_text("\n".join(head + sections + kept).rstrip() + "\n")
+    return report
 
 
 def main(argv=None) -> None:
