@@ -9,8 +9,8 @@ from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
 
 from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
-from ..models.ddpg import DDPGConfig
-from ..models.dqn import DQNConfig
+from ..models.ddpg_config import DDPGConfig
+from ..models.dqn_config import DQNConfig
 from .evaluation import _draw_problems
 
 MASK_CAMERAS = ("wide", "tele")
