@@ -81,6 +81,7 @@ def test_pipeline_produces_every_output(experiment):
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
     assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval", "eval_test"}
     assert all(t["wall_s"] > 0 and t["peak_rss_mb"] > 0 for t in timings.values())
+    assert not any(t["untimed_part"] for t in timings.values())  # one uninterrupted run: every second recorded
     tables = (experiment / "runs/t/eval/tables.md").read_text()
     assert "Brake&Steer, reward 1" in tables and "Table III" in tables and "Table IV" in tables
 
@@ -103,6 +104,8 @@ def test_the_plan_says_what_a_run_would_do_and_runs_nothing(experiment, tmp_path
     """plan=true on a finished experiment: every step complete with its recorded time; a new seed's time to go is
     that of its finished seeds. With the LSTM unfinished, the LSTM resumes and the steps that read it are complete
     now but checked again after it; nothing is written."""
+    empty = pipeline.run(smoke_cfg(tmp_path / "empty", "pipeline", BANKS, "plan=true"))["plan"]
+    assert {r["state"] for r in empty} == {"fresh"}  # the collection too: nothing of it to resume
     done = pipeline.run(smoke_cfg(experiment, "pipeline", BANKS, "plan=true"))["plan"]
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
     assert [(r["step"], r["state"], r["wall_s"]) for r in done] == [

@@ -162,9 +162,10 @@ def status(cfg, step: Step) -> tuple[str, list[str]]:
     """``(state, reasons)``: state is ``complete``, ``resume`` (unfinished, inputs unchanged), ``fresh`` (nothing
     there) or ``stale`` (reasons say what changed). The collection checks its own settings when it runs."""
     done = artifacts.marker(cfg, step.kind, step.agent).exists()
-    if step.kind in ("collect", "demos"):
-        return ("complete" if done else "resume"), []
     directory = artifacts.output_dir(cfg, step.kind, step.agent)
+    if step.kind in ("collect", "demos"):
+        started = directory.is_dir() and any(directory.iterdir())
+        return ("complete" if done else "resume" if started else "fresh"), []
     if not directory.exists():
         return "fresh", []
     recorded = artifacts.read_provenance(directory)
