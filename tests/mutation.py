@@ -27,7 +27,7 @@ TARGETS = (
     "worldmodel.report.rows.x__mean__*",
     "worldmodel.report.rows.x__values__*",
     "worldmodel.report.summary.x__metrics__*",
-    "worldmodel.report.summary.x__share__*",
+    "worldmodel.report.summary.x_share_of_gain__*",
     "worldmodel.report.summary.x_achievable_share_grids__*",
     "worldmodel.report.summary.x_overall_achievable_share__*",
     "worldmodel.report.summary.x_paired_bootstrap__*",
@@ -88,8 +88,24 @@ def main() -> int:
         print(f"mutmut is not installed: `{sys.executable} -m pip install -r requirements-mutation.lock`")
         return 2
     if not args.report:
-        subprocess.run([str(MUTMUT), "run", *TARGETS], check=False)
-    print(summary(results()))
+        run = subprocess.run([str(MUTMUT), "run", *TARGETS], check=False)
+        if run.returncode != 0:
+            # mutmut stops before any mutant when the selected tests fail on the code as it is
+            print(
+                f"mutmut run failed (exit status {run.returncode}); no mutant was judged. Run the tests it selects "
+                "(pyproject.toml, [tool.mutmut]) on the unmutated code first: `.venv/bin/pytest -p no:xdist "
+                "tests/test_banks.py ...`; a test that imports a folder mutmut does not copy needs it in also_copy",
+                file=sys.stderr,
+            )
+            return 1
+    status = results()
+    print(summary(status))
+    unmatched = [t for t in TARGETS if not any(fnmatch.fnmatchcase(name, t) for name in status)]
+    if unmatched:
+        # a renamed function silently leaves its mutants out of the run
+        names = ", ".join(unmatched)
+        print(f"no mutant matches {names}: a function renamed or removed? update TARGETS", file=sys.stderr)
+        return 1
     return 0
 
 
