@@ -1,6 +1,6 @@
 """Phase 0 (collection) and phase 1 (VAE training): throughput and peak memory, each stage run as it is used.
 
-    python -m benchmarks.bench_stages [--episodes 24] [--max-episode-s 8.0] [--vae-epochs 1] [--tiny]
+    python -m benchmarks.bench_stages [--episodes 96] [--max-episode-s 8.0] [--vae-epochs 1] [--tiny]
 
 Every run is a fresh subprocess of the real command (``python -m worldmodel.collect ...`` /
 ``python -m worldmodel.train_vae ...``) at ``scale=smoke`` with size overrides, into a temporary directory, so
@@ -215,7 +215,8 @@ def vae_run(tmp: Path, data_root: Path, threads: int, epochs: int, batch_size: i
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--episodes", type=int, default=24, help="episodes collected per run")
+    # 96: about 5 s of collection for one worker, so that the workers' start-up does not hide the speed-up of two
+    ap.add_argument("--episodes", type=int, default=96, help="episodes collected per run")
     ap.add_argument("--max-episode-s", type=float, default=8.0, help="episode length cap, seconds (15 FPS)")
     ap.add_argument("--vae-epochs", type=int, default=1)
     ap.add_argument("--vae-batch-size", type=int, default=32)
