@@ -433,7 +433,11 @@ def readme_with_table(text: str, table: str) -> str:
 
 # ----------------------------------------------------------------------------- command line
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m worldmodel.report", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m worldmodel.report",
+        description="Commit the per-scenario rows behind the tables in docs/results/, and rebuild or re-check the "
+        "tables from them.",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("publish", help="commit an evaluation's rows and render its tables from them")
     p.add_argument("eval_dir", type=Path)
