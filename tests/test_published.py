@@ -72,7 +72,7 @@ def test_the_headline_gives_both_banks_with_intervals(results):
 def test_recheck_names_an_edited_number(results, tmp_path):
     import shutil
 
-    _, out = results
+    root, out = results
     copy = tmp_path / "x"
     shutil.copytree(out, copy)
     tables = (copy / "test.tables.md").read_text()
@@ -80,14 +80,14 @@ def test_recheck_names_an_edited_number(results, tmp_path):
     original = tables.splitlines()[line - 1]
     edited = original.replace("|", "| 99.9 |", 2).replace("| 99.9 |", "|", 1)  # one cell more, after the name
     (copy / "test.tables.md").write_text(tables.replace(original, edited, 1))
-    (problem,) = published.recheck(copy)
+    (problem,) = published.recheck(copy, root / "ledger.csv")
     assert f"test.tables.md, line {line} (Straight-line braking)" in problem and "committed 99.9" in problem
 
 
 def test_recheck_fails_when_the_rows_change_under_a_table(results, tmp_path):
     import shutil
 
-    _, out = results
+    root, out = results
     copy = tmp_path / "x"
     shutil.copytree(out, copy)
     rows = read_results_csv(copy / "test.rows.csv.gz")
@@ -95,8 +95,42 @@ def test_recheck_fails_when_the_rows_change_under_a_table(results, tmp_path):
         if r["policy"] == "oracle_brake1":
             r["occupant_injury"] = 0.5  # a ceiling that hurts its occupants
     write_results_csv(rows, copy / "test.rows.csv.gz")
-    problems = published.recheck(copy)
+    problems = published.recheck(copy, root / "ledger.csv")
     assert any("test.tables.md" in p for p in problems) and any("headline.md" in p for p in problems)
+
+
+def test_recheck_holds_a_published_test_evaluation_to_its_ledger_row(results, tmp_path):
+    """The rows of a test-bank evaluation must be the evaluation the ledger recorded: its family, seed and
+    experiment, its policies with as many scenarios each; a validation evaluation needs no row."""
+    root, out = results
+    ledger = (root / "ledger.csv").read_text()
+    rows, meta = published.published(out)["test"]
+    assert published.ledger_problems("test", rows, meta, root / "ledger.csv") == []
+    validation_rows, validation_meta = published.published(out)["validation"]
+    assert published.ledger_problems("validation", validation_rows, validation_meta, None) == []
+
+    def problems(text):
+        (tmp_path / "ledger.csv").write_text(text)
+        return published.ledger_problems("test", rows, meta, tmp_path / "ledger.csv")
+
+    (missing,) = published.ledger_problems("test", rows, meta, None)
+    assert "no ledger.csv" in missing
+    (other,) = problems(ledger.replace(",t,smoke,", ",another,smoke,"))
+    assert "has no row for the porav test bank (seed 56171), experiment 't'" in other
+    (count,) = problems(ledger.replace(",6,braking", ",7,braking"))  # 6 scenarios: 2 TTCs x 3 per cell
+    assert "braking has 6 rows, the ledger 7 scenarios" in count
+    (policies,) = problems(ledger.replace("; oracle_brake1", ""))
+    assert "in the rows only: ['oracle_brake1']" in policies
+
+
+def test_the_committed_rows_carry_the_model_hashes_the_ledger_recorded(tmp_path):
+    """On the committed headline: the ledger's actor hash of one agent changed, and its rows no longer match."""
+    rows, meta = published.published(published.RESULTS / "porav")["test"]
+    ledger = (published.RESULTS / "ledger.csv").read_text()
+    assert published.ledger_problems("test", rows, meta, published.RESULTS / "ledger.csv") == []
+    (tmp_path / "ledger.csv").write_text(ledger.replace("actor=03535b7c244d", "actor=000000000000"))
+    (problem,) = published.ledger_problems("test", rows, meta, tmp_path / "ledger.csv")
+    assert "agent_r1/seed0's actor is 03535b7c244d in the rows, 000000000000 in the ledger" in problem
 
 
 def test_the_readme_table_sits_between_its_markers():

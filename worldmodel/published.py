@@ -13,7 +13,10 @@ results.csv``, the same columns), ``STEM.tables.md`` (the tables, rendered from 
 achievable improvement on both banks with paired-bootstrap intervals, and the spread over its training seeds.
 
 ``recheck`` renders every table again from the committed rows and fails where a committed file differs, naming
-the file, the line and the number. The statistics come from ``worldmodel.stats`` (scipy).
+the file, the line and the number. It also holds the rows of every published test-bank evaluation to the ledger row
+that recorded the evaluation (``ledger.csv`` of the directory or the nearest folder above it): the same family,
+seed and experiment, the same policies with as many scenarios each, and the model hashes the rows carry. The
+statistics come from ``worldmodel.stats`` (scipy).
 """
 
 from __future__ import annotations
@@ -361,12 +364,81 @@ def first_difference(name: str, committed: str, recomputed: str) -> str | None:
     return None
 
 
-def recheck_directory(directory: Path) -> list[str]:
-    """What differs in one directory (empty: every table is what its rows give)."""
+def ledger_of(directory: Path) -> Path | None:
+    """The ``ledger.csv`` that records ``directory``'s test-bank evaluations: its own, or the nearest above it."""
+    for folder in (Path(directory).resolve(), *Path(directory).resolve().parents):
+        if (folder / "ledger.csv").exists():
+            return folder / "ledger.csv"
+    return None
+
+
+def _ledger_policies(text: str) -> dict[str, dict[str, str]]:
+    """A ledger row's ``policies`` cell: each policy's key -> its model hashes (``actor=...``, ``members=a+b``)."""
+    out = {}
+    for part in filter(None, (p.strip() for p in text.split("; "))):
+        key, _, hashes = part.partition(" (")
+        out[key] = dict(h.split("=", 1) for h in hashes.rstrip(")").split(", ") if "=" in h)
+    return out
+
+
+def _policy_key(row: dict) -> str:
+    """The key the ledger names a row's policy by (evaluate.py, peers/common.py): trained ones with their seed."""
+    policy = str(row["policy"])
+    return f"{policy}/seed{row['policy_seed']}" if policy.startswith("agent_") else policy
+
+
+def _ledger_mismatch(rows: list[dict], entry: dict) -> str | None:
+    """How ``rows`` differ from what the ledger row ``entry`` recorded of its evaluation; None when they agree."""
+    recorded = _ledger_policies(entry["policies"])
+    counts: dict[str, int] = {}
+    for r in rows:
+        counts[_policy_key(r)] = counts.get(_policy_key(r), 0) + 1
+    if set(counts) != set(recorded):
+        extra, missing = sorted(set(counts) - set(recorded)), sorted(set(recorded) - set(counts))
+        return f"policies differ (in the rows only: {extra or 'none'}; in the ledger only: {missing or 'none'})"
+    wrong = sorted(k for k, n in counts.items() if n != int(entry["scenarios"]))
+    if wrong:
+        return f"{wrong[0]} has {counts[wrong[0]]} rows, the ledger {entry['scenarios']} scenarios"
+    for r in rows:
+        hashes = recorded[_policy_key(r)]
+        for name in ("vae", "rnn", "actor"):
+            value = r.get(f"{name}_sha")
+            if value and hashes.get(name) != value:
+                return f"{_policy_key(r)}'s {name} is {value} in the rows, {hashes.get(name)} in the ledger"
+    return None
+
+
+def ledger_problems(stem: str, rows: list[dict], meta: dict, ledger: Path | None) -> list[str]:
+    """Why the published test-bank evaluation ``stem`` is not the one a ledger row recorded (empty: it is)."""
+    if meta.get("bank") != "test":
+        return []
+    where = f"{meta['family']} test bank (seed {meta['bank_seed']}), experiment {meta['experiment']!r}"
+    if ledger is None:
+        return [f"{stem}: no ledger.csv in its folder or above it records the {where}"]
+    entries = [
+        e
+        for e in banks.read_ledger(ledger)
+        if e["family"] == meta["family"]
+        and int(e["bank_seed"]) == int(meta["bank_seed"])
+        and e["experiment"] == meta["experiment"]
+    ]
+    if not entries:
+        return [f"{stem}: {ledger} has no row for the {where}; publish only an evaluation the ledger recorded"]
+    mismatches = [_ledger_mismatch(rows, e) for e in entries]
+    if all(mismatches):
+        return [f"{stem}: the rows are not the evaluation {ledger} recorded for the {where}: {mismatches[-1]}"]
+    return []
+
+
+def recheck_directory(directory: Path, ledger: Path | None = None) -> list[str]:
+    """What differs in one directory (empty: every table is what its rows give, and every test-bank evaluation is
+    the one its ledger recorded). ``ledger``: the ledger to hold them to, by default ``ledger_of(directory)``."""
     directory = Path(directory)
     problems = []
     evaluations = published(directory)
+    ledger = ledger or ledger_of(directory)
     for stem, (rows, meta) in evaluations.items():
+        problems += ledger_problems(stem, rows, meta, ledger)
         path = directory / (stem + TABLES)
         if not path.exists():
             problems.append(f"{path} is missing: publish the evaluation again")
@@ -386,11 +458,11 @@ def recheck_directory(directory: Path) -> list[str]:
     return problems
 
 
-def recheck(root: Path) -> list[str]:
+def recheck(root: Path, ledger: Path | None = None) -> list[str]:
     """``recheck_directory`` on ``root`` and every directory below it that holds published rows."""
     root = Path(root)
     directories = sorted({p.parent for p in root.rglob("*" + ROWS)} | ({root} if root.is_dir() else set()))
-    return [problem for d in directories for problem in recheck_directory(d)]
+    return [problem for d in directories for problem in recheck_directory(d, ledger)]
 
 
 # ----------------------------------------------------------------------------- the README
