@@ -86,7 +86,16 @@ def test_the_gpu_check_runs_its_cpu_half(tmp_path):
     assert result["vae_frames_per_s"]["cpu"] > 0 and result["lstm_frames_per_s"]["cpu"] > 0
     assert result["ddpg"]["cpu"]["updates_per_s"] > 0 and result["ddpg"]["cpu"]["decisions_per_s"] > 0
     assert result["decisions_per_s"]["cpu"] > 0  # the whole decision: frame, world model and actor
+    assert result["vae_frames_per_s"]["cpu_2_threads"] > 0 and result["lstm_frames_per_s"]["cpu_2_threads"] > 0
     assert "speedup" not in result  # nothing to compare the CPU with
+    # the GPU's batch (scale=paper_gpu), which only a CUDA run measures: one step of each on the CPU here
+    import torch
+
+    from worldmodel.config import compose
+
+    gpu_cfg = compose("pipeline", ["scale=paper_gpu"])
+    cpu = torch.device("cpu")
+    assert gpu_check.vae_frames_per_s(gpu_cfg, cpu, 1, 0) > 0 and gpu_check.lstm_frames_per_s(gpu_cfg, cpu, 1, 0) > 0
 
 
 def test_the_new_settings_are_refused_naming_the_key_and_the_fix():
