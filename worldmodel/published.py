@@ -533,7 +533,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(problem)
             if problems:
                 return 1
-            print(f"every table under {args.directory} is what its rows give")
+            print(
+                f"every table under {args.directory} is what its rows give, and every test-bank evaluation is the "
+                "one its ledger recorded"
+            )
         elif args.command == "readme":
             text = README.read_text()
             fresh = readme_with_table(text, readme_table())
