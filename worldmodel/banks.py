@@ -64,6 +64,12 @@ def sealed_seed_problem(seed: int) -> str | None:
     return None
 
 
+def ledger_key(row: dict) -> str:
+    """The key a ledger row names an evaluation row's policy by: a trained one (``agent_*``) with its seed."""
+    policy = str(row["policy"])
+    return f"{policy}/seed{row['policy_seed']}" if policy.startswith("agent_") else policy
+
+
 def validation_draw(text: str) -> int:
     """An argparse ``type`` for a script's bank seed: a whole number that is not a sealed test seed, since the
     experiments' draws choose settings and a test bank may only judge them."""

@@ -23,7 +23,7 @@ import logging
 import time
 
 from . import artifacts, peers
-from .banks import record_evaluation, sealed_bank_problem
+from .banks import ledger_key, record_evaluation, sealed_bank_problem
 from .common import StageError, make_env, resolve_workers, set_threads, worker_pool
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
@@ -131,8 +131,7 @@ def models_by_policy(rows) -> dict[str, dict[str, str]]:
     """Each policy's key (``agent_r2/seed1`` for a trained one) -> the short hashes of its models."""
     out: dict[str, dict[str, str]] = {}
     for r in rows:
-        key = f"{r['policy']}/seed{r['policy_seed']}" if r["policy"].startswith("agent_") else r["policy"]
-        out.setdefault(key, {c.removesuffix("_sha"): str(r.get(c) or "") for c in MODEL_COLUMNS})
+        out.setdefault(ledger_key(r), {c.removesuffix("_sha"): str(r.get(c) or "") for c in MODEL_COLUMNS})
     return out
 
 

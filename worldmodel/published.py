@@ -28,6 +28,7 @@ import json
 import math
 import re
 import sys
+from collections import Counter
 from itertools import zip_longest
 from pathlib import Path
 
@@ -381,18 +382,10 @@ def _ledger_policies(text: str) -> dict[str, dict[str, str]]:
     return out
 
 
-def _policy_key(row: dict) -> str:
-    """The key the ledger names a row's policy by (evaluate.py, peers/common.py): trained ones with their seed."""
-    policy = str(row["policy"])
-    return f"{policy}/seed{row['policy_seed']}" if policy.startswith("agent_") else policy
-
-
 def _ledger_mismatch(rows: list[dict], entry: dict) -> str | None:
     """How ``rows`` differ from what the ledger row ``entry`` recorded of its evaluation; None when they agree."""
     recorded = _ledger_policies(entry["policies"])
-    counts: dict[str, int] = {}
-    for r in rows:
-        counts[_policy_key(r)] = counts.get(_policy_key(r), 0) + 1
+    counts = Counter(banks.ledger_key(r) for r in rows)
     if set(counts) != set(recorded):
         extra, missing = sorted(set(counts) - set(recorded)), sorted(set(recorded) - set(counts))
         return f"policies differ (in the rows only: {extra or 'none'}; in the ledger only: {missing or 'none'})"
@@ -400,11 +393,11 @@ def _ledger_mismatch(rows: list[dict], entry: dict) -> str | None:
     if wrong:
         return f"{wrong[0]} has {counts[wrong[0]]} rows, the ledger {entry['scenarios']} scenarios"
     for r in rows:
-        hashes = recorded[_policy_key(r)]
+        key = banks.ledger_key(r)
         for name in ("vae", "rnn", "actor"):
             value = r.get(f"{name}_sha")
-            if value and hashes.get(name) != value:
-                return f"{_policy_key(r)}'s {name} is {value} in the rows, {hashes.get(name)} in the ledger"
+            if value and recorded[key].get(name) != value:
+                return f"{key}'s {name} is {value} in the rows, {recorded[key].get(name)} in the ledger"
     return None
 
 

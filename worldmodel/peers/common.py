@@ -161,12 +161,12 @@ def models_of(cfg, key: str, actor: str | None = None) -> dict[str, str | None]:
 def record_if_test(cfg, family: str, rows: list[dict], record: dict, headline: dict[str, str]) -> None:
     """On the sealed test bank, a ledger row: every policy of ``rows`` (trained ones with their models' hashes,
     ``models_of``) and its headline figure."""
-    from ..banks import record_evaluation
+    from ..banks import ledger_key, record_evaluation
 
     policies: dict[str, dict] = {}
     for r in rows:
         trained = str(r["policy"]).startswith("agent_")
-        key = f"{r['policy']}/seed{r['policy_seed']}" if trained else str(r["policy"])
+        key = ledger_key(r)
         if key not in policies:
             policies[key] = models_of(cfg, key, record["inputs"].get(key)) if trained else {}
     first = (rows[0]["policy"], rows[0]["policy_seed"]) if rows else None
