@@ -59,6 +59,26 @@ def spec_from_dict(d: dict):
 
 DT = 1.0 / 15.0
 MAX_SPEED_OBS = 40.0
+HORIZON_AFTER_TTC_S = 3.0  # the env's defaults for an episode's length (``horizon_steps``)
+MAX_EPISODE_S = 15.0
+
+
+def horizon_steps(
+    ttc: float,
+    step_s: float = DT,
+    horizon_after_ttc_s: float | None = HORIZON_AFTER_TTC_S,
+    max_episode_s: float = MAX_EPISODE_S,
+) -> int:
+    """The steps after which an episode of the paper's family is truncated: ``min(max_episode_s, ttc +
+    horizon_after_ttc_s)`` seconds (``max_episode_s`` when ``horizon_after_ttc_s`` is None), rounded up to whole
+    steps of ``step_s``. Defaults: the env's."""
+    after = horizon_after_ttc_s
+    return steps_in(max_episode_s if after is None else min(max_episode_s, ttc + after), step_s)
+
+
+def steps_in(horizon_s: float, step_s: float) -> int:
+    """``horizon_s`` seconds in whole steps of ``step_s``, rounded up (at least one)."""
+    return max(1, int(math.ceil(horizon_s / step_s - 1e-9)))
 
 
 def _copy_actors(a: Actors) -> Actors:
@@ -96,8 +116,8 @@ class UrbanCollisionEnv(gym.Env):
         fov_deg: float = 90.0,
         tele_fov_deg: float | None = None,
         reward: str = "r2",
-        horizon_after_ttc_s: float | None = 3.0,
-        max_episode_s: float = 15.0,
+        horizon_after_ttc_s: float | None = HORIZON_AFTER_TTC_S,
+        max_episode_s: float = MAX_EPISODE_S,
         mu: float = 1.0,
         occupants_per_car: int = 1,
         ego_mass: float = 1500.0,
@@ -239,12 +259,10 @@ class UrbanCollisionEnv(gym.Env):
         self._prepare_static()
 
         self.t_step = 0
-        after = self.horizon_after_ttc_s
         if self.family_state is not None:
-            horizon_s = self.family_state.horizon_s
+            self.horizon_steps = steps_in(self.family_state.horizon_s, self.step_s)
         else:
-            horizon_s = self.max_episode_s if after is None else min(self.max_episode_s, spec.ttc + after)
-        self.horizon_steps = max(1, int(math.ceil(horizon_s / self.step_s - 1e-9)))
+            self.horizon_steps = horizon_steps(spec.ttc, self.step_s, self.horizon_after_ttc_s, self.max_episode_s)
         self.collisions: list[dict] = []
         self.returns = dict.fromkeys(REGISTRY, 0.0)
         self.ever_departed = False

@@ -111,45 +111,86 @@ class PrivilegedPlanner:
     """Scripted-policy interface (``reset``, ``act``) plus ``bind(env)``, which evaluation calls after each reset
     so the planner can read the true state. ``replan_every``: steps between decisions (1 = every step).
     ``brake_first``: steps of straight-line braking before the planner takes over, the perception ceiling of a
-    camera policy that needs that many frames to see the hazard (0 = plan from the first frame). ``reward``: the
+    camera policy that needs that many frames to see the hazard (0 = plan from the first frame).
+    ``brake_until_pixels``: K > 0 brakes straight until the hazard participants cover at least K pixels of the
+    camera frame (``UrbanCollisionEnv.hazard_pixels``), then plans, replanning every ``replan_every`` steps counted
+    from that frame, and keeps planning even if the hazard leaves the frame again: the cap on a policy that acts on
+    the camera, named ``oracle_pixelsK``. It needs the env's camera (``bind`` refuses a camera-less env), and in a
+    scenario whose hazard never covers K pixels (or that has none) it brakes throughout (0 = off). ``reward``: the
     registered reward whose negative it minimises (R2, or e.g. Kim's ISS, under which every crash costs at least
     e^alpha, so avoiding comes first). Other arguments: ``candidate_manoeuvres``."""
 
     name = "oracle"
 
     def __init__(
-        self, replan_every: int = 3, brake_first: int = 0, step_s: float = DT, reward: str = "r2", **candidates
+        self,
+        replan_every: int = 3,
+        brake_first: int = 0,
+        step_s: float = DT,
+        reward: str = "r2",
+        brake_until_pixels: int = 0,
+        **candidates,
     ):
         if int(replan_every) < 1:
             raise ValueError(f"planner replan_every={replan_every} must be >= 1 step")
         if int(brake_first) < 0:
             raise ValueError(f"planner brake_first={brake_first} must be >= 0 steps")
+        if int(brake_until_pixels) < 0:
+            raise ValueError(f"planner brake_until_pixels={brake_until_pixels} must be >= 0 pixels")
         self.replan_every, self.brake_first = int(replan_every), int(brake_first)
+        self.brake_until_pixels = int(brake_until_pixels)
+        if self.brake_until_pixels:
+            self.name = f"oracle_pixels{self.brake_until_pixels}"
         self.step_s = float(step_s)
         self.reward = reward
         self.candidates = candidate_manoeuvres(step_s=self.step_s, **candidates)
         self.env: UrbanCollisionEnv | None = None
         self._twin: UrbanCollisionEnv | None = None
         self.plan: _Plan | None = None
+        self.seen_at: int | None = None  # the step the hazard first covered brake_until_pixels pixels
         self.rollouts = 0
+
+    @property
+    def needs_camera(self) -> bool:
+        """Whether it reads the rendered frame (``brake_until_pixels``); evaluation turns the camera on for it."""
+        return self.brake_until_pixels > 0
 
     @classmethod
     def from_settings(
-        cls, replan_every_s: float, brake_first: int = 0, step_s: float = DT, reward: str = "r2", **candidates
+        cls,
+        replan_every_s: float,
+        brake_first: int = 0,
+        step_s: float = DT,
+        reward: str = "r2",
+        brake_until_pixels: int = 0,
+        **candidates,
     ) -> PrivilegedPlanner:
         """From the config's units: ``replan_every_s`` in seconds, ``step_s`` the env's step (``env.step_s``), the
         rest as ``candidate_manoeuvres``."""
         replan = max(1, round(float(replan_every_s) / float(step_s)))
-        return cls(replan_every=replan, brake_first=brake_first, step_s=step_s, reward=reward, **candidates)
+        return cls(
+            replan_every=replan,
+            brake_first=brake_first,
+            step_s=step_s,
+            reward=reward,
+            brake_until_pixels=brake_until_pixels,
+            **candidates,
+        )
 
     def reset(self, seed: int | None = None) -> None:
         self.plan = None
+        self.seen_at = None
 
     def bind(self, env: UrbanCollisionEnv) -> None:
         if env.step_s != self.step_s:
             raise ValueError(
                 f"the planner's manoeuvres are in steps of {self.step_s} s but the env steps {env.step_s} s; "
                 "build it with step_s=env.step_s"
+            )
+        if self.needs_camera and not env.camera:
+            raise ValueError(
+                f"{self.name} waits for the hazard to cover {self.brake_until_pixels} px of the camera frame: "
+                "bind it to an env with camera=True (without one it would only ever brake)"
             )
         self.env = env
         if self._twin is None:
@@ -161,7 +202,14 @@ class PrivilegedPlanner:
         t = self.env.t_step
         if t < self.brake_first:
             return np.array([0.0, -1.0], dtype=np.float32)
-        if self.plan is None or t % self.replan_every == 0:
+        origin = 0
+        if self.brake_until_pixels:
+            if self.seen_at is None:
+                if self.env.hazard_pixels() < self.brake_until_pixels:
+                    return np.array([0.0, -1.0], dtype=np.float32)
+                self.seen_at = t
+            origin = self.seen_at
+        if self.plan is None or (t - origin) % self.replan_every == 0:
             self._replan(t)
         return self.plan.action(t)
 

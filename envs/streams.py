@@ -39,6 +39,8 @@ AGENT_FOCUS_EPISODES = 4242  # train_agent: whether training episode i is from t
 DAGGER_SCENARIOS = 5151  # imitation: DAgger round r's episode e's focus-mix scenario, [run seed, TAG, r, e]
 DEMO_SCENARIOS = 31337  # demonstrate: the planner's demonstration episode i's focus-mix scenario
 CHOOSER_LABEL_EPISODES = 8128  # chooser: labelled episode i's focus-mix scenario
+# counterfactual actor: round r's labelled episode e's focus-mix scenario and its proposed shifts, [seed, TAG, r, e]
+COUNTERFACTUAL_LABEL_EPISODES = 6151
 DREAM_BRANCH_SCENARIOS = 6007  # dreams: held-out branch point k's scenario, from the paper's distributions
 CHAE_TRAINING_EPISODES = 1717  # chae peer: training episode i's scenario and observation-noise seed
 MEROLA_TRAINING_EPISODES = 2022  # merola peer: training episode i's scenario
@@ -55,6 +57,8 @@ DATASET_SPLIT = 7919  # recording: which of a dataset's episodes are held out fo
 RNN_OPEN_LOOP_START = 77  # train_rnn: the open-loop dream's first step in batch b of an epoch, [s, epoch, b, TAG]
 RNN_VALIDATION_INPUTS = 99  # train_rnn: the held-out loss's sampled inputs; torch seed run seed + TAG, not a list
 CHOOSER_MINIBATCHES = 77  # chooser: the scorer's minibatches, [run seed, TAG]
+# counterfactual actor: round r's minibatches of phase p (0 the critic, 1 the actor), [run seed, TAG, r, p]
+COUNTERFACTUAL_MINIBATCHES = 6152
 
 # ----------------------------------------------------------------------------- evaluation banks: [bank seed, ...]
 CHAE_BANK_SCENARIO_2 = 2  # chae: Scenario 2's trials (Scenario 1's: [bank seed, TTC in hundredths of a second])

@@ -201,6 +201,9 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
         runs.append(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False))
         env.close()
     assert repr(runs[0]) == repr(runs[1])
+    # every row says how its episode ended, and the speed then
+    assert {r["end"] for r in runs[0]} <= {"crash", "left_scene", "horizon"}
+    assert all(0.0 <= r["final_speed"] <= r["speed"] for r in runs[0])
     # ...and the camera does not change any outcome.
     env = make_env(cfg, camera=True)
     assert repr(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False)) == repr(runs[0])

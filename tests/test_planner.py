@@ -115,6 +115,76 @@ def test_perception_ceiling_brakes_straight_for_its_first_frames_then_plans():
         PrivilegedPlanner(brake_first=-1)
 
 
+def test_camera_cap_brakes_straight_until_the_hazard_covers_k_pixels_then_plans():
+    """brake_until_pixels=K (``oracle_pixelsK``): straight braking until the hazard covers K pixels of the rendered
+    frame, then the planner, which keeps planning when the hazard leaves the frame again. On the real camera."""
+    env = UrbanCollisionEnv()  # the camera on: the cap reads the rendered frame
+    spec = ScenarioSpec(seed=5, ttc=0.75, ego_speed=30.0, pedestrian_speed=2.0, p_pedestrian=1.0)
+    small = {"pedals": (-1.0, 0.0), "steers": (1.0,), "delays_s": (0.0,), "lane_change_s": (0.3,)}
+
+    def drive(policy):
+        """(actions, the hazard's pixels in the frame each action was chosen on, outcome)."""
+        actions, pixels = [], []
+        episode = rollout(
+            env,
+            policy,
+            spec,
+            on_reset=lambda o, i: pixels.append(env.hazard_pixels()),
+            on_step=lambda o, a, r, i: (actions.append(np.asarray(a)), pixels.append(env.hazard_pixels())),
+        )
+        return np.array(actions), np.array(pixels[: len(actions)]), episode.outcome
+
+    try:
+        # a hazard that never covers that many pixels: straight braking throughout, braking's episode exactly
+        never = PrivilegedPlanner(brake_until_pixels=64 * 64 + 1, **small)
+        assert never.name == "oracle_pixels4097" and never.needs_camera
+        actions, _, outcome = drive(never)
+        np.testing.assert_array_equal(actions, np.tile([0.0, -1.0], (len(actions), 1)))
+        assert repr(outcome) == repr(drive(StraightLineBraking())[2])
+
+        # K = 1: braking until the first frame where the pedestrian covers a pixel, then the planner's actions,
+        # which are those of a planner that brakes for exactly that many frames (replanning every step in both)
+        actions, pixels, _ = drive(PrivilegedPlanner(brake_until_pixels=1, replan_every=1, **small))
+        first = int(np.flatnonzero(pixels >= 1)[0])
+        assert first > 0  # hidden at onset in this scenario, so the cap has something to wait for
+        np.testing.assert_array_equal(actions[:first], np.tile([0.0, -1.0], (first, 1)))
+        reference, _, _ = drive(PrivilegedPlanner(brake_first=first, replan_every=1, **small))
+        np.testing.assert_array_equal(actions, reference)
+        assert np.abs(actions[first:, 0]).max() > 0  # it does plan: it steers
+        assert pixels[first:].min() == 0  # and the hazard leaves the frame later without it going back to braking
+    finally:
+        env.close()
+
+    with pytest.raises(ValueError, match="camera"):
+        rollout(UrbanCollisionEnv(camera=False), PrivilegedPlanner(brake_until_pixels=1), spec)
+    with pytest.raises(ValueError, match="brake_until_pixels"):
+        PrivilegedPlanner(brake_until_pixels=-1)
+
+
+def test_the_camera_cap_is_a_scripted_policy_evaluated_with_the_camera(tmp_path):
+    """``evaluate.policies`` takes oracle_pixels1 and oracle_pixels3; evaluation builds them on an env with the
+    camera (they read its frame) and the planner itself without; their rows get a label of their own."""
+    from worldmodel import evaluate
+    from worldmodel.policies import policy_for
+    from worldmodel.report import policy_label
+
+    overrides = [f"paths.data_root={tmp_path}", f"paths.runs_root={tmp_path}", "scale=smoke"]
+    cfg = compose("evaluate", [*overrides, "evaluate.policies=[braking,oracle,oracle_pixels1,oracle_pixels3]"])
+    validate(cfg)
+    policy, _, _ = policy_for(cfg, "oracle_pixels3")
+    assert (policy.name, policy.brake_until_pixels, policy.brake_first) == ("oracle_pixels3", 3, 0)
+    assert "camera cap" in policy_label("oracle_pixels1") and "3 px" in policy_label("oracle_pixels3")
+    from omegaconf import OmegaConf
+
+    cfg_dict = OmegaConf.to_container(cfg, resolve=True)
+    for name, camera in (("oracle", False), ("oracle_pixels1", True)):
+        env, policy, _, _ = evaluate._build(cfg_dict, name)
+        try:
+            assert (env.camera, policy.name) == (camera, name)
+        finally:
+            env.close()
+
+
 def test_a_one_sided_teacher_steers_only_to_its_side(tmp_path):
     """demos.teacher_sides: the planner that demonstrates starts its manoeuvres only to the sides asked for, and its
     store is kept apart from the two-sided one; the evaluation planner (the ceiling) is unchanged."""

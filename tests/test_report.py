@@ -58,6 +58,8 @@ def make_row(policy, sid, hazard, ttc, speed, **outcome):
         steps=30,
         return_r1=0.0,
         return_r2=0.0,
+        end="horizon",
+        final_speed=0.0,
     )
     row.update(outcome)
     return row
@@ -357,6 +359,38 @@ def test_improvement_grid_nan_where_no_scenario_and_missing_baseline():
     np.testing.assert_allclose(grids["agent_r2"]["car_collision"][2], 100.0)
     with pytest.raises(ValueError, match="baseline"):
         report.improvement_grids([r for r in rows if r["policy"] != "braking"])
+
+
+def test_episode_endings_from_recorded_ends_and_inferred_for_older_rows(tmp_path, capsys):
+    """experiments/episode_endings.py: rows that record ``end`` and ``final_speed`` are classified from them; rows
+    without (as committed before the columns) by their collisions and their steps against the env's horizon."""
+    from envs.env import DT, horizon_steps
+    from experiments import episode_endings as ee
+
+    assert horizon_steps(0.5) == 53 and horizon_steps(1.5) == 68  # (TTC + 3 s) at 15 steps a second, rounded up
+
+    def ending(**kw):
+        return ee.ending(make_row("braking", 1, "car", 0.5, 20.0, **kw), 0.5, DT, 3.0)
+
+    assert ending(end="crash", vehicle_collision=1, static_collision=1) == ee.VEHICLE
+    assert ending(end="crash", static_collision=1) == ee.STATIC
+    assert ending(end="horizon", steps=53, final_speed=0.2) == ee.STOPPED
+    assert ending(end="horizon", steps=53, final_speed=3.0) == ee.MOVING
+    assert ending(end="left_scene", steps=40) == ee.LEFT
+    assert ending(end="", vehicle_collision=1, steps=20) == ee.VEHICLE
+    assert ending(end="", static_collision=1, steps=20) == ee.STATIC
+    assert ending(end="", steps=52) == ee.LEFT
+    assert ending(end="", steps=53, pedestrian_collision=1) == ee.TIME_LIMIT  # a pedestrian hit ends nothing
+    with pytest.raises(ValueError, match="horizon"):
+        ending(end="", steps=54)
+
+    rows = [make_row("braking", 1, "car", 0.5, 20.0, end="left_scene", steps=40, return_r2=-0.25)]
+    rows.append(make_row("braking", 2, "car", 0.5, 20.0, end="horizon", steps=53, final_speed=0.0))
+    report.write_results_csv(rows, tmp_path / "results.csv")
+    assert ee.main([str(tmp_path / "results.csv")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("| braking"))
+    # crashes (vehicle, static), stopped, left, moving, pedestrian hits, R2 cost of all and of those that left
+    assert line == "| braking | 2 | 0.0 | 0.0 | 50.0 | 50.0 | 0.0 | 0.0 | 0.1250 | 0.2500 |"
 
 
 # ----------------------------------------------------------------------------- CSV

@@ -154,6 +154,21 @@ def test_ddpg_stopped_by_a_shorter_total_resumes_bit_for_bit(two_roots, stage_cf
     assert_same_run(artifacts.agent_dir(cfg), artifacts.agent_dir(stage_cfg("train_agent", "reward=r1", root=b)))
 
 
+def test_privileged_ddpg_stopped_by_a_shorter_total_resumes_bit_for_bit(stage_cfg, tmp_path):
+    """obs=privileged (the true state, no world model): the replayed episode rebuilds its observation too."""
+    a, b = tmp_path / "straight", tmp_path / "stopped"
+    agent = ("agent=ddpg", "obs=privileged", "reward=r2")
+    train_agent.run(stage_cfg("train_agent", *agent, root=a))
+    train_agent.run(stage_cfg("train_agent", *agent, "agent.total_steps=150", root=b))
+    state = torch.load(artifacts.agent_dir(stage_cfg("train_agent", *agent, root=b)) / "last.pt", weights_only=False)
+    assert state["step"] == 150 and len(state["in_progress"]["actions"]) > 0, "the stop should land mid-episode"
+    train_agent.run(stage_cfg("train_agent", *agent, "resume=true", root=b))
+    assert_same_run(
+        artifacts.agent_dir(stage_cfg("train_agent", *agent, root=a)),
+        artifacts.agent_dir(stage_cfg("train_agent", *agent, root=b)),
+    )
+
+
 def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots, stage_cfg):
     """TD3's options and 3-step returns: the stop leaves transitions waiting in the n-step window."""
     a, b = two_roots()
@@ -226,6 +241,15 @@ def test_chooser_sigterm_mid_fit_resumes_bit_for_bit(two_roots, stage_cfg):
         *("agent.chooser.batch_size=16", "agent.chooser.num_workers=1"),
     )
     agent_resumes_bit_for_bit(stage_cfg, a, b, chooser, stop_at_update=40)
+
+
+# ----------------------------------------------------------------------------- the counterfactual actor
+def test_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(two_roots, stage_cfg):
+    """Stopped while fitting the second round's critic, after the first actor has driven and its states are
+    labelled: the resumed run reads both rounds' labels back and refits that critic to the same weights."""
+    a, b = two_roots()
+    # the smoke scale's 60 critic and 40 actor minibatches a round: update 130 is round 1's critic
+    agent_resumes_bit_for_bit(stage_cfg, a, b, ("reward=r2", "agent=counterfactual"), stop_at_update=130)
 
 
 # ----------------------------------------------------------------------------- the peers' learners

@@ -14,6 +14,9 @@ and ``LearnedPolicy`` drives an actor with it behind the scripted-policy interfa
 Both run every frame through the batch-1 decision path of ``models/fast_decision.py``: the fast path where its
 self-test passes on this torch build, else the module path with the same numbers (``path`` forces one).
 Training keeps using the modules themselves.
+
+``PrivilegedEncoder`` puts the simulator's true state (``obs=privileged``, ``envs/privileged.py``) behind the
+encoder's interface, so that the paper's DDPG acts on it through the same view and policy, without the camera.
 """
 
 from __future__ import annotations
@@ -70,6 +73,44 @@ class WorldModelEncoder:
             return self.encode_tensor(obs)[0].cpu().numpy().copy()
 
 
+class PrivilegedEncoder:
+    """``obs=privileged``: the true state of the bound env (``envs/privileged.py``) instead of the camera's
+    [z_t, zhat_{t+1}], behind ``WorldModelEncoder``'s interface. No world model and no camera: ``bind(env)`` (at
+    construction for training, after each reset in evaluation) hands it the simulator it reads; ``obs`` is ignored."""
+
+    needs_camera = False
+
+    def __init__(self, env=None, device=None):
+        from envs.privileged import PRIVILEGED_DIM
+
+        self.dim = PRIVILEGED_DIM
+        self.env = None
+        self._out = torch.zeros(1, self.dim, device=device or "cpu")
+        if env is not None:
+            self.bind(env)
+
+    def bind(self, env) -> None:
+        self.env = getattr(env, "unwrapped", env)
+
+    def reset(self) -> None:
+        pass
+
+    def note_action(self, action) -> None:
+        pass
+
+    def encode(self, obs=None) -> np.ndarray:
+        from envs.privileged import privileged_state
+
+        if self.env is None:
+            raise RuntimeError("the privileged observation reads the simulator: bind(env) first")
+        return privileged_state(self.env)
+
+    def encode_tensor(self, obs=None) -> torch.Tensor:
+        """The agent input as a ``(1, dim)`` tensor that the next call overwrites."""
+        self._out[0] = torch.from_numpy(self.encode(obs))
+        return self._out
+
+
 def encode_episode(encoder: WorldModelEncoder, seg: np.ndarray, speed: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """The agent inputs a live run would have produced for a recorded episode: ``(T, dim)`` from its T frames and
     speeds and the simulator's actions (``actions[t]`` taken after frame t), fed as ``WorldModelView`` feeds them."""
@@ -122,8 +163,19 @@ class LearnedPolicy:
         self.decide = actor_path(self.actor, path)
         self.action_map = action_map or ActionMap()
 
+    @property
+    def needs_camera(self) -> bool:
+        """Whether it acts on the camera (the world model's view) or on the true state (``PrivilegedEncoder``)."""
+        return getattr(self.encoder, "needs_camera", True)
+
     def reset(self, seed=None) -> None:
         self.encoder.reset()
+
+    def bind(self, env) -> None:
+        """The env of the episode just reset, for an encoder that reads the true state (evaluation calls it)."""
+        bind = getattr(self.encoder, "bind", None)
+        if bind is not None:
+            bind(env)
 
     def act(self, obs, info) -> np.ndarray:
         with torch.inference_mode():

@@ -268,7 +268,8 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
             settings["teacher"] = teacher_settings(cfg)
         elif uses_demos(cfg):
             inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")
-        if uses_world_model and (uses_demos(cfg) or cfg.agent.focus_share > 0):
+        street = uses_world_model or cfg.agent.get("obs") == "privileged"  # train_agent's own loop
+        if street and (uses_demos(cfg) or cfg.agent.focus_share > 0):
             settings["focus"] = _config(cfg, "demos")["demos"]["focus"]  # the focus mix's ranges shape the training
     elif stage == "eval":
         family = cfg.evaluate.get("family", "porav")
@@ -477,12 +478,12 @@ def agent_input(state: dict, latent_dim: int) -> dict:
 
 def load_actor(cfg, agent: AgentId, which: str = "last", state: dict | None = None):
     """A trained actor (eval mode) and its checkpoint (``state``, if the caller has already loaded it); refuses one
-    built on another VAE or LSTM. A chooser's checkpoint (``agent.learner=chooser``) has no actor: the actor
-    returned is None."""
+    built on another VAE or LSTM. A chooser's or a counterfactual actor's checkpoint (``agent.learner=chooser``,
+    ``counterfactual``) has no DDPG actor: the actor returned is None."""
     from .models.ddpg import Actor
 
     state = load_agent_state(cfg, agent, which) if state is None else state
-    if state.get("learner", "ddpg") == "chooser":
+    if state.get("learner", "ddpg") in ("chooser", "counterfactual"):
         return None, state
     actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
     actor.load_state_dict(state["agent"]["actor"])
@@ -510,8 +511,14 @@ def load_agent_state(cfg, agent: AgentId, which: str = "last") -> dict:
 
 
 def models_of(cfg, agent: AgentId) -> dict[str, str]:
-    """Short hashes of the VAE, LSTM and actor behind an agent's decisions (for evaluation rows)."""
-    return {"vae_sha": short(vae_id(cfg)), "rnn_sha": short(rnn_id(cfg)), "actor_sha": short(actor_id(cfg, agent))}
+    """Short hashes of the VAE, LSTM and actor behind an agent's decisions (for evaluation rows); empty for a part
+    its observation does not read (none of the world model for ``obs=privileged``)."""
+    reads = {name for name, _ in world_model_inputs(agent.obs or "worldmodel")}
+    return {
+        "vae_sha": short(vae_id(cfg)) if "vae" in reads else "",
+        "rnn_sha": short(rnn_id(cfg)) if "rnn" in reads else "",
+        "actor_sha": short(actor_id(cfg, agent)),
+    }
 
 
 # ----------------------------------------------------------------------------- completion

@@ -12,7 +12,8 @@ Policies: ``evaluate.policies`` names the scripted ones (``braking``, the floor,
 privileged planner of ``envs.planner``, the ceiling), and every agent under ``runs/NAME/agent_*/seed*/`` is added;
 its rows carry the training seed in ``policy_seed`` so seed sweeps report mean and spread over seeds.
 
-Straight-line braking and the planner run without the camera (outcomes are identical with it on, and it is ~10x faster).
+Straight-line braking and the planner run without the camera (outcomes are identical with it on, and it is ~10x faster);
+the camera's cap ``oracle_pixelsK``, which waits for the hazard to cover K pixels of the frame, runs with it.
 Scenarios are spread over ``evaluate.num_workers`` processes in fixed chunks; every scenario is independent and
 deterministic, so the rows are identical to a single-process run (tested).
 """
@@ -85,8 +86,10 @@ def _build(cfg_dict, name: str):
 
     torch.set_num_threads(1)
     cfg = OmegaConf.create(cfg_dict)
-    camera = name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER)
     policy, seed, models = policy_for(cfg, name)
+    # the scripted policies read the true state, not the frame, except the camera's cap (oracle_pixelsK); so does an
+    # agent trained on it (obs=privileged): a policy that says whether it needs the camera is taken at its word
+    camera = getattr(policy, "needs_camera", name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER))
     return make_env(cfg, camera=camera, **env_overrides(policy)), policy, seed, models
 
 

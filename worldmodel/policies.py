@@ -12,12 +12,17 @@ from .report import MODEL_COLUMNS
 NO_MODELS = dict.fromkeys(MODEL_COLUMNS, "")
 
 
-def make_oracle(cfg, brake_first: int | None = None):
+def make_oracle(cfg, brake_first: int | None = None, brake_until_pixels: int | None = None):
     """The privileged planner of ``evaluate.oracle``; with ``brake_first`` k, the perception ceiling that brakes
-    straight for its first k frames, named ``oracle_brakek``."""
+    straight for its first k frames, named ``oracle_brakek``; with ``brake_until_pixels`` k, the camera's cap that
+    brakes straight until the hazard covers k pixels of the frame, named ``oracle_pixelsk`` (it needs the camera)."""
     from envs.planner import PrivilegedPlanner
 
     settings = oracle_settings(cfg)
+    if brake_until_pixels is not None:
+        if int(brake_until_pixels) < 1:
+            raise ValueError(f"oracle_pixels{brake_until_pixels}: the hazard must cover at least 1 pixel")
+        return PrivilegedPlanner.from_settings(**{**settings, "brake_until_pixels": int(brake_until_pixels)})
     if brake_first is None:
         return PrivilegedPlanner.from_settings(**settings)
     planner = PrivilegedPlanner.from_settings(**{**settings, "brake_first": int(brake_first)})
@@ -51,6 +56,8 @@ def policy_for(cfg, name: str):
         return make_oracle(cfg), 0, NO_MODELS
     if name.startswith("oracle_brake") and name[len("oracle_brake") :].isdigit():
         return make_oracle(cfg, brake_first=int(name[len("oracle_brake") :])), 0, NO_MODELS
+    if name.startswith("oracle_pixels") and name[len("oracle_pixels") :].isdigit():
+        return make_oracle(cfg, brake_until_pixels=int(name[len("oracle_pixels") :])), 0, NO_MODELS
     if name == EXACT_CHOOSER:
         return make_exact_chooser(cfg), 0, NO_MODELS
     return learned_policy(cfg, AgentId.parse(name))
@@ -64,8 +71,17 @@ def learned_policy(cfg, agent: AgentId, state: dict | None = None):
 
     device = decision_device(cfg)
     actor, state = artifacts.load_actor(cfg, agent, state=state)
-    # each agent acts as it was trained: its own input (speed or not) and its own action map
-    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim), device=device)
+    # each agent acts as it was trained: its own input (speed or not, or the true state) and its own action map
+    if state.get("obs") == "privileged":  # bound to each episode's env by rollout; no world model, no camera
+        from .agent_obs import PrivilegedEncoder
+
+        encoder = PrivilegedEncoder(device=device)
+    else:
+        encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim), device=device)
+    if actor is None and state.get("learner") == "counterfactual":
+        from .counterfactual import build_policy
+
+        return build_policy(agent.policy, encoder, state, device=device), agent.seed, artifacts.models_of(cfg, agent)
     if actor is None:  # a chooser (agent.learner=chooser)
         from .chooser import build_policy
 
@@ -88,5 +104,6 @@ def porav_policies(cfg):
     out = []
     for name in names:
         policy, seed, _ = policy_for(cfg, name)
-        out.append((policy, seed, name not in ("braking", "oracle"), True))
+        # an agent on the true state (obs=privileged) says it needs no camera
+        out.append((policy, seed, getattr(policy, "needs_camera", name not in ("braking", "oracle")), True))
     return out

@@ -77,10 +77,20 @@ def run(cfg) -> dict:
     name = agent_id.policy
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
+    if typed.agent.learner == "counterfactual":
+        return run_counterfactual(cfg, agent_id)
     if typed.agent.learner == "dqn" or typed.agent.obs == "lidar":  # Chae's or Merola's DQN, Kim's LIDAR agents
         return run_peer(cfg, agent_id, agent_id.family)
-    encoder = artifacts.load_world_model(cfg)
-    sim = make_env(cfg)
+    if typed.agent.obs == "privileged":  # the true state (envs/privileged.py): no world model, no camera
+        from .agent_obs import PrivilegedEncoder
+
+        if agent_id.family != "porav" or typed.env.family != "porav":
+            raise StageError("obs=privileged trains on the paper's street scenarios: env.family=porav, reward=r1 or r2")
+        sim = make_env(cfg, camera=False)
+        encoder = PrivilegedEncoder(sim)
+    else:
+        encoder = artifacts.load_world_model(cfg)
+        sim = make_env(cfg)
     hp = typed.agent
     action_map = ActionMap(hp.anchor, hp.steer, sim.params)
     env = WorldModelView(sim, encoder, action_map)
@@ -129,6 +139,7 @@ def run(cfg) -> dict:
                     "episode": episode,
                     "best_return": best_return,
                     "history": list(history),
+                    "obs": hp.obs,
                     "obs_dim": obs_dim,
                     "actor_hidden": list(hp.actor_hidden),
                     "action_map": action_map.to_dict(),
@@ -290,6 +301,22 @@ def run_chooser(cfg, agent_id) -> dict:
         if run_.stop.requested:
             return run_.stopped(0)
         log.info("[%s] held-out R2 cost per episode: %s; wrote %s", agent_id.policy, metrics["held_out_cost"], run_.dir)
+        return run_.finish(metrics)
+
+
+def run_counterfactual(cfg, agent_id) -> dict:
+    """``agent.learner=counterfactual``: the actor of ``worldmodel/counterfactual.py``, trained against the
+    simulator's exact costs of its manoeuvres, in the same run folder."""
+    from . import counterfactual
+
+    if agent_id.reward != "r2":
+        raise StageError("the counterfactual actor learns R2 costs (injury risk): train it with reward=r2")
+    record = artifacts.provenance(cfg, "agent")
+    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+        metrics = counterfactual.train(cfg, run_, agent_id)
+        if metrics.get("stopped"):
+            return run_.stopped(run_.state["step"] if run_.state else 0)
+        log.info("[%s] %s; wrote %s", agent_id.policy, metrics["history"], run_.dir)
         return run_.finish(metrics)
 
 

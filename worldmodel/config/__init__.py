@@ -22,6 +22,7 @@ from .agent import (  # noqa: F401
     OBSERVATIONS,
     AgentConfig,
     ChooserConfig,
+    CounterfactualConfig,
     KimChooserConfig,
     RewardConfig,
     SelectConfig,

@@ -126,6 +126,131 @@ class ChooserConfig(Checked):
 
 
 @dataclass
+class CounterfactualConfig(Checked):
+    """The counterfactual-cost actor (``agent.learner=counterfactual``; ``envs/counterfactual.py``,
+    ``worldmodel/counterfactual.py``): a DDPG actor on [z, zhat, speed] that picks a shift (steer, pedal, duration)
+    at each of its decisions, trained against an ensemble critic fitted to the exact costs the simulator gives
+    those shifts, on braking's states first and then, round by round, on the actor's own."""
+
+    episodes: int = 1500  # labelled braking episodes (round 0), the last 15 % held out
+    dagger_rounds: int = 2  # rounds in which the actor drives and its own states are labelled
+    dagger_episodes: int = 500  # labelled actor episodes per round, the last 15 % held out
+    # the seed of the labelled scenarios; null: the training seed. Set, the seeds share round 0's labels
+    label_seed: int | None = None
+    # labelling processes; auto: the cores this process may use. The same labels for any count (tested)
+    num_workers: int | str = "auto"
+    # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
+    hazard_share: float = 0.85
+    speed_range: list[float] = field(default_factory=lambda: [8.0, 30.0])
+    ttc_range: list[float] = field(default_factory=lambda: [0.25, 1.5])
+    # the actor decides at onset and every interval_s after, decisions times; 0.33 s is 5 frames, within the
+    # 0.2-0.4 s in which a second decision still changes where a lane change ends
+    decisions: int = 3
+    interval_s: float = 0.33
+    hold_s: list[float] = field(default_factory=lambda: [0.15, 0.6])  # s: the span of a shift's steering phase
+    # what may take over at the next decision in a label (beside the shift running on): braking straight, and
+    # shifts at these steers with the chooser's 0.3 s hold, to both sides
+    continuation_steers: list[float] = field(default_factory=lambda: [0.3, 1.0])
+    continuation_hold_s: float = 0.3
+    # shifts labelled per decision state: braking, the actor's choice, local_share of the rest near that choice
+    # (Gaussian, local_std in u units) and the others uniform over [-1, 1]^3
+    proposals: int = 8
+    local_share: float = 0.5
+    local_std: float = 0.2
+    # the critic: the mean of critic_members MLPs regressing the labelled cost of (state, decision, u)
+    critic_members: int = 5
+    critic_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    critic_steps: int = 4000  # minibatches per round, refitted from scratch on every label so far
+    critic_lr: float = 1.0e-3
+    weight_decay: float = 1.0e-4
+    batch_size: int = 256
+    # the actor: the paper's network (agent.actor_hidden), its last layer at zero so that it starts as braking;
+    # actor_steps minibatches per round, continuing from the previous round's actor
+    actor_steps: int = 2000
+    actor_lr: float = 1.0e-3
+    # the actor minimises mean + pessimism x spread of the members' predicted costs, plus anchor_weight x
+    # (spread / its mean over the minibatch) x |u_steer, u_pedal|^2: where the members disagree it stays near
+    # straight-line braking (u = 0), as TD3+BC anchors to its data
+    pessimism: float = 1.0
+    anchor_weight: float = 0.05
+
+    def problems(self):
+        yield from (
+            ConfigValueError(f"counterfactual.{e.key}", e.value, e.requirement)
+            for e in _positive(
+                self,
+                "episodes",
+                "dagger_episodes",
+                "decisions",
+                "interval_s",
+                "proposals",
+                "critic_members",
+                "critic_steps",
+                "critic_lr",
+                "batch_size",
+                "actor_steps",
+                "actor_lr",
+                "continuation_hold_s",
+            )
+        )
+        yield from worker_count_problems(self, "num_workers", prefix="counterfactual.")
+        for key in ("hazard_share", "local_share"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                yield ConfigValueError(f"counterfactual.{key}", getattr(self, key), "it must be in [0, 1]")
+        for key in ("speed_range", "ttc_range", "hold_s"):
+            value = [float(x) for x in getattr(self, key)]
+            if len(value) != 2 or not 0 < value[0] <= value[1]:
+                yield ConfigValueError(f"counterfactual.{key}", value, "it must be [low, high] with 0 < low <= high")
+        if any(not 0.0 < float(s) <= 1.0 for s in self.continuation_steers):
+            yield ConfigValueError(
+                "counterfactual.continuation_steers", list(self.continuation_steers), "each must lie in (0, 1]"
+            )
+        for key in ("dagger_rounds", "local_std", "weight_decay", "pessimism", "anchor_weight"):
+            if not getattr(self, key) >= 0:  # written so that NaN fails too
+                yield ConfigValueError(f"counterfactual.{key}", getattr(self, key), "it must be >= 0")
+        if self.proposals < 2:
+            yield ConfigValueError("counterfactual.proposals", self.proposals, "it must be >= 2 (braking and one)")
+        if not self.critic_hidden or any(int(h) < 1 for h in self.critic_hidden):
+            yield ConfigValueError(
+                "counterfactual.critic_hidden", list(self.critic_hidden), "use a non-empty list of layer sizes >= 1"
+            )
+
+    def label_settings(self, step_s: float) -> dict:
+        """What round 0's labels depend on (their store is rebuilt when any of it changes)."""
+        return {
+            "version": 1,
+            "hazard_share": float(self.hazard_share),
+            "speed_range": [float(x) for x in self.speed_range],
+            "ttc_range": [float(x) for x in self.ttc_range],
+            "decisions": int(self.decisions),
+            "interval": self.interval(step_s),
+            "hold_s": [float(x) for x in self.hold_s],
+            "continuations": [vars(m) for m in self.continuations(step_s)],
+            "proposals": int(self.proposals),
+            "local_share": float(self.local_share),
+            "local_std": float(self.local_std),
+        }
+
+    def interval(self, step_s: float) -> int:
+        """Steps between decisions."""
+        return max(1, int(round(float(self.interval_s) / float(step_s))))
+
+    def continuations(self, step_s: float):
+        from envs.counterfactual import Shift
+
+        hold = max(1, int(round(float(self.continuation_hold_s) / float(step_s))))
+        out = [Shift(0.0, -1.0, 1)]
+        for steer in sorted({float(s) for s in self.continuation_steers}):
+            out += [Shift(side * steer, -1.0, hold) for side in (1.0, -1.0)]
+        return out
+
+    def space(self, step_s: float):
+        from envs.counterfactual import ShiftSpace
+
+        return ShiftSpace(tuple(float(x) for x in self.hold_s), float(step_s))
+
+
+@dataclass
 class KimChooserConfig(Checked):
     """The LIDAR chooser on family kim (``agent.learner=kim_chooser``, ``agent=kim_chooser``;
     worldmodel/peers/kim/chooser.py): it brakes, and switches once to the manoeuvre whose ``kim_unaware`` cost
@@ -152,11 +277,12 @@ class KimChooserConfig(Checked):
                 yield ConfigValueError(f"kim_chooser.{key}", getattr(self, key), "it must be >= 0")
 
 
-LEARNERS = ("ddpg", "chooser", "dqn", "kim_chooser")
+LEARNERS = ("ddpg", "chooser", "dqn", "kim_chooser", "counterfactual")
 # what an agent sees: the world model's [z, zhat(, speed)] from the camera, or Chae's privileged 15-value
 # pedestrian history (envs/chae.py); a DDPG or chooser agent always sees the world model
-# LIDAR scans (Kim), or Merola's last 4 camera frames as frozen VAE means or ResNet-18 features
-OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "frames_resnet")
+# LIDAR scans (Kim), or Merola's last 4 camera frames as frozen VAE means or ResNet-18 features; "privileged": the
+# simulator's true state (envs/privileged.py), for the paper's DDPG with the camera taken out of the question
+OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "frames_resnet", "privileged")
 
 
 @dataclass
@@ -345,6 +471,8 @@ class AgentConfig(DDPGConfig):
     # from the simulator's labels; R2 only, and none of the DDPG keys apply); "dqn" and "kim_chooser" below
     learner: str = "ddpg"
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
+    # learner "counterfactual": a DDPG actor trained against the simulator's exact costs of its manoeuvres
+    counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
     # learner "kim_chooser" (worldmodel/peers/kim/chooser.py): the chooser on family kim, from the LIDAR
     kim_chooser: KimChooserConfig = field(default_factory=KimChooserConfig)
     # learner "dqn" (worldmodel/peers/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
@@ -377,8 +505,9 @@ class AgentConfig(DDPGConfig):
             if getattr(self, key) not in OBSERVATIONS:
                 yield ConfigValueError(key, getattr(self, key), f"it must be one of {', '.join(OBSERVATIONS)}")
         seen_by = {
-            "ddpg": ("worldmodel", "lidar"),
+            "ddpg": ("worldmodel", "lidar", "privileged"),
             "chooser": ("worldmodel",),
+            "counterfactual": ("worldmodel",),
             "dqn": ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"),
             "kim_chooser": ("lidar",),
         }
@@ -386,6 +515,12 @@ class AgentConfig(DDPGConfig):
             yield ConfigValueError(
                 "obs", self.obs, f"the {self.learner} learner sees one of: {', '.join(seen_by[self.learner])}"
             )
+        if self.obs == "privileged":  # the true state alone: it holds the speed, and recorded frames do not hold it
+            for key in ("use_speed", "frame_view", "demo_share", "bc_pretrain_steps"):
+                if getattr(self, key):
+                    yield ConfigValueError(
+                        key, getattr(self, key), "obs=privileged reads the true state only: leave it off (0 / false)"
+                    )
         for key in ("focus_share", "demo_share"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")

@@ -46,8 +46,9 @@ class OracleConfig(Checked):
 
 
 # braking (the floor), the privileged planner (the ceiling), and the planner after braking straight for its first 1
-# or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard
-SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2")
+# or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard; and the
+# planner braking straight until the hazard covers 1 or 3 pixels of the camera frame: the camera's cap
+SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2", "oracle_pixels1", "oracle_pixels3")
 # family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae/ SCRIPTED)
 CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
 

@@ -44,9 +44,10 @@ class ExperimentConfig(Checked):
     allow_stale: bool = False
     scale_name: str | None = None  # set by conf/scale/*.yaml
     # the agent presets (conf/agent/<name>.yaml) the pipeline trains, each with the rewards its agent.rewards lists
-    # ddpg: the paper's agent (R1 and R2); chooser: the camera agent that beats braking (R2; docs/design.md §5).
+    # ddpg: the paper's agent (R1 and R2); chooser: the camera agent that beats braking (R2); counterfactual: the
+    # DDPG actor trained against the simulator's exact costs of its manoeuvres (R2; docs/design.md §5).
     # Empty: the paper's family is left out, neither trained nor evaluated (a run of peers alone)
-    agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser"])
+    agents: list[str] = field(default_factory=lambda: ["ddpg", "chooser", "counterfactual"])
     # training seeds of every preset in agents; empty: seed alone (a seed trained before is kept either way)
     seeds: list[int] = field(default_factory=list)
     # the banks the pipeline's evaluations run on, in order (worldmodel/banks.py): validation for everyday runs;

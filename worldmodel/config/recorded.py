@@ -28,7 +28,7 @@ ADDED_DEFAULTS = {
     },
 }
 # Agent keys that only their own learner reads.
-LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",)}
+LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",), "counterfactual": ("counterfactual",)}
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
 DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
 # Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are

@@ -36,10 +36,11 @@ FLOAT_COLUMNS = (
     "speed_at_collision",
     "return_r1",
     "return_r2",
+    "final_speed",
 )
 # Short SHA-256 of the VAE, LSTM and actor checkpoints that produced an agent's row (empty for scripted policies).
 MODEL_COLUMNS = ("vae_sha", "rnn_sha", "actor_sha")
-STR_COLUMNS = ("policy", "hazard", *MODEL_COLUMNS)
+STR_COLUMNS = ("policy", "hazard", "end", *MODEL_COLUMNS)
 # A row: which policy and scenario, the scenario's outcome (envs' info["outcome"]), the models behind the policy.
 ROW_META = ("policy", "policy_seed", "scenario_id", "hazard", "ttc", "speed", "seed")
 OUTCOME_COLUMNS = (
@@ -55,6 +56,10 @@ OUTCOME_COLUMNS = (
     "steps",
     "return_r1",
     "return_r2",
+    # how the episode ended (envs' outcome "end": crash, left_scene, horizon) and the ego's speed then, m/s. Rows
+    # written before these two columns lack them (read back: absent; written again: "" and nan); no table reads them
+    "end",
+    "final_speed",
 )
 COLUMNS = (*ROW_META, *OUTCOME_COLUMNS, *MODEL_COLUMNS)
 
@@ -63,12 +68,16 @@ POLICY_LABELS = {
     "braking": "Straight-line braking",
     "agent_r1": "Brake&Steer, reward 1",
     "agent_r2": "Brake&Steer, reward 2",
+    "agent_r1-privileged": "Brake&Steer on the true state (no camera), reward 1",
+    "agent_r2-privileged": "Brake&Steer on the true state (no camera), reward 2",
     "agent_r2_chooser": "Chooser (brake, then one lane change), reward 2",
     "agent_r2_dag": "Cloned from the planner with 2 DAgger rounds, reward 2",
     "agent_r2_chooser_tele": "Chooser, frame band from a 30° second camera, reward 2",
     "oracle": "Privileged planner (oracle)",
     "oracle_brake1": "Planner after 1 frame of straight braking (perception ceiling)",
     "oracle_brake2": "Planner after 2 frames of straight braking (perception ceiling)",
+    "oracle_pixels1": "Planner once the hazard covers ≥ 1 px (camera cap)",
+    "oracle_pixels3": "Planner once the hazard covers ≥ 3 px (camera cap)",
 }
 
 HAZARD_ORDER = ("pedestrian", "car", "both")

@@ -1,0 +1,238 @@
+"""Counterfactual costs of continuous manoeuvres, labelled by re-simulation: what the counterfactual-cost actor's
+critic learns (``worldmodel/counterfactual.py``; docs/design.md §5).
+
+A **shift** is one continuous manoeuvre with three parameters: steer ``s`` (wheel units, -1 full left .. 1 full
+right), pedal ``p`` and a duration ``hold``. The car steers ``s`` for ``hold`` steps, counter-steers ``-s`` for as
+long (so it ends about parallel to the road, shifted sideways, rather than pointing at the kerb), then brakes
+straight; the pedal is ``p`` until then. ``s = 0, p = -1`` is straight-line braking.
+
+The policy decides at ``decisions`` points, ``interval`` steps apart, from onset: each decision starts a new
+shift that replaces the rest of the previous one, and the last one runs to its end. So a manoeuvre is never open
+loop for longer than ``interval`` steps, except the last.
+
+The label of a shift started at decision ``d`` is the exact R2 cost (the sum of injury probabilities still to come)
+of the rest of the episode when the shift runs for ``interval`` steps and the best of ``continuations`` (or the
+shift itself, run on) takes over at the next decision: the value of the shift under a good second decision. At the
+last decision there is no second one, and the label is the shift run to its end. Costs come from the camera-less
+planning twin (``UrbanCollisionEnv.snapshot`` / ``restore``), as the planner's and the chooser's do.
+
+numpy and pybullet only, like the rest of ``envs``: the policy that drives a labelled episode is any callable.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .chooser import hazard_state
+from .env import DT, UrbanCollisionEnv
+
+BRAKE = np.array([0.0, -1.0], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class Shift:
+    """Steer ``steer`` for ``hold`` steps, counter-steer as long, then brake straight; pedal ``pedal`` until then."""
+
+    steer: float
+    pedal: float
+    hold: int
+
+    def action(self, k: int) -> np.ndarray:
+        """The action ``k`` steps after the shift started."""
+        if k < self.hold:
+            return np.array([self.steer, self.pedal], dtype=np.float32)
+        if k < 2 * self.hold:
+            return np.array([-self.steer, self.pedal], dtype=np.float32)
+        return BRAKE.copy()
+
+    @property
+    def length(self) -> int:
+        return 2 * self.hold
+
+
+@dataclass(frozen=True)
+class ShiftSpace:
+    """How an actor's output ``u`` in [-1, 1]^3 becomes a ``Shift``: ``u[0]`` is the steer; the pedal is a residual
+    on full braking, ``p = clip(-1 + 2 u[1], -1, 1)``, so ``u = 0`` brakes straight (with its last layer at zero
+    an untrained actor *is* straight-line braking); ``u[2]`` spans the hold from ``hold_s[0]`` to ``hold_s[1]``."""
+
+    hold_s: tuple[float, float] = (0.15, 0.6)
+    step_s: float = DT
+
+    def __post_init__(self):
+        lo, hi = (float(x) for x in self.hold_s)
+        if not 0 < lo <= hi:
+            raise ValueError(f"shift hold_s={list(self.hold_s)} must be [low, high] with 0 < low <= high (s)")
+
+    def shift(self, u) -> Shift:
+        u = np.clip(np.asarray(u, dtype=np.float64).reshape(3), -1.0, 1.0)
+        lo, hi = (float(x) for x in self.hold_s)
+        hold_s = lo + (hi - lo) * (u[2] + 1.0) / 2.0
+        pedal = min(1.0, max(-1.0, -1.0 + 2.0 * float(u[1])))
+        return Shift(float(u[0]), pedal, max(1, int(round(hold_s / self.step_s))))
+
+
+def decision_steps(decisions: int, interval: int) -> list[int]:
+    """The episode steps at which the policy decides: 0, interval, 2 interval, ..."""
+    if int(decisions) < 1 or int(interval) < 1:
+        raise ValueError(f"decisions={decisions} and interval={interval} must both be >= 1")
+    return [d * int(interval) for d in range(int(decisions))]
+
+
+class _Run:
+    """A shift started at episode step ``start`` (the planner's ``plan_cost`` reads ``action(t_step)``)."""
+
+    def __init__(self, shift: Shift, start: int):
+        self.shift, self.start = shift, int(start)
+
+    def action(self, t_step: int) -> np.ndarray:
+        return self.shift.action(t_step - self.start)
+
+
+def _run_to_end(twin: UrbanCollisionEnv, run: _Run, bound: float = math.inf) -> float:
+    """The cost of the rest of the episode from the twin's present state under ``run``; stops at ``bound``."""
+    cost = 0.0
+    while True:
+        _, _, terminated, truncated, info = twin.step(run.action(twin.t_step))
+        cost -= info["reward_r2"]
+        if cost >= bound or terminated or truncated:
+            return cost
+
+
+def shift_cost(
+    twin: UrbanCollisionEnv, snap: dict, shift: Shift, interval: int | None, continuations: Sequence[Shift] = ()
+) -> tuple[float, bool]:
+    """The label of ``shift`` started at the state ``snap``: (R2 cost, whether the path that gives it hits a static
+    object). ``interval`` None: the shift runs to its end. Else it runs ``interval`` steps, and the cheapest of
+    running on and each of ``continuations`` started there is the label."""
+    twin.restore(snap)
+    start = twin.t_step
+    run = _Run(shift, start)
+    if interval is None:
+        cost = _run_to_end(twin, run)
+        return cost, _static(twin)
+    head = 0.0
+    for _ in range(int(interval)):
+        _, _, terminated, truncated, info = twin.step(run.action(twin.t_step))
+        head -= info["reward_r2"]
+        if terminated or truncated:
+            return head, _static(twin)
+    middle = twin.snapshot()
+    best = head + _run_to_end(twin, run)
+    best_static = _static(twin)
+    for other in continuations:
+        twin.restore(middle)
+        cost = head + _run_to_end(twin, _Run(other, start + int(interval)), bound=best - head)
+        if cost < best:
+            best, best_static = cost, _static(twin)
+    return best, best_static
+
+
+def _static(twin: UrbanCollisionEnv) -> bool:
+    return any(c["kind"] == "static" for c in twin.collisions)
+
+
+def label_episode(
+    env: UrbanCollisionEnv,
+    spec,
+    policy: ShiftPolicy,
+    proposals: Callable[[int, np.ndarray], np.ndarray],
+    continuations: Sequence[Shift],
+    twin: UrbanCollisionEnv,
+) -> dict:
+    """Drive scenario ``spec`` with ``policy`` (a ``ShiftPolicy``; straight-line braking decides ``u = 0``), and
+    at each of its decisions label the shifts ``proposals(d, u_chosen) -> (N, 3)`` by re-simulation
+    (``shift_cost``). Returns the frames and what the policy did up to its last decision: ``seg`` (T, H, W) uint8,
+    ``speed`` (T,) and ``action`` (T, 2), the simulator's actions taken after each frame, so that the world model
+    can be fed as a live run feeds it; and per decision ``t`` (D,), ``u`` (D, N, 3), ``costs`` (D, N), ``static``
+    (D, N) int8, ``chosen`` (D, 3) and ``state`` (D, len(HAZARD_STATE)), the privileged hazard facts (training
+    targets only). An episode that ends before the last decision has fewer."""
+    steps, space = policy.steps, policy.space
+    obs, _ = env.reset(options={"scenario": spec})
+    policy.reset()
+    segs, speeds, actions = [], [], []
+    out = {k: [] for k in ("t", "u", "costs", "static", "chosen", "state")}
+    for t in range(steps[-1] + 1):
+        segs.append(np.asarray(obs["seg"], np.uint8))
+        speeds.append(float(np.asarray(obs["speed"]).reshape(-1)[0]))
+        snap = env.snapshot() if t in steps else None
+        action = policy.act(obs, None)
+        if snap is not None:
+            d = steps.index(t)
+            chosen = policy.chosen[-1]
+            us = np.asarray(proposals(d, chosen), np.float32).reshape(-1, 3)
+            interval = None if d == len(steps) - 1 else steps[1] - steps[0]
+            labels = [shift_cost(twin, snap, space.shift(u), interval, continuations) for u in us]
+            out["t"].append(t)
+            out["u"].append(us)
+            out["costs"].append([c for c, _ in labels])
+            out["static"].append([s for _, s in labels])
+            out["chosen"].append(chosen)
+            out["state"].append(hazard_state(env))
+        actions.append(action)
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            break
+    return {
+        "seg": np.stack(segs),
+        "speed": np.asarray(speeds, np.float32),
+        "action": np.stack(actions).astype(np.float32),
+        "t": np.asarray(out["t"], np.int16),
+        "u": np.stack(out["u"]).astype(np.float32),
+        "costs": np.asarray(out["costs"], np.float32),
+        "static": np.asarray(out["static"], np.int8),
+        "chosen": np.stack(out["chosen"]).astype(np.float32),
+        "state": np.stack(out["state"]).astype(np.float32),
+    }
+
+
+def brake_decision(x, d: int) -> np.ndarray:
+    """Straight-line braking as a shift policy's decision: ``u = 0``."""
+    return np.zeros(3, np.float32)
+
+
+class ShiftPolicy:
+    """Scripted-policy interface (``reset``, ``act``) for a policy that starts a shift at each of its decisions:
+    ``decide(x, d) -> u`` in [-1, 1]^3 (``ShiftSpace``) on ``x = encode(obs)``. Up to the last decision every frame
+    is encoded and ``note_action`` told the action taken after it (a learned policy's recurrent view of the world;
+    both default to nothing). ``chosen``: the decisions of the episode so far."""
+
+    def __init__(
+        self,
+        space: ShiftSpace,
+        decide: Callable[[object, int], np.ndarray],
+        decisions: int,
+        interval: int,
+        name: str = "shifts",
+        encode: Callable[[dict], object] | None = None,
+        note_action: Callable[[np.ndarray], None] | None = None,
+        reset_view: Callable[[], None] | None = None,
+    ):
+        self.space, self.decide, self.name = space, decide, name
+        self.steps = decision_steps(decisions, interval)
+        self.encode, self.note_action, self.reset_view = encode, note_action, reset_view
+        self.t, self.run = 0, None
+        self.chosen: list[np.ndarray] = []
+
+    def reset(self, seed: int | None = None) -> None:
+        self.t, self.run, self.chosen = 0, None, []
+        if self.reset_view is not None:
+            self.reset_view()
+
+    def act(self, obs, info) -> np.ndarray:
+        t = self.t
+        self.t += 1
+        watching = t <= self.steps[-1]
+        x = self.encode(obs) if watching and self.encode is not None else obs
+        if t in self.steps:
+            u = np.asarray(self.decide(x, self.steps.index(t)), np.float32).reshape(3)
+            self.chosen.append(u)
+            self.run = _Run(self.space.shift(u), t)
+        action = self.run.action(t) if self.run is not None else BRAKE.copy()
+        if watching and self.note_action is not None:
+            self.note_action(action)
+        return action

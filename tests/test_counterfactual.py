@@ -1,0 +1,144 @@
+"""The counterfactual-cost actor (``envs/counterfactual.py``, ``worldmodel/counterfactual.py``): shifts, their labels
+by re-simulation, and the critic fitted to them. Checked on the real scene and the real smoke-scale world model: a
+label is exactly what driving the shift costs, a second decision never makes a label dearer, the labels are the same
+for any worker count, and the fitted critic orders held-out shifts better than a constant does. Its exact resume is
+in test_resume.py; the smoke pipeline trains and evaluates it (test_pipeline.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from envs import UrbanCollisionEnv, sample_focus_scenario
+from envs.counterfactual import BRAKE, Shift, ShiftPolicy, ShiftSpace, label_episode, shift_cost
+from worldmodel import artifacts, counterfactual
+from worldmodel.config import CounterfactualConfig, validate
+
+CONTINUATIONS = CounterfactualConfig().continuations(1.0 / 15.0)
+
+
+def scenarios(n: int, seed: int = 5):
+    rng = np.random.default_rng(seed)
+    return [sample_focus_scenario(rng, 1.0, (20.0, 30.0), (0.4, 1.0)) for _ in range(n)]
+
+
+def test_a_shift_steers_counter_steers_then_brakes_and_zero_is_braking():
+    space = ShiftSpace((0.15, 0.6))
+    braking = space.shift([0.0, 0.0, 0.3])
+    assert all((braking.action(k) == BRAKE).all() for k in range(30))
+    shift = space.shift([0.5, 0.5, 1.0])  # pedal 0: coast; the longest hold, 0.6 s = 9 steps
+    assert (shift.pedal, shift.hold) == (0.0, 9)
+    np.testing.assert_array_equal(shift.action(0), [0.5, 0.0])
+    np.testing.assert_array_equal(shift.action(9), [-0.5, 0.0])
+    np.testing.assert_array_equal(shift.action(18), BRAKE)
+    assert space.shift([0.0, 0.0, -1.0]).hold == 2  # 0.15 s
+    with pytest.raises(ValueError, match="hold_s"):
+        ShiftSpace((0.6, 0.15))
+
+
+def test_a_label_is_what_driving_the_shift_costs_and_a_second_decision_never_adds():
+    """A policy that brakes, then shifts at its last decision: the label of its choice there equals the R2 cost the
+    live episode accrues from that step on; at its first decision, each label is at most the shift run on alone."""
+    env = UrbanCollisionEnv(camera=False)
+    twin = env.planning_twin()
+    space = ShiftSpace()
+    choice = np.array([0.7, 0.3, -0.2], np.float32)
+    costly = 0
+    for spec in scenarios(6):
+        policy = ShiftPolicy(space, lambda x, d: choice if d == 1 else np.zeros(3, np.float32), 2, 5)
+        proposals = lambda d, chosen: np.stack([chosen, [-0.6, 0.0, 0.5], [0.2, 1.0, 0.0]])  # noqa: E731
+        lab = label_episode(env, spec, policy, proposals, CONTINUATIONS, twin)
+        if len(lab["t"]) < 2:
+            continue
+        env.reset(options={"scenario": spec})
+        policy.reset()
+        obs, live, t, done = None, 0.0, 0, False
+        while not done:
+            _, _, terminated, truncated, info = env.step(policy.act(obs, None))
+            live -= info["reward_r2"] if t >= lab["t"][1] else 0.0
+            t, done = t + 1, terminated or truncated
+        assert lab["costs"][1, 0] == pytest.approx(live, abs=1e-6)
+        costly += live > 0
+        env.reset(options={"scenario": spec})
+        snap = env.snapshot()
+        for u, label in zip(lab["u"][0], lab["costs"][0]):
+            run_on, _ = shift_cost(twin, snap, space.shift(u), None)
+            assert label <= run_on + 1e-6
+    assert costly, "no scenario here costs anything after the last decision: the check would be empty"
+
+
+def test_shift_cost_prefers_a_cheaper_continuation():
+    """Hard right at 30 m/s ends against the kerb side; a second decision that shifts back left or brakes straight
+    may cost less, and the label is the cheapest of them and of running on."""
+    env = UrbanCollisionEnv(camera=False)
+    twin = env.planning_twin()
+    found = False
+    for spec in scenarios(10, seed=11):
+        env.reset(options={"scenario": spec})
+        snap = env.snapshot()
+        shift = Shift(1.0, -1.0, 9)
+        run_on, _ = shift_cost(twin, snap, shift, None)
+        with_second, _ = shift_cost(twin, snap, shift, 5, CONTINUATIONS)
+        each = []
+        for other in CONTINUATIONS:  # by hand: the shift for 5 steps, then the other from there
+            twin.restore(snap)
+            cost = 0.0
+            for k in range(5):
+                _, _, term, trunc, info = twin.step(shift.action(k))
+                cost -= info["reward_r2"]
+                if term or trunc:
+                    break
+            else:
+                for k in range(10_000):
+                    _, _, term, trunc, info = twin.step(other.action(k))
+                    cost -= info["reward_r2"]
+                    if term or trunc:
+                        break
+            each.append(cost)
+        assert with_second == pytest.approx(min([run_on, *each]), abs=1e-6)
+        found |= with_second < run_on - 1e-3
+    assert found, "no scenario here where a second decision helps: the check would be empty"
+
+
+@pytest.fixture(scope="module")
+def labelled(smoke_builds):
+    """Round 0's labels of 16 braking episodes on the smoke world model, with 6 shifts per decision."""
+    from worldmodel.config import compose
+
+    root = smoke_builds("rnn")
+    overrides = [
+        *(f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke"),
+        *("threads=1", "reward=r2", "agent=counterfactual", "agent.counterfactual.episodes=16"),
+        "agent.counterfactual.proposals=6",
+    ]
+    cfg = compose("train_agent", overrides)
+    c = validate(cfg).agent.counterfactual
+    directory = counterfactual.labels_dir(cfg, 0)
+    data = counterfactual.labels(cfg, 0, c.episodes, directory)
+    encoder = artifacts.load_world_model(cfg)
+    data["x"] = counterfactual.encode_states(encoder, data, c.decisions)
+    return cfg, c, data
+
+
+def test_the_labels_are_the_same_for_any_worker_count(labelled, tmp_path):
+    cfg, c, data = labelled
+    from omegaconf import OmegaConf
+
+    two = OmegaConf.merge(cfg, {"paths": {"data": str(tmp_path)}, "agent": {"counterfactual": {"num_workers": 2}}})
+    again = counterfactual.labels(two, 0, c.episodes, tmp_path / "labels")
+    for key in ("costs", "u", "seg", "action", "t", "episode"):
+        np.testing.assert_array_equal(again[key], data[key], err_msg=key)
+
+
+def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelled):
+    cfg, c, data = labelled
+    held = counterfactual.held_out_rows(data["episode"])
+    assert 0 < held.sum() < len(held)
+    assert counterfactual.pairwise_order(np.zeros_like(data["costs"][held]), data["costs"][held]) == 0.5
+    fit = CounterfactualConfig(**{**vars(c), "critic_steps": 400, "batch_size": 64})
+    critic, figures = counterfactual.fit_critic(data["x"], data["u"], data["costs"], held, fit, seed=0, round_=0)
+    assert figures["pairwise_order"] > 0.6, figures
+    # and the actor it trains, which starts as braking, ends with a lower objective on the held-out states
+    actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
+    figures = counterfactual.fit_actor(actor, critic, data["x"], held, fit, seed=0, round_=0)
+    assert figures["objective"] < figures["braking_objective"], figures
