@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .chooser import hazard_state
 from .env import DT, UrbanCollisionEnv
+from .privileged import privileged_state
 
 BRAKE = np.array([0.0, -1.0], dtype=np.float32)
 
@@ -149,8 +149,9 @@ def label_episode(
     (``shift_cost``). Returns the frames and what the policy did up to its last decision: ``seg`` (T, H, W) uint8,
     ``speed`` (T,) and ``action`` (T, 2), the simulator's actions taken after each frame, so that the world model
     can be fed as a live run feeds it; and per decision ``t`` (D,), ``u`` (D, N, 3), ``costs`` (D, N), ``static``
-    (D, N) int8, ``chosen`` (D, 3) and ``state`` (D, len(HAZARD_STATE)), the privileged hazard facts (training
-    targets only). An episode that ends before the last decision has fewer."""
+    (D, N) int8, ``chosen`` (D, 3) and ``state`` (D, PRIVILEGED_DIM), the true state (``envs.privileged``: the
+    hazards, the ego, what blocks each escape path; training targets only). An episode that ends before the last
+    decision has fewer."""
     steps, space = policy.steps, policy.space
     obs, _ = env.reset(options={"scenario": spec})
     policy.reset()
@@ -172,7 +173,7 @@ def label_episode(
             out["costs"].append([c for c, _ in labels])
             out["static"].append([s for _, s in labels])
             out["chosen"].append(chosen)
-            out["state"].append(hazard_state(env))
+            out["state"].append(privileged_state(env))
         actions.append(action)
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:

@@ -101,6 +101,9 @@ class UrbanCollisionEnv(gym.Env):
     none), so that a pedestrian 20-35 m ahead covers tens of pixels instead of a few. reward: 'r1' or 'r2'.
     horizon_after_ttc_s: agent-episode length after the TTC (None: ``max_episode_s``). mu: tyre-road friction.
     occupants_per_car: people per car.
+    lateral_exit_m: metres from the street's centre line (|y|) beyond which the episode ends as ``left_scene``; the
+    default 25 m lies past every static body of the paper's street, which reach 20.5 m (a huge value keeps the
+    episode going, to see what leaving the scene would have cost).
     ego_mass, car_mass: kg, for delta-v. substeps: collision/dynamics sub-steps per step.
     step_s: seconds per step (``DT`` = 1/15 by default); planners and evaluation read it from the env.
     family: the scenario family ``reset()`` samples when no scenario is given (``porav``, the paper's; ``chae``,
@@ -127,6 +130,7 @@ class UrbanCollisionEnv(gym.Env):
         step_s: float = DT,
         family: str = "porav",
         family_options: dict | None = None,
+        lateral_exit_m: float = 25.0,
     ):
         checks = {
             "image_size": image_size >= 8,
@@ -143,6 +147,7 @@ class UrbanCollisionEnv(gym.Env):
             "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
             "reward": reward in REGISTRY,
             "render_mode": render_mode in (None, "rgb_array"),
+            "lateral_exit_m": lateral_exit_m > 0.0,
         }
         for key, ok in checks.items():
             if not ok:
@@ -161,6 +166,7 @@ class UrbanCollisionEnv(gym.Env):
         self.family = family
         self.family_options = dict(family_options or {})  # keyword arguments of the family module's build()
         self.render_mode = render_mode
+        self.lateral_exit_m = float(lateral_exit_m)
         self.params = VehicleParams(mu=float(mu), mass=float(ego_mass))
 
         s = self.image_size
@@ -359,7 +365,7 @@ class UrbanCollisionEnv(gym.Env):
         departed = abs(ego.y - self.lane_y) > LANE_WIDTH / 2
         self.ever_departed |= departed
 
-        left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > 25.0
+        left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > self.lateral_exit_m
         family_end = state.end(act, ego.x + self._hl, ego.v, family, ego) if state is not None else None
         terminated = crashed or left_scene or family_end is not None
         truncated = not terminated and self.t_step >= self.horizon_steps
@@ -431,6 +437,7 @@ class UrbanCollisionEnv(gym.Env):
             step_s=self.step_s,
             family=self.family,
             family_options=self.family_options,
+            lateral_exit_m=self.lateral_exit_m,
         )
 
     # ------------------------------------------------------------------ collisions

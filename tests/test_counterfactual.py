@@ -136,9 +136,11 @@ def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelle
     assert 0 < held.sum() < len(held)
     assert counterfactual.pairwise_order(np.zeros_like(data["costs"][held]), data["costs"][held]) == 0.5
     fit = CounterfactualConfig(**{**vars(c), "critic_steps": 400, "batch_size": 64})
-    critic, figures = counterfactual.fit_critic(data["x"], data["u"], data["costs"], held, fit, seed=0, round_=0)
+    critic, figures = counterfactual.fit_critic(
+        data["x"], data["u"], data["costs"], data["state"], held, fit, seed=0, round_=0
+    )
     assert figures["pairwise_order"] > 0.6, figures
     # and the actor it trains, which starts as braking, ends with a lower objective on the held-out states
     actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
-    figures = counterfactual.fit_actor(actor, critic, data["x"], held, fit, seed=0, round_=0)
+    figures = counterfactual.fit_actor(actor, critic, data["x"], data["state"], held, fit, seed=0, round_=0)
     assert figures["objective"] < figures["braking_objective"], figures

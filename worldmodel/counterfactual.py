@@ -39,6 +39,7 @@ from torch import nn
 from tqdm import tqdm
 
 from envs.counterfactual import ShiftPolicy, brake_decision, label_episode
+from envs.privileged import PRIVILEGED_DIM
 from envs.streams import COUNTERFACTUAL_LABEL_EPISODES, COUNTERFACTUAL_MINIBATCHES
 
 from . import artifacts
@@ -99,31 +100,42 @@ class Normalised(nn.Module):
 
 
 class CostCritic(nn.Module):
-    """(state features, u) -> every member's predicted R2 cost, shape (members, batch)."""
+    """(state features, u) -> every member's predicted R2 cost, shape (members, batch). Each member reads the state
+    through a first layer of its own, and u joins after it; a linear head on that layer guesses the true state
+    (``envs.privileged``), a training target only (``aux``)."""
 
-    def __init__(self, in_dim: int, members: int, hidden):
+    def __init__(self, in_dim: int, members: int, hidden, aux_dim: int = PRIVILEGED_DIM):
         super().__init__()
+        hidden = [int(h) for h in hidden]
         self.norm = Normalised(in_dim)
-        self.nets = nn.ModuleList(mlp(in_dim + 3, [int(h) for h in hidden], 1) for _ in range(int(members)))
+        self.trunks = nn.ModuleList(nn.Sequential(nn.Linear(in_dim, hidden[0]), nn.ReLU()) for _ in range(members))
+        self.heads = nn.ModuleList(mlp(hidden[0] + 3, hidden[1:], 1) for _ in range(int(members)))
+        self.aux = nn.ModuleList(nn.Linear(hidden[0], aux_dim) for _ in range(int(members)))
 
-    def member(self, m: int, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return self.nets[m](torch.cat([self.norm(x), u], dim=1))[:, 0]
+    def member(self, m: int, x: torch.Tensor, u: torch.Tensor, aux: bool = False):
+        h = self.trunks[m](self.norm(x))
+        out = self.heads[m](torch.cat([h, u], dim=1))[:, 0]
+        return (out, self.aux[m](h)) if aux else out
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        xn = torch.cat([self.norm(x), u], dim=1)
-        return torch.stack([net(xn)[:, 0] for net in self.nets])
+        return torch.stack([self.member(m, x, u) for m in range(len(self.heads))])
 
 
 class ShiftActor(nn.Module):
-    """The paper's actor network on the normalised state features: u in [-1, 1]^3, braking at initialisation."""
+    """The paper's actor network (``models.ddpg.Actor``) on the normalised state features: u in [-1, 1]^3, braking
+    at initialisation. A linear head on its first hidden layer guesses the true state (``aux``; training only)."""
 
-    def __init__(self, in_dim: int, hidden):
+    def __init__(self, in_dim: int, hidden, aux_dim: int = PRIVILEGED_DIM):
         super().__init__()
         self.norm = Normalised(in_dim)
         self.actor = Actor(in_dim, 3, tuple(int(h) for h in hidden), final_bound=0.0)
+        self.aux = nn.Linear(int(hidden[0]), aux_dim)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.actor(self.norm(x))
+    def forward(self, x: torch.Tensor, aux: bool = False):
+        net = self.actor.net
+        h = net[1](net[0](self.norm(x)))
+        u = torch.tanh(net[2:](h))
+        return (u, self.aux(h)) if aux else u
 
 
 def features(encoded: np.ndarray, d: np.ndarray, decisions: int) -> np.ndarray:
@@ -337,15 +349,16 @@ def phase_seed(seed: int, round_: int, phase: int) -> int:
     return int(np.random.default_rng([int(seed), COUNTERFACTUAL_MINIBATCHES, round_, phase]).integers(2**31 - 1))
 
 
-def fit_critic(x, u, costs, held, c, seed: int, round_: int, run_=None, log_from: int = 0):
-    """A fresh ensemble fitted to the labelled costs of the training rows (``held`` False). Returns (critic,
+def fit_critic(x, u, costs, state, held, c, seed: int, round_: int, run_=None, log_from: int = 0):
+    """A fresh ensemble fitted to the labelled costs of the training rows (``held`` False), its state heads to the
+    true ``state`` with weight ``c.aux_weight``. Returns (critic,
     held-out figures), or (None, None) when ``run_`` (a ``TrainingRun``: TensorBoard, stop; None: neither) was asked
     to stop."""
     writer, stop, last = (run_.writer, run_.stop, run_.last) if run_ is not None else (None, None, None)
     torch.manual_seed(phase_seed(seed, round_, 0))
     rng = np.random.default_rng(phase_seed(seed, round_, 0))
     critic = CostCritic(x.shape[1], c.critic_members, c.critic_hidden)
-    xt, ut, yt = (torch.from_numpy(a[~held]) for a in (x, u, costs))
+    xt, ut, yt, st = (torch.from_numpy(a[~held]) for a in (x, u, costs, state))
     critic.norm.fit(xt)
     opt = torch.optim.AdamW(critic.parameters(), lr=c.critic_lr, weight_decay=c.weight_decay)
     n_states, n_prop = yt.shape
@@ -354,7 +367,8 @@ def fit_critic(x, u, costs, held, c, seed: int, round_: int, run_=None, log_from
         for m in range(c.critic_members):
             i = torch.from_numpy(rng.integers(0, n_states, c.batch_size))
             j = torch.from_numpy(rng.integers(0, n_prop, c.batch_size))
-            loss = loss + ((critic.member(m, xt[i], ut[i, j]) - yt[i, j]) ** 2).mean()
+            pred, guess = critic.member(m, xt[i], ut[i, j], aux=True)
+            loss = loss + ((pred - yt[i, j]) ** 2).mean() + c.aux_weight * ((guess - st[i]) ** 2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -393,21 +407,23 @@ def actor_loss(critic: CostCritic, u: torch.Tensor, x: torch.Tensor, c) -> torch
     return (mean + c.pessimism * spread + c.anchor_weight * weight * anchor).mean()
 
 
-def fit_actor(actor: ShiftActor, critic: CostCritic, x, held, c, seed: int, round_: int, run_=None, log_from=0):
-    """The actor trained on the training states against the frozen critic. Returns held-out figures, or None when
+def fit_actor(actor: ShiftActor, critic: CostCritic, x, state, held, c, seed: int, round_: int, run_=None, log_from=0):
+    """The actor trained on the training states against the frozen critic, its state head to the true ``state``
+    with weight ``c.aux_weight``. Returns held-out figures, or None when
     ``run_`` (a ``TrainingRun``: TensorBoard, stop; None: neither) was asked to stop."""
     writer, stop, last = (run_.writer, run_.stop, run_.last) if run_ is not None else (None, None, None)
     torch.manual_seed(phase_seed(seed, round_, 1))
     rng = np.random.default_rng(phase_seed(seed, round_, 1))
     for p in critic.parameters():
         p.requires_grad_(False)
-    xt = torch.from_numpy(x[~held])
+    xt, st = torch.from_numpy(x[~held]), torch.from_numpy(state[~held])
     if round_ == 0:
         actor.norm.fit(xt)
-    opt = torch.optim.Adam(actor.actor.parameters(), lr=c.actor_lr)
+    opt = torch.optim.Adam(actor.parameters(), lr=c.actor_lr)
     for k in tqdm(range(c.actor_steps), desc=f"actor (round {round_})", unit="batch", leave=False, disable=not run_):
         i = torch.from_numpy(rng.integers(0, len(xt), c.batch_size))
-        loss = actor_loss(critic, actor(xt[i]), xt[i], c)
+        u, guess = actor(xt[i], aux=True)
+        loss = actor_loss(critic, u, xt[i], c) + c.aux_weight * ((guess - st[i]) ** 2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -513,9 +529,11 @@ def train(cfg, run_, agent_id) -> dict:
             data["x"] = encode_states(encoder, data, c.decisions)
             data["held"] = held_out_rows(data["episode"])
             data_rounds.append(data)
-        x, u, costs, held = (np.concatenate([d[k] for d in data_rounds]) for k in ("x", "u", "costs", "held"))
+        x, u, costs, state, held = (
+            np.concatenate([d[k] for d in data_rounds]) for k in ("x", "u", "costs", "state", "held")
+        )
         if f"critic{r}" not in done:
-            fitted, figures = fit_critic(x, u, costs, held, c, typed.seed, r, run_, r * per_round)
+            fitted, figures = fit_critic(x, u, costs, state, held, c, typed.seed, r, run_, r * per_round)
             if fitted is None:
                 return {"stopped": True}
             critic = fitted
@@ -523,7 +541,7 @@ def train(cfg, run_, agent_id) -> dict:
             done.append(f"critic{r}")
             save(r * per_round + c.critic_steps - 1)
             log.info("[counterfactual] round %d critic, held out: %s", r, history[f"critic{r}"])
-        figures = fit_actor(actor, critic, x, held, c, typed.seed, r, run_, r * per_round + c.critic_steps)
+        figures = fit_actor(actor, critic, x, state, held, c, typed.seed, r, run_, r * per_round + c.critic_steps)
         if figures is None:
             return {"stopped": True}
         history[f"actor{r}"] = {k: round(v, 6) for k, v in figures.items()}

@@ -173,6 +173,10 @@ class CounterfactualConfig(Checked):
     # straight-line braking (u = 0), as TD3+BC anchors to its data
     pessimism: float = 1.0
     anchor_weight: float = 0.05
+    # the loss weight of heads on the critic's and the actor's first layers that guess the true state
+    # (envs.privileged: the hazards, the ego, what blocks each escape path): learning by cheating for perception,
+    # as the chooser's head, which took its camera scorer from ~5 % to ~20-30 % of the planner's gain. 0 = no head
+    aux_weight: float = 1.0
 
     def problems(self):
         yield from (
@@ -205,7 +209,7 @@ class CounterfactualConfig(Checked):
             yield ConfigValueError(
                 "counterfactual.continuation_steers", list(self.continuation_steers), "each must lie in (0, 1]"
             )
-        for key in ("dagger_rounds", "local_std", "weight_decay", "pessimism", "anchor_weight"):
+        for key in ("dagger_rounds", "local_std", "weight_decay", "pessimism", "anchor_weight", "aux_weight"):
             if not getattr(self, key) >= 0:  # written so that NaN fails too
                 yield ConfigValueError(f"counterfactual.{key}", getattr(self, key), "it must be >= 0")
         if self.proposals < 2:

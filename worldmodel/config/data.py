@@ -182,11 +182,15 @@ class EnvConfig(Checked):
     occupants_per_car: int = 1
     step_s: float = 1.0 / 15.0  # seconds per step: the paper's 15 FPS (Chae, Kim and Merola step 0.1 s)
     family: str = "porav"  # the scenarios reset() samples: porav (the paper's) or chae (envs/chae.py)
+    # metres from the street's centre line (|y|) beyond which an episode ends as left_scene, at no further cost.
+    # 25 m lies past every static body of the street (buildings reach 20.5 m), so only an ego that already got
+    # through (the side street's opening, a gap between buildings) leaves; a huge value lets such episodes go on
+    lateral_exit_m: float = 25.0
 
     def problems(self):
         if self.image_size != 64:
             yield ConfigValueError("image_size", self.image_size, "the VAE's encoder takes 64x64 frames")
-        yield from _positive(self, "mu", "occupants_per_car")
+        yield from _positive(self, "mu", "occupants_per_car", "lateral_exit_m")
         if not 10.0 <= self.fov_deg <= 170.0:
             yield ConfigValueError("fov_deg", self.fov_deg, "the camera's field of view must be in [10, 170] degrees")
         if self.tele_fov_deg is not None and not 10.0 <= self.tele_fov_deg <= 170.0:

@@ -12,7 +12,7 @@ RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
 # Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
 # they are left out of the hash and older runs stay current.
 ADDED_DEFAULTS = {
-    "env": {"step_s": 1.0 / 15.0, "family": "porav", "tele_fov_deg": None},
+    "env": {"step_s": 1.0 / 15.0, "family": "porav", "tele_fov_deg": None, "lateral_exit_m": 25.0},
     "agent": {
         "obs": "worldmodel",
         "paper_obs": "worldmodel",
