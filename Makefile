@@ -20,10 +20,12 @@ run: setup
 	$(PY) -m worldmodel.pipeline experiment=$(EXPERIMENT) scale=quick $(ARGS)
 
 # The paper's family at paper scale, as one experiment (docs/results/porav/README.md): one world model; the paper's
-# DDPG with R1 and R2, the best DDPG-actor variant (dag), the chooser and the two-camera chooser, three seeds each;
-# evaluated on the validation bank, then once on the sealed test bank (recorded in docs/results/ledger.csv).
-# About 5 hours on 2 cores (docs/results/porav/headline.md: each stage); resumable: run it again to continue.
-HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tele] seeds=[0,1,2] \
+# DDPG with R1 and R2, the best DDPG-actor variant (dag), the chooser, the two-camera chooser and the counterfactual-
+# cost actor, three seeds each; evaluated on the validation bank, then once on the sealed test bank (recorded in
+# docs/results/ledger.csv; an evaluation there after the first needs ARGS=evaluate.retest=true, and adds a row).
+# About 5 hours on 2 cores before the counterfactual actor (docs/results/porav/headline.md: each stage); resumable:
+# run it again to continue.
+HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tele,counterfactual] seeds=[0,1,2] \
 	banks=[validation,test] demos.episodes=500 evaluate.policies=[braking,oracle,oracle_brake1,oracle_brake2]
 
 headline: setup

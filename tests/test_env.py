@@ -462,6 +462,31 @@ def test_step_length_is_a_setting():
     assert DT == 1.0 / 15.0
 
 
+def test_the_lateral_exit_is_a_setting():
+    """An ego steered hard right at 20 m/s through a gap in the buildings ends its episode as left_scene once it is
+    lateral_exit_m (25 m by default) from the centre line, without hitting anything; with the bound far away the
+    same episode goes on to its time limit. Planning twins carry the bound."""
+    spec = ScenarioSpec(seed=1, ttc=3.0, ego_speed=20.0)  # no hazard, no traffic: 90 steps
+
+    def drive(env):
+        env.reset(options={"scenario": spec})
+        for k in range(env.horizon_steps):
+            _, _, terminated, truncated, info = env.step([0.0 if k < 40 else 1.0, 0.0])
+            if terminated or truncated:
+                return info["outcome"], terminated, env.ego.y
+
+    near = UrbanCollisionEnv(camera=False)
+    outcome, terminated, y = drive(near)
+    assert terminated and outcome["end"] == "left_scene" and y < -25.0
+    assert outcome["steps"] < near.horizon_steps and not outcome["static_collision"]
+    far = UrbanCollisionEnv(camera=False, lateral_exit_m=1e4)
+    outcome, terminated, y = drive(far)
+    assert not terminated and outcome["end"] == "horizon" and outcome["steps"] == far.horizon_steps and y < -35.0
+    assert near.planning_twin().lateral_exit_m == 25.0 and far.planning_twin().lateral_exit_m == 1e4
+    with pytest.raises(ValueError, match="lateral_exit_m"):
+        UrbanCollisionEnv(camera=False, lateral_exit_m=0.0)
+
+
 def test_every_registered_reward_is_reported_in_info_and_outcome():
     """A reward added to the registry is computed on every step, reported as info["reward_<name>"], summed into
     outcome["return_<name>"], and can be the one the env hands the learner."""

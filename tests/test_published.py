@@ -27,6 +27,7 @@ def results(tmp_path_factory):
         return compose("evaluate", [*paths, "experiment=t", "scale=smoke", *TINY, POLICIES, *overrides])
 
     evaluate.run(cfg())
+    evaluate.run(cfg("evaluate.validation_seed=4712"))
     evaluate.run(cfg("evaluate.bank=test"))
     stages = {"collect": 90.0, "agent_r1": 300.0, "agent_r1/seed1": 360.0, "eval": 30.0, "eval_test": 30.0}
     timings = {name: {"wall_s": wall, "peak_rss_mb": 1.0, "scale": "smoke"} for name, wall in stages.items()}
@@ -35,6 +36,9 @@ def results(tmp_path_factory):
     published.publish(root / "runs/t/eval", out / "validation", "make tiny")
     published.publish(root / "runs/t/eval_test", out / "test", "make tiny")
     published.write_headline(out)
+    # a second validation bank, and the two pooled
+    published.publish(root / "runs/t/eval_seed4712", out / "validation4712", "make tiny")
+    (out / published.POOLED).write_text(published.pooled(out))
     return root, out
 
 
@@ -67,6 +71,21 @@ def test_the_headline_gives_both_banks_with_intervals(results):
     assert data["world_model"] == {"vae_sha": [], "rnn_sha": []}  # scripted policies only: no world model
     # what the run cost, stage by stage, each preset's seeds together
     assert "| agent_r1 | 2 | 5.0–6.0 | 11.0 |" in text and "| **all stages** | 5 |  | 13.5 |" in text
+
+
+def test_the_pooled_table_pools_the_validation_banks_and_recheck_holds_it(results, tmp_path):
+    import shutil
+
+    root, out = results
+    text = (out / published.POOLED).read_text()
+    assert "validation banks pooled: 4711, 4712" in text and "bank 4712: share %" in text
+    planner = next(line for line in text.splitlines() if line.startswith("| Privileged planner"))
+    assert "| — | 100.0 | 100.0 | 100.0 |" in planner  # the ceiling is 100 on each bank and pooled
+    copy = tmp_path / "x"
+    shutil.copytree(out, copy)
+    (copy / published.POOLED).write_text(text.replace(planner, planner.replace("| 100.0 | —", "| 99.0 | —")))
+    (problem,) = published.recheck(copy, root / "ledger.csv")
+    assert "pooled.md" in problem
 
 
 def test_recheck_names_an_edited_number(results, tmp_path):
@@ -175,7 +194,7 @@ def test_every_number_in_a_reports_headline_tables_is_in_its_committed_tables():
         report = (directory / "README.md").read_text()
         assert "\n## Headline" in report, f"{directory}/README.md has no '## Headline' section"
         section = report.split("\n## Headline", 1)[1].split("\n## ", 1)[0]
-        tables = [*directory.glob("*" + published.TABLES), *directory.glob("headline.md")]
+        tables = [*directory.glob("*" + published.TABLES), *directory.glob("headline.md"), *directory.glob("pooled.md")]
         known = {n.replace("−", "-") for t in tables for n in decimal.findall(t.read_text())}
         quoted = [
             (n, line.split("|")[1].strip())

@@ -3,6 +3,7 @@ the tables from them, so that a reader can re-check every number.
 
     python -m worldmodel.report publish runs/NAME/eval_test docs/results/porav/test --command "make headline"
     python -m worldmodel.report headline docs/results/porav      # the validation-and-test table of a family
+    python -m worldmodel.report pooled docs/results/phase3       # a directory's validation banks pooled
     python -m worldmodel.report recheck docs/results              # every directory below, or one
     python -m worldmodel.report readme                            # the README's result table, between its markers
 
@@ -307,6 +308,84 @@ def headline(directory: Path) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", data
 
 
+POOLED = "pooled.md"  # the validation banks of a directory pooled: where settings are chosen on several banks
+
+
+def pooled(directory: Path) -> str:
+    """``pooled.md`` of a directory holding two or more validation evaluations of the paper's family: each policy's
+    share of the achievable improvement on each bank and on all of them pooled (a bank's scenarios are its own: the
+    paired bootstrap resamples the pooled scenarios), each seed's pooled share, and its static collisions and lane
+    departures, pooled."""
+    evaluations = {
+        stem: (rows, meta)
+        for stem, (rows, meta) in published(directory).items()
+        if meta["family"] == "porav" and meta["bank"] == "validation"
+    }
+    if len(evaluations) < 2:
+        raise RecheckError(f"{directory} has fewer than two validation evaluations of the paper's family to pool")
+    stems = sorted(evaluations, key=lambda s: evaluations[s][1]["bank_seed"])
+    pool = []
+    for stem in stems:
+        rows, meta = evaluations[stem]
+        offset = int(meta["bank_seed"]) * 1_000_000  # scenario ids are per bank
+        pool += [{**r, "scenario_id": offset + int(r["scenario_id"])} for r in rows]
+    every = [set(r["policy"] for r in evaluations[s][0]) for s in stems]
+    policies = [p for p in report.policy_order(pool) if all(p in names for names in every)]
+    seeds = ", ".join(str(evaluations[s][1]["bank_seed"]) for s in stems)
+    lines = [
+        f"# The validation banks pooled: {seeds}",
+        "",
+        f"Rows: {', '.join(f'`{s}{ROWS}`' for s in stems)}. Regenerate: `python -m worldmodel.report pooled "
+        f"{directory}`.",
+        "",
+        report._md_row(
+            [
+                "Policy",
+                "seeds",
+                *(f"bank {evaluations[s][1]['bank_seed']}: share %" for s in stems),
+                "pooled: share % [95 % CI]",
+                "pooled: each seed's share %",
+                "pooled: total risk %",
+                "static coll. %",
+                "lane dep. %",
+            ]
+        ),
+        report._md_row(["---", "---", *("---:" for _ in stems), "---:", "---:", "---:", "---:", "---:"]),
+    ]
+    for p in policies:
+        figures = bank_figures(pool, p)
+        mine = [r for r in pool if r["policy"] == p]
+        each = ", ".join(
+            f"{v:.1f}" if v is not None else report.MISSING for v in figures.get("seed_shares", {}).values()
+        )
+        per_bank = []
+        for s in stems:
+            b = bank_figures(evaluations[s][0], p) if p != "braking" else None
+            per_bank.append("—" if b is None else (f"{b['share']:.1f}" if b["share"] is not None else report.MISSING))
+        lines.append(
+            report._md_row(
+                [
+                    report.policy_label(p),
+                    "—" if p in SCRIPTED else ", ".join(map(str, figures["seeds"])),
+                    *per_bank,
+                    "—" if p == "braking" else _share_text(figures),
+                    each or "—",
+                    report._fmt(figures["total_risk"], 2),
+                    report._fmt(100 * sum(r["static_collision"] for r in mine) / len(mine), 1),
+                    report._fmt(100 * sum(r["lane_departure"] for r in mine) / len(mine), 1),
+                ]
+            )
+        )
+    lines += [
+        "",
+        "_Share = 100 × (braking − policy) / (braking − planner) of the mean total severe-injury risk per scenario, "
+        "seeds pooled: 0 = braking, 100 = the privileged planner. Pooled interval: paired bootstrap over the scenarios "
+        "of every bank (worldmodel/stats.py). Rates: % of all episodes of every seed. Only policies evaluated on "
+        "every bank are listed._",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 def stage_time_table(timings: dict) -> list[str]:
     """Wall time per stage of the run, each agent preset's seeds together: what a full reproduction costs."""
     groups: dict[str, list[float]] = {}
@@ -439,6 +518,10 @@ def recheck_directory(directory: Path, ledger: Path | None = None) -> list[str]:
         diff = first_difference(str(path), path.read_text(), render_tables(rows, meta))
         if diff:
             problems.append(diff)
+    if (directory / POOLED).exists():
+        diff = first_difference(str(directory / POOLED), (directory / POOLED).read_text(), pooled(directory))
+        if diff:
+            problems.append(diff)
     porav = all(meta["family"] == "porav" for _, meta in evaluations.values())
     if (directory / "headline.md").exists() or (porav and {"validation", "test"} <= set(evaluations)):
         text, data = headline(directory)
@@ -510,6 +593,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--command", dest="made_by", required=True, help="the command that made the evaluation")
     p = sub.add_parser("headline", help="the validation-and-test table of a directory")
     p.add_argument("directory", type=Path)
+    p = sub.add_parser("pooled", help="a directory's validation banks pooled, written to its pooled.md")
+    p.add_argument("directory", type=Path)
     p = sub.add_parser("recheck", help="recompute every committed table from its rows")
     p.add_argument("directory", type=Path, nargs="?", default=RESULTS)
     p = sub.add_parser("readme", help="regenerate the README's result table")
@@ -520,6 +605,8 @@ def main(argv: list[str] | None = None) -> int:
             publish(args.eval_dir, args.stem, args.made_by)
         elif args.command == "headline":
             write_headline(args.directory)
+        elif args.command == "pooled":
+            atomic_write_text(Path(args.directory) / POOLED, pooled(args.directory))
         elif args.command == "recheck":
             problems = recheck(args.directory)
             for problem in problems:

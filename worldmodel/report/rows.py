@@ -73,6 +73,7 @@ POLICY_LABELS = {
     "agent_r2_chooser": "Chooser (brake, then one lane change), reward 2",
     "agent_r2_dag": "Cloned from the planner with 2 DAgger rounds, reward 2",
     "agent_r2_chooser_tele": "Chooser, frame band from a 30° second camera, reward 2",
+    "agent_r2_counterfactual": "DDPG actor against counterfactual costs, reward 2",
     "oracle": "Privileged planner (oracle)",
     "oracle_brake1": "Planner after 1 frame of straight braking (perception ceiling)",
     "oracle_brake2": "Planner after 2 frames of straight braking (perception ceiling)",
