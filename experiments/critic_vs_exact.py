@@ -38,6 +38,9 @@ than 0.01, where the decision matters, and all):
 * ``pick - braking``: the mean exact cost of the critic's choice minus braking's, in points of R2 (100 x):
   negative where acting on the critic's ranking at that state would beat braking.
 
+Each table starts with what a uniformly random choice among the candidates gets (in expectation: Spearman 0,
+pairwise 0.5), the chance level the critics are to be read against.
+
 Writes ``runs/NAME/critic_vs_exact/critic_vs_exact.md`` (the tables printed here) and ``critic_vs_exact.csv`` (per
 agent and state: its scores and exact costs per candidate, Spearman, pairs ordered).
 """
@@ -313,6 +316,18 @@ def table(scored: list[Scored], val: dict, steps: int, subset: str, boot: int) -
     pooled and t = 0 alone."""
     costs, episode, t = val["costs"].astype(np.float64), val["episode"], val["t"]
     lines = list(HEADER)
+    windows = [(f"0-{steps - 1}", np.ones(len(t), bool))] if steps > 1 else []
+    for label, in_window in [*windows, ("0", t == 0)]:  # what a uniformly random choice of candidate gets
+        keep = in_window & (matters(costs) if subset == "matters" else True)
+        y, lowest = costs[keep], costs[keep].min(axis=1, keepdims=True) + TIE
+        nan = not len(y)
+        share, brake = (np.nan, np.nan) if nan else ((y <= lowest).mean(), (y[:, 0] <= lowest[:, 0]).mean())
+        gain = np.nan if nan else (y.mean(axis=1) - y[:, 0]).mean()
+        lines.append(
+            f"| uniform random candidate | (expected) | {label} | {len(y)} | {len(np.unique(episode[keep]))} | "
+            f"0 | 0.5 | {_fmt(100 * share, digits=1)} | {_fmt(100 * brake, digits=1)} | "
+            f"{_fmt(100 / costs.shape[1], digits=1)} | {_fmt(100 * gain)} |"
+        )
     for s in scored:
         windows = [("0", t[s.rows] == 0)]
         if steps > 1 and not (t[s.rows] == 0).all():
