@@ -200,7 +200,8 @@ class ShiftPolicy:
     """Scripted-policy interface (``reset``, ``act``) for a policy that starts a shift at each of its decisions:
     ``decide(x, d) -> u`` in [-1, 1]^3 (``ShiftSpace``) on ``x = encode(obs)``. Up to the last decision every frame
     is encoded and ``note_action`` told the action taken after it (a learned policy's recurrent view of the world;
-    both default to nothing). ``chosen``: the decisions of the episode so far."""
+    both default to nothing; ``bind_view(env)``, for a view that reads the simulator). ``chosen``: the decisions of
+    the episode so far."""
 
     def __init__(
         self,
@@ -212,8 +213,10 @@ class ShiftPolicy:
         encode: Callable[[dict], object] | None = None,
         note_action: Callable[[np.ndarray], None] | None = None,
         reset_view: Callable[[], None] | None = None,
+        bind_view: Callable[[UrbanCollisionEnv], None] | None = None,
     ):
         self.space, self.decide, self.name = space, decide, name
+        self.bind_view = bind_view
         self.steps = decision_steps(decisions, interval)
         self.encode, self.note_action, self.reset_view = encode, note_action, reset_view
         self.t, self.run = 0, None
@@ -223,6 +226,11 @@ class ShiftPolicy:
         self.t, self.run, self.chosen = 0, None, []
         if self.reset_view is not None:
             self.reset_view()
+
+    def bind(self, env: UrbanCollisionEnv) -> None:
+        """Hand a view that reads the simulator (the true state) the episode's env; nothing otherwise."""
+        if self.bind_view is not None:
+            self.bind_view(env)
 
     def act(self, obs, info) -> np.ndarray:
         t = self.t

@@ -144,3 +144,36 @@ def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelle
     actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
     figures = counterfactual.fit_actor(actor, critic, data["x"], data["state"], held, fit, seed=0, round_=0)
     assert figures["objective"] < figures["braking_objective"], figures
+
+
+def test_on_the_true_state_it_trains_and_acts_without_world_model_or_camera(experiment_copy, stage_cfg):
+    """``obs=privileged``: the labels' recorded true state is the critic's and the actor's input, the DAgger round
+    drives with it, and evaluation runs the actor on the bound env's true state with the camera off."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from envs.privileged import PRIVILEGED_DIM, privileged_state
+    from worldmodel import evaluate, policies, train_agent
+
+    root = experiment_copy("rnn")
+    overrides = ("reward=r2", "agent=counterfactual", "obs=privileged", "agent.use_speed=false")
+    out = train_agent.run(stage_cfg("train_agent", *overrides, root=root))
+    assert set(out["history"]) == {"critic0", "actor0", "critic1", "actor1"}
+    cfg = stage_cfg("evaluate", root=root)
+    key = "agent_r2_counterfactual-privileged/seed0"
+    state = torch.load(root / "runs/t" / key / "last.pt", weights_only=False)
+    assert state["obs"] == "privileged" and state["in_dim"] == PRIVILEGED_DIM + 1
+    policy, _, models = policies.policy_for(cfg, key)
+    assert policy.needs_camera is False and models["vae_sha"] == "" and models["rnn_sha"] == ""
+    env, built, _, _ = evaluate._build(OmegaConf.to_container(cfg, resolve=True), key)
+    assert env._camera is None  # the camera is off
+    spec = scenarios(1)[0]
+    env.reset(options={"scenario": spec})
+    built.reset()
+    built.bind(env)
+    expected = counterfactual.actor_decision(counterfactual.actor_from_state(state), state["decisions"])(
+        privileged_state(env), 0
+    )
+    built.act({"seg": None}, None)
+    np.testing.assert_allclose(built.chosen[0], expected, atol=1e-6)
+    env.close()

@@ -208,7 +208,12 @@ def _label_shard(task) -> int:
         policy = shift_policy(c, step_s)
     else:
         set_threads(1)
-        encoder = artifacts.load_world_model(cfg)
+        if actor_state.get("obs") == "privileged":
+            from .agent_obs import PrivilegedEncoder
+
+            encoder = PrivilegedEncoder(env)
+        else:
+            encoder = artifacts.load_world_model(cfg)
         actor = actor_from_state(actor_state)
         policy = shift_policy(c, step_s, actor_decision(actor, c.decisions), encoder)
     parts = []
@@ -303,6 +308,15 @@ def encode_states(encoder, data: dict, decisions: int) -> np.ndarray:
         out[rows] = encoded[data["t"][rows]]
         d[rows] = np.arange(len(rows))
     return features(out, d, decisions)
+
+
+def privileged_states(data: dict, decisions: int) -> np.ndarray:
+    """Every labelled decision state as ``obs=privileged`` sees it: the true state recorded there."""
+    d = np.empty(len(data["t"]), np.int64)
+    for e in np.unique(data["episode"]):
+        rows = np.flatnonzero(data["episode"] == e)
+        d[rows] = np.arange(len(rows))
+    return features(data["state"], d, decisions)
 
 
 def held_out_rows(episode: np.ndarray) -> np.ndarray:
@@ -472,8 +486,9 @@ def train(cfg, run_, agent_id) -> dict:
     c = typed.agent.counterfactual
     step_s = typed.env.step_s
     set_threads(typed.threads)
-    encoder = artifacts.load_world_model(cfg)
-    in_dim = encoder.dim + 1
+    privileged = typed.agent.obs == "privileged"  # the true state instead of the world model's view
+    encoder = None if privileged else artifacts.load_world_model(cfg)
+    in_dim = (PRIVILEGED_DIM if privileged else encoder.dim) + 1
     saved = run_.state or {}
     done = list(saved.get("done", []))
     torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
@@ -496,7 +511,8 @@ def train(cfg, run_, agent_id) -> dict:
         "interval": c.interval(step_s),
         "hold_s": [float(h) for h in c.hold_s],
         "step_s": float(step_s),
-        "obs_dim": int(encoder.dim),
+        "obs_dim": in_dim - 1,
+        "obs": typed.agent.obs,
         "use_speed": typed.agent.use_speed,
         "frame_view": typed.agent.frame_view,
         "action_map": ActionMap().to_dict(),
@@ -526,7 +542,9 @@ def train(cfg, run_, agent_id) -> dict:
             data = labels(cfg, past, n, labels_dir(cfg, past, run_.dir), driver, run_.stop)
             if data is None:
                 return {"stopped": True}
-            data["x"] = encode_states(encoder, data, c.decisions)
+            data["x"] = (
+                privileged_states(data, c.decisions) if privileged else encode_states(encoder, data, c.decisions)
+            )
             data["held"] = held_out_rows(data["episode"])
             data_rounds.append(data)
         x, u, costs, state, held = (
@@ -585,7 +603,7 @@ def build_policy(name: str, encoder, state: dict, device="cpu") -> ShiftPolicy:
             f"model gives {encoder.dim} (vae.latent_dim / agent.use_speed changed): retrain it"
         )
     actor = actor_from_state(state).to(device)
-    return ShiftPolicy(
+    policy = ShiftPolicy(
         ShiftSpace(tuple(state["hold_s"]), float(state["step_s"])),
         actor_decision(actor, int(state["decisions"])),
         int(state["decisions"]),
@@ -594,4 +612,7 @@ def build_policy(name: str, encoder, state: dict, device="cpu") -> ShiftPolicy:
         encode=encoder.encode,
         note_action=encoder.note_action,
         reset_view=encoder.reset,
+        bind_view=getattr(encoder, "bind", None),
     )
+    policy.needs_camera = getattr(encoder, "needs_camera", True)
+    return policy

@@ -511,7 +511,7 @@ class AgentConfig(DDPGConfig):
         seen_by = {
             "ddpg": ("worldmodel", "lidar", "privileged"),
             "chooser": ("worldmodel",),
-            "counterfactual": ("worldmodel",),
+            "counterfactual": ("worldmodel", "privileged"),
             "dqn": ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"),
             "kim_chooser": ("lidar",),
         }
