@@ -568,7 +568,9 @@ def train(cfg, run_, agent_id) -> dict:
         done.append(f"actor{r}")
         save((r + 1) * per_round - 1)
         log.info("[counterfactual] round %d actor, held out: %s", r, history[f"actor{r}"])
-    if not data_rounds:  # a finished run resumed: its figures are in the checkpoint
+    if not data_rounds:  # a finished run resumed: nothing to do, its metrics stand
+        if run_.marker.exists():
+            return json.loads(run_.marker.read_text())
         return {"reward": agent_id.reward, "learner": "counterfactual", "history": history}
     return {
         "reward": agent_id.reward,
