@@ -332,11 +332,13 @@ def pooled(directory: Path) -> str:
     every = [set(r["policy"] for r in evaluations[s][0]) for s in stems]
     policies = [p for p in report.policy_order(pool) if all(p in names for names in every)]
     seeds = ", ".join(str(evaluations[s][1]["bank_seed"]) for s in stems)
+    where = Path(directory).resolve()
+    shown = where.relative_to(banks.REPO) if where.is_relative_to(banks.REPO) else where.name
     lines = [
         f"# The validation banks pooled: {seeds}",
         "",
         f"Rows: {', '.join(f'`{s}{ROWS}`' for s in stems)}. Regenerate: `python -m worldmodel.report pooled "
-        f"{directory}`.",
+        f"{shown}`.",
         "",
         report._md_row(
             [

@@ -74,6 +74,11 @@ POLICY_LABELS = {
     "agent_r2_dag": "Cloned from the planner with 2 DAgger rounds, reward 2",
     "agent_r2_chooser_tele": "Chooser, frame band from a 30° second camera, reward 2",
     "agent_r2_counterfactual": "DDPG actor against counterfactual costs, reward 2",
+    "agent_r2_counterfactual-privileged": "DDPG actor against counterfactual costs, on the true state, reward 2",
+    # settings of the counterfactual actor tried on the validation banks (docs/results/phase3/)
+    "agent_r2_cfcons": "Counterfactual actor tried: pessimism 2, anchor 0.2",
+    "agent_r2_cfbold": "Counterfactual actor tried: no pessimism, no anchor",
+    "agent_r2_cfmore": "Counterfactual actor tried: 2,000 + 600 labelled episodes",
     "oracle": "Privileged planner (oracle)",
     "oracle_brake1": "Planner after 1 frame of straight braking (perception ceiling)",
     "oracle_brake2": "Planner after 2 frames of straight braking (perception ceiling)",
