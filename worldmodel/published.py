@@ -337,8 +337,7 @@ def pooled(directory: Path) -> str:
     lines = [
         f"# The validation banks pooled: {seeds}",
         "",
-        f"Rows: {', '.join(f'`{s}{ROWS}`' for s in stems)}. Regenerate: `python -m worldmodel.report pooled "
-        f"{shown}`.",
+        f"Rows: {', '.join(f'`{s}{ROWS}`' for s in stems)}. Regenerate: `python -m worldmodel.report pooled {shown}`.",
         "",
         report._md_row(
             [
