@@ -23,7 +23,7 @@ from envs.chooser import cost_labels, decide_steps_for
 from envs.streams import CHOOSER_LABEL_EPISODES
 
 from . import artifacts
-from .common import StageError, atomic_output, make_env, resolve_workers, worker_pool
+from .common import atomic_output, make_env, read_shards, resolve_workers, worker_pool
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -165,11 +165,4 @@ def labels(cfg, source: str = "train") -> dict:
     with contextlib.suppress(OSError), h5py.File(paths[0], "r") as f:
         if STATIC_KEY in f:  # labels made before the flags have none; what counts static collisions says so
             data[STATIC_KEY] = []
-    for p in paths:
-        try:
-            with h5py.File(p, "r") as f:
-                for k in data:
-                    data[k].append(f[k][...])
-        except (OSError, KeyError) as err:
-            raise StageError(f"{p} is not a readable HDF5 file ({err}); delete it and rerun to relabel it") from None
-    return {k: np.concatenate(v) for k, v in data.items()}
+    return read_shards(paths, data)

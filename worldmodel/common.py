@@ -350,3 +350,19 @@ def check_finite(value: float, what: str, step: int, last_good: Path) -> None:
 
 def cached(fn):
     return functools.lru_cache(maxsize=None)(fn)
+
+
+def read_shards(paths, keys) -> dict:
+    """The datasets ``keys`` of the HDF5 shards ``paths``, each concatenated over the shards in order; an unreadable
+    shard stops with its name and the way out (delete it, and the stage labels it again)."""
+    import h5py
+
+    data: dict[str, list] = {k: [] for k in keys}
+    for p in paths:
+        try:
+            with h5py.File(p, "r") as f:
+                for k in data:
+                    data[k].append(f[k][...])
+        except (OSError, KeyError) as err:
+            raise StageError(f"{p} is not a readable label shard ({err}); delete it and rerun to relabel it") from None
+    return {k: np.concatenate(v) for k, v in data.items()}

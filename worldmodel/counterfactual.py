@@ -44,7 +44,16 @@ from envs.streams import COUNTERFACTUAL_LABEL_EPISODES, COUNTERFACTUAL_MINIBATCH
 
 from . import artifacts
 from .action_map import ActionMap
-from .common import StageError, atomic_output, check_finite, make_env, resolve_workers, set_threads, worker_pool
+from .common import (
+    StageError,
+    atomic_output,
+    check_finite,
+    make_env,
+    read_shards,
+    resolve_workers,
+    set_threads,
+    worker_pool,
+)
 from .config import validate
 from .models.ddpg import Actor, mlp
 
@@ -283,15 +292,7 @@ def labels(cfg, round_: int, n: int, directory: Path, actor_state: dict | None =
         log.info(
             "[counterfactual] labelled %d shards of round %d in %.0f s", len(todo), round_, time.perf_counter() - t0
         )
-    data: dict[str, list] = {k: [] for k in (*FRAME_KEYS, *DECISION_KEYS, "frame_episode", "episode")}
-    for p in paths:
-        try:
-            with h5py.File(p, "r") as f:
-                for k in data:
-                    data[k].append(f[k][...])
-        except (OSError, KeyError) as err:
-            raise StageError(f"{p} is not a readable label shard ({err}); delete it and rerun to relabel it") from None
-    return {k: np.concatenate(v) for k, v in data.items()}
+    return read_shards(paths, (*FRAME_KEYS, *DECISION_KEYS, "frame_episode", "episode"))
 
 
 def encode_states(encoder, data: dict, decisions: int) -> np.ndarray:
