@@ -147,9 +147,12 @@ def test_pipeline_plans_demonstrations_and_preset_variants(stage_cfg):
 
     plain = [s.name for s in pipeline.steps(stage_cfg("pipeline", "agents=[ddpg]"))]
     assert plain == ["collect", "vae", "rnn", "agent_r1", "agent_r2", "eval"]  # the paper's pipeline, unchanged
-    # the default adds the chooser, R2 only (its preset's agent.rewards), with no demonstrations
+    # the default adds the chooser and the counterfactual actor, R2 only (their presets' agent.rewards), with no
+    # demonstrations
     default = [s.name for s in pipeline.steps(stage_cfg("pipeline"))]
-    assert default == ["collect", "vae", "rnn", "agent_r1", "agent_r2_chooser", "agent_r2", "eval"]
+    assert default == [
+        "collect", "vae", "rnn", "agent_r1", "agent_r2_chooser", "agent_r2_counterfactual", "agent_r2", "eval"
+    ]  # fmt: skip
     with pytest.raises(StageError, match="demos.episodes"):
         pipeline.steps(stage_cfg("pipeline", "agents=[ddpg,dag]"))
     steps = pipeline.steps(stage_cfg("pipeline", "agents=[ddpg,dag]", "demos.episodes=3"))

@@ -35,6 +35,8 @@ OUTPUTS = [
     "runs/t/agent_r2/seed0/metrics.json",
     "runs/t/agent_r2_chooser/seed0/last.pt",
     "runs/t/agent_r2_chooser/seed0/metrics.json",
+    "runs/t/agent_r2_counterfactual/seed0/last.pt",
+    "runs/t/agent_r2_counterfactual/seed0/metrics.json",
     "runs/t/eval/results.csv",
     "runs/t/eval/summary.json",
     "runs/t/eval/tables.md",
@@ -71,7 +73,7 @@ def test_pipeline_produces_every_output(experiment):
     for rel in OUTPUTS:
         assert (experiment / rel).exists(), rel
     rows = read_results_csv(experiment / "runs/t/eval/results.csv")
-    policies = {"braking", "agent_r1", "agent_r2", "agent_r2_chooser", "oracle"}
+    policies = {"braking", "agent_r1", "agent_r2", "agent_r2_chooser", "agent_r2_counterfactual", "oracle"}
     assert {r["policy"] for r in rows} == policies
     per_policy = len(evaluate.bank(smoke_cfg(experiment, "evaluate")))
     assert len(rows) == len(policies) * per_policy
@@ -79,7 +81,10 @@ def test_pipeline_produces_every_output(experiment):
     assert set(summary["policies"]) == policies
     assert set(summary["achievable_share"]["policies"]) == policies - {"braking"}
     timings = json.loads((experiment / "runs/t/pipeline.json").read_text())
-    assert set(timings) == {"collect", "vae", "rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval", "eval_test"}
+    assert set(timings) == {
+        *("collect", "vae", "rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "agent_r2_counterfactual"),
+        *("eval", "eval_test"),
+    }
     assert all(t["wall_s"] > 0 and t["peak_rss_mb"] > 0 for t in timings.values())
     assert not any(t["untimed_part"] for t in timings.values())  # one uninterrupted run: every second recorded
     tables = (experiment / "runs/t/eval/tables.md").read_text()
@@ -90,12 +95,12 @@ def test_second_run_skips_finished_stages(experiment, caplog):
     stamps = {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(smoke_cfg(experiment, "pipeline", BANKS))
-    assert caplog.text.count("skipped") == 8 and "running" not in caplog.text
+    assert caplog.text.count("skipped") == 9 and "running" not in caplog.text
     assert stamps == {rel: (experiment / rel).stat().st_mtime_ns for rel in OUTPUTS}
     # the test bank judged these agents once: one ledger row, every agent with the hashes of its models
     (row,) = banks.read_ledger(experiment / "ledger.csv")
     assert row["family"] == "porav" and row["experiment"] == "t"
-    for key in ("agent_r1/seed0", "agent_r2/seed0", "agent_r2_chooser/seed0"):
+    for key in ("agent_r1/seed0", "agent_r2/seed0", "agent_r2_chooser/seed0", "agent_r2_counterfactual/seed0"):
         assert f"{key} (vae=" in row["policies"], key
     assert "agent_r2_chooser: share " in row["headline"]
 
@@ -125,10 +130,12 @@ def test_the_plan_says_what_a_run_would_do_and_runs_nothing(experiment, tmp_path
     rows = {r["step"]: r for r in pipeline.run(smoke_cfg(root, "pipeline", BANKS, "plan=true"))["plan"]}
     assert {name: r["state"] for name, r in rows.items()} == {
         "collect": "complete", "vae": "complete", "rnn": "resume", "agent_r1": "after", "agent_r2": "after",
-        "agent_r2_chooser": "after", "eval": "after", "eval_test": "after",
+        "agent_r2_chooser": "after", "agent_r2_counterfactual": "after", "eval": "after", "eval_test": "after",
     }  # fmt: skip
     assert rows["agent_r1"]["reasons"] == ["checked again once rnn ran"]
-    assert rows["eval"]["reasons"] == ["checked again once agent_r1, agent_r2_chooser, agent_r2 ran"]  # their order
+    assert rows["eval"]["reasons"] == [
+        "checked again once agent_r1, agent_r2_chooser, agent_r2_counterfactual, agent_r2 ran"
+    ]  # their order
     assert sorted((p, p.stat().st_mtime_ns) for p in root.rglob("*")) == before
 
 
@@ -231,7 +238,7 @@ def test_evaluation_rows_name_the_models_that_produced_them(experiment):
             assert row["actor_sha"] == artifacts.short(artifacts.actor_id(cfg, agent))
         else:
             assert row["vae_sha"] == row["rnn_sha"] == row["actor_sha"] == ""
-    assert len({r["actor_sha"] for r in rows if r["policy"].startswith("agent_")}) == 3
+    assert len({r["actor_sha"] for r in rows if r["policy"].startswith("agent_")}) == 4
 
 
 @pytest.fixture(scope="module")
@@ -295,7 +302,7 @@ def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
         pipeline.run(cfg)
     log = caplog.text
     assert "collect: complete" in log and "vae: complete" in log
-    for name in ("rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "eval"):
+    for name in ("rnn", "agent_r1", "agent_r2", "agent_r2_chooser", "agent_r2_counterfactual", "eval"):
         assert f"{name}: stale" in log, log
     assert kept == {rel: (new_vae / rel).stat().st_mtime_ns for rel in kept}
     vae = artifacts.vae_id(cfg)
@@ -310,12 +317,14 @@ def test_pipeline_rebuilds_what_a_new_vae_made_stale(new_vae, caplog):
     rows = read_results_csv(new_vae / "runs/t/eval/results.csv")
     assert {r["vae_sha"] for r in rows if r["policy"].startswith("agent_")} == {artifacts.short(vae)}
     stale = sorted(p.name.rsplit("-", 2)[0] for p in (new_vae / "runs/t/stale").iterdir())
-    assert stale == ["agent_r1-seed0", "agent_r2-seed0", "agent_r2_chooser-seed0", "eval", "rnn"]
+    assert stale == [
+        "agent_r1-seed0", "agent_r2-seed0", "agent_r2_chooser-seed0", "agent_r2_counterfactual-seed0", "eval", "rnn"
+    ]  # fmt: skip
     # Now everything is up to date again: a rerun does nothing.
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(cfg)
-    assert caplog.text.count("skipped") == 7
+    assert caplog.text.count("skipped") == 8
 
 
 def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, tmp_path):
@@ -407,7 +416,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     )
     rows = list(csv.DictReader(open(runs / "eval_kim/results.csv")))
     kim_names = ["braking", "agent_kim_unaware_ddpg_kim", "agent_kim_unaware_ddpg_wm_kim"]
-    kim_names += ["agent_r1", "agent_r2", "agent_r2_chooser"]
+    kim_names += ["agent_r1", "agent_r2", "agent_r2_chooser", "agent_r2_counterfactual"]
     assert sorted(r["policy"] for r in rows) == sorted(kim_names * 3)  # 1 trial x 3 scenarios each
     kim_trials = {p: sorted((r["scenario"], r["ego_speed"]) for r in rows if r["policy"] == p) for p in kim_names}
     assert all(t == kim_trials["braking"] for t in kim_trials.values())
@@ -431,6 +440,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     evaluate.run(smoke_cfg(root, "evaluate", "evaluate.family=merola"))
     rows = list(csv.DictReader(open(runs / "eval_merola/results.csv")))
     names = ["braking", "aeb3m", "oracle", "agent_merola_ddqn_merola", "agent_r1", "agent_r2", "agent_r2_chooser"]
+    names += ["agent_r2_counterfactual"]
     assert set(r["policy"] for r in rows) == set(names)
     trials = {p: [(r["scenario"], r["ego_speed"], r["ttc"]) for r in rows if r["policy"] == p] for p in names}
     assert len(trials["braking"]) == 3 * 2 and all(t == trials["braking"] for t in trials.values())
@@ -456,6 +466,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
         "agent_r1/seed0": 8,
         "agent_r2/seed0": 8,
         "agent_r2_chooser/seed0": 8,
+        "agent_r2_counterfactual/seed0": 8,
     }
     assert {k: s["car_runs"] for k, s in summary.items()} == car_runs
     assert all(s["pedestrian_runs"] == 2 for s in summary.values())  # CPNA-25 at 20 and 60 km/h
