@@ -1,8 +1,8 @@
 """The counterfactual-cost actor (``envs/counterfactual.py``, ``worldmodel/counterfactual.py``): shifts, their labels
 by re-simulation, and the critic fitted to them. Checked on the real scene and the real smoke-scale world model: a
-label is exactly what driving the shift costs, a second decision never makes a label dearer, the labels are the same
-for any worker count, and the fitted critic orders held-out shifts better than a constant does. Its exact resume is
-in test_resume.py; the smoke pipeline trains and evaluates it (test_pipeline.py)."""
+label is exactly what driving the shift costs, a second decision never makes a label dearer, and the fitted critic
+orders held-out shifts better than a constant does. Its exact resume is in test_resume.py; the smoke pipeline trains
+and evaluates it (test_pipeline.py)."""
 
 from __future__ import annotations
 
@@ -118,16 +118,6 @@ def labelled(smoke_builds):
     encoder = artifacts.load_world_model(cfg)
     data["x"] = counterfactual.encode_states(encoder, data, c.decisions)
     return cfg, c, data
-
-
-def test_the_labels_are_the_same_for_any_worker_count(labelled, tmp_path):
-    cfg, c, data = labelled
-    from omegaconf import OmegaConf
-
-    two = OmegaConf.merge(cfg, {"paths": {"data": str(tmp_path)}, "agent": {"counterfactual": {"num_workers": 2}}})
-    again = counterfactual.labels(two, 0, c.episodes, tmp_path / "labels")
-    for key in ("costs", "u", "seg", "action", "t", "episode"):
-        np.testing.assert_array_equal(again[key], data[key], err_msg=key)
 
 
 def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelled):

@@ -137,7 +137,8 @@ class CounterfactualConfig(Checked):
     dagger_episodes: int = 500  # labelled actor episodes per round, the last 15 % held out
     # the seed of the labelled scenarios; null: the training seed. Set, the seeds share round 0's labels
     label_seed: int | None = None
-    # labelling processes; auto: the cores this process may use. The same labels for any count (tested)
+    # labelling processes; auto: the cores this process may use. The same labels for any count: each episode draws
+    # its scenario and proposals from a seed of its own
     num_workers: int | str = "auto"
     # the labelled scenarios: hazards with this probability, at these speeds and TTCs (the bank's ranges)
     hazard_share: float = 0.85
