@@ -74,28 +74,16 @@ def per_state(scores: np.ndarray, costs: np.ndarray) -> dict[str, np.ndarray]:
     ``pairs`` (candidate pairs whose exact costs differ) and ``agree`` (of those, the ones ordered alike, a tie in
     the scores counting half), ``pick`` (the candidate of lowest score, the first of equal ones), whether it and
     braking are of lowest exact cost (``pick_lowest``, ``brake_lowest``), and ``pick_minus_brake`` (exact)."""
-    from scipy.stats import spearmanr
+    from worldmodel.stats import rank_agreement
 
     scores, costs = np.asarray(scores, np.float64), np.asarray(costs, np.float64)
     n = len(costs)
-    rho = np.full(n, np.nan)
-    pairs, agree = np.zeros(n, np.int64), np.zeros(n)
-    for i, (p, y) in enumerate(zip(scores, costs, strict=True)):
-        dy = y[:, None] - y[None, :]
-        dp = p[:, None] - p[None, :]
-        mask = np.triu(np.abs(dy) > TIE, 1)
-        pairs[i] = int(mask.sum())
-        agree[i] = float((np.sign(dp[mask]) == np.sign(dy[mask])).sum() + 0.5 * (dp[mask] == 0).sum())
-        if pairs[i]:
-            # exact costs within TIE of each other share a rank
-            rho[i] = 0.0 if np.ptp(p) == 0 else float(spearmanr(p, np.round(y / TIE)).statistic)
+    agreement = rank_agreement(scores, costs, TIE)
     pick = np.argmin(scores, axis=1)
     lowest = costs.min(axis=1) + TIE
     picked = costs[np.arange(n), pick]
     return {
-        "spearman": rho,
-        "pairs": pairs,
-        "agree": agree,
+        **agreement,
         "pick": pick,
         "pick_lowest": picked <= lowest,
         "brake_lowest": costs[:, 0] <= lowest,
@@ -214,15 +202,10 @@ def cost_critic(state: dict):
     """The counterfactual checkpoint's ``CostCritic`` (eval mode), its sizes read from the weights."""
     from worldmodel.counterfactual import CostCritic
 
-    sd = state["critic"]
-    if "trunks.0.0.weight" in sd:  # each member a first layer of its own, u joining after it
-        members = len({k.split(".")[1] for k in sd if k.startswith("trunks.")})
-        hidden = _linear_outs(sd, "trunks.0.") + _linear_outs(sd, "heads.0.")[:-1]
-        extra = {"aux_dim": int(sd["aux.0.weight"].shape[0])} if "aux.0.weight" in sd else {}
-    else:  # one MLP per member on (state, u)
-        members = len({k.split(".")[1] for k in sd if k.startswith("nets.")})
-        hidden, extra = _linear_outs(sd, "nets.0.")[:-1], {}
-    critic = CostCritic(int(state["in_dim"]), members, hidden, **extra)
+    sd = state["critic"]  # each member a first layer of its own, u joining after it
+    members = len({k.split(".")[1] for k in sd if k.startswith("trunks.")})
+    hidden = _linear_outs(sd, "trunks.0.") + _linear_outs(sd, "heads.0.")[:-1]
+    critic = CostCritic(int(state["in_dim"]), members, hidden, aux_dim=int(sd["aux.0.weight"].shape[0]))
     critic.load_state_dict(sd)
     return critic.eval()
 

@@ -56,6 +56,7 @@ from .common import (
 )
 from .config import validate
 from .models.ddpg import Actor, mlp
+from .stats import rank_agreement
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -329,27 +330,16 @@ def held_out_rows(episode: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- fitting
 def pairwise_order(pred: np.ndarray, costs: np.ndarray) -> float:
     """Over every decision state and every pair of its shifts whose exact costs differ, the share that ``pred``
-    orders as the costs do (a tie in ``pred`` counts half): 0.5 for any constant predictor, 1 for a perfect one."""
-    agree, pairs = 0.0, 0
-    for p, y in zip(pred, costs):
-        dy = y[:, None] - y[None, :]
-        dp = p[:, None] - p[None, :]
-        mask = np.triu(np.abs(dy) > 1e-6, 1)
-        pairs += int(mask.sum())
-        agree += float((np.sign(dp[mask]) == np.sign(dy[mask])).sum() + 0.5 * (dp[mask] == 0).sum())
-    return agree / pairs if pairs else float("nan")
+    orders as the costs do (``stats.rank_agreement``): 0.5 for any constant predictor, 1 for a perfect one."""
+    a = rank_agreement(pred, costs)
+    return float(a["agree"].sum() / a["pairs"].sum()) if a["pairs"].sum() else float("nan")
 
 
 def rank_correlation(pred: np.ndarray, costs: np.ndarray) -> float:
     """The mean over decision states of Spearman's rank correlation between ``pred`` and the exact costs of that
     state's shifts (states whose shifts all cost the same are left out)."""
-    from scipy.stats import spearmanr
-
-    out = []
-    for p, y in zip(pred, costs):
-        if np.ptp(y) > 1e-6 and np.ptp(p) > 0:
-            out.append(spearmanr(p, y).statistic)
-    return float(np.mean(out)) if out else float("nan")
+    rho = rank_agreement(pred, costs)["spearman"]
+    return float(np.nanmean(rho)) if np.isfinite(rho).any() else float("nan")
 
 
 def critic_predict(critic: CostCritic, x: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -70,3 +70,23 @@ def paired_bootstrap_ci(samples, statistic, n: int, seed: int) -> tuple[float, f
             rng=np.random.default_rng(seed),
         )
     return float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+def rank_agreement(scores, costs, tie: float = 1e-6) -> dict[str, np.ndarray]:
+    """Per row, how ``scores`` (lower is better) rank a row's options against their exact ``costs``: ``spearman``
+    (NaN where every exact cost is equal, 0 where the scores are constant; costs within ``tie`` share a rank),
+    ``pairs`` (option pairs whose costs differ by more than ``tie``) and ``agree`` (of those, the ones the scores
+    order alike, a tie in the scores counting half: a constant agrees on half of every row's pairs)."""
+    from scipy.stats import spearmanr
+
+    scores, costs = np.asarray(scores, np.float64), np.asarray(costs, np.float64)
+    rho = np.full(len(costs), np.nan)
+    pairs, agree = np.zeros(len(costs), np.int64), np.zeros(len(costs))
+    for i, (p, y) in enumerate(zip(scores, costs, strict=True)):
+        dy, dp = y[:, None] - y[None, :], p[:, None] - p[None, :]
+        mask = np.triu(np.abs(dy) > tie, 1)
+        pairs[i] = int(mask.sum())
+        agree[i] = float((np.sign(dp[mask]) == np.sign(dy[mask])).sum() + 0.5 * (dp[mask] == 0).sum())
+        if pairs[i]:
+            rho[i] = 0.0 if np.ptp(p) == 0 else float(spearmanr(p, np.round(y / tie)).statistic)
+    return {"spearman": rho, "pairs": pairs, "agree": agree}
