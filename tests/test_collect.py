@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -144,6 +145,33 @@ def test_changed_settings_refuse_to_mix_with_existing_data(stage_cfg, experiment
 def test_impossible_config_is_rejected_before_work(stage_cfg):
     with pytest.raises(StageError, match="collect.episodes"):
         collect.run(stage_cfg("collect", "collect.episodes=0"))
+
+
+@pytest.mark.parametrize(
+    "override, named",
+    [
+        ("seed=-1", "seed=-1"),
+        ("seeds=[0,-2]", "seeds=[0, -2]"),
+        ("vae.kl_weight=nan", "vae.kl_weight=nan"),
+        ("vae.free_bits=nan", "vae.free_bits=nan"),
+        ("agent.exploration_noise=nan", "agent.exploration_noise=nan"),
+        ("agent.target_noise=nan", "agent.target_noise=nan"),
+        ("agent.bc_weight=nan", "agent.bc_weight=nan"),
+        ("vae.lr=inf", "vae.lr=inf"),
+        ("agent.counterfactual.pessimism=nan", "agent.counterfactual.pessimism=nan"),
+        ("experiment=''", "experiment=''"),
+        ("experiment=..", "experiment='..'"),
+        ("peers=[chea]", "name a peer system (chae, kim, merola)"),
+    ],
+)
+def test_values_that_would_fail_later_are_refused_by_name_before_anything_is_written(
+    stage_cfg, tmp_path, override, named
+):
+    """NaN passes every range check, a negative seed fails inside numpy, an empty experiment writes into runs/ itself
+    and a misspelt peer looked like a missing preset: each is refused first, naming the key, and writes nothing."""
+    with pytest.raises(StageError, match=re.escape(named)):
+        collect.run(stage_cfg("collect", override))
+    assert not (tmp_path / "data").exists() and not (tmp_path / "runs").exists()
 
 
 def test_a_branch_under_the_parents_own_action_replays_the_parent(stage_cfg):

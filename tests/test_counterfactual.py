@@ -132,7 +132,31 @@ def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelle
     assert figures["pairwise_order"] > 0.6, figures
     # and the actor it trains, which starts as braking, ends with a lower objective on the held-out states
     actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
-    figures = counterfactual.fit_actor(actor, critic, data["x"], data["state"], held, fit, seed=0, round_=0)
+    figures = counterfactual.fit_actor(actor, critic, data["x"], data["x"], data["state"], held, fit, seed=0, round_=0)
+    assert figures["objective"] < figures["braking_objective"], figures
+
+
+def test_search_picks_shifts_no_worse_than_the_actors_or_braking_and_a_true_state_critic_trains_the_actor(labelled):
+    """``search``: per state, the target is the candidate of lowest objective, never worse than the actor's own shift
+    or braking; ``critic_obs=privileged``: a critic on the true state trains the actor that reads the world model."""
+    import torch
+
+    cfg, c, data = labelled
+    held = counterfactual.held_out_rows(data["episode"])
+    true_state = counterfactual.privileged_states(data, c.decisions)
+    fit = CounterfactualConfig(**{**vars(c), "critic_steps": 300, "actor_steps": 150, "batch_size": 64, "search": 16})
+    critic, _ = counterfactual.fit_critic(true_state, data["u"], data["costs"], data["state"], held, fit, 0, 0)
+    xc = torch.from_numpy(true_state)
+    u = torch.rand(len(xc), 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    target = counterfactual.searched_shifts(critic, u, xc, fit, torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        own, scale = counterfactual.objective(critic, u, xc, fit)
+        found = counterfactual.objective(critic, target, xc, fit, scale)[0]
+        braking = counterfactual.objective(critic, torch.zeros_like(u), xc, fit, scale)[0]
+    assert (found <= own + 1e-6).all() and (found <= braking + 1e-6).all()
+    assert (found < own - 1e-6).any(), "the search never improved on a random shift: the check would be empty"
+    actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
+    figures = counterfactual.fit_actor(actor, critic, data["x"], true_state, data["state"], held, fit, seed=0, round_=0)
     assert figures["objective"] < figures["braking_objective"], figures
 
 
@@ -167,3 +191,23 @@ def test_on_the_true_state_it_trains_and_acts_without_world_model_or_camera(expe
     built.act({"seg": None}, None)
     np.testing.assert_allclose(built.chosen[0], expected, atol=1e-6)
     env.close()
+
+
+def test_the_label_curves_figures_by_hand():
+    """``experiments/critic_label_curve.py``: a perfect critic captures all of braking's excess over the cheapest
+    labelled shift, a constant one none (it never switches), a reversed one loses to braking; a margin larger than
+    every predicted saving keeps braking."""
+    from experiments import critic_label_curve as clc
+
+    u = np.zeros((3, 3, 3), np.float32)  # shift 0 is braking
+    u[:, 1, 0], u[:, 2, 0] = 0.5, -0.5
+    costs = np.array([[0.3, 0.1, 0.2], [0.2, 0.2, 0.0], [0.1, 0.4, 0.3]])
+    episode = np.arange(3)
+    perfect = clc.summarise(costs, u, costs, episode, 0.0, boot=200)
+    assert perfect["captured"] == pytest.approx(100.0) and perfect["switches"] == pytest.approx(200 / 3)
+    assert perfect["low"] == pytest.approx(100.0) and perfect["high"] == pytest.approx(100.0)
+    constant = clc.summarise(np.ones_like(costs), u, costs, episode, 0.0, boot=0)
+    assert constant["captured"] == 0.0 and constant["switches"] == 0.0
+    reverse = clc.summarise(-costs, u, costs, episode, 0.0, boot=0)  # picks 0.3 (braking), 0.2 (braking), 0.4
+    assert reverse["captured"] == pytest.approx(100 * (0.2 - 0.3) / (0.2 - 0.2 / 3))
+    assert clc.summarise(costs, u, costs, episode, 0.25, boot=0)["captured"] == 0.0

@@ -130,6 +130,16 @@ class CostCritic(nn.Module):
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return torch.stack([self.member(m, x, u) for m in range(len(self.heads))])
 
+    def grid(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Every member's cost of each state's ``k`` shifts ``u`` (batch, k, 3): (members, batch, k). Each state's
+        first layer is computed once, not once per shift."""
+        x = self.norm(x)
+        out = []
+        for trunk, head in zip(self.trunks, self.heads, strict=True):
+            h = trunk(x)[:, None].expand(-1, u.shape[1], -1)
+            out.append(head(torch.cat([h, u], dim=2))[..., 0])
+        return torch.stack(out)
+
 
 class ShiftActor(nn.Module):
     """The paper's actor network (``models.ddpg.Actor``) on the normalised state features: u in [-1, 1]^3, braking
@@ -403,32 +413,63 @@ def critic_figures(critic: CostCritic, x, u, costs) -> dict:
     }
 
 
-def actor_loss(critic: CostCritic, u: torch.Tensor, x: torch.Tensor, c) -> torch.Tensor:
-    """Predicted cost, pessimistic by the members' spread, with the braking anchor weighted by that spread."""
-    q = critic(x, u)
+def objective(critic: CostCritic, u: torch.Tensor, x: torch.Tensor, c, scale: torch.Tensor | None = None):
+    """Per state: the predicted cost of shift ``u``, pessimistic by the members' spread, plus the braking anchor
+    weighted by that spread over ``scale`` (the minibatch's mean spread where None). Returns (objective, scale)."""
+    return objective_of(critic(x, u), u, c, scale)
+
+
+def objective_of(q: torch.Tensor, u: torch.Tensor, c, scale: torch.Tensor | None = None):
+    """``objective`` from the members' predictions ``q`` (members, ...) of the shifts ``u`` (..., 3)."""
     mean, spread = q.mean(0), q.std(0) if q.shape[0] > 1 else torch.zeros_like(q[0])
-    anchor = (u[:, :2] ** 2).sum(1)
-    weight = (spread / spread.mean().clamp_min(1e-6)).detach()
-    return (mean + c.pessimism * spread + c.anchor_weight * weight * anchor).mean()
+    anchor = (u[..., :2] ** 2).sum(-1)
+    scale = spread.mean().clamp_min(1e-6).detach() if scale is None else scale
+    return mean + c.pessimism * spread + c.anchor_weight * (spread / scale).detach() * anchor, scale
 
 
-def fit_actor(actor: ShiftActor, critic: CostCritic, x, state, held, c, seed: int, round_: int, run_=None, log_from=0):
+def actor_loss(critic: CostCritic, u: torch.Tensor, x: torch.Tensor, c) -> torch.Tensor:
+    """The minibatch's mean ``objective``: what the actor's gradient step lowers."""
+    return objective(critic, u, x, c)[0].mean()
+
+
+def searched_shifts(critic: CostCritic, u: torch.Tensor, x: torch.Tensor, c, generator: torch.Generator):
+    """Per state, the shift of lowest ``objective`` among the actor's own ``u``, braking and ``c.search`` shifts
+    drawn uniformly over [-1, 1]^3: where the critic's cheapest shift lies in another basin (a swerve to the other
+    side, say) than the actor's, a gradient step cannot reach it, and a regression towards it can."""
+    with torch.no_grad():
+        own, scale = objective(critic, u, x, c)
+        n, k = len(u), int(c.search)
+        drawn = torch.rand(n, k, 3, generator=generator) * 2.0 - 1.0
+        candidates = torch.cat([u[:, None], torch.zeros_like(u)[:, None], drawn], dim=1)  # (n, k + 2, 3)
+        values = objective_of(critic.grid(x, candidates), candidates, c, scale)[0]
+        values[:, 0] = own  # the actor's own, exactly as its loss scores it
+        return candidates[torch.arange(n), values.argmin(1)]
+
+
+def fit_actor(
+    actor: ShiftActor, critic: CostCritic, x, xc, state, held, c, seed: int, round_: int, run_=None, log_from=0
+):
     """The actor trained on the training states against the frozen critic, its state head to the true ``state``
-    with weight ``c.aux_weight``. Returns held-out figures, or None when
+    with weight ``c.aux_weight``; the actor reads ``x``, the critic the same states as ``xc`` (its own view,
+    ``critic_obs``). Returns held-out figures, or None when
     ``run_`` (a ``TrainingRun``: TensorBoard, stop; None: neither) was asked to stop."""
     writer, stop, last = (run_.writer, run_.stop, run_.last) if run_ is not None else (None, None, None)
     torch.manual_seed(phase_seed(seed, round_, 1))
     rng = np.random.default_rng(phase_seed(seed, round_, 1))
     for p in critic.parameters():
         p.requires_grad_(False)
-    xt, st = torch.from_numpy(x[~held]), torch.from_numpy(state[~held])
+    xt, xct, st = (torch.from_numpy(a[~held]) for a in (x, xc, state))
     if round_ == 0:
         actor.norm.fit(xt)
     opt = torch.optim.Adam(actor.parameters(), lr=c.actor_lr)
+    draws = torch.Generator().manual_seed(phase_seed(seed, round_, 3))
     for k in tqdm(range(c.actor_steps), desc=f"actor (round {round_})", unit="batch", leave=False, disable=not run_):
         i = torch.from_numpy(rng.integers(0, len(xt), c.batch_size))
         u, guess = actor(xt[i], aux=True)
-        loss = actor_loss(critic, u, xt[i], c) + c.aux_weight * ((guess - st[i]) ** 2).mean()
+        loss = actor_loss(critic, u, xct[i], c) + c.aux_weight * ((guess - st[i]) ** 2).mean()
+        if c.search:
+            target = searched_shifts(critic, u.detach(), xct[i], c, draws)
+            loss = loss + c.search_weight * ((u - target) ** 2).sum(1).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -438,21 +479,22 @@ def fit_actor(actor: ShiftActor, critic: CostCritic, x, state, held, c, seed: in
                 writer.add_scalar("actor/loss", loss.item(), log_from + k)
         if stop is not None and stop.requested:
             return None
-    figures = actor_figures(actor, critic, x[held], c)
+    figures = actor_figures(actor, critic, x[held], xc[held], c)
     for name, value in figures.items():
         if writer is not None:
             writer.add_scalar(f"actor/held_out_{name}", value, log_from + c.actor_steps - 1)
     return figures
 
 
-def actor_figures(actor: ShiftActor, critic: CostCritic, x, c) -> dict:
-    """On held-out states: the critic's predicted cost of the actor's shifts and of braking, the actor's objective
-    (``actor_loss``) against braking's, and how far the actor moves from braking."""
+def actor_figures(actor: ShiftActor, critic: CostCritic, x, xc, c) -> dict:
+    """On held-out states (``x`` as the actor reads them, ``xc`` as the critic does): the critic's predicted cost of
+    the actor's shifts and of braking, the actor's objective (``actor_loss``) against braking's, and how far the
+    actor moves from braking."""
     if not len(x):
         return {}
     with torch.no_grad():
-        xt = torch.from_numpy(x)
-        u = actor(xt)
+        u = actor(torch.from_numpy(x))
+        xt = torch.from_numpy(xc)
         brake = torch.zeros_like(u)
         return {
             "predicted_cost": float(critic(xt, u).mean()),
@@ -480,6 +522,9 @@ def train(cfg, run_, agent_id) -> dict:
     privileged = typed.agent.obs == "privileged"  # the true state instead of the world model's view
     encoder = None if privileged else artifacts.load_world_model(cfg)
     in_dim = (PRIVILEGED_DIM if privileged else encoder.dim) + 1
+    # the critic only trains the actor, so it may read the true state while the actor reads the world model's view
+    critic_true_state = privileged or c.critic_obs == "privileged"
+    critic_in = PRIVILEGED_DIM + 1 if critic_true_state else in_dim
     saved = run_.state or {}
     done = list(saved.get("done", []))
     torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
@@ -488,7 +533,7 @@ def train(cfg, run_, agent_id) -> dict:
     if "actor" in saved:
         actor.load_state_dict(saved["actor"])
     if saved.get("critic") is not None:
-        critic = CostCritic(in_dim, c.critic_members, c.critic_hidden)
+        critic = CostCritic(critic_in, c.critic_members, c.critic_hidden)
         critic.load_state_dict(saved["critic"])
     history = dict(saved.get("history", {}))
     if done:
@@ -497,6 +542,8 @@ def train(cfg, run_, agent_id) -> dict:
     base = {
         "learner": "counterfactual",
         "in_dim": in_dim,
+        "critic_in_dim": critic_in,
+        "critic_obs": "privileged" if critic_true_state else typed.agent.obs,
         "actor_hidden": list(typed.agent.actor_hidden),
         "decisions": c.decisions,
         "interval": c.interval(step_s),
@@ -536,13 +583,14 @@ def train(cfg, run_, agent_id) -> dict:
             data["x"] = (
                 privileged_states(data, c.decisions) if privileged else encode_states(encoder, data, c.decisions)
             )
+            data["xc"] = privileged_states(data, c.decisions) if critic_true_state else data["x"]
             data["held"] = held_out_rows(data["episode"])
             data_rounds.append(data)
-        x, u, costs, state, held = (
-            np.concatenate([d[k] for d in data_rounds]) for k in ("x", "u", "costs", "state", "held")
+        x, xc, u, costs, state, held = (
+            np.concatenate([d[k] for d in data_rounds]) for k in ("x", "xc", "u", "costs", "state", "held")
         )
         if f"critic{r}" not in done:
-            fitted, figures = fit_critic(x, u, costs, state, held, c, typed.seed, r, run_, r * per_round)
+            fitted, figures = fit_critic(xc, u, costs, state, held, c, typed.seed, r, run_, r * per_round)
             if fitted is None:
                 return {"stopped": True}
             critic = fitted
@@ -550,7 +598,7 @@ def train(cfg, run_, agent_id) -> dict:
             done.append(f"critic{r}")
             save(r * per_round + c.critic_steps - 1)
             log.info("[counterfactual] round %d critic, held out: %s", r, history[f"critic{r}"])
-        figures = fit_actor(actor, critic, x, state, held, c, typed.seed, r, run_, r * per_round + c.critic_steps)
+        figures = fit_actor(actor, critic, x, xc, state, held, c, typed.seed, r, run_, r * per_round + c.critic_steps)
         if figures is None:
             return {"stopped": True}
         history[f"actor{r}"] = {k: round(v, 6) for k, v in figures.items()}

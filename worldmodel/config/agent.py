@@ -160,6 +160,10 @@ class CounterfactualConfig(Checked):
     local_std: float = 0.2
     # the critic: the mean of critic_members MLPs regressing the labelled cost of (state, decision, u)
     critic_members: int = 5
+    # what the critic reads: "actor", the actor's own view (the world model's, or the true state with
+    # obs=privileged); "privileged", the true state (envs.privileged) whatever the actor reads. The critic only
+    # trains the actor and never acts, so it may see what the camera cannot (an asymmetric actor-critic)
+    critic_obs: str = "actor"
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])
     critic_steps: int = 4000  # minibatches per round, refitted from scratch on every label so far
     critic_lr: float = 1.0e-3
@@ -176,6 +180,12 @@ class CounterfactualConfig(Checked):
     # collisions at most 2 % (docs/results/phase3/)
     pessimism: float = 1.0
     anchor_weight: float = 0.05
+    # policy improvement by search: at every actor minibatch the objective above is also scored at braking and at
+    # `search` shifts drawn uniformly over [-1, 1]^3, and the actor regresses (weight search_weight, per unit of
+    # squared u distance) towards the cheapest, so that it can leave the basin of the critic it starts in (braking)
+    # for a cheaper one that no gradient step reaches. 0 = the gradient alone (DDPG's actor update)
+    search: int = 0
+    search_weight: float = 1.0
     # the loss weight of heads on the critic's and the actor's first layers that guess the true state
     # (envs.privileged: the hazards, the ego, what blocks each escape path): learning by cheating for perception,
     # as the chooser's head, which took its camera scorer from ~5 % to ~20-30 % of the planner's gain. 0 = no head
@@ -212,9 +222,20 @@ class CounterfactualConfig(Checked):
             yield ConfigValueError(
                 "counterfactual.continuation_steers", list(self.continuation_steers), "each must lie in (0, 1]"
             )
-        for key in ("dagger_rounds", "local_std", "weight_decay", "pessimism", "anchor_weight", "aux_weight"):
+        for key in (
+            "dagger_rounds",
+            "local_std",
+            "weight_decay",
+            "pessimism",
+            "anchor_weight",
+            "aux_weight",
+            "search",
+            "search_weight",
+        ):
             if not getattr(self, key) >= 0:  # written so that NaN fails too
                 yield ConfigValueError(f"counterfactual.{key}", getattr(self, key), "it must be >= 0")
+        if self.critic_obs not in ("actor", "privileged"):
+            yield ConfigValueError("counterfactual.critic_obs", self.critic_obs, "use actor or privileged")
         if self.proposals < 2:
             yield ConfigValueError("counterfactual.proposals", self.proposals, "it must be >= 2 (braking and one)")
         if not self.critic_hidden or any(int(h) < 1 for h in self.critic_hidden):

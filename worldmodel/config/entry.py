@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import fields, is_dataclass
 
 from omegaconf import OmegaConf
@@ -65,6 +66,8 @@ def peer_preset(name: str) -> str | None:
 
     if name in REGISTRY:
         return REGISTRY[name]
+    if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
+        return None
     return name if preset_globals(name).get("env", {}).get("family") in REGISTRY else None
 
 
@@ -103,10 +106,27 @@ def teacher_settings(cfg) -> dict:
 
 
 # ----------------------------------------------------------------------------- validation
+def non_finite_settings(node, prefix: str = "") -> Iterator[tuple[str, float]]:
+    """Every float setting under ``node`` (a resolved container) that is NaN or infinite, by its full key. No setting
+    means either, and NaN would pass every range check (each comparison with it is false)."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            yield from non_finite_settings(value, f"{prefix}{key}.")
+    elif isinstance(node, list):
+        for k, value in enumerate(node):
+            yield from non_finite_settings(value, f"{prefix[:-1]}[{k}].")
+    elif isinstance(node, float) and not math.isfinite(node):
+        yield prefix[:-1], node
+
+
 def validate(cfg) -> ExperimentConfig:
     """The config as typed dataclasses, after every range check; the first impossible value is a StageError
     naming its key (``agent.tau``, ``evaluate.oracle.replan_every_s``)."""
 
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    resolved.pop("hydra", None)
+    for key, value in non_finite_settings(resolved):
+        raise StageError(f"config {key}={value!r} is impossible: it must be a finite number")
     for f in fields(ExperimentConfig):
         node = OmegaConf.select(cfg, f.name, throw_on_missing=False)
         if node is None or not OmegaConf.is_config(node) or not is_dataclass(OmegaConf.get_type(node)):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 from hydra.core.config_store import ConfigStore
@@ -14,6 +15,9 @@ from .data import CollectConfig, DemosConfig, EnvConfig, PathsConfig
 from .evaluation import EvaluateConfig, NcapConfig
 from .world_model import RNNConfig, VAEConfig
 
+# an experiment names folders under data/ and runs/: one plain folder name, so that it never writes into runs/ itself
+# or outside it
+EXPERIMENT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 PEERS = REGISTRY  # peer system -> its agent preset (conf/agent/), on its own family (worldmodel/peers/)
 
 
@@ -71,6 +75,14 @@ class ExperimentConfig(Checked):
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def problems(self):
+        if not EXPERIMENT_NAME.fullmatch(str(self.experiment)):
+            yield ConfigValueError(
+                "experiment", self.experiment, "name it with letters, digits, '.', '_' or '-', not starting with '.'"
+            )
+        for key, values in (("seed", [self.seed]), ("seeds", list(self.seeds))):
+            if any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in values):
+                value = self.seed if key == "seed" else values
+                yield ConfigValueError(key, value, "seeds are whole numbers >= 0 (numpy's generators take no other)")
         yield from _positive(self, "threads")
         from ..common import AMP_SETTINGS, DEVICE_SETTING
 

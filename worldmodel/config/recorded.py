@@ -31,6 +31,8 @@ ADDED_DEFAULTS = {
 LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",), "counterfactual": ("counterfactual",)}
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
 DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
+# Counterfactual-actor options added after runs were recorded, with the value that leaves the learner as it was.
+COUNTERFACTUAL_OPTIONS_OFF = {"critic_obs": "actor", "search": 0}
 # Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are
 # put back before hashing, so those runs stay current. (Removed keys that were also added defaults simply stay out.)
 REMOVED_KEYS = {
@@ -83,6 +85,13 @@ def as_recorded(settings: dict) -> dict:
         for key, off in DQN_OPTIONS_OFF.items():
             if key in dqn and dqn[key] == off:
                 dqn.pop(key)  # off: the DQN as before the option
+    counterfactual = agent.get("counterfactual") if isinstance(agent, dict) else None
+    if isinstance(counterfactual, dict):
+        if not counterfactual.get("search"):
+            counterfactual.pop("search_weight", None)  # read only by the search
+        for key, off in COUNTERFACTUAL_OPTIONS_OFF.items():
+            if key in counterfactual and counterfactual[key] == off:
+                counterfactual.pop(key)  # off: the learner as before the option
     chooses = isinstance(agent, dict) and agent.get("learner") == "dqn" and settings.get("reward") == "chae"
     if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
         agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
