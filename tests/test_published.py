@@ -235,3 +235,22 @@ def test_the_stage_time_table_leaves_out_unfinished_steps_and_marks_lower_bounds
     assert "| agent_r1 \\* | 2 | 5.0–10.0 | 15.0 |" in table
     assert "| **all stages** | 3 |  | 17.0 |" in table
     assert table.endswith("at least this long.")
+
+
+@pytest.mark.parametrize("damage", ["short line", "not a number"])
+def test_publish_names_the_malformed_file_and_line(results, tmp_path, capsys, damage):
+    """A results.csv with a line cut short, or a number that is not one, stops ``report publish`` with one line
+    naming the file and the line, and writes nothing."""
+    import shutil
+
+    root, _ = results
+    copy = tmp_path / "eval"
+    shutil.copytree(root / "runs/t/eval", copy)
+    lines = (copy / "results.csv").read_text().splitlines()
+    cells = lines[3].split(",")
+    lines[3] = ",".join(cells[:5]) if damage == "short line" else ",".join([*cells[:4], "fast", *cells[5:]])
+    (copy / "results.csv").write_text("\n".join(lines) + "\n")
+    assert published.main(["publish", str(copy), str(tmp_path / "out" / "validation"), "--command", "x"]) == 2
+    said = capsys.readouterr().out
+    assert said.startswith("error: ") and f"{copy / 'results.csv'}, line 4" in said and "Traceback" not in said
+    assert not (tmp_path / "out").exists()

@@ -627,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
                     return 1
             else:
                 atomic_write_text(README, fresh)
-    except RecheckError as err:
+    except (RecheckError, report.MalformedRowsError) as err:
         print(f"error: {err}")
         return 2
     return 0

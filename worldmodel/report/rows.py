@@ -212,10 +212,27 @@ def write_results_csv(rows: Sequence[dict], path: str | Path) -> Path:
     return path
 
 
+class MalformedRowsError(ValueError):
+    """A results CSV that ``write_results_csv`` cannot have written: named by file and line, with the fix."""
+
+
 def read_results_csv(path: str | Path) -> list[dict]:
     """Read a CSV written by ``write_results_csv`` (``.gz`` too) with its types restored (ints, floats incl. NaN,
-    strs)."""
+    strs). A line with missing or extra cells, or a cell that is not its column's type, is a
+    ``MalformedRowsError`` naming the file and the line."""
     path = Path(path)
+    fix = "it was changed since the evaluation wrote it: restore it from git, or rerun the evaluation"
     with gzip.open(path, "rt", newline="") if path.suffix == ".gz" else open(path, newline="") as fh:
         reader = csv.DictReader(fh)
-        return [{k: _parse_cell(k, v) for k, v in line.items()} for line in reader]
+        rows = []
+        for line in reader:
+            if None in line or None in line.values():
+                raise MalformedRowsError(
+                    f"{path}, line {reader.line_num}: {len(reader.fieldnames or [])} columns in the header, "
+                    f"another number of cells here; {fix}"
+                )
+            try:
+                rows.append({k: _parse_cell(k, v) for k, v in line.items()})
+            except ValueError as err:
+                raise MalformedRowsError(f"{path}, line {reader.line_num}: {err}; {fix}") from None
+        return rows
