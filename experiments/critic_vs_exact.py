@@ -263,6 +263,8 @@ def score_agents(cfg, val: dict, candidates) -> tuple[list[Scored], list[str]]:
                 continue
             rows = np.arange(len(x))
             scored.append(Scored(agent.key, "DDPG -Q", ddpg_scores(state, x, val["speed"], candidates), rows))
+        elif learner == "counterfactual" and state.get("critic_obs") == "privileged":
+            skipped.append(f"{agent.key}: its critic reads the true state (critic_obs=privileged), not these frames")
         elif learner == "counterfactual" and state.get("critic") is not None:
             x, _ = view(artifacts.agent_input(state, cfg.vae.latent_dim))
             rows = np.flatnonzero(val["t"] == 0)

@@ -16,6 +16,9 @@ pedal and duration, with a second decision ``interval`` later) and returns the R
    zero so it starts as braking) follows the critic's gradient (DDPG's actor update) to the shift it predicts
    cheapest, pessimistically (``pessimism`` x the members' spread), and anchored to braking where the members
    disagree (``anchor_weight``).
+   Two options, off by default, probe where the actor's limit lies: ``critic_obs=privileged`` fits the critic on
+   the true state while the actor reads the world model, and ``search`` also regresses the actor towards the
+   cheapest of many shifts the critic scores per state, which no gradient step from braking may reach.
 4. **DAgger rounds**: the actor drives ``dagger_episodes`` new scenarios, its own states are labelled the same way
    (its choice and shifts near it among the proposals; stored in the run folder, since they depend on its actor),
    and the critic and actor are fitted again on everything so far.
