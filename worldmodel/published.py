@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import gzip
 import json
 import math
@@ -50,6 +51,7 @@ class RecheckError(Exception):
 
 
 # ----------------------------------------------------------------------------- one evaluation
+@functools.lru_cache(maxsize=1 << 16)  # rows repeat their cells ("0", "False", a policy's name): parse each once
 def _typed(text: str):
     """A peer's CSV cell back to the value it was written from (bool, int, float, or the text)."""
     if text in ("True", "False"):

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import functools
 import gzip
 import io
 import math
@@ -174,6 +175,7 @@ def _csv_cell(v: Any) -> str:
     return str(v)
 
 
+@functools.lru_cache(maxsize=1 << 16)  # rows repeat their cells (a policy's name, "0", "nan"): parse each once
 def _parse_cell(column: str, text: str) -> Any:
     if column in STR_COLUMNS:
         return text
