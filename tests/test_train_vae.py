@@ -79,6 +79,16 @@ def test_impossible_config_stops_before_work(stage_cfg, override, key):
         train_vae.run(stage_cfg("train_vae", override))
 
 
+def test_a_non_finite_loss_before_any_checkpoint_names_none(stage_cfg, rollouts, tmp_path):
+    """The stop names a last good checkpoint only where one exists: a fresh run has none to resume from."""
+    from worldmodel.common import NonFiniteLossError
+
+    with pytest.raises(NonFiniteLossError, match="no checkpoint was saved before it") as stopped:
+        train_vae.run(stage_cfg("train_vae", "vae.batch_size=8", "vae.kl_weight=1e308"))
+    last = tmp_path / "runs" / "t" / "vae" / "last.pt"
+    assert not last.exists() and str(last) not in str(stopped.value)
+
+
 def test_non_finite_loss_stops_and_keeps_the_last_good_checkpoint(stage_cfg, rollouts, tmp_path):
     from worldmodel.common import NonFiniteLossError
 

@@ -339,13 +339,15 @@ def set_threads(n: int) -> None:
     torch.set_num_threads(max(1, int(n)))
 
 
-def check_finite(value: float, what: str, step: int, last_good: Path) -> None:
-    """Stop on a NaN/inf loss; the last good checkpoint on disk is left untouched."""
+def check_finite(value: float, what: str, step: int, last_good: Path | None) -> None:
+    """Stop on a NaN/inf loss; the last good checkpoint on disk is left untouched, and named only if there is one."""
     if not math.isfinite(value):
-        raise NonFiniteLossError(
-            f"{what} became {value} at step {step}. Training stopped; the last good checkpoint is {last_good}. "
-            "Lower the learning rate or check the data, then resume with resume=true."
-        )
+        if last_good is not None and Path(last_good).exists():
+            where = f"the last good checkpoint is {last_good}. Lower the learning rate or check the data, then resume "
+            where += "with resume=true."
+        else:
+            where = "no checkpoint was saved before it. Lower the learning rate or check the data, then run again."
+        raise NonFiniteLossError(f"{what} became {value} at step {step}. Training stopped; {where}")
 
 
 def cached(fn):
