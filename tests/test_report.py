@@ -779,6 +779,30 @@ def test_a_gap_of_exactly_the_minimum_has_a_share():
     assert out["share"] == pytest.approx(50.0) and out["share_ci95"] == pytest.approx([50.0, 50.0])
 
 
+def test_the_sign_flip_p_is_the_one_scipy_computes_from_the_same_draws():
+    """``paired_permutation_p`` reads scipy's own random flips directly: its p-value equals
+    ``scipy.stats.permutation_test``'s, with and without ties, for an odd number of draws too."""
+    from scipy.stats import permutation_test
+
+    from worldmodel.stats import paired_permutation_p
+
+    rng = np.random.default_rng(7)
+    cases = [(20, "normal", 2000), (301, "normal", 2001), (300, "ties", 2000), (1000, "ties", 1000)]
+    for n, kind, flips in cases:
+        d = rng.normal(0.05, 1.0, n) if kind == "normal" else rng.integers(-1, 2, n).astype(float)
+        for seed in (0, 1):
+            expected = permutation_test(
+                (d,),
+                lambda x, axis: np.mean(x, axis=axis),
+                permutation_type="samples",
+                n_resamples=flips,
+                alternative="two-sided",
+                vectorized=True,
+                rng=np.random.default_rng(seed),
+            ).pvalue
+            assert paired_permutation_p(d, np.zeros(n), flips=flips, seed=seed) == float(expected), (n, kind, seed)
+
+
 def test_wilson_intervals_and_paired_permutation_p_by_hand():
     """worldmodel/stats.py against values computed by hand: the Wilson interval's closed form at z = 1.959964,
     and a sign-flip test small enough that scipy enumerates all 2^6 flips."""

@@ -34,7 +34,9 @@ def paired_permutation_p(a, b, flips: int = 10_000, seed: int = 0) -> float:
     d = np.asarray(a, float) - np.asarray(b, float)
     if not np.any(d):
         return 1.0
-    result = permutation_test(
+    if flips < 2 ** min(len(d), 63):
+        return _sign_flip_p(d, flips, seed)
+    result = permutation_test(  # few pairs: scipy enumerates every flip exactly
         (d,),
         lambda x, axis: np.mean(x, axis=axis),
         permutation_type="samples",
@@ -44,6 +46,27 @@ def paired_permutation_p(a, b, flips: int = 10_000, seed: int = 0) -> float:
         rng=np.random.default_rng(seed),
     )
     return float(result.pvalue)
+
+
+def _sign_flip_p(d: np.ndarray, flips: int, seed: int) -> float:
+    """``scipy.stats.permutation_test``'s two-sided p for the mean of ``d`` under random sign flips (permutation
+    type "samples", one sample), from the very draws it makes, without its general indexing (about 20x faster).
+
+    scipy flips pair i by shuffling [d_i, -d_i] with ``Generator.permuted``: one 32-bit draw per pair, taken low
+    half then high half of each 64-bit output, and d_i keeps its sign where the draw's lowest bit is 1. The null
+    means match scipy's to the last bits of their sum's order, which its tolerance (100 eps x the observed mean)
+    absorbs; tests/test_stats.py holds the p-values equal."""
+    n = len(d)
+    raw = np.random.default_rng(seed).bit_generator.random_raw((flips * n + 1) // 2)
+    words = np.empty(2 * len(raw), np.uint64)
+    words[0::2], words[1::2] = raw & 0xFFFFFFFF, raw >> 32
+    keep = (words[: flips * n] & 1).reshape(flips, n).astype(bool)
+    null = np.where(keep, d, -d).mean(axis=1)
+    observed = d.mean()
+    gamma = abs(np.finfo(float).eps * 100 * observed)
+    less = (np.count_nonzero(null <= observed + gamma) + 1) / (flips + 1)
+    greater = (np.count_nonzero(null >= observed - gamma) + 1) / (flips + 1)
+    return float(np.clip(min(less, greater) * 2, 0.0, 1.0))
 
 
 def paired_bootstrap_ci(samples, statistic, n: int, seed: int) -> tuple[float, float]:
