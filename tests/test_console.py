@@ -56,3 +56,31 @@ def test_evaluation_workers_leave_no_semaphores_behind(tmp_path):
     assert not [line for line in lines if "resource_tracker" in line or "leaked" in line]
     assert stray(lines) == []
     assert any("[eval] 4 scenarios x 1 policies" in line for line in lines)
+
+
+def test_a_root_that_cannot_be_written_is_one_sentence_and_exit_2(tmp_path):
+    """``paths.runs_root`` under a file (as a read-only folder, it cannot be written): one line naming the key, the
+    path and the fix, exit 2, no traceback, and nothing written under the other root."""
+    (tmp_path / "file").write_text("")
+    cmd = [sys.executable, "-m", "worldmodel.collect", f"paths.runs_root={tmp_path}/file/runs"]
+    cmd += [f"paths.data_root={tmp_path}/data", "experiment=t", "scale=smoke"]
+    result = subprocess.run(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=120)
+    lines = [line for line in result.stdout.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1, result.stdout
+    assert (
+        lines[0].startswith(f"error: paths.runs_root={tmp_path}/file/runs cannot be written") and "a file" in lines[0]
+    )
+    assert not (tmp_path / "data").exists()
+
+
+def test_a_full_or_read_only_disk_inside_a_stage_is_one_sentence():
+    """What a stage says when the disk stops it: the file, why, and what to do (a full disk loses nothing finished)."""
+    import errno
+
+    from worldmodel.config.entry import disk_error_sentence
+
+    full = disk_error_sentence(OSError(errno.ENOSPC, "No space left on device", "runs/t/vae/last.pt"), "train_vae")
+    assert "runs/t/vae/last.pt" in full and "full" in full and "resume=true" in full
+    read_only = disk_error_sentence(OSError(errno.EROFS, "Read-only file system", "data/t/x.h5"), "collect")
+    assert "data/t/x.h5" in read_only and "Read-only file system" in read_only and "paths.data_root" in read_only
+    assert disk_error_sentence(OSError(errno.ENOENT, "No such file or directory", "x"), "collect") is None

@@ -3,13 +3,17 @@ settings, ``compose`` for tests and notebooks and ``hydra_main`` for the stage c
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import math
+import os
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import fields, is_dataclass
+from pathlib import Path
 
+from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
@@ -167,6 +171,61 @@ def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
         return hydra_compose(config_name=stage, overrides=list(overrides))
 
 
+ROOT_KEYS = ("paths.runs_root", "paths.data_root")  # every stage writes under these two folders
+DISK_ERRORS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is used up"}
+UNWRITABLE_ERRORS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOTDIR}
+
+
+def unwritable(path: Path) -> str | None:
+    """Why nothing can be written under ``path`` (a folder that may not exist yet), or None: its nearest existing
+    ancestor must be a folder this process may write into."""
+    existing = Path(path).absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is a file, not a folder"
+    if not os.access(existing, os.W_OK):
+        return f"{existing} is read-only here"
+    return None
+
+
+def disk_error_sentence(err: OSError, stage: str) -> str | None:
+    """One sentence for a stage stopped by the disk (full, read-only, not writable), or None for other errors."""
+    where = err.filename or "its output"
+    if err.errno in DISK_ERRORS:
+        return (
+            f"{stage} stopped writing {where}: {DISK_ERRORS[err.errno]}. What was finished before is kept; free "
+            "space, then rerun the same command with resume=true."
+        )
+    if err.errno in UNWRITABLE_ERRORS:
+        return (
+            f"{stage} cannot write {where} ({err.strerror}): make that folder writable, or point paths.runs_root / "
+            "paths.data_root at one that is."
+        )
+    return None
+
+
+class WritableRoots(Callback):
+    """A Hydra callback (``conf/base.yaml``: ``hydra.callbacks``): before Hydra makes its run folder under
+    ``paths.runs_root``, both roots must be writable; otherwise one sentence names the root and the fix, and the
+    command exits 2 with nothing written (Hydra itself would stop with a chained traceback)."""
+
+    def _check(self, config) -> None:
+        for key in ROOT_KEYS:
+            root = OmegaConf.select(config, key)
+            why = None if root is None else unwritable(Path(root))
+            if why:
+                sentence = f"error: {key}={root} cannot be written: {why}. Point {key} at a writable folder."
+                print(sentence, file=sys.stderr)
+                sys.exit(2)
+
+    def on_run_start(self, config, **kwargs) -> None:
+        self._check(config)
+
+    def on_multirun_start(self, config, **kwargs) -> None:
+        self._check(config)
+
+
 def hydra_main(stage: str) -> Callable[[Callable], Callable]:
     """Wrap a stage's ``run(cfg)`` as its command-line entry point.
 
@@ -195,6 +254,12 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
             except StageError as err:
                 # through logging, so the job's .log file (and a SLURM job's log) says why it stopped
                 logging.getLogger(f"worldmodel.{stage}").error("error: %s", err)
+                sys.exit(2)
+            except OSError as err:
+                sentence = disk_error_sentence(err, stage)
+                if sentence is None:
+                    raise
+                logging.getLogger(f"worldmodel.{stage}").error("error: %s", sentence)
                 sys.exit(2)
 
         return main
