@@ -254,3 +254,19 @@ def test_publish_names_the_malformed_file_and_line(results, tmp_path, capsys, da
     said = capsys.readouterr().out
     assert said.startswith("error: ") and f"{copy / 'results.csv'}, line 4" in said and "Traceback" not in said
     assert not (tmp_path / "out").exists()
+
+
+def test_recheck_lists_the_tables_it_cannot_hold_to_rows(results, capsys):
+    """A table with no rows beside it (an investigation's, kept as rendered) is named as not rechecked, and the
+    closing line counts both kinds."""
+    _, out = results
+    rowless = out / "an_investigation_tables.md"
+    rowless.write_text("| policy | share |\n|---|---:|\n| braking | 0.0 |\n")
+    try:
+        assert published.main(["recheck", str(out.parent)]) == 0
+    finally:
+        rowless.unlink()
+    said = capsys.readouterr().out.splitlines()
+    assert f"not rechecked, no rows beside it: {rowless}" in said
+    assert said[-1].startswith(f"every table with rows under {out.parent} (3) is what its rows give")
+    assert said[-1].endswith("1 tables without rows were not rechecked (listed above)")

@@ -544,6 +544,21 @@ def recheck(root: Path, ledger: Path | None = None) -> list[str]:
     return [problem for d in directories for problem in recheck_directory(d, ledger)]
 
 
+def published_tables(root: Path) -> list[Path]:
+    """The tables under ``root`` that ``publish`` rendered from the committed rows beside them."""
+    root = Path(root)
+    found = root.rglob("*" + TABLES) if root.is_dir() else ()
+    return sorted(p for p in found if p.with_name(p.name.removesuffix(TABLES) + ROWS).exists())
+
+
+def rowless_tables(root: Path) -> list[Path]:
+    """The tables under ``root`` with no committed rows beside them (investigations' figures, kept as rendered):
+    ``recheck`` cannot hold them to anything, and says so."""
+    root = Path(root)
+    found = root.rglob("*tables.md") if root.is_dir() else ()
+    return sorted(set(found) - set(published_tables(root)))
+
+
 # ----------------------------------------------------------------------------- the README
 def readme_table(results: Path = RESULTS) -> str:
     """The README's result table, from the committed headlines."""
@@ -616,9 +631,14 @@ def main(argv: list[str] | None = None) -> int:
                 print(problem)
             if problems:
                 return 1
+            rowless = rowless_tables(args.directory)
+            for path in rowless:
+                print(f"not rechecked, no rows beside it: {path}")
+            checked = len(published_tables(args.directory))
             print(
-                f"every table under {args.directory} is what its rows give, and every test-bank evaluation is the "
-                "one its ledger recorded"
+                f"every table with rows under {args.directory} ({checked}) is what its rows give, and "
+                f"every test-bank evaluation is the one its ledger recorded; {len(rowless)} tables without rows "
+                "were not rechecked (listed above)"
             )
         elif args.command == "readme":
             text = README.read_text()
