@@ -7,7 +7,11 @@ import shutil
 
 import pytest
 
-from worldmodel.config import compose
+# Test banks from test-only seeds, and a real sealed seed an error (worldmodel/banks.py); set before any import of
+# worldmodel, and inherited by every stage a test runs in a subprocess
+os.environ["WORLDMODEL_TEST_SUITE"] = "1"
+
+from worldmodel.config import compose  # noqa: E402
 
 # Tests share 2 cores with nothing else; one torch thread keeps them predictable.
 os.environ.setdefault("OMP_NUM_THREADS", "1")

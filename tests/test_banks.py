@@ -157,3 +157,16 @@ def test_the_experiments_refuse_a_sealed_draw(module, args, capsys):
         main(args)
     assert stop.value.code == 2
     assert "is a sealed test seed: choose a validation draw" in capsys.readouterr().err
+
+
+def test_the_suite_never_draws_a_sealed_test_bank():
+    """Under the test suite the test banks come from test-only seeds, and a real sealed seed, however it is asked
+    for, is an error: so no test evaluates on a real test bank."""
+    assert banks.IN_TEST_SUITE and banks.TEST_SEEDS == banks.SUITE_TEST_SEEDS
+    assert not set(banks.SUITE_TEST_SEEDS.values()) & set(banks.SEALED_SEEDS.values())
+    assert not set(banks.SUITE_TEST_SEEDS.values()) & {s for seeds in banks.VALIDATION_SEEDS.values() for s in seeds}
+    for family, seed in banks.SEALED_SEEDS.items():
+        assert banks.draw_seed("test", family, 4711) == banks.SUITE_TEST_SEEDS[family]
+        with pytest.raises(RuntimeError, match=f"sealed test seed {seed}"):
+            banks.draw_seed("validation", family, seed)
+        assert banks.sealed_seed_problem(seed) and banks.sealed_seed_problem(banks.SUITE_TEST_SEEDS[family])

@@ -8,9 +8,10 @@ import re
 
 import pytest
 
-from worldmodel import evaluate, published
+from worldmodel import banks, evaluate, published
 from worldmodel.report import read_results_csv, write_results_csv
 
+TEST_SEED = banks.TEST_SEEDS["porav"]  # the suite's test-only stand-in for the sealed seed
 TINY = ["evaluate.ttcs=[0.75,1.5]", "evaluate.speeds=[20.0]", "evaluate.hazards=[pedestrian]", "evaluate.per_cell=3"]
 POLICIES = "evaluate.policies=[braking,oracle,oracle_brake1]"
 
@@ -48,7 +49,7 @@ def test_published_rows_are_the_evaluation_rows_and_give_its_tables(results):
     assert rows == (root / "runs/t/eval_test/results.csv").read_bytes()
     assert (out / "test.tables.md").read_text() == (root / "runs/t/eval_test/tables.md").read_text()
     meta = json.loads((out / "test.meta.json").read_text())
-    assert meta["bank"] == "test" and meta["bank_seed"] == 56171 and meta["command"] == "make tiny"
+    assert meta["bank"] == "test" and meta["bank_seed"] == TEST_SEED and meta["command"] == "make tiny"
     assert json.loads((out / "validation.meta.json").read_text())["bank_seed"] == 4711
     # the same rows always give the same bytes (no timestamp in the gzip header), so git sees no change
     first = (out / "test.rows.csv.gz").read_bytes()
@@ -61,13 +62,13 @@ def test_published_rows_are_the_evaluation_rows_and_give_its_tables(results):
 def test_the_headline_gives_both_banks_with_intervals(results):
     _, out = results
     data = json.loads((out / "headline.json").read_text())
-    assert data["banks"] == {"validation": 4711, "test": 56171}
+    assert data["banks"] == {"validation": 4711, "test": TEST_SEED}
     assert list(data["policies"]) == ["braking", "oracle", "oracle_brake1"]
     ceiling = data["policies"]["oracle_brake1"]["test"]
     assert ceiling["difference_pts"] <= 0 and ceiling["difference_ci95"][0] <= ceiling["difference_pts"]
     assert data["policies"]["oracle"]["test"]["share"] == 100.0
     text = (out / "headline.md").read_text()
-    assert "test bank: seed 56171" in text and "Planner after 1 frame" in text
+    assert f"test bank: seed {TEST_SEED}" in text and "Planner after 1 frame" in text
     assert data["world_model"] == {"vae_sha": [], "rnn_sha": []}  # scripted policies only: no world model
     # what the run cost, stage by stage, each preset's seeds together
     assert "| agent_r1 | 2 | 5.0–6.0 | 11.0 |" in text and "| **all stages** | 5 |  | 13.5 |" in text
@@ -135,7 +136,7 @@ def test_recheck_holds_a_published_test_evaluation_to_its_ledger_row(results, tm
     (missing,) = published.ledger_problems("test", rows, meta, None)
     assert "no ledger.csv" in missing
     (other,) = problems(ledger.replace(",t,smoke,", ",another,smoke,"))
-    assert "has no row for the porav test bank (seed 56171), experiment 't'" in other
+    assert f"has no row for the porav test bank (seed {TEST_SEED}), experiment 't'" in other
     (count,) = problems(ledger.replace(",6,braking", ",7,braking"))  # 6 scenarios: 2 TTCs x 3 per cell
     assert "braking has 6 rows, the ledger 7 scenarios" in count
     (policies,) = problems(ledger.replace("; oracle_brake1", ""))

@@ -1,7 +1,9 @@
 """Every scenario bank of the project, declared in one place, and the ledger of the test banks (docs/design.md §6).
 
 **Validation banks** are for choosing settings, checkpoints and rules, as often as needed. ``evaluate.bank``
-defaults to ``validation``, so everyday runs (``make run``, the tests) never touch a test bank.
+defaults to ``validation``, so everyday runs (``make run``) never touch a test bank. The test suite runs with
+``WORLDMODEL_TEST_SUITE=1`` (``tests/conftest.py``): its test banks are drawn from test-only seeds, and drawing a
+real sealed seed there is an error, so no test ever evaluates on a real test bank.
 
 **Test banks** are for final numbers only: one per scenario family, each drawn from a seed that no choice was ever
 made on. An evaluation on one (``evaluate.bank=test``) appends a row to the ledger, ``docs/results/ledger.csv``:
@@ -16,6 +18,7 @@ import csv
 import datetime
 import functools
 import logging
+import os
 import subprocess
 from pathlib import Path
 
@@ -34,7 +37,11 @@ VALIDATION_SEEDS: dict[str, tuple[int, ...]] = {
 }
 
 # The sealed test banks: for final numbers only. Drawn at random once (secrets.randbelow), never used to choose.
-TEST_SEEDS: dict[str, int] = {"porav": 56171, "chae": 88384, "kim": 53799, "merola": 17734}
+SEALED_SEEDS: dict[str, int] = {"porav": 56171, "chae": 88384, "kim": 53799, "merola": 17734}
+# What the test suite's "test banks" are drawn from instead: seeds of no bank that judged anything
+SUITE_TEST_SEEDS: dict[str, int] = {"porav": 61001, "chae": 61002, "kim": 61003, "merola": 61004}
+IN_TEST_SUITE = os.environ.get("WORLDMODEL_TEST_SUITE") == "1"
+TEST_SEEDS: dict[str, int] = SUITE_TEST_SEEDS if IN_TEST_SUITE else SEALED_SEEDS
 
 BANKS = ("validation", "test")
 REPO = Path(__file__).resolve().parents[1]
@@ -46,7 +53,10 @@ def draw_seed(bank: str, family: str, validation_seed: int) -> int:
     """The seed a family's bank is drawn from: its sealed test seed, or ``validation_seed``."""
     if bank not in BANKS:
         raise ValueError(f"bank {bank!r}: use one of {', '.join(BANKS)}")
-    return TEST_SEEDS[family] if bank == "test" else int(validation_seed)
+    seed = TEST_SEEDS[family] if bank == "test" else int(validation_seed)
+    if IN_TEST_SUITE and seed in SEALED_SEEDS.values():
+        raise RuntimeError(f"the test suite drew the sealed test seed {seed}: tests use SUITE_TEST_SEEDS only")
+    return seed
 
 
 def dir_suffix(bank: str, family: str, validation_seed: int) -> str:
@@ -59,7 +69,7 @@ def dir_suffix(bank: str, family: str, validation_seed: int) -> str:
 
 def sealed_seed_problem(seed: int) -> str | None:
     """Why ``seed`` cannot be a validation draw (it is a family's sealed test seed), or None."""
-    if int(seed) in TEST_SEEDS.values():
+    if int(seed) in {*SEALED_SEEDS.values(), *TEST_SEEDS.values()}:
         return f"{seed} is a sealed test seed; evaluate on the test bank with evaluate.bank=test"
     return None
 
