@@ -271,3 +271,20 @@ def test_recheck_lists_the_tables_it_cannot_hold_to_rows(results, capsys):
     assert f"not rechecked, no rows beside it: {rowless}" in said
     assert said[-1].startswith(f"every table with rows under {out.parent} (3) is what its rows give")
     assert said[-1].endswith("1 tables without rows were not rechecked (listed above)")
+
+
+def test_recheck_counts_every_policys_rows_so_a_removed_row_is_found(results):
+    """One row removed from a validation evaluation leaves its rounded tables as they were; recheck still finds it,
+    by the policy whose rows now number fewer than every other's."""
+    _, out = results
+    path = out / "validation.rows.csv.gz"
+    whole = path.read_bytes()
+    rows = read_results_csv(path)
+    victim = next(i for i, r in enumerate(rows) if r["policy"] == "oracle")
+    try:
+        write_results_csv(rows[:victim] + rows[victim + 1 :], path)
+        problems = published.recheck(out.parent)
+    finally:
+        path.write_bytes(whole)
+    assert any("validation: oracle (seed 0) has" in p and "a row was removed or added" in p for p in problems)
+    assert published.recheck(out.parent) == []

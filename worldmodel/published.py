@@ -505,6 +505,28 @@ def ledger_problems(stem: str, rows: list[dict], meta: dict, ledger: Path | None
     return []
 
 
+def row_count_problems(stem: str, rows: list[dict], meta: dict) -> list[str]:
+    """Why ``rows`` cannot be a whole evaluation: every policy and seed drives the same scenarios, so each has as
+    many rows as the others (a multiple of the trials the meta file declares, where it declares them). A row removed
+    or added may leave every rounded table figure as it was; this does not."""
+    counts = Counter((str(r.get("policy")), str(r.get("policy_seed", ""))) for r in rows)
+    if not counts:
+        return [f"{stem}: no rows"]
+    usual, _ = Counter(counts.values()).most_common(1)[0]
+    odd = {key: n for key, n in counts.items() if n != usual}
+    trials = meta.get("render", {}).get("trials")
+    problems = [
+        f"{stem}: {policy} (seed {seed or '-'}) has {n} rows where every other policy and seed has {usual}: a row "
+        "was removed or added since it was published; restore the file from git"
+        for (policy, seed), n in sorted(odd.items())
+    ]
+    if trials and usual % int(trials):
+        problems.append(
+            f"{stem}: {usual} rows per policy and seed, not a multiple of the {trials} trials its meta declares"
+        )
+    return problems
+
+
 def recheck_directory(directory: Path, ledger: Path | None = None) -> list[str]:
     """What differs in one directory (empty: every table is what its rows give, and every test-bank evaluation is
     the one its ledger recorded). ``ledger``: the ledger to hold them to, by default ``ledger_of(directory)``."""
@@ -514,6 +536,8 @@ def recheck_directory(directory: Path, ledger: Path | None = None) -> list[str]:
     ledger = ledger or ledger_of(directory)
     for stem, (rows, meta) in evaluations.items():
         problems += ledger_problems(stem, rows, meta, ledger)
+        if meta["family"] not in (NCAP, ACTION_EFFECT):
+            problems += row_count_problems(stem, rows, meta)
         path = directory / (stem + TABLES)
         if not path.exists():
             problems.append(f"{path} is missing: publish the evaluation again")
