@@ -430,6 +430,11 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     assert listed["agent_kim_unaware_ddpg_wm_kim/seed0"].startswith(f"vae={vae}, rnn={rnn}, actor=")
     assert listed["agent_r1/seed0"].startswith(f"vae={vae}, rnn={rnn}, actor=")
     assert listed["agent_kim_unaware_ddpg_kim/seed0"].startswith("actor=")  # the LIDAR: no world model
+    # and every row carries the same hashes as the ledger (scripted policies none), so it can be tied to its models
+    for r in csv.DictReader(open(runs / "eval_kim_test/results.csv")):
+        named = listed.get(f"{r['policy']}/seed{r['policy_seed']}", "")
+        expected = dict(part.split("=") for part in named.split(", ")) if named else {}
+        assert {k: r[f"{k}_sha"] for k in ("vae", "rnn", "actor") if r[f"{k}_sha"]} == expected, r["policy"]
     chae = peers_common.models_of(world_model, "agent_chae_dqn_chae_ensemble3/seed0")  # seeds 0-2; 0 trained
     assert chae == {
         "members": f"{artifacts.actor_id(world_model, artifacts.AgentId.parse('agent_chae_dqn_chae/seed0'))[:12]}+-+-"

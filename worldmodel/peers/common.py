@@ -107,9 +107,25 @@ def dqn_checkpoint(agent, hp, episode: int, curve: dict, obs: str, obs_dim: int,
     }
 
 
-def write_rows(out: Path, rows: list[dict], columns) -> None:
+MODEL_HASH_COLUMNS = ("vae_sha", "rnn_sha", "actor_sha")  # as the paper's rows carry them (report.MODEL_COLUMNS)
+
+
+def write_rows(out: Path, rows: list[dict], columns, cfg=None, record: dict | None = None) -> None:
+    """``results.csv``: ``columns``, then, given the evaluation's ``cfg`` and provenance ``record``, each trained
+    policy's model hashes (``models_of``: the VAE and the LSTM it sees through, its own checkpoint), so that every
+    row can be tied to the models that made it, as the ledger ties its test-bank row."""
+    columns = list(columns)
+    if cfg is not None and record is not None:
+        hashes: dict[str, dict] = {}
+        for r in rows:
+            key = f"{r['policy']}/seed{r['policy_seed']}"
+            if str(r["policy"]).startswith("agent_") and key not in hashes:
+                hashes[key] = models_of(cfg, key, record["inputs"].get(key))
+            models = hashes.get(key, {})
+            r.update({c: models.get(c.removesuffix("_sha"), "") for c in MODEL_HASH_COLUMNS})
+        columns += [c for c in MODEL_HASH_COLUMNS if c not in columns]
     with open(out / "results.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(columns))
+        w = csv.DictWriter(fh, fieldnames=columns)
         w.writeheader()
         w.writerows(rows)
 

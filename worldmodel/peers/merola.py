@@ -469,7 +469,7 @@ def evaluate(cfg) -> dict:
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
-    write_rows(out, rows, COLUMNS)
+    write_rows(out, rows, COLUMNS, cfg, record)
     summary = summarise(rows)
     summary["render"] = {"trials": c.trials}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, c.trials))

@@ -123,7 +123,7 @@ def evaluate(cfg) -> dict:
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
-    write_rows(out, rows, COLUMNS)
+    write_rows(out, rows, COLUMNS, cfg, record)
     summary = summarise(rows, c.ttcs)
     summary["render"] = {"trials": c.trials, "ttcs": c.ttcs}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, c.trials))

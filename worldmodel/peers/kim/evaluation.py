@@ -179,7 +179,7 @@ def evaluate(cfg) -> dict:
             artifacts.runs_root(cfg),
             cfg.experiment,
         )
-    write_rows(out, rows, COLUMNS)
+    write_rows(out, rows, COLUMNS, cfg, record)
     summary = summarise(rows, c.paper_trials)
     summary["render"] = {"trials": c.trials, "paper_trials": c.paper_trials}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, c.trials, c.paper_trials))
