@@ -58,10 +58,9 @@ def _sign_flip_p(d: np.ndarray, flips: int, seed: int) -> float:
     absorbs; tests/test_stats.py holds the p-values equal."""
     n = len(d)
     raw = np.random.default_rng(seed).bit_generator.random_raw((flips * n + 1) // 2)
-    words = np.empty(2 * len(raw), np.uint64)
-    words[0::2], words[1::2] = raw & 0xFFFFFFFF, raw >> 32
-    keep = (words[: flips * n] & 1).reshape(flips, n).astype(bool)
-    null = np.where(keep, d, -d).mean(axis=1)
+    keep = np.empty(2 * len(raw), bool)  # each draw's lowest bit: the low half's bit 0, then the high half's
+    keep[0::2], keep[1::2] = raw & 1, (raw >> 32) & 1
+    null = np.where(keep[: flips * n].reshape(flips, n), d, -d).mean(axis=1)
     observed = d.mean()
     gamma = abs(np.finfo(float).eps * 100 * observed)
     less = (np.count_nonzero(null <= observed + gamma) + 1) / (flips + 1)
