@@ -83,3 +83,14 @@ def experiment_copy(smoke_builds, tmp_path):
         return tmp_path
 
     return make
+
+
+@pytest.fixture
+def dead_pid():
+    """The pid of a process that has just exited: what a killed writer leaves in its temporary file's name."""
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid

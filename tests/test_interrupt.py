@@ -405,19 +405,31 @@ def test_death_between_best_and_last_never_leaves_best_behind(tmp_path, monkeypa
     assert last["best_val"] == best["best_val"] or best["step"] > last["step"], (last, best)
 
 
-def test_leftover_temporary_checkpoint_is_removed_on_start(tmp_path):
-    """A kill inside a save leaves `.last.pt.tmp-PID`; the next start of that run deletes it, and only it."""
+def test_leftover_temporary_checkpoint_is_removed_on_start(tmp_path, dead_pid):
+    """A kill inside a save leaves `.last.pt.tmp-PID`; the next start of that run deletes it, and only it: the
+    temporary file of a writer that still runs (another process saving into the same folder) stays."""
+    import subprocess
+    import sys
+
     from worldmodel.common import atomic_torch_save, rng_state
 
     cfg = compose("train_vae", ["resume=true"])
     atomic_torch_save({"step": 3, "rng": rng_state()}, tmp_path / "last.pt")
-    stale = tmp_path / ".last.pt.tmp-4242"
+    stale = tmp_path / f".last.pt.tmp-{dead_pid}"
     stale.write_bytes(b"half a checkpoint")
     keep = tmp_path / "notes.tmp"
     keep.write_text("not ours")
-    with training.TrainingRun(cfg, "train_vae", tmp_path, record={"inputs": {}, "config": "c"}) as run:
-        assert run.state["step"] == 3
+    writer = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    live = tmp_path / f".best.pt.tmp-{writer.pid}"
+    live.write_bytes(b"being written")
+    try:
+        with training.TrainingRun(cfg, "train_vae", tmp_path, record={"inputs": {}, "config": "c"}) as run:
+            assert run.state["step"] == 3
+    finally:
+        writer.kill()
+        writer.wait()
     assert not stale.exists() and keep.exists() and (tmp_path / "last.pt").exists()
+    assert live.exists()
 
 
 # ----------------------------------------------------------------------------- the pipeline

@@ -122,7 +122,7 @@ def test_sequence_windows_cover_every_transition_once():
     assert covered == [(i, t) for i in (0, 1, 2) for t in range(lengths[i] - 1)]
 
 
-def test_streamed_encoding_equals_encoding_each_episode(stage_cfg, smoke_builds, tmp_path):
+def test_streamed_encoding_equals_encoding_each_episode(stage_cfg, smoke_builds, tmp_path, dead_pid):
     """Fixed-size batches straddle episode boundaries (batch 7 against episodes of ~45 frames) and the padded
     last batch is dropped, yet every episode gets exactly its own frames' latents and actions."""
     from worldmodel.latents import encode_dataset
@@ -131,7 +131,7 @@ def test_streamed_encoding_equals_encoding_each_episode(stage_cfg, smoke_builds,
     vae, vae_path = artifacts.load_vae(cfg, "best")
     store = artifacts.open_rollouts(cfg)
     out = tmp_path / "streamed.h5"
-    leftover = tmp_path / ".streamed.h5.tmp-4242"  # what a killed encoder leaves behind
+    leftover = tmp_path / f".streamed.h5.tmp-{dead_pid}"  # what a killed encoder leaves behind
     leftover.write_bytes(b"half a file")
     encode_dataset(store, vae, vae_path, out, batch_size=7, progress=False)
     assert not leftover.exists()

@@ -105,13 +105,27 @@ def atomic_output(path: Path) -> Iterator[Path]:
             tmp.unlink()
 
 
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (signal 0 checks without signalling)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, under another user
+        return True
+    return True
+
+
 def clean_temporaries(directory: Path, name: str = "*") -> int:
     """Remove what writers killed inside ``atomic_output`` left in ``directory`` (for target files ``name``).
 
-    Call it only where this process is the directory's one writer: a live writer's temporary file matches too.
-    """
+    A temporary file is named by its writer's pid: one whose writer still runs on this machine (another stage or
+    pipeline writing the same folder, or this process) is in use and is left alone."""
     removed = 0
     for tmp in Path(directory).glob(TEMPORARY.format(name=name, pid="*")):
+        pid = tmp.name.rsplit(".tmp-", 1)[-1]
+        if pid.isdigit() and (int(pid) == os.getpid() or _alive(int(pid))):
+            continue
         tmp.unlink(missing_ok=True)
         removed += 1
     return removed
