@@ -34,7 +34,7 @@ from typing import Any
 
 from envs.rewards import REWARDS
 
-from .common import StageError, atomic_write_text, load_checkpoint, stage_command
+from .common import StageError, atomic_write_text, file_sha256, load_checkpoint, stage_command
 from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded, inputs_as_recorded
 
 log = logging.getLogger(__name__)
@@ -182,21 +182,6 @@ def trained_agents(cfg, family: str = "porav") -> list[AgentId]:
 
 
 # ----------------------------------------------------------------------------- identity
-@functools.lru_cache(maxsize=64)
-def _sha256(path: str, size: int, mtime_ns: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes (cached per path, size and modification time: checkpoints are hashed often)."""
-    st = os.stat(path)
-    return _sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
-
-
 def short(sha: str | None) -> str:
     return (sha or "")[:12]
 
@@ -209,8 +194,43 @@ def _identity(path: Path) -> str | None:
     return file_sha256(path) if path.exists() else None
 
 
+# A dataset manifest's fields that say how the collection went on this machine, not what it holds: they are left
+# out of the dataset's identity, so that the same data recorded twice has one identity.
+MANIFEST_TIMING = ("wall_s", "frames_per_s_this_run")
+
+
+@functools.lru_cache(maxsize=16)
+def _dataset_sha256(path: str, size: int, mtime_ns: int) -> str:
+    manifest = json.loads(Path(path).read_text())
+    manifest.pop("digests", None)  # the shards' bytes are checked against these; their content is already here
+    manifest["summary"] = {k: v for k, v in manifest.get("summary", {}).items() if k not in MANIFEST_TIMING}
+    return config_sha256(manifest)
+
+
+def dataset_sha256(manifest: Path) -> str | None:
+    """A dataset's identity: SHA-256 of its manifest's content (episodes, lengths, outcomes) without the timing
+    fields and shard digests; None when the manifest is absent."""
+    if not manifest.exists():
+        return None
+    st = os.stat(manifest)
+    return _dataset_sha256(str(Path(manifest).resolve()), st.st_size, st.st_mtime_ns)
+
+
+DATASETS = ("rollouts", "demos")  # provenance inputs that are datasets, identified by ``dataset_sha256``
+
+
+def dataset_manifests(cfg) -> dict[str, Path]:
+    return {"rollouts": manifest_path(cfg), "demos": demos_dir(cfg) / "manifest.json"}
+
+
+def legacy_identities(files: dict[str, Path]) -> dict[str, str]:
+    """The identity of each dataset among ``files`` (input name -> manifest) in records made when a dataset's
+    identity was its manifest file's bytes: a record holding one still names the dataset as it is, read so."""
+    return {name: file_sha256(path) for name, path in files.items() if name in DATASETS and Path(path).exists()}
+
+
 def rollouts_id(cfg) -> str | None:
-    return _identity(manifest_path(cfg))
+    return dataset_sha256(manifest_path(cfg))
 
 
 def vae_id(cfg) -> str | None:
@@ -267,7 +287,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
                 settings["demos"]["teacher_delays_s"] = demos["teacher_delays_s"]
             settings["teacher"] = teacher_settings(cfg)
         elif uses_demos(cfg):
-            inputs["demos"] = _identity(demos_dir(cfg) / "manifest.json")
+            inputs["demos"] = dataset_sha256(demos_dir(cfg) / "manifest.json")
         street = uses_world_model or cfg.agent.get("obs") == "privileged"  # train_agent's own loop
         if street and (uses_demos(cfg) or cfg.agent.focus_share > 0):
             settings["focus"] = _config(cfg, "demos")["demos"]["focus"]  # the focus mix's ranges shape the training
@@ -297,15 +317,16 @@ def write_provenance(directory: Path, record: dict) -> None:
     atomic_write_text(Path(directory) / PROVENANCE, json.dumps(record, indent=2, sort_keys=True))
 
 
-def differences(recorded: dict | None, current: dict) -> list[str]:
-    """Human-readable reasons why ``recorded`` no longer matches ``current`` (empty: up to date)."""
+def differences(recorded: dict | None, current: dict, legacy: dict[str, str] | None = None) -> list[str]:
+    """Human-readable reasons why ``recorded`` no longer matches ``current`` (empty: up to date). ``legacy``: the
+    datasets' identities as older records wrote them (``legacy_identities``), taken as the current ones."""
     if recorded is None:
         return ["no record of its inputs"]
     out = []
     inputs = inputs_as_recorded(recorded.get("inputs", {}), current["inputs"])
     for name, now in current["inputs"].items():
         then = inputs.get(name)
-        if then != now:
+        if then != now and not (then is not None and then == (legacy or {}).get(name)):
             out.append(f"{name} {short(then) or 'absent'} -> {short(now) or 'absent'}")
     for name in set(inputs) - set(current["inputs"]):
         out.append(f"{name} {short(inputs[name])} -> absent")
@@ -330,6 +351,45 @@ def retire(cfg, directory: Path) -> Path | None:
     return target
 
 
+# ----------------------------------------------------------------------------- outputs
+CHECKPOINTS = ("best.pt", "last.pt")  # a training run's files whose digests its record keeps once it finished
+
+
+def output_digests(directory: Path) -> dict[str, str]:
+    """SHA-256 of each checkpoint a training run left in ``directory``: recorded when it finishes."""
+    return {name: file_sha256(Path(directory) / name) for name in CHECKPOINTS if (Path(directory) / name).exists()}
+
+
+def changed_outputs(directory: Path) -> list[str]:
+    """How a finished run's checkpoints differ from the files it wrote (empty: unchanged, or a run finished before
+    its outputs were recorded, which is read as written)."""
+    recorded = (read_provenance(directory) or {}).get("outputs") or {}
+    out = []
+    for name, then in sorted(recorded.items()):
+        now = _identity(Path(directory) / name)
+        if now != then:
+            out.append(f"{name} {short(then)} -> {short(now) or 'absent'} after its run finished")
+    return out
+
+
+def check_output(cfg, path: Path, what: str, rebuild: str) -> None:
+    """Refuse a checkpoint that is not the file its finished run wrote (changed by hand, by a disk or by another
+    process): its metrics and everything built on it describe another model. ``allow_stale=true``: a warning."""
+    recorded = ((read_provenance(Path(path).parent) or {}).get("outputs") or {}).get(Path(path).name)
+    if recorded is None or not Path(path).exists() or file_sha256(path) == recorded:
+        return
+    message = (
+        f"{what} {path} is not the file its run wrote (SHA-256 {short(recorded)} when the run finished, now "
+        f"{short(file_sha256(path))}), so its metrics describe another model. Restore the file, or delete "
+        f"{Path(path).parent} and rerun `{rebuild}` (the pipeline sets such a run aside and rebuilds it and what "
+        "was built on it); allow_stale=true loads it anyway."
+    )
+    if cfg.get("allow_stale", False):
+        log.warning("allow_stale=true: %s", message)
+        return
+    raise StageError(message)
+
+
 # ----------------------------------------------------------------------------- checked loading
 def check_inputs(cfg, what: str, path: Path, state: dict, inputs: dict[str, Path], rebuild: str) -> None:
     """Compare the input identities recorded in a checkpoint (``state``) with the current ``inputs`` files.
@@ -337,9 +397,14 @@ def check_inputs(cfg, what: str, path: Path, state: dict, inputs: dict[str, Path
     Inputs whose file is absent are not compared (data may be deleted after training). A mismatch is a
     StageError naming both files and how to rebuild, or a warning under ``allow_stale=true``.
     """
-    current = {name: _identity(file) for name, file in inputs.items()}
+    current = {name: (dataset_sha256 if name in DATASETS else _identity)(file) for name, file in inputs.items()}
     recorded = inputs_as_recorded((state.get("provenance") or {}).get("inputs", {}), current)
-    stale = [name for name, now in current.items() if now is not None and recorded.get(name) != now]
+    legacy = legacy_identities(inputs)
+    stale = [
+        name
+        for name, now in current.items()
+        if now is not None and recorded.get(name) not in (now, legacy.get(name, now))
+    ]
     if not stale:
         return
     details = "; ".join(
@@ -434,6 +499,7 @@ def check_rnn_architecture(state: dict, cfg, path: Path) -> None:
 def load_vae(cfg, which: str = "best"):
     """The trained VAE (eval mode) and its path; a clear error if missing, of the wrong size, or stale."""
     path = vae_dir(cfg) / f"{which}.pt"
+    check_output(cfg, path, "The VAE checkpoint", stage_command("train_vae", cfg))
     state = load_checkpoint(path, "VAE checkpoint", "train_vae", cfg)
     check_vae_architecture(state, cfg, path)
     check_inputs(cfg, "The VAE", path, state, {"rollouts": manifest_path(cfg)}, stage_command("train_vae", cfg))
@@ -446,6 +512,7 @@ def load_rnn(cfg, which: str = "best"):
     """The trained LSTM (eval mode) and its path; a clear error if missing, of the wrong size, or trained on
     another VAE than the current one."""
     path = rnn_dir(cfg) / f"{which}.pt"
+    check_output(cfg, path, "The LSTM checkpoint", stage_command("train_rnn", cfg))
     state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
     check_rnn_architecture(state, cfg, path)
     check_inputs(cfg, "The LSTM", path, state, {"vae": vae_dir(cfg) / "best.pt"}, stage_command("train_rnn", cfg))
@@ -502,8 +569,9 @@ def world_model_inputs(obs: str) -> list[tuple[str, Any]]:
 def load_agent_state(cfg, agent: AgentId, which: str = "last") -> dict:
     """An agent's checkpoint, after checking that it was built on the current VAE and LSTM."""
     path = agent.dir(cfg) / f"{which}.pt"
-    state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
     rebuild = f"python -m worldmodel.train_agent experiment={cfg.experiment} reward={agent.reward} seed={agent.seed}"
+    check_output(cfg, path, f"The {agent.key} agent checkpoint", rebuild)
+    state = load_checkpoint(path, f"{agent.key} agent checkpoint", "train_agent", cfg)
     files = {"vae": vae_dir(cfg) / "best.pt", "rnn": rnn_dir(cfg) / "best.pt"}
     inputs = {name: files[name] for name, _ in world_model_inputs(state.get("obs", "worldmodel"))}
     check_inputs(cfg, f"The agent {agent.key}", path, state, inputs, rebuild)

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
 import math
 import os
 import random
 import re
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -114,6 +116,54 @@ def _alive(pid: int) -> bool:
     except PermissionError:  # it exists, under another user
         return True
     return True
+
+
+_HELD_LOCKS: dict[Path, tuple[Any, int]] = {}  # lock file -> (its open handle, how many holders in this process)
+
+
+@contextlib.contextmanager
+def writer_lock(directory: Path, what: str):
+    """Hold the one-writer lock of ``directory`` (an output a stage writes) while the block runs.
+
+    An exclusive advisory lock (``flock``) on ``.<name>.lock`` beside the directory, so that retiring the directory
+    leaves it in place. A second process that asks for it is refused at once with a StageError naming the holder.
+    The kernel drops the lock when its process ends, however it ends, so a killed run leaves nothing to clear. In
+    one process the lock is re-entrant (the pipeline holds it around a stage that takes it again)."""
+    import fcntl
+    import sys
+
+    directory = Path(directory).absolute()
+    path = directory.parent / f".{directory.name}.lock"
+    if path in _HELD_LOCKS:
+        handle, count = _HELD_LOCKS[path]
+        _HELD_LOCKS[path] = (handle, count + 1)
+    else:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "a process that has not said which"
+            handle.close()
+            raise StageError(
+                f"{directory} is being written by another process ({holder}). Wait for it to end, or stop it: two "
+                f"writers of {what} would mix their files."
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()}: {' '.join(sys.argv) or 'python'}, since {time.strftime('%H:%M:%S')}")
+        handle.flush()
+        _HELD_LOCKS[path] = (handle, 1)
+    try:
+        yield
+    finally:
+        handle, count = _HELD_LOCKS[path]
+        if count > 1:
+            _HELD_LOCKS[path] = (handle, count - 1)
+        else:
+            del _HELD_LOCKS[path]
+            handle.close()  # closing the file releases the lock
 
 
 def clean_temporaries(directory: Path, name: str = "*") -> int:
@@ -288,6 +338,21 @@ def resolve_loader_workers(value: int | str, device) -> int:
     return 0 if device.type != "cuda" else max(0, min(4, usable_cores() - 1))
 
 
+@functools.lru_cache(maxsize=256)
+def _sha256(path: str, size: int, mtime_ns: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes (cached per path, size and modification time: checkpoints are hashed often)."""
+    st = os.stat(path)
+    return _sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+
+
 def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:
     """Load a checkpoint written by ``atomic_torch_save``; a missing or unreadable one is a StageError."""
     import torch
@@ -297,8 +362,8 @@ def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # truncated or not a torch file
         raise StageError(
-            f"{what} at {path} cannot be read ({type(err).__name__}: {err}). "
-            f"Delete it and rerun `{stage_command(stage, cfg)}`."
+            f"{what} at {path} cannot be read ({type(err).__name__}: {err}). Delete {Path(path).parent} (the "
+            f"run that wrote it) and rerun `{stage_command(stage, cfg)}`, or run the pipeline, which rebuilds it."
         ) from err
 
 

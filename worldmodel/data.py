@@ -97,8 +97,8 @@ def _open(path: Path) -> h5py.File:
         return h5py.File(path, "r")
     except Exception as err:
         raise CorruptDataError(
-            f"{path} is not a readable HDF5 shard ({err}). It is corrupt or truncated: delete it and rerun "
-            "the collection with resume=true to rewrite it."
+            f"{path} is not a readable HDF5 shard ({err}). It is corrupt or truncated: rerun the "
+            "collection with resume=true, which sets it aside and records it again."
         ) from err
 
 
@@ -134,8 +134,8 @@ def check_shard(path: Path, full: bool = True) -> list[int]:
         raise
     except Exception as err:
         raise CorruptDataError(
-            f"{path} is corrupt or truncated ({type(err).__name__}: {err}). Delete it and rerun the "
-            "collection with resume=true to rewrite it."
+            f"{path} is corrupt or truncated ({type(err).__name__}: {err}). Rerun the collection with "
+            "resume=true, which sets it aside and records it again."
         ) from err
 
 
@@ -183,7 +183,7 @@ class RolloutStore:
         except Exception as err:
             raise CorruptDataError(
                 f"{path}: reading episode {i}/{key} failed ({err}); the file is corrupt. "
-                "Delete it and rerun the collection with resume=true."
+                "Rerun the collection with resume=true, which sets it aside and records it again."
             ) from err
 
     def attrs(self, i: int) -> dict:

@@ -25,7 +25,7 @@ import time
 
 from . import artifacts, peers
 from .banks import ledger_key, record_evaluation, sealed_bank_problem
-from .common import StageError, make_env, resolve_workers, set_threads, worker_pool
+from .common import StageError, make_env, resolve_workers, set_threads, worker_pool, writer_lock
 from .config import SCRIPTED_POLICIES, hydra_main, validate
 from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
 from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
@@ -154,19 +154,24 @@ def headline(summary: dict) -> dict[str, str]:
 
 
 def run(cfg) -> dict:
-    from .training import tensorboard
-
     typed = validate(cfg)
     set_threads(1)  # one decision at a time: a single thread is fastest for batch-1 inference
     sealed = sealed_bank_problem(cfg, typed.evaluate.family)
     if sealed:
         raise StageError(sealed)
-    if typed.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
-        return peers.peer(typed.evaluate.family).evaluate(cfg)
     if typed.evaluate.family == "ncap":
         raise StageError(
             f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={typed.experiment}"
         )
+    with writer_lock(artifacts.eval_dir(cfg), "one evaluation"):
+        if typed.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
+            return peers.peer(typed.evaluate.family).evaluate(cfg)
+        return _evaluate_porav(cfg, typed)
+
+
+def _evaluate_porav(cfg, typed) -> dict:
+    from .training import tensorboard
+
     entries = bank(typed)
     out = artifacts.eval_dir(cfg)
     t0 = time.perf_counter()

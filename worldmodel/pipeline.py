@@ -38,7 +38,7 @@ from omegaconf import OmegaConf
 
 from . import artifacts
 from .artifacts import AgentId
-from .common import StageError, atomic_write_text
+from .common import StageError, atomic_write_text, writer_lock
 from .config import agent_preset, hydra_main, peer_preset, preset_globals, validate
 
 log = logging.getLogger(__name__)
@@ -171,7 +171,10 @@ def status(cfg, step: Step) -> tuple[str, list[str]]:
     recorded = artifacts.read_provenance(directory)
     if recorded is None and not done and step.kind != "eval" and not (directory / "last.pt").exists():
         return "fresh", []  # a directory a run created but never wrote to
-    reasons = artifacts.differences(recorded, artifacts.provenance(cfg, step.kind, step.agent))
+    current = artifacts.provenance(cfg, step.kind, step.agent)
+    reasons = artifacts.differences(recorded, current, artifacts.legacy_identities(artifacts.dataset_manifests(cfg)))
+    if done and step.kind != "eval":  # a finished run's checkpoints changed after it finished
+        reasons += artifacts.changed_outputs(directory)
     if reasons:
         return "stale", reasons
     return ("complete" if done else "resume"), []
@@ -256,6 +259,11 @@ def run(cfg) -> dict:
         rows = plan(cfg)
         log.info("[pipeline] plan=true: what a run would do now; nothing runs\n%s", plan_text(rows))
         return {"plan": rows}
+    with writer_lock(artifacts.runs_root(cfg), "one experiment's pipeline"):
+        return _run_steps(cfg)
+
+
+def _run_steps(cfg) -> dict:
     timing_path = artifacts.runs_root(cfg) / "pipeline.json"
     timings = _timings(cfg)
     t_all = time.perf_counter()
@@ -268,8 +276,9 @@ def run(cfg) -> dict:
                 "[pipeline] %s: complete (%s), skipped", step.name, artifacts.marker(stage_cfg, step.kind, step.agent)
             )
             continue
-        if state == "stale":
-            moved = artifacts.retire(stage_cfg, artifacts.output_dir(stage_cfg, step.kind, step.agent))
+        if state == "stale":  # set aside under the stage's own lock: no hand-run writer is inside it
+            with writer_lock(artifacts.output_dir(stage_cfg, step.kind, step.agent), f"the {step.name} step"):
+                moved = artifacts.retire(stage_cfg, artifacts.output_dir(stage_cfg, step.kind, step.agent))
             log.info("[pipeline] %s: stale (%s); set aside in %s, rebuilding", step.name, "; ".join(reasons), moved)
         else:
             log.info("[pipeline] %s: running", step.name)

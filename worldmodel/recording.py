@@ -20,7 +20,7 @@ import numpy as np
 
 from envs.streams import DATASET_SPLIT, RECORDING_BRANCHES
 
-from .common import StageError, atomic_write_text, clean_temporaries, worker_pool
+from .common import StageError, atomic_write_text, clean_temporaries, file_sha256, worker_pool, writer_lock
 from .data import SCHEMA_VERSION, shard_name, write_shard
 
 log = logging.getLogger(__name__)
@@ -202,6 +202,30 @@ def record_dataset(
     label: str,
 ) -> dict:
     """Write (or finish, or confirm) the dataset ``settings`` defines under ``root``; returns its summary."""
+    with writer_lock(root, "one dataset"):
+        return _record_dataset(
+            root,
+            settings,
+            spec_of,
+            policy_of,
+            resume=resume,
+            num_workers=num_workers,
+            validation_fraction=validation_fraction,
+            label=label,
+        )
+
+
+def _record_dataset(
+    root: Path,
+    settings: dict,
+    spec_of: Callable,
+    policy_of: Callable,
+    *,
+    resume: bool,
+    num_workers: int,
+    validation_fraction: float,
+    label: str,
+) -> dict:
     manifest_path = root / "manifest.json"
     config_path = root / "collect_config.json"
     if config_path.exists():
@@ -219,9 +243,20 @@ def record_dataset(
                 f"experiment=NAME, or delete {root} to start again."
             )
         if manifest_path.exists():
-            log.info("[%s] %s is already complete; nothing to do.", label, root)
-            return json.loads(manifest_path.read_text())["summary"]
-        if not resume:
+            manifest = json.loads(manifest_path.read_text())
+            damaged = damaged_shards(root, manifest)
+            if not damaged:
+                log.info("[%s] %s is already complete; nothing to do.", label, root)
+                return manifest["summary"]
+            if not resume:
+                raise StageError(
+                    f"{root} is complete, but shards {', '.join(damaged)} are missing, truncated or changed. Pass "
+                    "resume=true to record them again (the same episodes from the same seeds; the damaged files "
+                    f"are kept in {root / DAMAGED})."
+                )
+            set_aside(root, damaged)
+            log.warning("[%s] %s: recording shards %s again", label, root, ", ".join(damaged))
+        elif not resume:
             raise StageError(f"{root} holds a partial dataset. Pass resume=true to finish it, or delete it.")
     root.mkdir(parents=True, exist_ok=True)
     clean_temporaries(root)
@@ -268,6 +303,8 @@ def record_dataset(
         "lengths": lengths,
         "branches": branches,
         "summary": summary,
+        # each shard's bytes as written: a later collection with resume=true records a changed one again
+        "digests": {shard_name(k): file_sha256(root / shard_name(k)) for k, _ in shards},
     }
     atomic_write_text(manifest_path, json.dumps(manifest, indent=1, sort_keys=True))
     log.info(
@@ -283,6 +320,41 @@ def record_dataset(
         summary["frames_per_s_this_run"],
     )
     return summary
+
+
+DAMAGED = "damaged"  # where a collection resumed on a complete dataset keeps the shards it records again
+
+
+def damaged_shards(root: Path, manifest: dict) -> list[str]:
+    """The manifest's shards that are missing or differ from what was written: by their recorded digests, or for a
+    dataset recorded before digests, by a check of their structure."""
+    from .data import CorruptDataError, check_shard
+
+    digests = manifest.get("digests")
+    out = []
+    for name in manifest["shards"]:
+        path = root / name
+        if not path.exists():
+            out.append(name)
+        elif digests is not None:
+            if file_sha256(path) != digests.get(name):
+                out.append(name)
+        else:
+            try:
+                check_shard(path, full=False)
+            except CorruptDataError:
+                out.append(name)
+    return out
+
+
+def set_aside(root: Path, names: list[str]) -> None:
+    """Move damaged shards into ``root/damaged/`` (nothing is deleted): the collection then records them again."""
+    for name in names:
+        path = root / name
+        if path.exists():
+            target = root / DAMAGED / f"{name}.{time.strftime('%Y%m%d-%H%M%S')}"
+            target.parent.mkdir(exist_ok=True)
+            path.rename(target)
 
 
 def _stats_of_existing(root: Path, ks: list[int]) -> list[dict]:

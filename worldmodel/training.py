@@ -10,6 +10,7 @@ the saved step (ctallec/world-models restored its scheduler from the wrong state
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import signal
@@ -28,6 +29,7 @@ from .common import (
     rng_state,
     set_rng_state,
     stage_command,
+    writer_lock,
 )
 
 log = logging.getLogger(__name__)
@@ -116,11 +118,23 @@ class TrainingRun:
 
     # ------------------------------------------------------------------ life cycle
     def __enter__(self) -> TrainingRun:
+        self._held = contextlib.ExitStack()
+        self._held.enter_context(writer_lock(self.dir, f"the {self.name} run"))
+        try:
+            return self._enter()
+        except BaseException:
+            self._held.close()
+            raise
+
+    def _enter(self) -> TrainingRun:
         resume = bool(self.cfg.resume)
-        if self.marker.exists() and not resume:
+        finished = self.marker.exists()
+        if finished and not resume:
             raise StageError(
                 f"{self.dir} holds a finished run. Pass resume=true to keep it, or delete {self.dir} to retrain."
             )
+        if finished:
+            self._check_outputs()
         # Only this run writes here, so a temporary file belongs to a writer that was killed inside a save
         # (possibly hundreds of MB with a replay buffer).
         if self.dir.exists():
@@ -134,6 +148,7 @@ class TrainingRun:
             self.state = load_checkpoint(self.last, "checkpoint", self.command, self.cfg)
             set_rng_state(self.state["rng"])
         self.dir.mkdir(parents=True, exist_ok=True)
+        # a finished run resumed may train on (more epochs): its checkpoints are recorded again when it finishes
         artifacts.write_provenance(self.dir, self.record)
         # "log_step": the x-axis of a stage whose curves count episodes rather than steps
         logged = self.state.get("log_step", self.state["step"]) if self.state else None
@@ -146,6 +161,7 @@ class TrainingRun:
         for writer in [self.writer, *self._side_writers]:
             if writer is not None:
                 writer.close()
+        self._held.close()
         return False
 
     def side_writer(self, name: str, purge_step: int | None = None):
@@ -156,11 +172,33 @@ class TrainingRun:
         self._side_writers.append(writer)
         return writer
 
+    def _check_outputs(self) -> None:
+        """A finished run resumed (``resume=true``) must still hold the checkpoints it wrote: its metrics describe
+        them, and a resumed run would record whatever is there now as its own."""
+        changed = artifacts.changed_outputs(self.dir)
+        if not changed:
+            return
+        message = (
+            f"{self.dir} holds a finished run whose checkpoints changed since ({'; '.join(changed)}). Restore "
+            f"them, or delete {self.dir} and rerun `{stage_command(self.command, self.cfg)}` to retrain; "
+            "allow_stale=true keeps them anyway."
+        )
+        if bool(self.cfg.get("allow_stale", False)):
+            log.warning("allow_stale=true: %s", message)
+            return
+        raise StageError(message)
+
     def _check_resumed_inputs(self) -> None:
         recorded = artifacts.read_provenance(self.dir)
         if recorded is None:
             return
-        changed = [r for r in artifacts.differences(recorded, self.record) if r != "its config changed"]
+        changed = [
+            r
+            for r in artifacts.differences(
+                recorded, self.record, artifacts.legacy_identities(artifacts.dataset_manifests(self.cfg))
+            )
+            if r != "its config changed"
+        ]
         if not changed:
             return
         message = (
@@ -220,7 +258,8 @@ class TrainingRun:
         return {"stopped": True, "step": step}
 
     def finish(self, metrics: dict) -> dict:
-        """Write the completion marker: the run is done."""
+        """Record the digests of the run's checkpoints, then write the completion marker: the run is done."""
+        artifacts.write_provenance(self.dir, {**self.record, "outputs": artifacts.output_digests(self.dir)})
         atomic_write_text(self.marker, json.dumps(metrics, indent=2))
         return metrics
 
