@@ -77,6 +77,8 @@ def test_smoke_collection_schema_and_reproducible(stage_cfg, tmp_path):
     again = stage_cfg("collect", root=tmp_path / "second")
     collect.run(again)
     assert dataset_content(root) == dataset_content(artifacts.rollouts_dir(again))
+    # one identity for the same data, whatever the collection's timings
+    assert artifacts.rollouts_id(again) == artifacts.rollouts_id(cfg)
     # Worker count does not change the data.
     two = stage_cfg("collect", "collect.num_workers=2", root=tmp_path / "third")
     collect.run(two)
@@ -134,6 +136,19 @@ def test_truncated_shard_is_named_in_the_error(stage_cfg, experiment_copy):
         [sys.executable, "-m", "worldmodel.data", "validate", str(root)], capture_output=True, text=True, cwd=REPO
     )
     assert result.returncode == 1 and "shard_00001.h5" in result.stderr
+
+    # the advice works: a collection resumed on the complete dataset records the damaged shard again, keeps the
+    # damaged file, and the dataset is the one every stage was built on
+    identity = artifacts.rollouts_id(cfg)
+    with pytest.raises(StageError, match="shard_00001.h5 are missing, truncated or changed"):
+        collect.run(cfg)
+    collect.run(stage_cfg("collect", "resume=true"))
+    validate(root)
+    assert artifacts.rollouts_id(cfg) == identity
+    assert [p.stat().st_size for p in (root / "damaged").iterdir()] == [size // 2]
+    bad.unlink()  # a lost shard, too
+    collect.run(stage_cfg("collect", "resume=true"))
+    assert artifacts.rollouts_id(cfg) == identity and RolloutStore(root)
 
 
 def test_changed_settings_refuse_to_mix_with_existing_data(stage_cfg, experiment_copy):

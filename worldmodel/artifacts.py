@@ -11,12 +11,18 @@ stage (``tests/test_layout.py``). The layout of ``experiment=NAME`` (docs/design
     runs/NAME/eval/              evaluate     results.csv, tables.md, heatmaps.png, summary.json (complete)
     runs/NAME/stale/             outputs the pipeline set aside because their inputs changed
 
-**Provenance.** An artifact's identity is the SHA-256 of its defining file (the rollouts' ``manifest.json``, a
-model's ``best.pt``, an agent's ``last.pt``). Each training stage records the identities of its inputs and a hash
-of the config keys that shape it, in ``provenance.json`` (written when the run starts) and in every checkpoint.
-Loading a model compares the recorded inputs with the current ones: a mismatch stops with a ``StageError``
-naming both files and the command that rebuilds the stale one, unless ``allow_stale=true`` (then a warning).
-The pipeline compares the same records to decide which stages to rerun.
+**Provenance.** A model's identity is the SHA-256 of its defining file (``best.pt``, an agent's ``last.pt``); a
+dataset's is the SHA-256 of its manifest's content without the collection's timings (``dataset_sha256``). Each
+training stage records the identities of its inputs and a hash of the config keys that shape it, in
+``provenance.json`` (written when the run starts) and in every checkpoint; when it finishes it adds the digests of
+its checkpoints (``outputs``). Loading a model compares the recorded inputs with the current ones, and the file
+with the digest its run recorded: a mismatch stops with a ``StageError`` naming the files and the command that
+rebuilds the stale one, unless ``allow_stale=true`` (then a warning). The pipeline compares the same records to
+decide which stages to rerun. Records made before a dataset was its content, or before outputs were recorded, are
+read as written (``legacy_identities``; no digest, no comparison).
+
+**One writer.** A stage holds its output directory's lock while it writes, and the pipeline its experiment's
+(``common.writer_lock``): a second writer is refused at once, naming the first.
 """
 
 from __future__ import annotations

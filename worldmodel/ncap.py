@@ -31,13 +31,14 @@ import json
 import logging
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 
 from envs.ncap import bank, car_bank, car_points, verdict
 
 from . import artifacts, peers
-from .common import make_env, set_threads
+from .common import make_env, set_threads, writer_lock
 from .config import hydra_main, validate
 from .policies import env_overrides, porav_policies
 from .report.ncap import figure, summarise, tables
@@ -152,12 +153,18 @@ def specs_of(c) -> tuple[list, list]:
 
 
 def run(cfg) -> dict:
-    from tqdm import tqdm
-
     typed = validate(cfg)
-    set_threads(1)
     takeover = typed.ncap.takeover_ttc_s
     out = artifacts.runs_root(cfg) / ("eval_ncap" if takeover == 1.5 else f"eval_ncap_takeover{takeover:g}")
+    with writer_lock(out, "one NCAP evaluation"):
+        return _evaluate(cfg, typed, out)
+
+
+def _evaluate(cfg, typed, out: Path) -> dict:
+    from tqdm import tqdm
+
+    set_threads(1)
+    takeover = typed.ncap.takeover_ttc_s
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     pedestrians, cars = specs_of(typed.ncap)
