@@ -177,6 +177,7 @@ def test_impossible_config_is_rejected_before_work(stage_cfg):
         ("experiment=''", "experiment=''"),
         ("experiment=..", "experiment='..'"),
         ("peers=[chea]", "name a peer system (chae, kim, merola)"),
+        ("collect.episodes=1000000000", "collect.episodes=1000000000 needs at least 10,000 GB"),
     ],
 )
 def test_values_that_would_fail_later_are_refused_by_name_before_anything_is_written(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -202,6 +203,7 @@ def record_dataset(
     label: str,
 ) -> dict:
     """Write (or finish, or confirm) the dataset ``settings`` defines under ``root``; returns its summary."""
+    check_room(root, settings["episodes"], "demos.episodes" if label == "demonstrate" else "collect.episodes")
     with writer_lock(root, "one dataset"):
         return _record_dataset(
             root,
@@ -320,6 +322,33 @@ def _record_dataset(
         summary["frames_per_s_this_run"],
     )
     return summary
+
+
+# The least an episode takes on disk: paper-scale episodes take 39 kB (94 MB for 2,400), shorter ones 20-40 kB; a
+# quarter of that, so that the check refuses only what cannot fit.
+EPISODE_BYTES_AT_LEAST = 10_000
+SPLIT_BYTES_PER_EPISODE = 64  # the split's permutation (8 bytes) and its two sorted lists of Python ints
+
+
+def check_room(root: Path, episodes: int, key: str) -> None:
+    """Refuse, before anything is written or held in memory, a dataset that cannot fit on the disk under ``root``."""
+    import shutil
+
+    where = Path(root).absolute()
+    while not where.exists():
+        where = where.parent
+    free, need = shutil.disk_usage(where).free, int(episodes) * EPISODE_BYTES_AT_LEAST
+    if need > free:
+        raise StageError(
+            f"{key}={episodes} needs at least {need / 1e9:,.0f} GB under {root} (10 kB or more an episode), and "
+            f"{free / 1e9:,.0f} GB are free there. Lower {key}, or point paths.data_root at a larger disk."
+        )
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if int(episodes) * SPLIT_BYTES_PER_EPISODE > memory:  # the train/validation split is drawn whole, in memory
+        raise StageError(
+            f"{key}={episodes} needs more memory than this machine's {memory / 1e9:,.0f} GB to draw its train/"
+            f"validation split ({SPLIT_BYTES_PER_EPISODE} bytes an episode). Lower {key}."
+        )
 
 
 DAMAGED = "damaged"  # where a collection resumed on a complete dataset keeps the shards it records again
