@@ -104,6 +104,26 @@ def test_the_ledger_appends_and_counts(tmp_path):
     assert banks.uses("merola", path=path) == 0
 
 
+def test_a_ledger_from_before_a_column_gets_it_and_keeps_its_rows(tmp_path):
+    path = tmp_path / "ledger.csv"
+    old_columns = [c for c in banks.LEDGER_COLUMNS if c != "rows_sha"]
+    earlier = '2026-01-01T00:00:00Z,abc,e,paper,porav,1,3,braking,"braking: risk 1.00 %"'
+    path.write_text(",".join(old_columns) + "\n" + earlier + "\n")
+    banks.record(path, experiment="e", scale=None, family="kim", scenarios=5, policies={}, headline={}, rows_sha="f0")
+    first, second = banks.read_ledger(path)
+    assert path.read_text().splitlines()[0] == ",".join(banks.LEDGER_COLUMNS)
+    assert first == {
+        **dict(
+            zip(
+                old_columns,
+                ["2026-01-01T00:00:00Z", "abc", "e", "paper", "porav", "1", "3", "braking", "braking: risk 1.00 %"],
+            )
+        ),
+        "rows_sha": "",
+    }
+    assert second["rows_sha"] == "f0" and second["family"] == "kim"
+
+
 def test_evaluating_the_test_bank_records_itself_and_a_validation_bank_does_not(stage_cfg, tmp_path):
     """The real stage on a tiny grid: a validation evaluation leaves the ledger alone, each test evaluation adds a
     row with its policies and headline figures."""

@@ -143,6 +143,25 @@ def test_recheck_holds_a_published_test_evaluation_to_its_ledger_row(results, tm
     assert "in the rows only: ['oracle_brake1']" in policies
 
 
+def test_edited_rows_under_tables_rendered_again_are_caught_by_the_ledgers_digest(results, tmp_path):
+    """Every table can be rendered again from edited rows, and the row counts and model hashes kept: the digest the
+    evaluation wrote into its ledger row still tells."""
+    import shutil
+
+    root, out = results
+    assert banks.read_ledger(root / "ledger.csv")[-1]["rows_sha"] == published.rows_sha(out / "test.rows.csv.gz")
+    copy = tmp_path / "x"
+    shutil.copytree(out, copy)
+    rows = read_results_csv(copy / "test.rows.csv.gz")
+    rows[0]["occupant_injury"] = 0.5
+    write_results_csv(rows, copy / "test.rows.csv.gz")
+    rows, meta = published.published(copy)["test"]
+    (copy / "test.tables.md").write_text(published.render_tables(rows, meta))
+    published.write_headline(copy)
+    (problem,) = published.recheck(copy, root / "ledger.csv")
+    assert "test: the rows are not the evaluation" in problem and "SHA-256" in problem
+
+
 def test_the_committed_rows_carry_the_model_hashes_the_ledger_recorded(tmp_path):
     """On the committed headline: the ledger's actor hash of one agent changed, and its rows no longer match."""
     rows, meta = published.published(published.RESULTS / "porav")["test"]

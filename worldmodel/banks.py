@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import datetime
 import functools
+import io
 import logging
 import os
 import subprocess
@@ -46,7 +47,20 @@ TEST_SEEDS: dict[str, int] = SUITE_TEST_SEEDS if IN_TEST_SUITE else SEALED_SEEDS
 BANKS = ("validation", "test")
 REPO = Path(__file__).resolve().parents[1]
 LEDGER = REPO / "docs" / "results" / "ledger.csv"
-LEDGER_COLUMNS = ("date", "commit", "experiment", "scale", "family", "bank_seed", "scenarios", "policies", "headline")
+# rows_sha: SHA-256 of the evaluation's results.csv as written (the published rows, decompressed, are those bytes):
+# recheck holds the published rows to it. Empty in a row recorded before the column.
+LEDGER_COLUMNS = (
+    "date",
+    "commit",
+    "experiment",
+    "scale",
+    "family",
+    "bank_seed",
+    "scenarios",
+    "policies",
+    "headline",
+    "rows_sha",
+)
 
 
 def draw_seed(bank: str, family: str, validation_seed: int) -> int:
@@ -132,11 +146,13 @@ def record(
     scenarios: int,
     policies: dict[str, dict[str, str]],
     headline: dict[str, str],
+    rows_sha: str = "",
 ) -> dict:
     """Append one evaluation on ``family``'s test bank to the ledger at ``path`` (created with its header).
 
     ``policies``: each policy's key -> its model hashes (empty for scripted ones); ``headline``: each policy's key
-    -> its headline figure, as text with its unit. Appending never rewrites an earlier row."""
+    -> its headline figure, as text with its unit; ``rows_sha``: the digest of its rows file. Appending never
+    changes an earlier row (a ledger from before a column gets the column, empty in its rows)."""
     row = {
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "commit": commit(),
@@ -150,16 +166,34 @@ def record(
             for key, hashes in policies.items()
         ),
         "headline": "; ".join(f"{key}: {figure}" for key, figure in headline.items()),
+        "rows_sha": rows_sha,
     }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     new = not path.exists() or path.stat().st_size == 0
+    if not new and path.read_text().split("\n", 1)[0] != ",".join(LEDGER_COLUMNS):
+        _add_columns(path)
     with path.open("a", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=LEDGER_COLUMNS, lineterminator="\n")
         if new:
             writer.writeheader()
         writer.writerow(row)
     return row
+
+
+def _add_columns(path: Path) -> None:
+    """Rewrite a ledger written before a column of ``LEDGER_COLUMNS`` with it, empty in the earlier rows."""
+    from .common import StageError, atomic_write_text
+
+    old = read_ledger(path)
+    unknown = set(old[0]) - set(LEDGER_COLUMNS) if old else set()
+    if unknown:
+        raise StageError(f"{path} has columns this code does not know ({', '.join(sorted(unknown))}): update the code")
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=LEDGER_COLUMNS, lineterminator="\n", restval="")
+    writer.writeheader()
+    writer.writerows(old)
+    atomic_write_text(path, buffer.getvalue())
 
 
 def judged(cfg, family: str) -> list[dict]:
@@ -203,7 +237,11 @@ def record_evaluation(cfg, family: str, scenarios: int, policies: dict, headline
 
     if cfg.evaluate.bank != "test":
         return None
+    from .artifacts import eval_dir
+    from .common import file_sha256
+
     path = ledger_path(cfg)
+    rows = eval_dir(cfg) / "results.csv"
     row = record(
         path,
         experiment=cfg.experiment,
@@ -212,6 +250,7 @@ def record_evaluation(cfg, family: str, scenarios: int, policies: dict, headline
         scenarios=scenarios,
         policies=policies,
         headline=headline,
+        rows_sha=file_sha256(rows) if rows.exists() else "",
     )
     log.info(
         "[eval] %s test bank (seed %d): ledger row %d for this bank, %s",

@@ -26,6 +26,7 @@ import argparse
 import csv
 import functools
 import gzip
+import hashlib
 import json
 import math
 import re
@@ -483,8 +484,14 @@ def _ledger_mismatch(rows: list[dict], entry: dict) -> str | None:
     return None
 
 
-def ledger_problems(stem: str, rows: list[dict], meta: dict, ledger: Path | None) -> list[str]:
-    """Why the published test-bank evaluation ``stem`` is not the one a ledger row recorded (empty: it is)."""
+def rows_sha(rows_path: Path) -> str:
+    """SHA-256 of a published rows file's content: the evaluation's ``results.csv`` as it was written."""
+    return hashlib.sha256(gzip.decompress(Path(rows_path).read_bytes())).hexdigest()
+
+
+def ledger_problems(stem: str, rows: list[dict], meta: dict, ledger: Path | None, digest: str = "") -> list[str]:
+    """Why the published test-bank evaluation ``stem`` (its rows, and ``digest``: their file's ``rows_sha``) is not
+    the one a ledger row recorded (empty: it is). A ledger row recorded before digests holds none to compare."""
     if meta.get("bank") != "test":
         return []
     where = f"{meta['family']} test bank (seed {meta['bank_seed']}), experiment {meta['experiment']!r}"
@@ -499,7 +506,12 @@ def ledger_problems(stem: str, rows: list[dict], meta: dict, ledger: Path | None
     ]
     if not entries:
         return [f"{stem}: {ledger} has no row for the {where}; publish only an evaluation the ledger recorded"]
-    mismatches = [_ledger_mismatch(rows, e) for e in entries]
+    mismatches = [
+        f"their SHA-256 is {digest[:12]}, the ledger recorded {e['rows_sha'][:12]}"
+        if e.get("rows_sha") and digest and e["rows_sha"] != digest
+        else _ledger_mismatch(rows, e)
+        for e in entries
+    ]
     if all(mismatches):
         return [f"{stem}: the rows are not the evaluation {ledger} recorded for the {where}: {mismatches[-1]}"]
     return []
@@ -535,7 +547,8 @@ def recheck_directory(directory: Path, ledger: Path | None = None) -> list[str]:
     evaluations = published(directory)
     ledger = ledger or ledger_of(directory)
     for stem, (rows, meta) in evaluations.items():
-        problems += ledger_problems(stem, rows, meta, ledger)
+        digest = rows_sha(directory / (stem + ROWS)) if meta.get("bank") == "test" else ""
+        problems += ledger_problems(stem, rows, meta, ledger, digest)
         if meta["family"] not in (NCAP, ACTION_EFFECT):
             problems += row_count_problems(stem, rows, meta)
         path = directory / (stem + TABLES)
