@@ -1,7 +1,7 @@
 #!/bin/bash
 # One smoke R1 agent of 3,000 steps (checkpoints every 1,000), trained by the code in checkout $1 on the smoke world
 # model under $2 (an experiment `t` built by collect, train_vae and train_rnn at scale=smoke), in a fresh run folder.
-# For timing the DDPG loop of two checkouts against each other with farm-bench --vs (benchmarks/RESULTS.md).
+# For timing the DDPG loop of two checkouts against each other with `python -m benchmarks.ab` (benchmarks/RESULTS.md).
 set -u
 venv="$(cd "$(dirname "$0")/.." && pwd)/.venv"
 cd "$1"; d=$(mktemp -d); cp -r "$2/runs" "$d/runs"

@@ -1,7 +1,7 @@
-"""50,000 batch-1 DDPG decisions on the CPU, for timing the device setting's moves with farm-bench --vs.
+"""50,000 batch-1 DDPG decisions on the CPU, for timing the device setting's moves with benchmarks/ab.py.
 
-    farm-bench -n 5 --vs ".venv/bin/python -m benchmarks.decision_device_ab plain" -- \
-        .venv/bin/python -m benchmarks.decision_device_ab device
+    python -m benchmarks.ab -n 5 --a ".venv/bin/python -m benchmarks.decision_device_ab device" \
+        --b ".venv/bin/python -m benchmarks.decision_device_ab plain"
 
 ``plain`` decides as DDPG.act did before the device setting (no move to the device and back); ``device`` calls
 DDPG.act as it is (benchmarks/RESULTS.md).

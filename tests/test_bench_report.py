@@ -12,7 +12,7 @@ def test_rewriting_the_results_keeps_the_sections_written_by_hand(tmp_path):
     results.mkdir()
     machine = {"cpu": "test cpu", "cpus": 2, "python": "3", "platform": "p", "numpy": "2", "torch": "2"}
     (results / "probe.json").write_text(json.dumps({"machine": machine, "frames_per_s": 12.5}))
-    hand = f"## An A/B timing\n{run.BY_HAND}\n\nratio 1.01, measured with farm-bench.\n"
+    hand = f"## An A/B timing\n{run.BY_HAND}\n\nratio 1.01, measured in alternating pairs.\n"
     report = tmp_path / "RESULTS.md"
     report.write_text(f"# Benchmark results\n\n## A stale generated section\n\nold numbers\n\n{hand}")
 
