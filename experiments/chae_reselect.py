@@ -84,6 +84,8 @@ def main(argv=None) -> None:
         for name in ("last.pt", "metrics.json", "provenance.json"):
             shutil.copy2(src / name, dst / name)
         shutil.copy2(chae.validated_path(src, chosen["episode"]) if chosen else src / "best.pt", dst / "best.pt")
+        # the copy is a run of its own: its record names the checkpoints it now holds
+        artifacts.write_provenance(dst, {**artifacts.read_provenance(dst), "outputs": artifacts.output_digests(dst)})
         (dst / "reselection.json").write_text(json.dumps({**record, "training_choice": trained}, indent=1))
         listed = ", ".join(
             f"{r['episode']}: {r['bump_rate']:.1f} / {r['unnecessary_stop_rate']:.1f}" for r in record["rescored"]

@@ -398,6 +398,7 @@ def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, t
     import torch
 
     from experiments import chae_reselect
+    from worldmodel import artifacts
     from worldmodel.artifacts import AgentId
     from worldmodel.peers.chae import load_policy, rescore_choice, validated_path
 
@@ -408,6 +409,8 @@ def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, t
     for s in last["curve"]["validation"]:  # smoke's 12 episodes never learn to pass: call them inside the bars
         s.update(bump_rate={"1.5": 0.0}, max_bump_rate=0.0, unnecessary_stop_rate=0.0)
     torch.save(last, agent_dir / "last.pt")
+    record = artifacts.read_provenance(agent_dir)  # as if the run had written this last.pt
+    artifacts.write_provenance(agent_dir, {**record, "outputs": artifacts.output_digests(agent_dir)})
     with pytest.raises(SystemExit, match="judging draw"):
         chae_reselect.main([str(run), "--seeds", "0", "--out", str(tmp_path / "no"), "--draw", "102"])
     out = tmp_path / "t_reselected"
