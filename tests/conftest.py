@@ -17,6 +17,28 @@ from worldmodel.config import compose  # noqa: E402
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
+# The files that take longest, longest first. `make test` runs each file whole on one of two workers
+# (--dist loadfile) in collection order: a long file collected last (alphabetically, test_pipeline.py and
+# test_resume.py) would run alone at the end while the other worker idles. Taking them first lets the short files
+# fill in around them.
+SLOWEST_FIRST = (
+    "test_pipeline.py",
+    "test_resume.py",
+    "test_interrupt.py",
+    "test_published.py",
+    "test_device.py",
+    "test_train_rnn.py",
+    "test_kim.py",
+    "test_chae.py",
+    "test_planner.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: k for k, name in enumerate(SLOWEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file keeps its own order
+
+
 @pytest.fixture
 def stage_cfg(tmp_path):
     """stage_cfg("collect", "scale=smoke", ...) -> the real config rooted at tmp_path."""
