@@ -227,6 +227,21 @@ def test_every_number_in_a_reports_headline_tables_is_in_its_committed_tables():
         assert missing == [], f"{directory}/README.md quotes numbers its committed tables do not hold: {missing[:5]}"
 
 
+def test_a_learner_judged_later_on_its_own_world_model_joins_the_readme_table(tmp_path):
+    """A folder under porav/ with its own headline (a learner evaluated later beside braking and the planner) adds
+    its learned rows, marked, and not its scripted ones again."""
+    porav = tmp_path / "porav"
+    (porav / "later").mkdir(parents=True)
+    data = json.loads((published.RESULTS / "porav" / "headline.json").read_text())
+    (porav / "headline.json").write_text(json.dumps(data))
+    learned = {**data["policies"]["agent_r1"], "label": "A later learner"}
+    later = {**data, "policies": {p: data["policies"][p] for p in ("braking", "oracle")} | {"agent_x": learned}}
+    (porav / "later" / "headline.json").write_text(json.dumps(later))
+    table = published.readme_table(tmp_path)
+    assert "| A later learner † | 3 | -178.0 [-215.3, -145.4] | -159.3 [-194.9, -131.6] |" in table
+    assert table.count("Privileged planner") == 1 and "(docs/results/porav/later/)" in table
+
+
 def test_the_readme_result_table_is_the_generated_one():
     text = published.README.read_text()
     assert published.readme_with_table(text, published.readme_table()) == text, (

@@ -617,12 +617,25 @@ def readme_table(results: Path = RESULTS) -> str:
         lines.append(
             report._md_row([entry["label"], seeds, _share_text(entry["validation"]), _share_text(entry["test"])])
         )
+    # a learner judged later, on a world model of its own, with braking and the planner evaluated again beside it
+    later = sorted(path.parent for path in (Path(results) / "porav").glob("*/headline.json"))
+    for folder in later:
+        for p, entry in json.loads((folder / "headline.json").read_text())["policies"].items():
+            if p not in SCRIPTED:
+                label = f"{entry['label']} †"
+                seeds = str(len(entry["test"]["seeds"]))
+                lines.append(
+                    report._md_row([label, seeds, _share_text(entry["validation"]), _share_text(entry["test"])])
+                )
     lines += [
         "",
         f"Paper scale; validation bank seed {data['banks']['validation']}, sealed test bank seed "
         f"{data['banks']['test']} (evaluated {data['test_bank_uses']} time(s)); 95 % paired-bootstrap intervals. "
         "0 = straight-line braking, 100 = the privileged planner. Report: docs/results/porav/README.md.",
     ]
+    if later:
+        where = ", ".join(f"docs/results/porav/{folder.name}/" for folder in later)
+        lines[-1] += f" † Judged later on a second world model of the same settings ({where})."
     return "\n".join(lines)
 
 
