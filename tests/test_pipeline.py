@@ -6,6 +6,7 @@ import csv
 import json
 import logging
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,8 @@ from worldmodel.common import StageError, make_env
 from worldmodel.config import compose, validate
 from worldmodel.peers import common as peers_common
 from worldmodel.report import read_results_csv
+
+REPO = Path(__file__).resolve().parent.parent
 
 pytestmark = pytest.mark.slow  # every stage at scale=smoke, end to end
 
@@ -47,19 +50,19 @@ OUTPUTS = [
 BANKS = "banks=[validation,test]"  # the validation bank, then the sealed test bank once
 
 
+def smoke_cfg_overrides(root) -> list[str]:
+    return [
+        f"paths.data_root={root}/data",
+        f"paths.runs_root={root}/runs",
+        f"paths.ledger={root}/ledger.csv",
+        "experiment=t",
+        "scale=smoke",
+        "threads=1",
+    ]
+
+
 def smoke_cfg(root, stage="pipeline", *overrides):
-    return compose(
-        stage,
-        [
-            f"paths.data_root={root}/data",
-            f"paths.runs_root={root}/runs",
-            f"paths.ledger={root}/ledger.csv",
-            "experiment=t",
-            "scale=smoke",
-            "threads=1",
-            *overrides,
-        ],
-    )
+    return compose(stage, [*smoke_cfg_overrides(root), *overrides])
 
 
 @pytest.fixture(scope="module")
@@ -484,3 +487,43 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     assert published.recheck(root / "docs") == []
     # the bank runs after the pipeline, not in it: the experiment's stage times are not what made these rows
     assert (runs / "pipeline.json").exists() and not (root / "docs/ncap" / published.STAGE_TIMES).exists()
+
+
+def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what_inline_writes(experiment, tmp_path):
+    """launcher=local runs each level's steps as submitit jobs on their own cores. Killed outright while its agent
+    jobs run, then rerun, it waits for the jobs the first one left and finishes; the rows and the models' hashes are
+    those of the inline pipeline (the module's experiment) for the same policies."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root = tmp_path / "launched"
+    shutil.copytree(experiment / "data", root / "data")  # the same world model: the agents and the evaluation run
+    for stage in ("vae", "rnn"):
+        shutil.copytree(experiment / "runs/t" / stage, root / "runs/t" / stage)
+    args = ["launcher=local", "agents=[ddpg]", "evaluate.policies=[braking]"]
+    command = [sys.executable, "-m", "worldmodel.pipeline", *smoke_cfg_overrides(root), *args]
+    log = tmp_path / "first.log"
+    with open(log, "w") as out:
+        first = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
+        deadline = time.time() + 240
+        while "agent_r1: job" not in log.read_text() and time.time() < deadline and first.poll() is None:
+            time.sleep(0.2)
+        assert "agent_r1: job" in log.read_text(), log.read_text()[-2000:]
+        os.kill(first.pid, signal.SIGKILL)  # the launcher alone: its jobs go on
+        first.wait()
+    pipeline.run(smoke_cfg(root, "pipeline", *args))
+
+    launched = read_results_csv(root / "runs/t/eval/results.csv")
+    inline = [
+        r
+        for r in read_results_csv(experiment / "runs/t/eval/results.csv")
+        if r["policy"] in ("braking", "agent_r1", "agent_r2")
+    ]
+    assert repr(launched) == repr(inline)
+    # a step the first launcher's job finished is complete on disk; it recorded no time, having been killed
+    timings = json.loads((root / "runs/t/pipeline.json").read_text())
+    assert "collect" not in timings and timings["eval"]["complete"]  # the world model was complete: skipped
+    assert all(timings.get(f"agent_{r}", {"complete": True})["complete"] for r in ("r1", "r2"))

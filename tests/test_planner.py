@@ -52,7 +52,7 @@ def test_the_evaluation_planner_is_never_worse_than_braking_where_braking_leaves
     env = UrbanCollisionEnv(camera=False)
     assert planner.step_s == env.step_s
     checked, improved, worse = 0, 0, []
-    for entry in make_bank(ttcs=(0.5, 0.75), speeds=(20.0,), per_cell=6, seed=2018):
+    for entry in make_bank(ttcs=(0.5, 0.75), speeds=(20.0,), per_cell=4, seed=2018):
         braking = total_injury(play(env, StraightLineBraking(), entry.spec))
         if braking <= 0.0:
             continue
@@ -61,7 +61,7 @@ def test_the_evaluation_planner_is_never_worse_than_braking_where_braking_leaves
         improved += planned < braking - 1e-9
         if planned > braking + 1e-9:
             worse.append((entry.scenario_id, entry.hazard, entry.ttc, entry.speed, braking, planned))
-    assert checked >= 30, checked
+    assert checked >= 20, checked
     assert worse == []
     assert improved > 0  # a planner that only ever braked would meet the bound above on every scenario
 

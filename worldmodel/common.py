@@ -5,6 +5,7 @@ Paths and loaders live in ``artifacts.py``, config composition in ``config/`` (d
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import hashlib
@@ -118,6 +119,10 @@ def _alive(pid: int) -> bool:
     return True
 
 
+class LockHeldError(StageError):
+    """Another process holds the writer lock of the folder a stage would write."""
+
+
 _HELD_LOCKS: dict[Path, tuple[Any, int]] = {}  # lock file -> (its open handle, how many holders in this process)
 
 
@@ -146,7 +151,7 @@ def writer_lock(directory: Path, what: str):
             handle.seek(0)
             holder = handle.read().strip() or "a process that has not said which"
             handle.close()
-            raise StageError(
+            raise LockHeldError(
                 f"{directory} is being written by another process ({holder}). Wait for it to end, or stop it: two "
                 f"writers of {what} would mix their files."
             ) from None
@@ -164,6 +169,24 @@ def writer_lock(directory: Path, what: str):
         else:
             del _HELD_LOCKS[path]
             handle.close()  # closing the file releases the lock
+
+
+def lock_holder(directory: Path) -> str | None:
+    """Who holds ``directory``'s writer lock (``writer_lock``): the holder's own line, or None when it is free."""
+    import fcntl
+
+    directory = Path(directory).absolute()
+    path = directory.parent / f".{directory.name}.lock"
+    if path in _HELD_LOCKS or not path.exists():
+        return None
+    with open(path, "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            return handle.read().strip() or "another process"
+        fcntl.flock(handle, fcntl.LOCK_UN)
+    return None
 
 
 def clean_temporaries(directory: Path, name: str = "*") -> int:
@@ -197,8 +220,30 @@ def atomic_torch_save(obj: Any, path: Path) -> None:
     import torch
 
     buf = io.BytesIO()
-    torch.save(to_cpu(obj), buf)
+    torch.save(interned(to_cpu(obj)), buf)
     atomic_write_bytes(path, buf.getvalue())
+
+
+def interned(obj: Any) -> Any:
+    """``obj`` with every string in its dicts, lists and tuples interned (the containers rebuilt, their attributes
+    kept). Pickle writes an object it has seen once and refers back to it after, so a state holding equal strings as
+    one object or as copies saves to different bytes: a config unpickled in a job process holds copies where the
+    pipeline's own holds one. Interned, the same content saves to the same bytes, and so has the same digest,
+    however it was built."""
+    import sys
+
+    if type(obj) is str:
+        return sys.intern(obj)
+    if type(obj) in (dict, collections.OrderedDict):
+        out = type(obj)((interned(k), interned(v)) for k, v in obj.items())
+        for name, value in getattr(obj, "__dict__", {}).items():  # a state_dict's _metadata
+            setattr(out, name, interned(value))
+        return out
+    if type(obj) is list:
+        return [interned(v) for v in obj]
+    if type(obj) is tuple:
+        return tuple(interned(v) for v in obj)
+    return obj
 
 
 def _off_cpu(obj: Any) -> bool:

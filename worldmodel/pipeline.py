@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from omegaconf import OmegaConf
 
-from . import artifacts
+from . import artifacts, launcher
 from .artifacts import AgentId
 from .common import StageError, atomic_write_text, writer_lock
 from .config import agent_preset, hydra_main, peer_preset, preset_globals, validate
@@ -268,40 +268,59 @@ def _run_steps(cfg) -> dict:
     timings = _timings(cfg)
     t_all = time.perf_counter()
     planned = steps(cfg)
-    for step in planned:
+    states: dict[str, str] = {}
+
+    def prepare(step: Step):
+        """The step's config when it has to run (a stale one set aside first); None when it is complete."""
         stage_cfg = OmegaConf.merge(cfg, {"resume": True}, step.changes)
         state, reasons = status(stage_cfg, step)
+        states[step.name] = state
         if state == "complete":
             log.info(
                 "[pipeline] %s: complete (%s), skipped", step.name, artifacts.marker(stage_cfg, step.kind, step.agent)
             )
-            continue
+            return None
         if state == "stale":  # set aside under the stage's own lock: no hand-run writer is inside it
             with writer_lock(artifacts.output_dir(stage_cfg, step.kind, step.agent), f"the {step.name} step"):
                 moved = artifacts.retire(stage_cfg, artifacts.output_dir(stage_cfg, step.kind, step.agent))
             log.info("[pipeline] %s: stale (%s); set aside in %s, rebuilding", step.name, "; ".join(reasons), moved)
         else:
             log.info("[pipeline] %s: running", step.name)
+        return stage_cfg
+
+    def record(step: Step, outcome: dict) -> None:
+        """Add a step's run (``wall_s``, ``peak_rss_mb``, ``stopped``) to its record in ``pipeline.json``."""
         # an interrupted step's record holds its time so far; resumed, the step adds to it
+        state = states[step.name]
         before = timings.get(step.name, {}) if state == "resume" else {}
         before = before if before.get("complete") is False else {}
-        t0 = time.perf_counter()
-        with PeakMemory() as mem:
-            result = step.run(stage_cfg)
-        stopped = isinstance(result, dict) and bool(result.get("stopped"))
         timings[step.name] = {
-            "wall_s": round(before.get("wall_s", 0.0) + time.perf_counter() - t0, 1),
-            "peak_rss_mb": round(max(before.get("peak_rss_mb", 0.0), mem.peak_mb), 1),
+            "wall_s": round(before.get("wall_s", 0.0) + outcome["wall_s"], 1),
+            "peak_rss_mb": round(max(before.get("peak_rss_mb", 0.0), outcome["peak_rss_mb"]), 1),
             "scale": OmegaConf.select(cfg, "scale_name", default=None),
             "invocations": before.get("invocations", 0) + 1,
-            "complete": not stopped,
+            "complete": not outcome["stopped"],
             # resumed from a part that no record times (a process killed outright): wall_s is a lower bound
             "untimed_part": bool(before.get("untimed_part")) if before else state == "resume",
         }
         atomic_write_text(timing_path, json.dumps(timings, indent=2))
-        if stopped:
-            log.info("[pipeline] %s was interrupted; rerun the pipeline to continue.", step.name)
-            return timings
+
+    if cfg.launcher == "inline":
+        for step in planned:
+            stage_cfg = prepare(step)
+            if stage_cfg is None:
+                continue
+            t0 = time.perf_counter()
+            with PeakMemory() as mem:
+                result = step.run(stage_cfg)
+            stopped = isinstance(result, dict) and bool(result.get("stopped"))
+            record(step, {"wall_s": time.perf_counter() - t0, "peak_rss_mb": mem.peak_mb, "stopped": stopped})
+            if stopped:
+                log.info("[pipeline] %s was interrupted; rerun the pipeline to continue.", step.name)
+                return timings
+    elif not launcher.launch(cfg, planned, prepare, record):
+        log.info("[pipeline] a step was interrupted; rerun the pipeline to continue.")
+        return timings
     evaluations = [artifacts.eval_dir(OmegaConf.merge(cfg, s.changes)) for s in planned if s.kind == "eval"]
     log.info(
         "[pipeline] done in %.0f s (this run). Stage times: %s\n%s  TensorBoard: .venv/bin/tensorboard --logdir %s",

@@ -19,6 +19,7 @@ from .world_model import RNNConfig, VAEConfig
 # or outside it
 EXPERIMENT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 PEERS = REGISTRY  # peer system -> its agent preset (conf/agent/), on its own family (worldmodel/peers/)
+LAUNCHERS = ("inline", "local", "slurm")  # how the pipeline runs its steps (worldmodel/launcher.py)
 
 
 @dataclass
@@ -63,6 +64,13 @@ class ExperimentConfig(Checked):
     # the pipeline only: list each step's state (complete, resume, fresh, stale and why, or after a step that runs
     # first) and the recorded wall time of the finished ones, and run nothing; for a long run, where it stands
     plan: bool = False
+    # the pipeline only: how its steps run. inline: one after another in this process. local: as processes on
+    # this machine, up to launcher_jobs at once, each on its own share of the cores (worker counts left at auto
+    # follow it). slurm: each step a SLURM job with conf/hydra/launcher/slurm.yaml's resources, up to launcher_jobs
+    # at once. Steps run together only when none reads another's output (worldmodel/launcher.py)
+    launcher: str = "inline"
+    # steps at once under launcher=local or slurm; 2 on 2 cores gives each step one
+    launcher_jobs: int = 2
     paths: PathsConfig = field(default_factory=PathsConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     demos: DemosConfig = field(default_factory=DemosConfig)
@@ -84,6 +92,9 @@ class ExperimentConfig(Checked):
                 value = self.seed if key == "seed" else values
                 yield ConfigValueError(key, value, "seeds are whole numbers >= 0 (numpy's generators take no other)")
         yield from _positive(self, "threads")
+        yield from _positive(self, "launcher_jobs")
+        if self.launcher not in LAUNCHERS:
+            yield ConfigValueError("launcher", self.launcher, f"use {', '.join(LAUNCHERS)}")
         from ..common import AMP_SETTINGS, DEVICE_SETTING
 
         for key in ("device", "decision_device"):
