@@ -513,7 +513,9 @@ def ledger_problems(stem: str, rows: list[dict], meta: dict, ledger: Path | None
         for e in entries
     ]
     if all(mismatches):
-        return [f"{stem}: the rows are not the evaluation {ledger} recorded for the {where}: {mismatches[-1]}"]
+        # with several rows for the bank, the nearest: one that lists the same policies, if any does
+        nearest = next((m for m in mismatches if not m.startswith("policies differ")), mismatches[-1])
+        return [f"{stem}: the rows are not the evaluation {ledger} recorded for the {where}: {nearest}"]
     return []
 
 
