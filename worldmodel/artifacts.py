@@ -357,6 +357,14 @@ def retire(cfg, directory: Path) -> Path | None:
     return target
 
 
+def refuse_unless_allowed_stale(cfg, message: str) -> None:
+    """A StageError with ``message``, or under ``allow_stale=true`` a warning and on."""
+    if cfg.get("allow_stale", False):
+        log.warning("allow_stale=true: %s", message)
+        return
+    raise StageError(message)
+
+
 # ----------------------------------------------------------------------------- outputs
 CHECKPOINTS = ("best.pt", "last.pt")  # a training run's files whose digests its record keeps once it finished
 
@@ -390,10 +398,7 @@ def check_output(cfg, path: Path, what: str, rebuild: str) -> None:
         f"{Path(path).parent} and rerun `{rebuild}` (the pipeline sets such a run aside and rebuilds it and what "
         "was built on it); allow_stale=true loads it anyway."
     )
-    if cfg.get("allow_stale", False):
-        log.warning("allow_stale=true: %s", message)
-        return
-    raise StageError(message)
+    refuse_unless_allowed_stale(cfg, message)
 
 
 # ----------------------------------------------------------------------------- checked loading
@@ -423,10 +428,7 @@ def check_inputs(cfg, what: str, path: Path, state: dict, inputs: dict[str, Path
         f"`python -m worldmodel.pipeline experiment={cfg.experiment}`, which rebuilds every stale stage), "
         "or pass allow_stale=true to load it anyway."
     )
-    if cfg.get("allow_stale", False):
-        log.warning("allow_stale=true: %s", message)
-        return
-    raise StageError(message)
+    refuse_unless_allowed_stale(cfg, message)
 
 
 def open_rollouts(cfg):

@@ -191,30 +191,12 @@ def split_episodes(seed: int, episodes: int, fraction: float) -> dict:
     return {"train": sorted(int(i) for i in order[n_val:]), "validation": sorted(int(i) for i in order[:n_val])}
 
 
-def record_dataset(
-    root: Path,
-    settings: dict,
-    spec_of: Callable,
-    policy_of: Callable,
-    *,
-    resume: bool,
-    num_workers: int,
-    validation_fraction: float,
-    label: str,
-) -> dict:
-    """Write (or finish, or confirm) the dataset ``settings`` defines under ``root``; returns its summary."""
+def record_dataset(root: Path, settings: dict, *args, label: str, **kwargs) -> dict:
+    """Write (or finish, or confirm) the dataset ``settings`` defines under ``root``, holding its writer lock;
+    returns its summary. The rest of the arguments are ``_record_dataset``'s."""
     check_room(root, settings["episodes"], "demos.episodes" if label == "demonstrate" else "collect.episodes")
     with writer_lock(root, "one dataset"):
-        return _record_dataset(
-            root,
-            settings,
-            spec_of,
-            policy_of,
-            resume=resume,
-            num_workers=num_workers,
-            validation_fraction=validation_fraction,
-            label=label,
-        )
+        return _record_dataset(root, settings, *args, label=label, **kwargs)
 
 
 def _record_dataset(

@@ -183,10 +183,7 @@ class TrainingRun:
             f"them, or delete {self.dir} and rerun `{stage_command(self.command, self.cfg)}` to retrain; "
             "allow_stale=true keeps them anyway."
         )
-        if bool(self.cfg.get("allow_stale", False)):
-            log.warning("allow_stale=true: %s", message)
-            return
-        raise StageError(message)
+        artifacts.refuse_unless_allowed_stale(self.cfg, message)
 
     def _check_resumed_inputs(self) -> None:
         recorded = artifacts.read_provenance(self.dir)
@@ -206,10 +203,7 @@ class TrainingRun:
             f"them. Delete {self.dir} and rerun `{stage_command(self.command, self.cfg)}`, or run the "
             "pipeline, which sets stale runs aside and rebuilds them; allow_stale=true resumes anyway."
         )
-        if bool(self.cfg.get("allow_stale", False)):
-            log.warning("allow_stale=true: %s", message)
-            return
-        raise StageError(message)
+        artifacts.refuse_unless_allowed_stale(self.cfg, message)
 
     # ------------------------------------------------------------------ during training
     def save(self, state: dict, best: bool = False) -> None:
