@@ -142,3 +142,23 @@ def test_a_second_writer_is_refused_by_name_and_a_killed_one_leaves_no_lock(stag
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_a_finished_agent_resumed_with_nothing_left_to_do_saves_the_same_bytes(stage_cfg, experiment_copy):
+    """A launcher's job may start a step that a job before it has just finished: resumed, it has no step left and
+    saves its checkpoint again. What it loaded (arrays with dtypes of their own) saves as what it trained, so the
+    recorded digest and the evaluation rows' actor hash stay what they were."""
+    from worldmodel import train_agent
+
+    root = experiment_copy("rnn")
+    cfg = stage_cfg("train_agent", "reward=r1", "agent.total_steps=120", "agent.warmup_steps=60", root=root)
+    train_agent.run(cfg)
+    last = artifacts.AgentId.of(cfg).dir(cfg) / "last.pt"
+    before = file_sha256(last)
+    train_agent.run(
+        stage_cfg(
+            "train_agent", "reward=r1", "agent.total_steps=120", "agent.warmup_steps=60", "resume=true", root=root
+        )
+    )
+    assert file_sha256(last) == before
+    assert artifacts.changed_outputs(last.parent) == []

@@ -522,7 +522,13 @@ def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what
         for r in read_results_csv(experiment / "runs/t/eval/results.csv")
         if r["policy"] in ("braking", "agent_r1", "agent_r2")
     ]
-    assert repr(launched) == repr(inline)
+    differences = [
+        (k, key, a.get(key), b.get(key))
+        for k, (a, b) in enumerate(zip(launched, inline))
+        for key in sorted(set(a) | set(b))
+        if repr(a.get(key)) != repr(b.get(key))
+    ]
+    assert len(launched) == len(inline) and not differences, differences[:10]
     # a step the first launcher's job finished is complete on disk; it recorded no time, having been killed
     timings = json.loads((root / "runs/t/pipeline.json").read_text())
     assert "collect" not in timings and timings["eval"]["complete"]  # the world model was complete: skipped

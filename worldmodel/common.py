@@ -225,15 +225,21 @@ def atomic_torch_save(obj: Any, path: Path) -> None:
 
 
 def interned(obj: Any) -> Any:
-    """``obj`` with every string in its dicts, lists and tuples interned (the containers rebuilt, their attributes
-    kept). Pickle writes an object it has seen once and refers back to it after, so a state holding equal strings as
-    one object or as copies saves to different bytes: a config unpickled in a job process holds copies where the
-    pipeline's own holds one. Interned, the same content saves to the same bytes, and so has the same digest,
-    however it was built."""
+    """``obj`` with every string in its dicts, lists and tuples interned and every array's dtype numpy's own instance
+    (the containers rebuilt, their attributes kept). Pickle writes an object it has seen once and refers back to it
+    after, so a state holding equal strings (or dtypes) as one object or as copies saves to different bytes: a config
+    unpickled in a job process holds copies where the pipeline's own holds one, and an array loaded from a checkpoint
+    has a dtype of its own where a new one shares numpy's. Interned, the same content saves to the same bytes, and
+    so has the same digest, however it was built (a run resumed, or one that ran straight through)."""
     import sys
+
+    import numpy as np
 
     if type(obj) is str:
         return sys.intern(obj)
+    if type(obj) is np.ndarray and obj.dtype.fields is None:
+        canonical = np.dtype(obj.dtype.str)
+        return obj if canonical is obj.dtype or canonical != obj.dtype else obj.view(canonical)
     if type(obj) in (dict, collections.OrderedDict):
         out = type(obj)((interned(k), interned(v)) for k, v in obj.items())
         for name, value in getattr(obj, "__dict__", {}).items():  # a state_dict's _metadata
