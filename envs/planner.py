@@ -94,17 +94,36 @@ class _Plan:
         return self.manoeuvre.action(t_step - self.start)
 
 
-def plan_cost(twin: UrbanCollisionEnv, snap: dict, plan: _Plan, bound: float = math.inf, reward: str = "r2") -> float:
+def plan_cost(
+    twin: UrbanCollisionEnv,
+    snap: dict,
+    plan: _Plan,
+    bound: float = math.inf,
+    reward: str = "r2",
+    trace: list | None = None,
+) -> float:
     """The cost (minus the registered ``reward``; R2: the sum of injury probabilities) of the rest of the episode
-    from ``snap`` under ``plan``, simulated on the camera-less ``twin``; stops early once it reaches ``bound``."""
+    from ``snap`` under ``plan``, simulated on the camera-less ``twin``; stops early once it reaches ``bound``.
+    ``trace``: a list that receives each simulated step's reward."""
     twin.restore(snap)
     cost = 0.0
     key = f"reward_{reward}"
     while True:
         _, _, terminated, truncated, info = twin.step(plan.action(twin.t_step))
+        if trace is not None:
+            trace.append(info[key])
         cost -= info[key]
         if cost >= bound or terminated or truncated:
             return cost
+
+
+def cost_of_rest(trace: Sequence[float], done: int) -> float:
+    """What ``plan_cost`` returns for a plan's rollout restarted ``done`` steps into its ``trace`` (a rollout that
+    ran to the episode's end): the same rewards summed in the same order, so the same float."""
+    cost = 0.0
+    for r in trace[done:]:
+        cost -= r
+    return cost
 
 
 class PrivilegedPlanner:
@@ -147,6 +166,7 @@ class PrivilegedPlanner:
         self.env: UrbanCollisionEnv | None = None
         self._twin: UrbanCollisionEnv | None = None
         self.plan: _Plan | None = None
+        self._trace: tuple[int, list] = (0, [])
         self.seen_at: int | None = None  # the step the hazard first covered brake_until_pixels pixels
         self.rollouts = 0
 
@@ -179,6 +199,7 @@ class PrivilegedPlanner:
 
     def reset(self, seed: int | None = None) -> None:
         self.plan = None
+        self._trace: tuple[int, list] = (0, [])  # the step the committed plan was chosen, and its rollout's rewards
         self.seen_at = None
 
     def bind(self, env: UrbanCollisionEnv) -> None:
@@ -213,20 +234,25 @@ class PrivilegedPlanner:
             self._replan(t)
         return self.plan.action(t)
 
-    def _cost(self, snap: dict, plan: _Plan, bound: float) -> float:
+    def _cost(self, snap: dict, plan: _Plan, bound: float, trace: list) -> float:
         self.rollouts += 1
-        return plan_cost(self._twin, snap, plan, bound, self.reward)
+        return plan_cost(self._twin, snap, plan, bound, self.reward, trace)
 
     def _replan(self, t: int) -> None:
+        """Commit to the cheapest candidate started now, or keep the committed plan unless one is strictly cheaper.
+        The committed plan's cost from here is read from the rollout that chose it (the env has since followed that
+        rollout exactly, the scene being deterministic), not simulated again."""
         snap = self.env.snapshot()
-        best, best_cost = None, math.inf
+        best, best_cost, best_trace = None, math.inf, []
         if self.plan is not None:
-            best, best_cost = self.plan, self._cost(snap, self.plan, math.inf)
+            chosen_at, trace = self._trace
+            best, best_trace = self.plan, trace[t - chosen_at :]
+            best_cost = cost_of_rest(best_trace, 0)
         for m in self.candidates:
             if best_cost <= 0.0:
                 break
-            plan = _Plan(m, t)
-            cost = self._cost(snap, plan, best_cost)
-            if cost < best_cost:
-                best, best_cost = plan, cost
-        self.plan = best
+            plan, trace = _Plan(m, t), []
+            cost = self._cost(snap, plan, best_cost, trace)
+            if cost < best_cost:  # so its rollout was not cut short by the bound: it ran to the episode's end
+                best, best_cost, best_trace = plan, cost, trace
+        self.plan, self._trace = best, (t, best_trace)

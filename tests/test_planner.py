@@ -7,7 +7,7 @@ import pytest
 
 from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv, rollout
 from envs import scenario_bank as make_bank
-from envs.planner import Manoeuvre, PrivilegedPlanner, candidate_manoeuvres
+from envs.planner import Manoeuvre, PrivilegedPlanner, candidate_manoeuvres, cost_of_rest, plan_cost
 from worldmodel.common import StageError
 from worldmodel.config import compose, oracle_settings, validate
 
@@ -40,6 +40,29 @@ def test_restore_continues_bit_identically():
     # the snapshot is a copy: stepping the env did not change it, so restoring again replays the same steps
     twin.restore(snap)
     assert repr(twin.step(actions[0])) == repr(a[0])
+
+
+def test_the_committed_plans_cost_read_from_its_rollout_is_what_simulating_it_again_gives():
+    """The planner keeps the rewards of the rollout that chose its plan and reads the plan's remaining cost from
+    them at the next replan instead of simulating it again. At every step of seeded episodes that cost is the
+    float a fresh simulation from the env's present state gives."""
+    env = UrbanCollisionEnv(camera=False)
+    planner = PrivilegedPlanner(replan_every=3)
+    checked = 0
+    for entry in make_bank(ttcs=(0.5, 1.0), speeds=(15.0, 25.0), per_cell=1, seed=77):
+        env.reset(options={"scenario": entry.spec})
+        planner.reset()
+        planner.bind(env)
+        reference = env.planning_twin()
+        done = False
+        while not done:
+            action = planner.act(None, None)
+            chosen_at, trace = planner._trace
+            assert cost_of_rest(trace, env.t_step - chosen_at) == plan_cost(reference, env.snapshot(), planner.plan)
+            checked += 1
+            _, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    assert checked > 20
 
 
 def test_the_evaluation_planner_is_never_worse_than_braking_where_braking_leaves_injury(tmp_path):
