@@ -101,20 +101,37 @@ def plan_cost(
     bound: float = math.inf,
     reward: str = "r2",
     trace: list | None = None,
+    keep: dict | None = None,
+    start: tuple[list, dict] | None = None,
 ) -> float:
     """The cost (minus the registered ``reward``; R2: the sum of injury probabilities) of the rest of the episode
     from ``snap`` under ``plan``, simulated on the camera-less ``twin``; stops early once it reaches ``bound``.
-    ``trace``: a list that receives each simulated step's reward."""
-    twin.restore(snap)
+    ``trace``: a list that receives each step's reward. ``keep``: step counts -> None; after that many steps the
+    twin's snapshot is stored there (a rollout that ends or is cut short first stores none). ``start``: the rewards
+    and the twin's snapshot after the first steps of a rollout with the same actions from ``snap`` (a ``keep`` of
+    an earlier call): those steps are summed and checked against the bound as if simulated, then the rollout goes on
+    from the snapshot, so the cost is the same float."""
+    trace = [] if trace is None else trace
     cost = 0.0
     key = f"reward_{reward}"
+    if start is not None:
+        rewards, resume_from = start
+        for r in rewards:
+            trace.append(r)
+            cost -= r
+            if cost >= bound:
+                return cost
+        twin.restore(resume_from)
+    else:
+        twin.restore(snap)
     while True:
         _, _, terminated, truncated, info = twin.step(plan.action(twin.t_step))
-        if trace is not None:
-            trace.append(info[key])
+        trace.append(info[key])
         cost -= info[key]
         if cost >= bound or terminated or truncated:
             return cost
+        if keep is not None and len(trace) in keep:
+            keep[len(trace)] = twin.snapshot()
 
 
 def cost_of_rest(trace: Sequence[float], done: int) -> float:
@@ -167,6 +184,7 @@ class PrivilegedPlanner:
         self._twin: UrbanCollisionEnv | None = None
         self.plan: _Plan | None = None
         self._trace: tuple[int, list] = (0, [])
+        self._delays = sorted({m.delay for m in self.candidates if m.steer and m.delay})
         self.seen_at: int | None = None  # the step the hazard first covered brake_until_pixels pixels
         self.rollouts = 0
 
@@ -234,25 +252,34 @@ class PrivilegedPlanner:
             self._replan(t)
         return self.plan.action(t)
 
-    def _cost(self, snap: dict, plan: _Plan, bound: float, trace: list) -> float:
+    def _cost(self, snap: dict, plan: _Plan, bound: float, trace: list, **shared) -> float:
         self.rollouts += 1
-        return plan_cost(self._twin, snap, plan, bound, self.reward, trace)
+        return plan_cost(self._twin, snap, plan, bound, self.reward, trace, **shared)
 
     def _replan(self, t: int) -> None:
         """Commit to the cheapest candidate started now, or keep the committed plan unless one is strictly cheaper.
-        The committed plan's cost from here is read from the rollout that chose it (the env has since followed that
-        rollout exactly, the scene being deterministic), not simulated again."""
+
+        Two rollouts are not simulated again, with the same floats as if they were: the committed plan's cost from
+        here is read from the rollout that chose it (the env has since followed that rollout exactly, the scene being
+        deterministic), and a steering manoeuvre that starts after a delay continues the straight rollout with its
+        pedal from that delay (their actions are the same until then)."""
         snap = self.env.snapshot()
         best, best_cost, best_trace = None, math.inf, []
         if self.plan is not None:
             chosen_at, trace = self._trace
             best, best_trace = self.plan, trace[t - chosen_at :]
             best_cost = cost_of_rest(best_trace, 0)
+        straight: dict[tuple[float, int], tuple[list, dict]] = {}  # (pedal, delay) -> its first steps
         for m in self.candidates:
             if best_cost <= 0.0:
                 break
             plan, trace = _Plan(m, t), []
-            cost = self._cost(snap, plan, best_cost, trace)
+            if not m.steer:
+                keep = dict.fromkeys(self._delays)
+                cost = self._cost(snap, plan, best_cost, trace, keep=keep)
+                straight |= {(m.pedal, d): (trace[:d], kept) for d, kept in keep.items() if kept is not None}
+            else:
+                cost = self._cost(snap, plan, best_cost, trace, start=straight.get((m.pedal, m.delay)))
             if cost < best_cost:  # so its rollout was not cut short by the bound: it ran to the episode's end
                 best, best_cost, best_trace = plan, cost, trace
         self.plan, self._trace = best, (t, best_trace)

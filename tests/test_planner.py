@@ -7,7 +7,7 @@ import pytest
 
 from envs import ScenarioSpec, StraightLineBraking, UrbanCollisionEnv, rollout
 from envs import scenario_bank as make_bank
-from envs.planner import Manoeuvre, PrivilegedPlanner, candidate_manoeuvres, cost_of_rest, plan_cost
+from envs.planner import Manoeuvre, PrivilegedPlanner, _Plan, candidate_manoeuvres, cost_of_rest, plan_cost
 from worldmodel.common import StageError
 from worldmodel.config import compose, oracle_settings, validate
 
@@ -49,7 +49,7 @@ def test_the_committed_plans_cost_read_from_its_rollout_is_what_simulating_it_ag
     env = UrbanCollisionEnv(camera=False)
     planner = PrivilegedPlanner(replan_every=3)
     checked = 0
-    for entry in make_bank(ttcs=(0.5, 1.0), speeds=(15.0, 25.0), per_cell=1, seed=77):
+    for entry in make_bank(ttcs=(0.5, 1.0), speeds=(25.0,), per_cell=1, seed=77):
         env.reset(options={"scenario": entry.spec})
         planner.reset()
         planner.bind(env)
@@ -62,6 +62,34 @@ def test_the_committed_plans_cost_read_from_its_rollout_is_what_simulating_it_ag
             checked += 1
             _, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
+    assert checked > 20
+
+
+def test_a_delayed_manoeuvre_continued_from_the_straight_rollout_costs_what_simulating_it_whole_gives():
+    """A steering manoeuvre that starts after a delay acts as the straight one with its pedal until then: the planner
+    continues that rollout from its kept snapshot. Cost and rewards are the floats of the whole simulation, for
+    every bound (those that cut either part short included)."""
+    env = UrbanCollisionEnv(camera=False)
+    twin = env.planning_twin()
+    delayed = [m for m in candidate_manoeuvres() if m.steer and m.delay]
+    checked = 0
+    for entry in make_bank(ttcs=(0.5, 1.0), speeds=(15.0, 25.0), per_cell=1, seed=78):
+        env.reset(options={"scenario": entry.spec})
+        for _ in range(2):
+            env.step([0.0, -1.0])
+        snap, t = env.snapshot(), env.t_step
+        for m in delayed[::12]:
+            first, keep = [], {m.delay: None}
+            plan_cost(twin, snap, _Plan(Manoeuvre(m.pedal), t), trace=first, keep=keep)
+            if keep[m.delay] is None:  # the straight rollout ended first: nothing to continue
+                continue
+            for bound in (np.inf, 0.05, 1e-6):
+                whole, continued = [], []
+                expected = plan_cost(twin, snap, _Plan(m, t), bound, trace=whole)
+                start = (first[: m.delay], keep[m.delay])
+                assert plan_cost(twin, snap, _Plan(m, t), bound, trace=continued, start=start) == expected
+                assert continued == whole
+                checked += 1
     assert checked > 20
 
 
