@@ -285,6 +285,9 @@ class UrbanCollisionEnv(gym.Env):
         self._rect_radius = np.hypot(rects[:, 2], rects[:, 3])
         self._circle_centres = circles[:, :2]
         self._circle_radius = circles[:, 2]
+        # the narrow phase reads them one number at a time: Python floats, not numpy scalars, whose arithmetic gives
+        # the same doubles several times slower
+        self._rect_rows, self._circle_rows = rects.tolist(), circles.tolist()
 
     def step(self, action):
         if self.scenario is None:
@@ -311,6 +314,8 @@ class UrbanCollisionEnv(gym.Env):
         crashed = False
         done_sub = self.substeps
         t0 = self.t_step * dt
+        ped_xy, ped_vel, car_xy = act.ped_xy.tolist(), act.ped_vel.tolist(), act.car_xy.tolist()
+        car_vel, car_heading = act.car_vel.tolist(), act.car_heading.tolist()
         for k in range(1, self.substeps + 1):
             bumper_before = ego.x + self._hl
             integrate(ego, steer, pedal, sub_dt, p)
@@ -320,18 +325,20 @@ class UrbanCollisionEnv(gym.Env):
                 self.family_state.substep(act, bumper_before, ego.x + self._hl, t0, tau, sub_dt)
                 ped_idx = range(len(act.ped_active))
                 car_idx = np.flatnonzero(act.car_active)
+                ped_xy, ped_vel, car_xy = act.ped_xy.tolist(), act.ped_vel.tolist(), act.car_xy.tolist()
+                car_vel, car_heading = act.car_vel.tolist(), act.car_heading.tolist()
             for i in ped_idx:
                 if not act.ped_active[i]:
                     continue
-                px = act.ped_xy[i, 0] + act.ped_vel[i, 0] * tau
-                py = act.ped_xy[i, 1] + act.ped_vel[i, 1] * tau
+                px = ped_xy[i][0] + ped_vel[i][0] * tau
+                py = ped_xy[i][1] + ped_vel[i][1] * tau
                 if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, px, py, PEDESTRIAN_RADIUS):
                     act.ped_active[i] = False
                     hits.append(self._pedestrian_hit(i, t0 + tau))
             for i in car_idx:
-                cx = act.car_xy[i, 0] + act.car_vel[i, 0] * tau
-                cy = act.car_xy[i, 1] + act.car_vel[i, 1] * tau
-                h = act.car_heading[i]
+                cx = car_xy[i][0] + car_vel[i][0] * tau
+                cy = car_xy[i][1] + car_vel[i][1] * tau
+                h = car_heading[i]
                 if geometry.rect_rect(
                     ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, math.cos(h), math.sin(h), self._hl, self._hw
                 ):
@@ -339,13 +346,13 @@ class UrbanCollisionEnv(gym.Env):
                     hits.append(self._vehicle_crash(i, t0 + tau, c, s, point))
                     crashed = True
             for i in rect_idx:
-                cx, cy, hx, hy, cls = self.layout.rects[i]
+                cx, cy, hx, hy, cls = self._rect_rows[i]
                 if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, 1.0, 0.0, hx, hy):
                     point = geometry.closest_point(ego.x, ego.y, cx, cy, 1.0, 0.0, hx, hy)
                     hits.append(self._static_crash(int(i), int(cls), t0 + tau, point))
                     crashed = True
             for i in circ_idx:
-                cx, cy, r, cls = self.layout.circles[i]
+                cx, cy, r, cls = self._circle_rows[i]
                 if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, r):
                     hits.append(self._static_crash(int(i), int(cls), t0 + tau, (cx, cy)))
                     crashed = True

@@ -76,7 +76,7 @@ def run_policy(
     return rows
 
 
-_WORKER: dict = {}  # a pool worker's env and policy, built once: the pool lives for one evaluate_policy call
+_WORKER: dict = {}  # a pool worker's env and policy, built once per policy: the pool lives for one evaluation
 
 
 def _build(cfg_dict, name: str):
@@ -94,9 +94,13 @@ def _build(cfg_dict, name: str):
 
 
 def _run_chunk(task) -> list[dict]:
-    """Pool worker side: (config, policy name, entries) -> rows."""
+    """Pool worker side: (config, policy name, entries) -> rows. The chunks come policy by policy, so a worker keeps
+    the policy it is running and lets the one before it go."""
     cfg_dict, name, entries = task
     if name not in _WORKER:
+        for env, *_ in _WORKER.values():
+            env.close()
+        _WORKER.clear()
         _WORKER[name] = _build(cfg_dict, name)
     env, policy, seed, models = _WORKER[name]
     return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
@@ -104,28 +108,39 @@ def _run_chunk(task) -> list[dict]:
 
 def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
     """Rows of one policy over ``entries``, in bank order, using ``workers`` processes."""
+    return evaluate_policies(cfg, [name], entries, workers)[name]
+
+
+def evaluate_policies(cfg, names: list[str], entries, workers: int) -> dict[str, list[dict]]:
+    """Each policy's rows over ``entries``, in bank order, using ``workers`` processes. One pool serves every policy
+    (starting one per policy cost each worker its imports and the world model's digests again), fed in chunks
+    policy after policy."""
     from omegaconf import OmegaConf
     from tqdm import tqdm
 
     cfg_dict = OmegaConf.to_container(cfg, resolve=True)
     chunk = max(1, min(25, len(entries) // (4 * max(1, workers)) or 1))
-    tasks = [(cfg_dict, name, entries[i : i + chunk]) for i in range(0, len(entries), chunk)]
-    rows: list[dict] = []
-    with tqdm(total=len(entries), desc=name, unit="scenario") as bar:
+    tasks = [(cfg_dict, name, entries[i : i + chunk]) for name in names for i in range(0, len(entries), chunk)]
+    rows: dict[str, list[dict]] = {name: [] for name in names}
+    with tqdm(total=len(tasks) and len(entries) * len(names), desc="evaluate", unit="scenario") as bar:
         if workers <= 1:
-            # built afresh on every call, never cached in this process: a checkpoint may have been replaced
-            # (retrained, or rebuilt by the pipeline) since the last evaluation here
-            env, policy, seed, models = _build(cfg_dict, name)
-            try:
-                for _, _, part in tasks:
-                    rows += run_policy(env, policy, part, desc=False, policy_seed=seed, models=models)
-                    bar.update(len(part))
-            finally:
-                env.close()
+            for name in names:
+                bar.set_postfix_str(name)
+                # built afresh on every call, never cached in this process: a checkpoint may have been replaced
+                # (retrained, or rebuilt by the pipeline) since the last evaluation here
+                env, policy, seed, models = _build(cfg_dict, name)
+                try:
+                    for i in range(0, len(entries), chunk):
+                        part = entries[i : i + chunk]
+                        rows[name] += run_policy(env, policy, part, desc=False, policy_seed=seed, models=models)
+                        bar.update(len(part))
+                finally:
+                    env.close()
         else:
             with worker_pool(workers) as pool:
-                for part in pool.imap(_run_chunk, tasks):
-                    rows += part
+                for (_, name, _), part in zip(tasks, pool.imap(_run_chunk, tasks)):
+                    bar.set_postfix_str(name, refresh=False)
+                    rows[name] += part
                     bar.update(len(part))
     return rows
 
@@ -181,9 +196,8 @@ def _evaluate_porav(cfg, typed) -> dict:
     record = artifacts.provenance(cfg, "eval")
     for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs
         policy_for(cfg, key)
-    rows = []
-    for key in [p for p in SCRIPTED_POLICIES if p in typed.evaluate.policies] + agents:
-        rows += evaluate_policy(cfg, key, entries, workers)
+    names = [p for p in SCRIPTED_POLICIES if p in typed.evaluate.policies] + agents
+    rows = [r for policy_rows in evaluate_policies(cfg, names, entries, workers).values() for r in policy_rows]
     if not agents:
         log.info(
             "[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
