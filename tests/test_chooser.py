@@ -284,7 +284,7 @@ def test_a_trained_chooser_that_switches_late_costs_offline_what_it_costs_live(t
     encoder = artifacts.load_world_model(cfg)
     x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True, "tele")
     with torch.no_grad():
-        pred = policy.scores.scorer(torch.from_numpy(x)).numpy().astype(np.float64)
+        pred = policy.scores.scorer(torch.from_numpy(x[:])).numpy().astype(np.float64)
     gaps = pred[:, 0] - pred.min(1)  # how much cheaper than braking the cheapest candidate is predicted (switch_choice)
     late = []  # (episode, frame, margin) where a margin lets the first switch fall on that frame, not before
     for e in np.unique(data["episode"]):

@@ -222,12 +222,12 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
 def test_parallel_evaluation_equals_one_process(experiment):
     cfg = smoke_cfg(experiment, "evaluate")
     entries = evaluate.bank(cfg)[:4]
-    # the planner (scripted, re-simulating in the workers), an agent and the chooser (torch in the workers): how
-    # scenarios are split among workers must not matter
-    for name in ("oracle", "agent_r2/seed0", "agent_r2_chooser/seed0"):
-        one = evaluate.evaluate_policy(cfg, name, entries, workers=1)
-        two = evaluate.evaluate_policy(cfg, name, entries, workers=2)
-        assert repr(one) == repr(two)
+    # the planner (scripted, re-simulating in the workers), an agent and the chooser (torch in the workers), one
+    # pool serving all three in turn: how scenarios are split among workers must not matter
+    names = ["oracle", "agent_r2/seed0", "agent_r2_chooser/seed0"]
+    one = evaluate.evaluate_policies(cfg, names, entries, workers=1)
+    two = evaluate.evaluate_policies(cfg, names, entries, workers=2)
+    assert list(two) == names and repr(one) == repr(two)
 
 
 def test_evaluation_rows_name_the_models_that_produced_them(experiment):

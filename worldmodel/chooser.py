@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from envs.chooser import BRAKE, HAZARD_STATE, ManoeuvreChooser, decide_steps_for, switch_choice
 from envs.planner import Manoeuvre
+from envs.scene import CLASS_NAMES
 from envs.streams import CHOOSER_MINIBATCHES
 from envs.views import MaskView
 
@@ -51,7 +52,7 @@ from .chooser_labels import (  # noqa: F401
     labels_dir,
     validation_entries,
 )
-from .common import StageError, resolve_device, seed_everything, set_threads
+from .common import StageError, resolve_device, reuse_freed_memory, seed_everything, set_threads
 from .config import validate
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,7 @@ TARGETS = ("cost", "advantage", "policy")
 # fall in rows 8-46 on braking's first three frames
 MASK_ROWS = {"wide": (20, 44), "tele": (8, 48)}
 MASK_OBS = {"wide": "seg", "tele": TELE_KEY}
-PREDICT_CHUNK = 2048  # rows per forward pass when scoring many labelled states (Scorer.predict)
+PREDICT_CHUNK = 512  # rows per forward pass when scoring many labelled states (Scorer.predict): ~0.3 GB of activations
 HELD_OUT = 0.15  # share of labelled episodes held out for selecting the scorer
 
 
@@ -155,11 +156,12 @@ class Scorer(nn.Module):
         return torch.stack([self.to_costs(self.raw(x, m)) for m in range(len(self.nets))]).mean(0)
 
     @torch.no_grad()
-    def predict(self, x: np.ndarray | torch.Tensor, chunk: int = PREDICT_CHUNK) -> np.ndarray:
+    def predict(self, x: ScorerInputs | np.ndarray | torch.Tensor, chunk: int = PREDICT_CHUNK) -> np.ndarray:
         """The predicted costs of many inputs, ``chunk`` rows at a time: the frame band's convolutions over a whole
         held-out split at once took ~12 GB with 30,000 labelled episodes, and the rows do not interact."""
-        x, device = torch.as_tensor(x), self.mean.device
-        return torch.cat([self(x[i : i + chunk].to(device)).cpu() for i in range(0, len(x), chunk)]).numpy()
+        x = x if isinstance(x, ScorerInputs) else torch.as_tensor(x)
+        rows = (torch.as_tensor(x[i : i + chunk]).to(self.mean.device) for i in range(0, len(x), chunk))
+        return torch.cat([self(part).cpu() for part in rows]).numpy()
 
 
 def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarray:
@@ -167,31 +169,67 @@ def features(encoded: np.ndarray, t: np.ndarray, decide_steps: int) -> np.ndarra
     return np.concatenate([encoded, (np.asarray(t, np.float32) / decide_steps)[:, None]], axis=1).astype(np.float32)
 
 
-def mask_features(seg: np.ndarray, episode: np.ndarray, rows: tuple[int, int] = MASK_ROWS["wide"]) -> np.ndarray:
-    """The frame band of ``envs.views.MaskView`` for every labelled frame, episode by episode as a live run sees
-    it (the previous frame is zeros at each episode's start)."""
+class ScorerInputs:
+    """What the scorer reads for every labelled frame, kept small: the world-model features as float32, and the
+    frame band's class masks as uint8 with, per row, the row of the frame before it (-1 at an episode's start).
+    ``inputs[rows]`` gives the float rows ``Scorer`` takes, [features, band now, band of the frame before], which
+    are exactly ``MaskView``'s; ``subset(rows)`` selects rows without copying. Held as floats, the band took 41 kB
+    a labelled frame: 2.5 GB with 15,000 labelled episodes, and as much again while the splits were cut from it."""
+
+    def __init__(self, vec: np.ndarray, current=None, previous=None, index=None):
+        self.vec, self.current, self.previous = vec, current, previous
+        self.index = np.arange(len(vec)) if index is None else np.asarray(index)
+        self.band_dim = 0 if current is None else 2 * int(np.prod(current.shape[1:]))
+        self.shape = (len(self.index), vec.shape[1] + self.band_dim)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def subset(self, rows) -> ScorerInputs:
+        return ScorerInputs(self.vec, self.current, self.previous, self.index[rows])
+
+    def __getitem__(self, rows) -> np.ndarray:
+        full = self.index[rows]
+        out = np.zeros((len(full), self.shape[1]), np.float32)
+        d, half = self.vec.shape[1], self.band_dim // 2
+        out[:, :d] = self.vec[full]
+        if self.current is not None:
+            out[:, d : d + half] = self.current[full].reshape(len(full), -1)
+            before = self.previous[full]
+            has = before >= 0
+            out[has, d + half :] = self.current[before[has]].reshape(int(has.sum()), -1)
+        return out
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        return self[:] if dtype is None else self[:].astype(dtype)
+
+
+def band_masks(seg: np.ndarray, episode: np.ndarray, rows: tuple[int, int] = MASK_ROWS["wide"]):
+    """``MaskView``'s class masks of every labelled frame as uint8 ``(N, classes, band rows, W)``, and for each frame
+    the row of the one before it in its episode (-1 for the first), which ``MaskView`` pairs it with."""
     view = MaskView(rows)
-    out = np.empty((len(seg), view.dim), np.float32)
-    for e in np.unique(episode):
-        view.reset()
-        for r in np.flatnonzero(episode == e):
-            out[r] = view(seg[r])
-    return out
+    ids = np.array([CLASS_NAMES.index(c) for c in view.classes], np.uint8)
+    band = np.asarray(seg)[:, view.rows[0] : view.rows[1]]
+    current = np.equal(band[:, None], ids[:, None, None]).view(np.uint8)  # 0/1, as MaskView's floats
+    order = np.lexsort((np.arange(len(episode)), episode))  # each episode's rows in order
+    previous = np.full(len(episode), -1, np.int64)
+    same = episode[order][1:] == episode[order][:-1]
+    previous[order[1:][same]] = order[:-1][same]
+    return current, previous
 
 
-def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool, camera: str = "wide") -> np.ndarray:
+def scorer_inputs(encoder, data: dict, steps: int, mask_view: bool, camera: str = "wide") -> ScorerInputs:
     """Everything the scorer reads for every labelled frame: world-model features, decision step, and the frame
     band of ``camera``."""
     x = features(encode_labels(encoder, data), data["t"], steps)
     if not mask_view:
-        return x
+        return ScorerInputs(x)
     if MASK_OBS[camera] not in data:
         raise StageError(
             f"the chooser's frame band reads the {camera} camera, and these labels have no {MASK_OBS[camera]!r} "
             "frames: set env.tele_fov_deg (e.g. 30) to give the env its second camera"
         )
-    band = mask_features(data[MASK_OBS[camera]], data["episode"], MASK_ROWS[camera])
-    return np.concatenate([x, band], axis=1)
+    return ScorerInputs(x, *band_masks(data[MASK_OBS[camera]], data["episode"], MASK_ROWS[camera]))
 
 
 def policy_choices(pred: np.ndarray, episode: np.ndarray, margin: float, t=None, steps=None, min_brake_cost=0.0):
@@ -255,26 +293,37 @@ STATE_SCALE = np.array([1.0, 10.0, 5.0, 5.0, 5.0, 1.0, 10.0, 5.0, 5.0, 5.0], np.
 
 
 def fit_scorer(
-    x: np.ndarray, y: np.ndarray, episode: np.ndarray, c, seed: int, writer=None, stop=None, state=None, device="cpu"
+    x: ScorerInputs | np.ndarray,
+    y: np.ndarray,
+    episode: np.ndarray,
+    c,
+    seed: int,
+    writer=None,
+    stop=None,
+    state=None,
+    device="cpu",
 ):
     """Fit a ``Scorer`` on the training split (its ``target`` loss, plus ``c.aux_weight`` times the squared error
     of its guess of the privileged hazard ``state``, which shapes what its first layer perceives); keep the
     checkpoint whose chooser costs least on the held-out split. Returns (scorer, history of (minibatch,
     held-out cost, held-out mse)). The scorer and the training split live on ``device``; the minibatches are
-    drawn on the CPU, the same on every device (dropout's masks are the device's own)."""
+    drawn on the CPU, the same on every device (dropout's masks are the device's own). The rows of a minibatch
+    are put together when it is drawn (``ScorerInputs``), so the frame band is never held as floats whole."""
     device = torch.device(device)
+    reuse_freed_memory()
     torch.manual_seed(int(seed))
+    x = x if isinstance(x, ScorerInputs) else ScorerInputs(np.asarray(x, np.float32))
     is_held = held_out_split(episode)
     aux_weight = c.aux_weight
     if aux_weight > 0 and state is None:
         raise StageError("chooser.aux_weight > 0 needs labels with the hazard state: relabel them")
     st = torch.from_numpy(state[~is_held] / STATE_SCALE).to(device) if aux_weight > 0 else None
-    xt, yt = torch.from_numpy(x[~is_held]).to(device), torch.from_numpy(y[~is_held]).to(device)
-    xv, yv, ev = torch.from_numpy(x[is_held]), y[is_held], episode[is_held]
+    xt, yt = x.subset(~is_held), torch.from_numpy(y[~is_held]).to(device)
+    xv, yv, ev = x.subset(is_held), y[is_held], episode[is_held]
     members = c.ensemble
     mask_shape = MaskView(MASK_ROWS[c.mask_camera]).shape if c.mask_view else None
     scorer = Scorer(x.shape[1], y.shape[1], tuple(c.hidden), c.dropout, members, c.target, mask_shape)
-    vec = xt[:, : xt.shape[1] - scorer.mask_dim]
+    vec = torch.from_numpy(xt.vec[xt.index, : x.shape[1] - scorer.mask_dim])  # the features the scorer normalises
     scorer.mean.copy_(vec.mean(0))
     scorer.std.copy_(vec.std(0).clamp_min(1e-2))  # a feature constant in training (an empty profile row) stays 0
     scorer.to(device)  # built on the CPU from the seed: the same initial weights on every device
@@ -291,12 +340,13 @@ def fit_scorer(
     for k in tqdm(range(c.steps), desc="chooser scorer", unit="batch", disable=writer is None):
         loss = 0.0
         for m in range(members):  # each member its own minibatches
-            idx = torch.from_numpy(rng.integers(0, len(xt), size=c.batch_size)).to(device)
+            drawn = rng.integers(0, len(xt), size=c.batch_size)
+            idx, rows = torch.from_numpy(drawn).to(device), torch.from_numpy(xt[drawn]).to(device)
             if aux_weight > 0:
-                out, guess = scorer.raw(xt[idx], m, aux=True)
+                out, guess = scorer.raw(rows, m, aux=True)
                 loss = loss + scorer.loss(out, yt[idx]) + aux_weight * ((guess - st[idx]) ** 2).mean()
             else:
-                loss = loss + scorer.loss(scorer.raw(xt[idx], m), yt[idx])
+                loss = loss + scorer.loss(scorer.raw(rows, m), yt[idx])
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -345,6 +395,8 @@ def train(cfg, run_, agent_id) -> dict:
     data = labels(cfg)
     encoder = artifacts.load_world_model(cfg)
     x = scorer_inputs(encoder, data, steps, c.mask_view, c.mask_camera)
+    for frames in ("seg", TELE_KEY):  # read into the inputs: ~0.5 GB with 15,000 labelled episodes
+        data.pop(frames, None)
     y = data["costs"].astype(np.float32)
     static = data.get(STATIC_KEY)
     if c.static_penalty > 0 and static is None:
@@ -372,7 +424,7 @@ def train(cfg, run_, agent_id) -> dict:
         )
     is_held = held_out_split(data["episode"])
     yv, ev = y[is_held], data["episode"][is_held]
-    pred = scorer.predict(x[is_held])
+    pred = scorer.predict(x.subset(is_held))
     exact = policy_cost(yv, yv, ev, 0.0)
     braking = yv[np.r_[True, ev[1:] != ev[:-1]], 0]
     margins = {m: float(policy_cost(pred, yv, ev, m).mean()) for m in (0.0, 0.01, 0.02, 0.05, 0.1)}

@@ -469,6 +469,30 @@ def set_threads(n: int) -> None:
     torch.set_num_threads(max(1, int(n)))
 
 
+REUSED_BLOCK_BYTES = 1 << 28  # blocks up to this size are reused from the heap instead of mapped afresh
+
+
+def reuse_freed_memory() -> bool:
+    """Have glibc keep freed blocks of up to ``REUSED_BLOCK_BYTES`` for reuse instead of unmapping them. By default a
+    block over 32 MB is mapped when allocated and unmapped when freed, so a training step that allocates the same
+    large activations every minibatch (the chooser's frame-band convolutions: 42 MB each) faults their pages in
+    again each time: a third of the chooser's fit went to the kernel (benchmarks/RESULTS.md). Where the arithmetic
+    happens is unchanged, so are the results. Returns whether it applied (glibc only; elsewhere nothing changes)."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3
+    return bool(mallopt(m_mmap_threshold, REUSED_BLOCK_BYTES)) and bool(mallopt(m_trim_threshold, REUSED_BLOCK_BYTES))
+
+
 def check_finite(value: float, what: str, step: int, last_good: Path | None) -> None:
     """Stop on a NaN/inf loss; the last good checkpoint on disk is left untouched, and named only if there is one."""
     if not math.isfinite(value):
