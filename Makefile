@@ -23,8 +23,8 @@ run: setup
 # DDPG with R1 and R2, the best DDPG-actor variant (dag), the chooser, the two-camera chooser and the counterfactual-
 # cost actor, three seeds each; evaluated on the validation bank, then once on the sealed test bank (recorded in
 # docs/results/ledger.csv; an evaluation there after the first needs ARGS=evaluate.retest=true, and adds a row).
-# About 5 hours on 2 cores, the counterfactual actor's 10 min a seed included (docs/results/porav/headline.md and
-# counterfactual/headline.md: each stage); resumable: run it again to continue. launcher=slurm spreads it over a cluster.
+# About 4.5 hours on 2 cores, the counterfactual actor's 10 min a seed included (projected from each stage's recorded
+# time in docs/results/porav/ and the speed-ups in benchmarks/RESULTS.md); resumable: run it again to continue. launcher=slurm spreads it over a cluster.
 HEADLINE := experiment=headline scale=paper agents=[ddpg,dag,chooser,chooser_tele,counterfactual] seeds=[0,1,2] \
 	banks=[validation,test] demos.episodes=500 evaluate.policies=[braking,oracle,oracle_brake1,oracle_brake2]
 
