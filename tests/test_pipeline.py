@@ -503,15 +503,16 @@ def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what
     shutil.copytree(experiment / "data", root / "data")  # the same world model: the agents and the evaluation run
     for stage in ("vae", "rnn"):
         shutil.copytree(experiment / "runs/t" / stage, root / "runs/t" / stage)
-    args = ["launcher=local", "agents=[ddpg]", "evaluate.policies=[braking]"]
+    # two agents that train in a second or two, as two jobs on their own cores
+    args = ["launcher=local", "agents=[chooser,counterfactual]", "evaluate.policies=[braking]"]
     command = [sys.executable, "-m", "worldmodel.pipeline", *smoke_cfg_overrides(root), *args]
     log = tmp_path / "first.log"
     with open(log, "w") as out:
         first = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
         deadline = time.time() + 240
-        while "agent_r1: job" not in log.read_text() and time.time() < deadline and first.poll() is None:
+        while "agent_r2_counterfactual: job" not in log.read_text() and time.time() < deadline and first.poll() is None:
             time.sleep(0.2)
-        assert "agent_r1: job" in log.read_text(), log.read_text()[-2000:]
+        assert "agent_r2_counterfactual: job" in log.read_text(), log.read_text()[-2000:]
         os.kill(first.pid, signal.SIGKILL)  # the launcher alone: its jobs go on
         first.wait()
     pipeline.run(smoke_cfg(root, "pipeline", *args))
@@ -520,7 +521,7 @@ def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what
     inline = [
         r
         for r in read_results_csv(experiment / "runs/t/eval/results.csv")
-        if r["policy"] in ("braking", "agent_r1", "agent_r2")
+        if r["policy"] in ("braking", "agent_r2_chooser", "agent_r2_counterfactual")
     ]
     differences = [
         (k, key, a.get(key), b.get(key))
@@ -532,4 +533,4 @@ def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what
     # a step the first launcher's job finished is complete on disk; it recorded no time, having been killed
     timings = json.loads((root / "runs/t/pipeline.json").read_text())
     assert "collect" not in timings and timings["eval"]["complete"]  # the world model was complete: skipped
-    assert all(timings.get(f"agent_{r}", {"complete": True})["complete"] for r in ("r1", "r2"))
+    assert all(timings.get(f"agent_r2_{a}", {"complete": True})["complete"] for a in ("chooser", "counterfactual"))

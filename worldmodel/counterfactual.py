@@ -54,6 +54,7 @@ from .common import (
     make_env,
     read_shards,
     resolve_workers,
+    seed_everything,
     set_threads,
     worker_pool,
 )
@@ -522,6 +523,9 @@ def train(cfg, run_, agent_id) -> dict:
     c = typed.agent.counterfactual
     step_s = typed.env.step_s
     set_threads(typed.threads)
+    # the training draws from its own seeded generators only; the process-wide ones are seeded too, because the
+    # checkpoint saves their state, which would otherwise be whatever ran in this process before
+    seed_everything(typed.seed)
     privileged = typed.agent.obs == "privileged"  # the true state instead of the world model's view
     encoder = None if privileged else artifacts.load_world_model(cfg)
     in_dim = (PRIVILEGED_DIM if privileged else encoder.dim) + 1
