@@ -92,8 +92,10 @@ def launch(cfg, planned: list, prepare, record) -> bool:
     ex = executor(cfg, folder)
     local = cfg.launcher == "local"
     width = int(cfg.launcher_jobs)
-    shares = core_shares(width) if local else []
     for level in levels(planned):
+        # a level of fewer steps than launcher_jobs (the collection, the demonstrations, one evaluation) shares the
+        # cores among the steps it has, so that a lone step gets them all, as inline
+        shares = core_shares(min(width, len(level))) if local else []
         waiting, running, failed, stopped = list(level), [], [], False
         while waiting or running:
             while waiting and len(running) < (len(shares) if local else width):
@@ -103,7 +105,7 @@ def launch(cfg, planned: list, prepare, record) -> bool:
                 if holder is not None:  # a job of a launcher that was stopped still writes it
                     log.info("[launcher] %s: waiting for %s, which still writes it", step.name, holder)
                     waiting.append(step)
-                    time.sleep(2.0)
+                    time.sleep(0.2)
                     break
                 stage_cfg = prepare(step)
                 if stage_cfg is None:
@@ -128,7 +130,7 @@ def launch(cfg, planned: list, prepare, record) -> bool:
                     continue
                 record(step, outcome)
                 stopped |= outcome["stopped"]
-            time.sleep(0.5)
+            time.sleep(0.2)
         if failed:
             raise StageError(
                 f"the launcher's job for {'; '.join(failed)} failed; the steps that finished are kept: fix the cause "
