@@ -351,3 +351,24 @@ def test_static_penalty_needs_labels_with_static_flags(trained, tmp_path):
             del f[chooser.STATIC_KEY]
     with pytest.raises(StageError, match="static_penalty=0.2.*relabel"):
         train_agent.run(penalised)
+
+
+def test_the_scorers_pooling_gives_max_pool_2d_values_and_gradients_before_or_after_its_relu():
+    """The frame band's CNN pools with ``chooser.MaxPool2x2`` before its ReLU; ``nn.MaxPool2d(2)`` after the ReLU gives
+    the same outputs and the same gradients to the input, on maps with ties (whole windows equal, as a sparse band's
+    convolutions give) and negative values."""
+    from torch import nn
+
+    torch.manual_seed(3)
+    x = torch.randn(6, 5, 12, 16)
+    x[:, :, :4] = 0.25  # windows of equal values
+    x[0, 0, 6, 6] = x[0, 0, 6, 7] = x[0, 0, 7, 6] = 2.0  # a tie for the largest inside one window
+    grad = torch.randn(6, 5, 6, 8)
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    reference = nn.MaxPool2d(2)(torch.relu(a))
+    ours = torch.relu(chooser.MaxPool2x2()(b))
+    reference.backward(grad)
+    ours.backward(grad)
+    assert torch.equal(reference, ours) and torch.equal(a.grad, b.grad)
+    with torch.no_grad():
+        assert torch.equal(chooser.MaxPool2x2()(x), nn.MaxPool2d(2)(x))

@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
@@ -67,6 +68,30 @@ HELD_OUT = 0.15  # share of labelled episodes held out for selecting the scorer
 
 
 # ----------------------------------------------------------------------------- the scorer
+class _MaxPool2x2(torch.autograd.Function):
+    """``nn.MaxPool2d(2)``'s values and gradients: the forward pass by the channels-last kernel (2.5x faster here
+    than the NCHW one), the backward pass by the NCHW kernel with those indices (faster than the channels-last one).
+    Both kernels pick a window's first largest element, so the indices are the ones ``MaxPool2d`` keeps (tested)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        y, idx = torch.ops.aten.max_pool2d_with_indices(x.contiguous(memory_format=torch.channels_last), [2, 2], [2, 2])
+        idx = idx.contiguous()
+        ctx.save_for_backward(x, idx)
+        return y.contiguous()
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, idx = ctx.saved_tensors
+        pool_backward = torch.ops.aten.max_pool2d_with_indices_backward
+        return pool_backward(grad.contiguous(), x, [2, 2], [2, 2], [0, 0], [1, 1], False, idx)
+
+
+class MaxPool2x2(nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _MaxPool2x2.apply(x) if torch.is_grad_enabled() and x.requires_grad else F.max_pool2d(x, 2)
+
+
 class Scorer(nn.Module):
     """Features -> predicted cost of every candidate: the mean of ``members`` MLPs, each on features normalised by
     fixed statistics of the training split (buffers, so they travel with the checkpoint).
@@ -98,13 +123,15 @@ class Scorer(nn.Module):
             parts = {}
             if self.mask_shape:  # the frame band through a small CNN, beside the vector features
                 ch, h, w = self.mask_shape
+                # each pooling before its ReLU: the same values and gradients as after it (max commutes with the
+                # ReLU, and both pass a gradient to the window's first largest), on a quarter of the elements
                 parts["conv"] = nn.Sequential(
                     nn.Conv2d(ch, 16, 3, padding=1),
+                    MaxPool2x2(),
                     nn.ReLU(),
-                    nn.MaxPool2d(2),
                     nn.Conv2d(16, 32, 3, padding=1),
+                    MaxPool2x2(),
                     nn.ReLU(),
-                    nn.MaxPool2d(2),
                     nn.Flatten(),
                     nn.Linear(32 * (h // 4) * (w // 4), 128),
                     nn.ReLU(),
