@@ -372,3 +372,25 @@ def test_the_scorers_pooling_gives_max_pool_2d_values_and_gradients_before_or_af
     assert torch.equal(reference, ours) and torch.equal(a.grad, b.grad)
     with torch.no_grad():
         assert torch.equal(chooser.MaxPool2x2()(x), nn.MaxPool2d(2)(x))
+
+
+def test_the_scorer_inputs_rows_are_what_mask_view_gives_episode_by_episode():
+    """``ScorerInputs`` rows (features, then ``band_masks``' masks of this frame and the one before) equal
+    ``MaskView`` stepped through each episode from a reset, float for float, also when an episode's rows are not
+    contiguous."""
+    from envs.views import MaskView
+
+    rng = np.random.default_rng(5)
+    seg = rng.integers(0, 13, size=(12, 64, 64)).astype(np.uint8)
+    episode = np.array([0, 1, 0, 2, 1, 0, 2, 2, 1, 0, 3, 1])
+    vec = rng.normal(size=(12, 3)).astype(np.float32)
+    rows = chooser.MASK_ROWS["tele"]
+    inputs = chooser.ScorerInputs(vec, *chooser.band_masks(seg, episode, rows))
+    expected = np.empty(inputs.shape, np.float32)
+    for e in np.unique(episode):
+        view = MaskView(rows)
+        for r in np.flatnonzero(episode == e):
+            expected[r] = np.concatenate([vec[r], view(seg[r])])
+    np.testing.assert_array_equal(inputs[:], expected)
+    held = episode >= 2
+    np.testing.assert_array_equal(inputs.subset(held)[[2, 0]], expected[held][[2, 0]])

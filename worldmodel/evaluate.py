@@ -122,7 +122,7 @@ def evaluate_policies(cfg, names: list[str], entries, workers: int) -> dict[str,
     chunk = max(1, min(25, len(entries) // (4 * max(1, workers)) or 1))
     tasks = [(cfg_dict, name, entries[i : i + chunk]) for name in names for i in range(0, len(entries), chunk)]
     rows: dict[str, list[dict]] = {name: [] for name in names}
-    with tqdm(total=len(tasks) and len(entries) * len(names), desc="evaluate", unit="scenario") as bar:
+    with tqdm(total=len(entries) * len(names), desc="evaluate", unit="scenario") as bar:
         if workers <= 1:
             for name in names:
                 bar.set_postfix_str(name)
