@@ -49,7 +49,7 @@ KIM_TRAINING_EPISODES = 2020  # training episode i's scenario
 KIM_DEMO_SCENARIOS = 2021  # the planner's demonstration episode i's scenario
 KIM_DAGGER_SCENARIOS = 2022  # DAgger round r's episode e's scenario, [run seed, TAG, r, e]
 KIM_STUDENT_SCENARIOS = 7777  # experiments/kim_student.py: the students' episodes
-KIM_CHOOSER_LABELS = 7778  # agent=kim_chooser (worldmodel/peers/kim/chooser.py): its labelled episodes
+KIM_CHOOSER_LABELS = 7778  # agent=kim_chooser (worldmodel/families/kim/chooser.py): its labelled episodes
 
 # ----------------------------------------------------------------------------- datasets and training draws
 RECORDING_BRANCHES = 3571  # recording: whether episode i branches, at which step, and the branch's actions, [s, i, TAG]

@@ -19,9 +19,10 @@ import logging
 import math
 from pathlib import Path
 
-from worldmodel import artifacts, evaluate, policies, train_agent
+from worldmodel import artifacts, policies, train_agent
 from worldmodel.common import resolve_workers
 from worldmodel.config import compose
+from worldmodel.families.porav import evaluation as porav_eval
 from worldmodel.report import _mean, overall_achievable_share, paired_bootstrap, read_results_csv, write_results_csv
 
 log = logging.getLogger("ablation")
@@ -138,12 +139,12 @@ def main(argv=None) -> int:
     cfg = compose("evaluate", base)
     out = artifacts.runs_root(cfg) / "ablation"
     out.mkdir(parents=True, exist_ok=True)
-    entries = evaluate.bank(cfg)
+    entries = porav_eval.bank(cfg)
     workers = resolve_workers(cfg.evaluate.num_workers)
 
     rows = []
     for name in ("braking", "oracle"):
-        make = lambda n=name: evaluate.evaluate_policy(cfg, n, entries, workers)  # noqa: E731
+        make = lambda n=name: porav_eval.evaluate_policy(cfg, n, entries, workers)  # noqa: E731
         rows += cached_rows(out / f"rows_{name}.csv", None, make)
     planners = [p for p in args.planners.split(",") if p]
     for p in planners:
@@ -153,7 +154,7 @@ def main(argv=None) -> int:
 
         def make(c=variant, p=p):
             source = policies.EXACT_CHOOSER if p == "chooser" else "oracle"
-            return [r | {"policy": f"oracle_{p}"} for r in evaluate.evaluate_policy(c, source, entries, workers)]
+            return [r | {"policy": f"oracle_{p}"} for r in porav_eval.evaluate_policy(c, source, entries, workers)]
 
         rows += cached_rows(out / f"rows_oracle_{p}.csv", None, make)
     table = []
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
             train_agent.run(agent_cfg)
         eval_cfg = compose("evaluate", [*base, *row_overrides(name)])
         sha = artifacts.actor_id(eval_cfg, agent)
-        make = lambda a=agent, c=eval_cfg: evaluate.evaluate_policy(c, a.key, entries, workers)  # noqa: E731
+        make = lambda a=agent, c=eval_cfg: porav_eval.evaluate_policy(c, a.key, entries, workers)  # noqa: E731
         rows += cached_rows(out / f"rows_{name}_seed{agent.seed}.csv", sha, make)
         table.append((name, agent.policy))
     # every seed evaluated so far for the rows asked for: the table pools them
@@ -196,7 +197,7 @@ def ablation_markdown(rows: list[dict], table: list[tuple[str, str]], cfg, plann
         "occupant injury",
     ]
     lines = [
-        f"Validation bank (seed {cfg.evaluate.validation_seed}, {len(evaluate.bank(cfg))} scenarios), reward R2, "
+        f"Validation bank (seed {cfg.evaluate.validation_seed}, {len(porav_eval.bank(cfg))} scenarios), reward R2, "
         "Training seeds as listed, pooled. Rates are % of all scenarios; injuries are mean P(severe) per scenario.",
         "",
         "| " + " | ".join(head) + " |",

@@ -8,7 +8,7 @@ privileged scripted policies and, if asked, seed ensembles of trained runs, on o
 The rule fits a line to the pedestrian's lateral distance over the last ``--readings`` readings of the agent's
 view (``--rule-noise-m``, default 0.1 m) and brakes fully, from then on, once the pedestrian closes in faster
 than the threshold (m/s).
-Every policy drives the same trials (``peers.chae.bank``; draw 99 is checkpoint selection's, 2017 the
+Every policy drives the same trials (``chae.system.bank``; draw 99 is checkpoint selection's, 2017 the
 default validation draw) in the training env, which ends at the first bump. Prints per policy the bump rate at TTC
 1.5, 1.7, 1.9 s, Scenario 2's needless stops, and the mean Eq. 8 return per trial as training counts it, so that
 a rule inside the bars can be set beside what the learner is paid to do. ``evaluate.family=chae`` drives the
@@ -105,7 +105,7 @@ def trained_ensembles(run: Path, groups: list[str], noise_m: float | None = None
 
     from worldmodel import artifacts
     from worldmodel.config import compose
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     torch.set_num_threads(1)
     run = run.resolve()
@@ -148,7 +148,7 @@ def main(argv=None) -> None:
 
     from envs.chae import ClosingSpeedBraking
     from worldmodel.config import compose
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     try:
         rules = [ClosingSpeedBraking(t, args.readings, args.rule_noise_m) for t in args.thresholds]

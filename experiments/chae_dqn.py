@@ -12,7 +12,7 @@ TTC 0.9-3.9 s in steps of 0.2 (``--trials`` per TTC), and Scenario 2's rate of u
 latest-safe braking policy. Writes ``results.json``, ``table.md`` and ``learning_curves.png`` to ``--out``.
 
 The trials here are drawn from seed 99 (the validation draw); the stage's evaluation (``python -m worldmodel.evaluate
-evaluate.family=chae``, worldmodel/peers/chae/) draws its own from ``evaluate.chae.seed`` (2017), so settings
+evaluate.family=chae``, worldmodel/families/chae/) draws its own from ``evaluate.chae.seed`` (2017), so settings
 chosen here are not chosen on the reported numbers. Training itself is ``train_agent agent=dqn_chae``.
 """
 

@@ -5,7 +5,7 @@ by a margin, on a validation draw.
         [--average q|h|vote]
 
 Loads the runs' chosen checkpoints (``runs/NAME/agent_chae_dqn_chae/seedK``) as ``evaluate.chae.ensemble`` does,
-drives the draw (``peers.chae.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scenario 2) once per margin and prints a
+drives the draw (``chae.system.bank``: Scenario 1 at TTC 1.5, 1.7, 1.9 s and Scenario 2) once per margin and prints a
 markdown table of the highest bump rate and the needless stops (docs/results/chae/notes/ensembles.md). A margin m > 0
 brakes only when braking's mean Q beats not braking's by more than m. ``--average h`` averages the members' h(Q) (the
 value_rescale squashing) instead of Q; ``--average vote`` takes the members' majority action (``VoteEnsemble``),
@@ -97,7 +97,7 @@ def load_members(run: Path, seeds: list[int]):
 
     from worldmodel import artifacts
     from worldmodel.config import compose
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     torch.set_num_threads(1)
     run = run.resolve()
@@ -131,7 +131,7 @@ def main(argv=None) -> None:
     )
     args = parser.parse_args(argv)
 
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     cfg, members = load_members(args.run, args.seeds)
     average = {"q": chae.QEnsemble, "h": SquashedMeanEnsemble, "vote": VoteEnsemble, "cautious": CautiousEnsemble}[

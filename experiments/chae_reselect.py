@@ -7,7 +7,7 @@ Training's own selection (``agent.chae.select``) scores every validated checkpoi
 one inside both bars with the fewest needless stops. At 200 trials a bump is 0.5 %, so checkpoints whose true rate
 at TTC 1.5 s is anywhere from 0 to 2 % pass alike, and ensembles of such members miss the 1 % bar on fresh draws
 (docs/results/chae/notes/checkpoint_selection_and_rescoring.md). For runs trained with ``agent.chae.select.keep=true``
-this applies ``agent.chae.select.rescore``'s rule afterwards (``peers.chae.rescore_kept``):
+this applies ``agent.chae.select.rescore``'s rule afterwards (``chae.system.rescore_kept``):
 
 1. the candidates are the kept checkpoints inside both bars on training's selection draw (if none, the run keeps
    its ``best.pt``);
@@ -52,7 +52,7 @@ def main(argv=None) -> None:
 
     from worldmodel import artifacts
     from worldmodel.config import compose
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     torch.set_num_threads(1)
     run, out = args.run.resolve(), args.out.resolve()

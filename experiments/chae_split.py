@@ -54,7 +54,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
 
     from experiments.chae_margin import load_members
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     cfg, members = load_members(args.run, args.seeds)
     combine = VoteEnsemble if args.average == "vote" else chae.QEnsemble

@@ -4,7 +4,7 @@
 
 A large draw can be split over processes, each driving some of the policies (``evaluate.chae.policies``, and the
 ensembles of the seeds each experiment holds); this joins their ``results.csv`` rows and writes the tables the
-evaluation writes (``peers.chae.tables``), with the bars judged run by run. The evaluations must share the draw
+evaluation writes (``chae.system.tables``), with the bars judged run by run. The evaluations must share the draw
 (``evaluate.chae.seed``, ``trials``, ``ttcs``): a (policy, seed) that appears in two files, or files with
 different trials, is refused.
 """
@@ -58,7 +58,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, required=True, help="the tables, markdown")
     args = parser.parse_args(argv)
 
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     rows = join(args.results)
     ttcs = sorted({r["ttc"] for r in rows if r["scenario"] == 1})

@@ -1,4 +1,4 @@
-"""Research on the LIDAR chooser of Kim's junction (agent=kim_chooser, worldmodel/peers/kim/chooser.py): its labels
+"""Research on the LIDAR chooser of Kim's junction (agent=kim_chooser, worldmodel/families/kim/chooser.py): its labels
 on the evaluation's bank, offline fits, its ceiling.
 
     python -m experiments.kim_chooser labels [--episodes N] [--out runs/kim_chooser/train.npz] OVERRIDES...
@@ -44,8 +44,8 @@ from envs.streams import KIM_CHOOSER_LABELS
 from worldmodel import stats
 from worldmodel.common import set_threads
 from worldmodel.config import compose
-from worldmodel.peers import kim
-from worldmodel.peers.kim.chooser import (
+from worldmodel.families.kim import system as kim
+from worldmodel.families.kim.chooser import (
     REWARD,
     Scorer,
     candidates,

@@ -50,8 +50,8 @@ from worldmodel import stats
 from worldmodel.artifacts import AgentId
 from worldmodel.common import set_threads
 from worldmodel.config import compose
+from worldmodel.families.kim import system as kim
 from worldmodel.models.ddpg import DDPG
-from worldmodel.peers import kim
 
 HELD_OUT = 0.2
 

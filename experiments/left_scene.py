@@ -7,7 +7,7 @@
 ``UrbanCollisionEnv`` ends an episode as ``left_scene``, at no further cost, once the ego is more than
 ``env.lateral_exit_m`` (25 m) from the street's centre line, beyond every static body: it gets there through a gap
 in them (the side street's opening, between buildings), still moving. This script takes the validation bank's scenarios
-(``worldmodel.evaluate.bank`` of the composed config) in which each policy left the scene under the configured
+(the paper family's ``evaluation.bank``) in which each policy left the scene under the configured
 bound, read from ``--rows`` (a committed ``*.rows.csv.gz`` or an evaluation's ``results.csv``, whose endings
 ``experiments.episode_endings`` reads) or, without it, found by running the policy on the whole bank, and runs each
 of them three ways:
@@ -198,7 +198,7 @@ def main(argv=None) -> int:
     parser.add_argument("--far", type=float, default=1e4, help="m: the far lateral bound")
     parser.add_argument("--episodes", action="store_true", help="also one line per episode")
     args = parser.parse_intermixed_args(argv)  # Hydra overrides may come after the options
-    from worldmodel.evaluate import bank
+    from worldmodel.families.porav.evaluation import bank
     from worldmodel.report import read_results_csv
 
     set_threads(1)

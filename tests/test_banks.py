@@ -9,10 +9,13 @@ from types import SimpleNamespace
 
 import pytest
 
-from worldmodel import artifacts, banks, evaluate
+from worldmodel import artifacts, banks, evaluate, registry
 from worldmodel.common import StageError
 from worldmodel.config import compose, validate
-from worldmodel.peers import chae, kim, merola
+from worldmodel.families.chae import system as chae
+from worldmodel.families.kim import system as kim
+from worldmodel.families.merola import system as merola
+from worldmodel.families.porav import evaluation as porav_eval
 
 
 def cfg(*overrides: str):
@@ -20,11 +23,11 @@ def cfg(*overrides: str):
 
 
 def test_the_paper_test_bank_shares_no_scenario_with_any_validation_bank():
-    test = evaluate.bank(cfg("evaluate.bank=test"))
+    test = porav_eval.bank(cfg("evaluate.bank=test"))
     assert len(test) == 63 * 20
-    assert evaluate.bank(cfg("evaluate.bank=test")) == test  # reproducible
-    for seed in banks.VALIDATION_SEEDS["porav"]:
-        validation = evaluate.bank(cfg(f"evaluate.validation_seed={seed}"))
+    assert porav_eval.bank(cfg("evaluate.bank=test")) == test  # reproducible
+    for seed in banks.validation_seeds("porav"):
+        validation = porav_eval.bank(cfg(f"evaluate.validation_seed={seed}"))
         # the same cells, in the same order, but not one spec and not one scene seed in common
         assert [(e.hazard, e.ttc, e.speed) for e in test] == [(e.hazard, e.ttc, e.speed) for e in validation]
         assert not {e.spec for e in test} & {e.spec for e in validation}
@@ -40,9 +43,9 @@ def test_each_peer_test_draw_is_new(family, module):
         specs = module.bank(SimpleNamespace(**{**dict(c), "seed": seed}))
         return [repr(s) for s in specs]
 
-    test = trials(banks.TEST_SEEDS[family])
+    test = trials(banks.test_seed(family))
     assert len(test) == len(set(test)) > 0
-    for seed in banks.VALIDATION_SEEDS[family]:
+    for seed in banks.validation_seeds(family):
         assert not set(test) & set(trials(seed)), seed
 
 
@@ -62,10 +65,10 @@ def test_each_bank_writes_its_own_folder():
 @pytest.mark.parametrize(
     "override,key",
     [
-        (f"evaluate.validation_seed={banks.TEST_SEEDS['porav']}", "evaluate.validation_seed"),
-        (f"evaluate.kim.seed={banks.TEST_SEEDS['kim']}", "evaluate.kim.seed"),
-        (f"evaluate.chae.seed={banks.TEST_SEEDS['porav']}", "evaluate.chae.seed"),  # any family's test seed
-        (f"agent.chae.select.seed={banks.TEST_SEEDS['chae']}", "agent.chae.select.seed"),  # Chae's checkpoint selection
+        (f"evaluate.validation_seed={banks.test_seed('porav')}", "evaluate.validation_seed"),
+        (f"evaluate.kim.seed={banks.test_seed('kim')}", "evaluate.kim.seed"),
+        (f"evaluate.chae.seed={banks.test_seed('porav')}", "evaluate.chae.seed"),  # any family's test seed
+        (f"agent.chae.select.seed={banks.test_seed('chae')}", "agent.chae.select.seed"),  # Chae's checkpoint selection
     ],
 )
 def test_a_test_seed_is_refused_as_a_validation_draw(override, key):
@@ -99,7 +102,7 @@ def test_the_ledger_appends_and_counts(tmp_path):
     assert path.read_text().count("date,commit") == 1  # one header
     assert [r["headline"] for r in rows[:2]] == ["agent_r2: share 40.0 %", "agent_r2: share 41.0 %"]
     assert rows[0]["policies"] == "braking; agent_r2/seed0 (vae=aa, rnn=bb, actor=cc)"
-    assert rows[0]["bank_seed"] == str(banks.TEST_SEEDS["porav"]) and rows[0]["commit"]
+    assert rows[0]["bank_seed"] == str(banks.test_seed("porav")) and rows[0]["commit"]
     assert banks.uses("porav", path=path) == 2 and banks.uses("kim", path=path) == 1
     assert banks.uses("merola", path=path) == 0
 
@@ -182,11 +185,13 @@ def test_the_experiments_refuse_a_sealed_draw(module, args, capsys):
 def test_the_suite_never_draws_a_sealed_test_bank():
     """Under the test suite the test banks come from test-only seeds, and a real sealed seed, however it is asked
     for, is an error: so no test evaluates on a real test bank."""
-    assert banks.IN_TEST_SUITE and banks.TEST_SEEDS == banks.SUITE_TEST_SEEDS
-    assert not set(banks.SUITE_TEST_SEEDS.values()) & set(banks.SEALED_SEEDS.values())
-    assert not set(banks.SUITE_TEST_SEEDS.values()) & {s for seeds in banks.VALIDATION_SEEDS.values() for s in seeds}
-    for family, seed in banks.SEALED_SEEDS.items():
-        assert banks.draw_seed("test", family, 4711) == banks.SUITE_TEST_SEEDS[family]
-        with pytest.raises(RuntimeError, match=f"sealed test seed {seed}"):
-            banks.draw_seed("validation", family, seed)
-        assert banks.sealed_seed_problem(seed) and banks.sealed_seed_problem(banks.SUITE_TEST_SEEDS[family])
+    families = registry.families()
+    suite = {f.suite_test_seed for f in families}
+    assert banks.IN_TEST_SUITE and all(banks.test_seed(f.name) == f.suite_test_seed for f in families)
+    assert not suite & banks.sealed_seeds() and banks.sealed_seeds() == {f.sealed_seed for f in families}
+    assert not suite & {s for f in families for s in f.validation_seeds}
+    for f in families:
+        assert banks.draw_seed("test", f.name, 4711) == f.suite_test_seed
+        with pytest.raises(RuntimeError, match=f"sealed test seed {f.sealed_seed}"):
+            banks.draw_seed("validation", f.name, f.sealed_seed)
+        assert banks.sealed_seed_problem(f.sealed_seed) and banks.sealed_seed_problem(f.suite_test_seed)

@@ -209,7 +209,7 @@ def test_evaluation_records_the_bump_and_runs_on_to_measure_contact():
 def test_checkpoint_selection_by_chaes_metrics():
     """best.pt's rule (agent.chae.select): among checkpoints bumping in <= max_bump % at every TTC, fewest needless
     stops; if none is that safe, the one bumping least; the earliest wins a tie."""
-    from worldmodel.peers.chae import selected
+    from worldmodel.families.chae.system import selected
 
     def score(episode, bump, stops):
         return {"episode": episode, "max_bump_rate": bump, "unnecessary_stop_rate": stops}
@@ -244,7 +244,7 @@ def test_checkpoint_selection_leaves_training_alone_and_evaluation_loads_the_cho
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.peers.chae import load_policy, validated_path
+    from worldmodel.families.chae.system import load_policy, validated_path
 
     cfg = smoke_dqn_chae
     chosen, plain = kept_run, cfg(tmp_path / "plain", "agent.chae.select.every=0")
@@ -279,7 +279,7 @@ def test_rescoring_keeps_the_checkpoint_with_the_most_room_under_both_bars():
     """agent.chae.select.rescore's rule (and experiments.chae_reselect's): candidates inside both bars on training's
     draw, the fewest bumps at TTC 1.5 s first; then the smallest max(bumps / 1 %, stops / 5 %) on the larger draw, the
     later on a tie."""
-    from worldmodel.peers.chae import rescore_choice, rescore_shortlist, room
+    from worldmodel.families.chae.system import rescore_choice, rescore_shortlist, room
 
     def trained(episode, corner, worst, stops):
         bumps = {"bump_rate": {"1.5": corner}, "max_bump_rate": worst}
@@ -309,7 +309,7 @@ def test_rescoring_at_the_end_of_training_makes_the_chosen_kept_checkpoint_best(
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.peers.chae import validated_path
+    from worldmodel.families.chae.system import validated_path
 
     # smoke's 12 episodes learn neither bar: let every checkpoint be a candidate
     bars = ("agent.chae.select.max_bump=100", "agent.chae.select.max_stops=100")
@@ -345,7 +345,7 @@ def test_training_goes_on_in_blocks_until_the_rescoring_finds_a_member_inside_bo
     from worldmodel import train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
-    from worldmodel.peers.chae import first_target
+    from worldmodel.families.chae.system import first_target
 
     def trained(root, *bars):
         cfg = smoke_dqn_chae(root, "agent.chae.select.rescore=2", "agent.chae.select.rescore_trials=2", *bars)
@@ -400,7 +400,7 @@ def test_reselection_copies_the_run_with_the_rescored_choice_as_best(kept_run, t
     from experiments import chae_reselect
     from worldmodel import artifacts
     from worldmodel.artifacts import AgentId
-    from worldmodel.peers.chae import load_policy, rescore_choice, validated_path
+    from worldmodel.families.chae.system import load_policy, rescore_choice, validated_path
 
     run = tmp_path / "t"
     shutil.copytree(kept_run.paths.runs, run)
@@ -436,7 +436,7 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
     from worldmodel.config import compose, validate
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     def cfg(stage, *extra):
         base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=e", "scale=smoke"]
@@ -500,7 +500,7 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
 
 def test_the_configs_scripted_names_are_the_ones_evaluation_builds():
     from worldmodel.config import CHAE_SCRIPTED_POLICIES
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     assert tuple(chae.SCRIPTED) == CHAE_SCRIPTED_POLICIES
 
@@ -509,7 +509,7 @@ def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():
     """`evaluate evaluate.family=chae` does not load conf/agent/dqn_chae.yaml (which sets env.step_s=0.1); the
     family's env must still step every 0.1 s, as its agents were trained and chosen."""
     from worldmodel.config import compose
-    from worldmodel.peers import chae
+    from worldmodel.families.chae import system as chae
 
     cfg = compose("evaluate", ["experiment=x", "evaluate.family=chae"])
     assert cfg.env.step_s != 0.1  # the default street's 1/15 s: the case this guards
@@ -522,7 +522,7 @@ def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():
 def test_the_bars_are_judged_run_by_run():
     """bars_per_run: each (policy, seed) on its own, its worst TTC from 1.5 s (bumps <= 1 %) and its Scenario-2
     stops (<= 5 %); TTCs below 1.5 s do not count."""
-    from worldmodel.peers.chae import bars_per_run
+    from worldmodel.families.chae.system import bars_per_run
 
     def trials(policy, seed, ttc, bumps, n=100):
         return [
@@ -560,7 +560,7 @@ def test_the_training_ttc_range_reaches_the_episodes_and_the_preset_widens_the_p
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
     from worldmodel.config import AgentConfig, validate
-    from worldmodel.peers.chae import episode_scenario
+    from worldmodel.families.chae.system import episode_scenario
 
     def cfg(root, *extra):
         return smoke_dqn_chae(root, "agent.chae.select.every=0", *extra)
@@ -604,7 +604,7 @@ def test_the_state_noise_is_a_setting_that_the_checkpoint_carries_into_evaluatio
     from worldmodel.artifacts import AgentId
     from worldmodel.common import StageError
     from worldmodel.config import validate
-    from worldmodel.peers.chae import family_env, load_policy, observer
+    from worldmodel.families.chae.system import family_env, load_policy, observer
 
     def cfg(root, *extra):
         return smoke_dqn_chae(root, "agent.chae.select.every=0", *extra)

@@ -15,8 +15,8 @@ from envs import StraightLineBraking, UrbanCollisionEnv, rollout, sample_focus_s
 from envs.chooser import ExactCosts, ManoeuvreChooser, chooser_candidates, cost_labels, decide_steps_for
 from envs.planner import Manoeuvre
 from envs.views import CLASS_NAMES, HAZARD_CLASSES
-from worldmodel import artifacts, chooser, evaluate, policies, train_agent
-from worldmodel.common import StageError
+from worldmodel import artifacts, chooser, policies, train_agent
+from worldmodel.common import StageError, make_env
 
 CANDIDATES = chooser_candidates(steers=(1.0,), lane_change_s=(0.3,))  # braking + 4 manoeuvres: cheap to label
 
@@ -254,11 +254,11 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     policy.scores = lambda obs, t: seen.append(inner(obs, t)) or seen[-1]
     # evaluation makes the policy's env with the second camera it was trained with, unasked
     assert policies.env_overrides(policy) == {"tele_fov_deg": 30.0}
-    env = evaluate.make_env(ecfg, camera=True, **policies.env_overrides(policy))
+    env = make_env(ecfg, camera=True, **policies.env_overrides(policy))
     rollout(env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))
     np.testing.assert_allclose(np.stack(seen)[: len(rows)], offline, atol=1e-4)
     # without the second camera, the chooser says what to set; labels without its frames likewise
-    wide_env = evaluate.make_env(ecfg, camera=True)
+    wide_env = make_env(ecfg, camera=True)
     policy.scores = inner
     with pytest.raises(StageError, match="env.tele_fov_deg"):
         rollout(wide_env, policy, chooser.label_scenario(int(cfg.seed), 0, chooser.cfg_chooser(cfg)))
@@ -294,7 +294,7 @@ def test_a_trained_chooser_that_switches_late_costs_offline_what_it_costs_live(t
             if gaps[rows[j]] - before > 1e-3:
                 late.append((int(e), int(data["t"][rows[j]]), (before + gaps[rows[j]]) / 2))
     assert late, "no labelled frame is predicted a larger gap than every frame before it"
-    env = evaluate.make_env(ecfg, camera=True, **policies.env_overrides(policy))
+    env = make_env(ecfg, camera=True, **policies.env_overrides(policy))
     for e, frame, margin in late[:3]:
         rows = np.flatnonzero(data["episode"] == e)
         window = {"t": data["t"][rows], "steps": policy.decide_steps}

@@ -167,7 +167,8 @@ def test_on_the_true_state_it_trains_and_acts_without_world_model_or_camera(expe
     from omegaconf import OmegaConf
 
     from envs.privileged import PRIVILEGED_DIM, privileged_state
-    from worldmodel import evaluate, policies, train_agent
+    from worldmodel import policies, train_agent
+    from worldmodel.families.porav import evaluation as porav_eval
 
     root = experiment_copy("rnn")
     overrides = ("reward=r2", "agent=counterfactual", "obs=privileged", "agent.use_speed=false")
@@ -179,7 +180,7 @@ def test_on_the_true_state_it_trains_and_acts_without_world_model_or_camera(expe
     assert state["obs"] == "privileged" and state["in_dim"] == PRIVILEGED_DIM + 1
     policy, _, models = policies.policy_for(cfg, key)
     assert policy.needs_camera is False and models["vae_sha"] == "" and models["rnn_sha"] == ""
-    env, built, _, _ = evaluate._build(OmegaConf.to_container(cfg, resolve=True), key)
+    env, built, _, _ = porav_eval._build(OmegaConf.to_container(cfg, resolve=True), key)
     assert env._camera is None  # the camera is off
     spec = scenarios(1)[0]
     env.reset(options={"scenario": spec})

@@ -284,7 +284,7 @@ def test_ddpg_kim_trains_on_the_lidar_and_evaluate_writes_table_2(tmp_path):
     from worldmodel import evaluate, train_agent
     from worldmodel.artifacts import trained_agents
     from worldmodel.config import compose
-    from worldmodel.peers import kim
+    from worldmodel.families.kim import system as kim
 
     def cfg(stage, *overrides):
         base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
@@ -358,7 +358,7 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     from worldmodel import artifacts, train_agent
     from worldmodel.common import StageError
     from worldmodel.config import compose, validate
-    from worldmodel.peers import kim
+    from worldmodel.families.kim import system as kim
 
     def cfg(*overrides, agent="ddpg_kim"):
         base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=k", "scale=smoke"]
@@ -407,7 +407,7 @@ def test_the_bank_can_draw_where_the_runner_crosses_the_ego_and_keeps_everything
 
     from worldmodel.common import StageError
     from worldmodel.config import compose, validate
-    from worldmodel.peers import kim
+    from worldmodel.families.kim import system as kim
 
     plain = kim.bank(SimpleNamespace(seed=77, trials=40, impact_offset=0.0, impact_offset_spread=0.0))
     spread = kim.bank(SimpleNamespace(seed=77, trials=40, impact_offset=0.0, impact_offset_spread=2.25))
@@ -438,7 +438,7 @@ def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
     preset) keeps the middle; a spread beyond the ego is refused."""
     from worldmodel.common import StageError
     from worldmodel.config import compose, validate
-    from worldmodel.peers import kim
+    from worldmodel.families.kim import system as kim
 
     middle = compose("train_agent", ["agent=ddpg_kim_fd"])
     anywhere = compose("train_agent", ["agent=ddpg_kim_fd_anywhere"])
@@ -462,7 +462,7 @@ def test_training_can_draw_where_the_runner_strikes_and_keeps_everything_else():
 def test_the_share_of_the_achievable_avoidance_runs_from_braking_to_the_planner():
     """On 3 scenarios x 20 trials braking avoids 10 of 20, the planner 18 and a two-seed agent 12 and 16 (14 on
     average): shares 0, 100 and 50, the seeds 25 and 75, an interval around the point; the tables show them."""
-    from worldmodel.peers.kim.report import render_tables, summarise
+    from worldmodel.families.kim.report import render_tables, summarise
 
     def rows(policy, seed, avoided):
         return [

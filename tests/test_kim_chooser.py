@@ -1,4 +1,4 @@
-"""The LIDAR chooser on family kim (worldmodel/peers/kim/chooser.py, agent=kim_chooser): its outcome on labelled
+"""The LIDAR chooser on family kim (worldmodel/families/kim/chooser.py, agent=kim_chooser): its outcome on labelled
 braking states is what it does in closed loop, which is what lets its scorer be chosen, and its ceiling read,
 without simulating (docs/results/kim/README.md); and it trains through train_agent and is evaluated with the family."""
 
@@ -12,8 +12,8 @@ from omegaconf import OmegaConf
 from envs import StraightLineBraking
 from envs.chooser import switch_choice
 from worldmodel.config import compose
-from worldmodel.peers import kim
-from worldmodel.peers.kim import chooser as kim_chooser
+from worldmodel.families.kim import chooser as kim_chooser
+from worldmodel.families.kim import system as kim
 
 DECIDE_STEPS = 3
 

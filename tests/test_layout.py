@@ -70,39 +70,83 @@ def test_collection_and_the_configs_load_without_torch():
     assert out.stdout.strip() == "[]"
 
 
-def peer_sources(family: str) -> list[tuple[Path, str]]:
-    """(path, package its relative imports resolve against) of every module of peer ``family``: the module
-    ``worldmodel/peers/<family>.py``, or each module of the package ``worldmodel/peers/<family>/``."""
-    module = ROOT / "worldmodel" / "peers" / f"{family}.py"
-    if module.exists():
-        return [(module, "worldmodel.peers")]
-    paths = sorted((ROOT / "worldmodel" / "peers" / family).rglob("*.py"))
+def family_sources(family: str) -> list[tuple[Path, str]]:
+    """(path, package its relative imports resolve against) of every module of family ``family``'s package."""
+    paths = sorted((ROOT / "worldmodel" / "families" / family).rglob("*.py"))
     return [(path, ".".join(path.parent.relative_to(ROOT).parts)) for path in paths]
 
 
-def test_every_peer_keeps_the_interface_and_imports_no_other_peer():
-    """Each registered peer is a module or package with the Peer interface (worldmodel/peers/__init__.py), its
-    declared family and preset match the registry and the preset's own family, and none of its modules imports
-    another peer."""
-    from worldmodel import peers
+def test_every_family_keeps_the_interface_and_imports_no_other_family():
+    """Each registered family is declared by its own package, runs a module with the System interface
+    (worldmodel/registry.py), its paper's preset sets up that family, and none of its modules imports another
+    family."""
+    from worldmodel import registry
     from worldmodel.config import preset_globals
 
-    names = set(peers.REGISTRY)
-    for family, preset in peers.REGISTRY.items():
-        module = peers.peer(family)
-        assert isinstance(module, peers.Peer), family
-        assert (module.FAMILY, module.PRESET) == (family, preset)
-        assert preset_globals(preset)["env"]["family"] == family
-        others = tuple(f"worldmodel.peers.{n}" for n in names - {family})
-        sources = peer_sources(family)
-        assert sources, f"no source for peer {family}"
+    names = set(registry.names())
+    assert registry.default().name == "porav"
+    for family in registry.families():
+        assert family.system.startswith(f"worldmodel.families.{family.name}."), family.system
+        module = registry.system(family.name)
+        assert isinstance(module, registry.System), family.name
+        if family.learners or family.observations:
+            assert isinstance(module, registry.Trainer), family.name
+        if family.preset:
+            assert preset_globals(family.preset)["env"]["family"] == family.name
+        others = tuple(f"worldmodel.families.{n}" for n in names - {family.name})
+        sources = family_sources(family.name)
+        assert sources, f"no source for family {family.name}"
         for path, package in sources:
             imports = imported_modules(path, package)
             bad = sorted(m for m in imports if m in others or m.startswith(tuple(f"{o}." for o in others)))
             where = path.relative_to(ROOT / "worldmodel")
-            assert not bad, f"{where} imports {bad}: share through peers/common.py"
-    with pytest.raises(KeyError, match="known are chae, kim, merola"):
-        peers.peer("porav")
+            assert not bad, f"{where} imports {bad}: share through families/common.py"
+    with pytest.raises(KeyError, match="known are porav, chae, kim, merola"):
+        registry.family("ncap")
+
+
+# Shared code that reads the registry instead of naming families.
+SHARED = (
+    "pipeline.py",
+    "train_agent.py",
+    "evaluate.py",
+    "ncap.py",
+    "artifacts.py",
+    "banks.py",
+    "registry.py",
+    "config/recorded.py",
+    "config/experiment.py",
+    "config/entry.py",
+)
+
+
+def family_names_in(path: Path, names: set[str]) -> list[str]:
+    """Where ``path``'s code names a family: an identifier, or a string literal, that is a family's name
+    (docstrings and comments may mention one)."""
+    import io
+    import tokenize
+
+    found = []
+    for tok in tokenize.generate_tokens(io.StringIO(path.read_text()).readline):
+        text = tok.string
+        if tok.type == tokenize.STRING and text[:1] in "\"'" and text.strip("\"'") in names and len(text) < 20:
+            found.append(f"{path.name}:{tok.start[0]} {text}")
+        elif tok.type == tokenize.NAME and text in names:
+            found.append(f"{path.name}:{tok.start[0]} {text}")
+    return found
+
+
+@pytest.mark.parametrize("module", SHARED)
+def test_shared_code_names_no_family(module):
+    from worldmodel import registry
+
+    assert not family_names_in(ROOT / "worldmodel" / module, set(registry.names()))
+
+
+def test_the_family_check_sees_names_and_string_literals(tmp_path):
+    src = tmp_path / "shared.py"
+    src.write_text('"""Mentions chae in prose."""\nif family == "kim":\n    import chae\nx = f"{a}merola"\n')
+    assert family_names_in(src, {"chae", "kim", "merola"}) == ['shared.py:2 "kim"', "shared.py:3 chae"]
 
 
 CASTS = {"int", "float", "str", "bool"}

@@ -17,8 +17,8 @@ from envs.policies import ConstantAction
 from envs.rewards import MEROLA_IMPACT_FULL_MS, StepContext, merola
 from envs.scene import EGO_LANE_Y, ONCOMING_LANE_Y
 from worldmodel.common import StageError
+from worldmodel.families.merola.system import ACTIONS, merola_action
 from worldmodel.models.resnet import ResNet18Features, load_resnet18
-from worldmodel.peers.merola import ACTIONS, merola_action
 
 HOLD, BRAKE = (0.0, 0.0), (0.0, -1.0)
 

@@ -16,7 +16,8 @@ from envs import StraightLineBraking
 from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose, validate
-from worldmodel.peers import common as peers_common
+from worldmodel.families import common as peers_common
+from worldmodel.families.porav import evaluation as porav_eval
 from worldmodel.report import read_results_csv
 
 REPO = Path(__file__).resolve().parent.parent
@@ -78,7 +79,7 @@ def test_pipeline_produces_every_output(experiment):
     rows = read_results_csv(experiment / "runs/t/eval/results.csv")
     policies = {"braking", "agent_r1", "agent_r2", "agent_r2_chooser", "agent_r2_counterfactual", "oracle"}
     assert {r["policy"] for r in rows} == policies
-    per_policy = len(evaluate.bank(smoke_cfg(experiment, "evaluate")))
+    per_policy = len(porav_eval.bank(smoke_cfg(experiment, "evaluate")))
     assert len(rows) == len(policies) * per_policy
     summary = json.loads((experiment / "runs/t/eval/summary.json").read_text())
     assert set(summary["policies"]) == policies
@@ -204,11 +205,11 @@ def test_missing_world_model_names_the_command(tmp_path):
 
 def test_braking_evaluation_is_bit_reproducible(tmp_path):
     cfg = smoke_cfg(tmp_path, "evaluate")
-    entries = evaluate.bank(cfg)
+    entries = porav_eval.bank(cfg)
     runs = []
     for _ in range(2):
         env = make_env(cfg, camera=False)
-        runs.append(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False))
+        runs.append(porav_eval.run_policy(env, StraightLineBraking(), entries, desc=False))
         env.close()
     assert repr(runs[0]) == repr(runs[1])
     # every row says how its episode ended, and the speed then
@@ -216,17 +217,17 @@ def test_braking_evaluation_is_bit_reproducible(tmp_path):
     assert all(0.0 <= r["final_speed"] <= r["speed"] for r in runs[0])
     # ...and the camera does not change any outcome.
     env = make_env(cfg, camera=True)
-    assert repr(evaluate.run_policy(env, StraightLineBraking(), entries, desc=False)) == repr(runs[0])
+    assert repr(porav_eval.run_policy(env, StraightLineBraking(), entries, desc=False)) == repr(runs[0])
 
 
 def test_parallel_evaluation_equals_one_process(experiment):
     cfg = smoke_cfg(experiment, "evaluate")
-    entries = evaluate.bank(cfg)[:4]
+    entries = porav_eval.bank(cfg)[:4]
     # the planner (scripted, re-simulating in the workers), an agent and the chooser (torch in the workers), one
     # pool serving all three in turn: how scenarios are split among workers must not matter
     names = ["oracle", "agent_r2/seed0", "agent_r2_chooser/seed0"]
-    one = evaluate.evaluate_policies(cfg, names, entries, workers=1)
-    two = evaluate.evaluate_policies(cfg, names, entries, workers=2)
+    one = porav_eval.evaluate_policies(cfg, names, entries, workers=1)
+    two = porav_eval.evaluate_policies(cfg, names, entries, workers=2)
     assert list(two) == names and repr(one) == repr(two)
 
 
@@ -270,7 +271,7 @@ def test_an_agent_on_the_frozen_vaes_frames_is_stale_on_another_vae(experiment, 
     """ddqn_merola sees the frozen VAE's means of its frames (obs=frames_vae): it records the VAE as its input, a new
     VAE makes it stale for the pipeline and refuses its checkpoint, and a run recorded before the VAE was an input
     (no input at all) is taken as built on the current VAE."""
-    from worldmodel.peers import merola
+    from worldmodel.families.merola import system as merola
 
     root = tmp_path / "copy"
     shutil.copytree(experiment, root)
@@ -344,7 +345,7 @@ def test_each_agent_is_evaluated_with_its_own_input_and_action_map(experiment, t
     policy, seed, models = policies.policy_for(cfg, "agent_r1/seed0")
     assert policy.encoder.use_speed and policy.encoder.dim == 2 * cfg.vae.latent_dim + 1
     assert (policy.action_map.anchor, policy.action_map.steer) == ("brake", "grip") and seed == 0
-    rows = evaluate.evaluate_policy(cfg, "agent_r1/seed0", evaluate.bank(cfg)[:3], workers=1)
+    rows = porav_eval.evaluate_policy(cfg, "agent_r1/seed0", porav_eval.bank(cfg)[:3], workers=1)
     assert len(rows) == 3 and all(r["actor_sha"] == models["actor_sha"] for r in rows)
 
 

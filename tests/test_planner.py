@@ -215,7 +215,7 @@ def test_camera_cap_brakes_straight_until_the_hazard_covers_k_pixels_then_plans(
 def test_the_camera_cap_is_a_scripted_policy_evaluated_with_the_camera(tmp_path):
     """``evaluate.policies`` takes oracle_pixels1 and oracle_pixels3; evaluation builds them on an env with the
     camera (they read its frame) and the planner itself without; their rows get a label of their own."""
-    from worldmodel import evaluate
+    from worldmodel.families.porav import evaluation as porav_eval
     from worldmodel.policies import policy_for
     from worldmodel.report import policy_label
 
@@ -229,7 +229,7 @@ def test_the_camera_cap_is_a_scripted_policy_evaluated_with_the_camera(tmp_path)
 
     cfg_dict = OmegaConf.to_container(cfg, resolve=True)
     for name, camera in (("oracle", False), ("oracle_pixels1", True)):
-        env, policy, _, _ = evaluate._build(cfg_dict, name)
+        env, policy, _, _ = porav_eval._build(cfg_dict, name)
         try:
             assert (env.camera, policy.name) == (camera, name)
         finally:

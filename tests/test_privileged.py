@@ -14,6 +14,7 @@ from envs.scene import LANE_WIDTH, POLES
 from worldmodel import artifacts, evaluate, policies, train_agent
 from worldmodel.common import StageError
 from worldmodel.config import compose, validate
+from worldmodel.families.porav import evaluation as porav_eval
 from worldmodel.report import read_results_csv
 
 BOTH = ScenarioSpec(seed=11, ttc=1.2, ego_speed=20.0, pedestrian_speed=2.0, p_pedestrian=1.0, p_car=1.0)
@@ -127,10 +128,10 @@ def test_a_privileged_ddpg_trains_without_a_world_model_and_acts_on_the_true_sta
         env.step(action)
     env.close()
 
-    built, *_ = evaluate._build(OmegaConf.to_container(cfg, resolve=True), agent.key)  # no camera for it
+    built, *_ = porav_eval._build(OmegaConf.to_container(cfg, resolve=True), agent.key)  # no camera for it
     assert not built.camera
     built.close()
     evaluate.run(cfg)
     rows = [r for r in read_results_csv(tmp_path / "runs/t/eval/results.csv") if r["policy"] == agent.policy]
-    assert len(rows) == len(evaluate.bank(cfg)) and {(r["vae_sha"], r["rnn_sha"]) for r in rows} == {("", "")}
+    assert len(rows) == len(porav_eval.bank(cfg)) and {(r["vae_sha"], r["rnn_sha"]) for r in rows} == {("", "")}
     assert {r["actor_sha"] for r in rows} == {models["actor_sha"]}

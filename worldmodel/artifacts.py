@@ -40,6 +40,7 @@ from typing import Any
 
 from envs.rewards import REWARDS
 
+from . import registry
 from .common import StageError, atomic_write_text, file_sha256, load_checkpoint, stage_command
 from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded, inputs_as_recorded
 
@@ -47,12 +48,6 @@ log = logging.getLogger(__name__)
 
 PROVENANCE = "provenance.json"
 AGENT_REWARDS = REWARDS  # run names are agent_<reward>...: any registered reward (envs/rewards.py)
-REWARD_FAMILIES = {
-    "chae": "chae",
-    "kim_unaware": "kim",
-    "kim_aware": "kim",
-    "merola": "merola",
-}  # rewards defined for one scenario family only; the rest are the paper's
 
 
 # ----------------------------------------------------------------------------- paths
@@ -103,12 +98,13 @@ def eval_dir(cfg) -> Path:
     """Where an evaluation writes: ``runs/NAME/eval`` for the paper's family and ``runs/NAME/eval_<family>`` for
     another, on the family's default validation draw; ``_test`` added for the sealed test bank and ``_seed<N>`` for
     another validation draw (worldmodel/banks.py)."""
+    from omegaconf import OmegaConf
+
     from .banks import dir_suffix
 
-    e = cfg.evaluate
-    family = e.get("family", "porav")
-    seed = e.validation_seed if family == "porav" else e[family].seed
-    return runs_root(cfg) / (("eval" if family == "porav" else f"eval_{family}") + dir_suffix(e.bank, family, seed))
+    family = registry.family(cfg.evaluate.get("family") or registry.default().name)
+    seed = OmegaConf.select(cfg, family.seed_key)
+    return runs_root(cfg) / (family.folder + dir_suffix(cfg.evaluate.bank, family.name, seed))
 
 
 def stale_dir(cfg) -> Path:
@@ -144,7 +140,7 @@ class AgentId:
     @property
     def family(self) -> str:
         """The scenario family the agent was trained and is evaluated on (its reward's)."""
-        return REWARD_FAMILIES.get(self.reward, "porav")
+        return registry.of_reward(self.reward).name
 
     def dir(self, cfg) -> Path:
         return runs_root(cfg) / self.key
@@ -173,9 +169,10 @@ def agent_dir(cfg) -> Path:
     return AgentId.of(cfg).dir(cfg)
 
 
-def trained_agents(cfg, family: str = "porav") -> list[AgentId]:
-    """Every agent of the experiment with a checkpoint that belongs to scenario ``family``, sorted (reward, then
-    seed)."""
+def trained_agents(cfg, family: str | None = None) -> list[AgentId]:
+    """Every agent of the experiment with a checkpoint that belongs to scenario ``family`` (the default family when
+    None), sorted (reward, then seed)."""
+    family = family or registry.default().name
     found = []
     for path in runs_root(cfg).glob("agent_*/seed*/last.pt"):
         try:
@@ -283,7 +280,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         if isinstance(chooser, dict) and chooser.get("num_workers") is not None:  # labels equal for any count (tested)
             chooser["num_workers"] = RECORDED_WORKERS
         if uses_demos(cfg) and not uses_world_model:
-            # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/peers/kim/): what
+            # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/families/kim/): what
             # makes them is part of its settings, not an input on disk
             from .config import teacher_settings
 
@@ -298,13 +295,13 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         if street and (uses_demos(cfg) or cfg.agent.focus_share > 0):
             settings["focus"] = _config(cfg, "demos")["demos"]["focus"]  # the focus mix's ranges shape the training
     elif stage == "eval":
-        family = cfg.evaluate.get("family", "porav")
-        inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family)}
+        family = registry.family(cfg.evaluate.get("family") or registry.default().name)
+        inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family.name)}
         settings = _config(cfg, "evaluate", "env")
         settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
         settings["evaluate"].pop("retest")  # permission to use a test bank again, not a setting of the evaluation
-        for other in ("chae", "kim", "merola"):  # another family's settings do not shape this evaluation
-            if other != family:
+        for other in registry.sections():  # another family's settings do not shape this evaluation
+            if other != family.section:
                 settings["evaluate"].pop(other, None)
     else:
         raise ValueError(f"no provenance for stage {stage!r}")

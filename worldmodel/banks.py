@@ -1,4 +1,5 @@
-"""Every scenario bank of the project, declared in one place, and the ledger of the test banks (docs/design.md §6).
+"""The rules of the scenario banks, whose seeds each family declares (worldmodel/registry.py), and the ledger of
+the test banks (docs/design.md §6).
 
 **Validation banks** are for choosing settings, checkpoints and rules, as often as needed. ``evaluate.bank``
 defaults to ``validation``, so everyday runs (``make run``) never touch a test bank. The test suite runs with
@@ -23,26 +24,31 @@ import os
 import subprocess
 from pathlib import Path
 
+from . import registry
+
 log = logging.getLogger(__name__)
 
-FAMILIES = ("porav", "chae", "kim", "merola")
-
-# The validation draws of each family, its default first. Every bank that judged a configuration before the test
-# banks below existed is here: those results steered choices, so they can only validate. Chae's 101-115 are the
-# fresh draws its investigation judged single configurations on (docs/results/chae/notes/).
-VALIDATION_SEEDS: dict[str, tuple[int, ...]] = {
-    "porav": (4711, 4712, 2018),
-    "chae": (2017, 99, 98, *range(101, 116)),
-    "kim": (2020, 77),
-    "merola": (2022, 77),
-}
-
-# The sealed test banks: for final numbers only. Drawn at random once (secrets.randbelow), never used to choose.
-SEALED_SEEDS: dict[str, int] = {"porav": 56171, "chae": 88384, "kim": 53799, "merola": 17734}
-# What the test suite's "test banks" are drawn from instead: seeds of no bank that judged anything
-SUITE_TEST_SEEDS: dict[str, int] = {"porav": 61001, "chae": 61002, "kim": 61003, "merola": 61004}
+# Each family declares its banks (worldmodel/registry.py): its validation draws, the default first (every seed that
+# judged a configuration before the sealed banks existed stays there: those results steered choices, so they can only
+# validate), its sealed test seed (drawn at random once, never used to choose) and the seed the test suite's "test
+# bank" is drawn from instead.
 IN_TEST_SUITE = os.environ.get("WORLDMODEL_TEST_SUITE") == "1"
-TEST_SEEDS: dict[str, int] = SUITE_TEST_SEEDS if IN_TEST_SUITE else SEALED_SEEDS
+
+
+def validation_seeds(family: str) -> tuple[int, ...]:
+    return registry.family(family).validation_seeds
+
+
+def test_seed(family: str) -> int:
+    """The seed ``family``'s test bank is drawn from: its sealed seed, or in the test suite its stand-in."""
+    f = registry.family(family)
+    return f.suite_test_seed if IN_TEST_SUITE else f.sealed_seed
+
+
+def sealed_seeds() -> set[int]:
+    """Every family's sealed test seed."""
+    return {f.sealed_seed for f in registry.families()}
+
 
 BANKS = ("validation", "test")
 REPO = Path(__file__).resolve().parents[1]
@@ -67,9 +73,9 @@ def draw_seed(bank: str, family: str, validation_seed: int) -> int:
     """The seed a family's bank is drawn from: its sealed test seed, or ``validation_seed``."""
     if bank not in BANKS:
         raise ValueError(f"bank {bank!r}: use one of {', '.join(BANKS)}")
-    seed = TEST_SEEDS[family] if bank == "test" else int(validation_seed)
-    if IN_TEST_SUITE and seed in SEALED_SEEDS.values():
-        raise RuntimeError(f"the test suite drew the sealed test seed {seed}: tests use SUITE_TEST_SEEDS only")
+    seed = test_seed(family) if bank == "test" else int(validation_seed)
+    if IN_TEST_SUITE and seed in sealed_seeds():
+        raise RuntimeError(f"the test suite drew the sealed test seed {seed}: tests use each family's suite_test_seed")
     return seed
 
 
@@ -78,12 +84,12 @@ def dir_suffix(bank: str, family: str, validation_seed: int) -> str:
     the test bank, ``_seed<N>`` for another validation draw."""
     if bank == "test":
         return "_test"
-    return "" if int(validation_seed) == VALIDATION_SEEDS[family][0] else f"_seed{int(validation_seed)}"
+    return "" if int(validation_seed) == validation_seeds(family)[0] else f"_seed{int(validation_seed)}"
 
 
 def sealed_seed_problem(seed: int) -> str | None:
     """Why ``seed`` cannot be a validation draw (it is a family's sealed test seed), or None."""
-    if int(seed) in {*SEALED_SEEDS.values(), *TEST_SEEDS.values()}:
+    if int(seed) in {*sealed_seeds(), *(test_seed(f) for f in registry.names())}:
         return f"{seed} is a sealed test seed; evaluate on the test bank with evaluate.bank=test"
     return None
 
@@ -133,7 +139,7 @@ def read_ledger(path: str | Path = LEDGER) -> list[dict]:
 
 def uses(family: str, seed: int | None = None, path: str | Path = LEDGER) -> int:
     """How many evaluations the ledger records on ``family``'s test bank (``seed``: its sealed seed by default)."""
-    seed = TEST_SEEDS[family] if seed is None else int(seed)
+    seed = test_seed(family) if seed is None else int(seed)
     return sum(1 for r in read_ledger(path) if r["family"] == family and int(r["bank_seed"]) == seed)
 
 
@@ -159,7 +165,7 @@ def record(
         "experiment": experiment,
         "scale": scale or "",
         "family": family,
-        "bank_seed": TEST_SEEDS[family],
+        "bank_seed": test_seed(family),
         "scenarios": int(scenarios),
         "policies": "; ".join(
             f"{key}" + (f" ({', '.join(f'{k}={v}' for k, v in hashes.items() if v)})" if any(hashes.values()) else "")
@@ -201,7 +207,7 @@ def judged(cfg, family: str) -> list[dict]:
     return [
         r
         for r in read_ledger(ledger_path(cfg))
-        if r["experiment"] == cfg.experiment and r["family"] == family and int(r["bank_seed"]) == TEST_SEEDS[family]
+        if r["experiment"] == cfg.experiment and r["family"] == family and int(r["bank_seed"]) == test_seed(family)
     ]
 
 
@@ -230,18 +236,18 @@ def ledger_path(cfg) -> Path:
     return Path(chosen) if chosen else LEDGER
 
 
-def record_evaluation(cfg, family: str, scenarios: int, policies: dict, headline: dict[str, str]) -> dict | None:
-    """The ledger row of an evaluation on ``family``'s test bank (``evaluate.bank=test``); None on a validation
-    bank, which the ledger does not count."""
+def record_evaluation(
+    cfg, family: str, rows: Path, scenarios: int, policies: dict, headline: dict[str, str]
+) -> dict | None:
+    """The ledger row of an evaluation on ``family``'s test bank (``evaluate.bank=test``) whose rows are the file
+    ``rows``; None on a validation bank, which the ledger does not count."""
     from omegaconf import OmegaConf
 
     if cfg.evaluate.bank != "test":
         return None
-    from .artifacts import eval_dir
     from .common import file_sha256
 
     path = ledger_path(cfg)
-    rows = eval_dir(cfg) / "results.csv"
     row = record(
         path,
         experiment=cfg.experiment,
@@ -255,7 +261,7 @@ def record_evaluation(cfg, family: str, scenarios: int, policies: dict, headline
     log.info(
         "[eval] %s test bank (seed %d): ledger row %d for this bank, %s",
         family,
-        TEST_SEEDS[family],
+        test_seed(family),
         uses(family, path=path),
         path,
     )

@@ -1,171 +1,22 @@
-"""Evaluation on a seeded scenario bank: straight-line braking, the privileged planner and every trained agent.
+"""Evaluation on a family's seeded bank: every scripted policy it names and every agent trained on it.
 
-    python -m worldmodel.evaluate experiment=NAME scale=...
+    python -m worldmodel.evaluate experiment=NAME scale=... [evaluate.family=F] [evaluate.bank=test]
 
-The bank (docs/design.md §6; ``envs.scenario_bank``), a validation bank unless ``evaluate.bank=test``, sweeps
-hazard kind x TTC x speed with ``evaluate.per_cell`` seeded scenarios per cell; every policy sees exactly the same
-scenarios. Writes ``runs/NAME/eval/`` (``eval_test/`` on the test bank):
-``results.csv`` (one row per scenario and policy), ``summary.json``, ``tables.md`` (paper Tables I-III),
-``heatmaps.png`` (Fig. 5 layout) and the same figures in TensorBoard.
-
-Policies: ``evaluate.policies`` names the scripted ones (``braking``, the floor, is required; ``oracle`` is the
-privileged planner of ``envs.planner``, the ceiling), and every agent under ``runs/NAME/agent_*/seed*/`` is added;
-its rows carry the training seed in ``policy_seed`` so seed sweeps report mean and spread over seeds.
-
-Straight-line braking and the planner run without the camera (outcomes are identical with it on, and it is ~10x faster);
-the camera's cap ``oracle_pixelsK``, which waits for the hazard to cover K pixels of the frame, runs with it.
-Scenarios are spread over ``evaluate.num_workers`` processes in fixed chunks; every scenario is independent and
-deterministic, so the rows are identical to a single-process run (tested).
+``evaluate.family`` picks the scenario family (the paper's when unset; worldmodel/registry.py lists them), whose
+own evaluation (``System.evaluate``, e.g. worldmodel/families/porav/evaluation.py) draws its bank, runs the policies,
+writes the rows, the summary and the tables under ``runs/NAME/eval[_<family>][_test]/``, and records a test-bank
+evaluation in the ledger (worldmodel/banks.py). A sealed test bank judges an experiment once: this command refuses
+a second evaluation there unless ``evaluate.retest=true``.
 """
 
 from __future__ import annotations
 
-import logging
-import time
+from . import artifacts, registry
+from .banks import sealed_bank_problem
+from .common import StageError, set_threads, writer_lock
+from .config import hydra_main, validate
 
-from . import artifacts, peers
-from .banks import ledger_key, record_evaluation, sealed_bank_problem
-from .common import StageError, make_env, resolve_workers, set_threads, worker_pool, writer_lock
-from .config import SCRIPTED_POLICIES, hydra_main, validate
-from .policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
-from .report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
-
-log = logging.getLogger(__name__)
-
-
-def bank(cfg):
-    """The scenarios of ``evaluate.bank``: a validation bank, or the sealed test bank (the same grid, drawn from
-    another seed; worldmodel/banks.py). ``cfg``: the typed config (``validate``), or the composed one, whose values
-    have the same types."""
-    from envs import scenario_bank
-
-    from .banks import draw_seed
-
-    e = cfg.evaluate
-    seed = draw_seed(e.bank, "porav", e.validation_seed)
-    return scenario_bank(
-        ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=e.per_cell, seed=int(seed)
-    )
-
-
-def run_policy(
-    env, policy, entries, desc: str | bool | None = None, policy_seed: int = 0, models: dict | None = None
-) -> list[dict]:
-    """Roll ``policy`` through every bank entry; one row per scenario with the paper's section IV-C metrics and
-    the short hashes of the models behind the policy (empty for scripted ones)."""
-    from tqdm import tqdm
-
-    from envs.rollout import rollout
-
-    rows = []
-    for entry in tqdm(entries, desc=desc or policy.name, unit="scenario", disable=desc is False):
-        o = rollout(env, policy, entry.spec).outcome
-        rows.append(
-            {
-                "policy": policy.name,
-                "policy_seed": policy_seed,
-                "scenario_id": entry.scenario_id,
-                "hazard": entry.hazard,
-                "ttc": entry.ttc,
-                "speed": entry.speed,
-                "seed": entry.spec.seed,
-                **{k: o[k] for k in OUTCOME_COLUMNS},
-                **(models or NO_MODELS),
-            }
-        )
-    return rows
-
-
-_WORKER: dict = {}  # a pool worker's env and policy, built once per policy: the pool lives for one evaluation
-
-
-def _build(cfg_dict, name: str):
-    """(env, policy, seed, models) for policy ``name``, on one torch thread."""
-    import torch
-    from omegaconf import OmegaConf
-
-    torch.set_num_threads(1)
-    cfg = OmegaConf.create(cfg_dict)
-    policy, seed, models = policy_for(cfg, name)
-    # the scripted policies read the true state, not the frame, except the camera's cap (oracle_pixelsK); so does an
-    # agent trained on it (obs=privileged): a policy that says whether it needs the camera is taken at its word
-    camera = getattr(policy, "needs_camera", name not in (*SCRIPTED_POLICIES, EXACT_CHOOSER))
-    return make_env(cfg, camera=camera, **env_overrides(policy)), policy, seed, models
-
-
-def _run_chunk(task) -> list[dict]:
-    """Pool worker side: (config, policy name, entries) -> rows. The chunks come policy by policy, so a worker keeps
-    the policy it is running and lets the one before it go."""
-    cfg_dict, name, entries = task
-    if name not in _WORKER:
-        for env, *_ in _WORKER.values():
-            env.close()
-        _WORKER.clear()
-        _WORKER[name] = _build(cfg_dict, name)
-    env, policy, seed, models = _WORKER[name]
-    return run_policy(env, policy, entries, desc=False, policy_seed=seed, models=models)
-
-
-def evaluate_policy(cfg, name: str, entries, workers: int) -> list[dict]:
-    """Rows of one policy over ``entries``, in bank order, using ``workers`` processes."""
-    return evaluate_policies(cfg, [name], entries, workers)[name]
-
-
-def evaluate_policies(cfg, names: list[str], entries, workers: int) -> dict[str, list[dict]]:
-    """Each policy's rows over ``entries``, in bank order, using ``workers`` processes. One pool serves every policy
-    (starting one per policy cost each worker its imports and the world model's digests again), fed in chunks
-    policy after policy."""
-    from omegaconf import OmegaConf
-    from tqdm import tqdm
-
-    cfg_dict = OmegaConf.to_container(cfg, resolve=True)
-    chunk = max(1, min(25, len(entries) // (4 * max(1, workers)) or 1))
-    tasks = [(cfg_dict, name, entries[i : i + chunk]) for name in names for i in range(0, len(entries), chunk)]
-    rows: dict[str, list[dict]] = {name: [] for name in names}
-    with tqdm(total=len(entries) * len(names), desc="evaluate", unit="scenario") as bar:
-        if workers <= 1:
-            for name in names:
-                bar.set_postfix_str(name)
-                # built afresh on every call, never cached in this process: a checkpoint may have been replaced
-                # (retrained, or rebuilt by the pipeline) since the last evaluation here
-                env, policy, seed, models = _build(cfg_dict, name)
-                try:
-                    for i in range(0, len(entries), chunk):
-                        part = entries[i : i + chunk]
-                        rows[name] += run_policy(env, policy, part, desc=False, policy_seed=seed, models=models)
-                        bar.update(len(part))
-                finally:
-                    env.close()
-        else:
-            with worker_pool(workers) as pool:
-                for (_, name, _), part in zip(tasks, pool.imap(_run_chunk, tasks)):
-                    bar.set_postfix_str(name, refresh=False)
-                    rows[name] += part
-                    bar.update(len(part))
-    return rows
-
-
-def models_by_policy(rows) -> dict[str, dict[str, str]]:
-    """Each policy's key (``agent_r2/seed1`` for a trained one) -> the short hashes of its models."""
-    out: dict[str, dict[str, str]] = {}
-    for r in rows:
-        out.setdefault(ledger_key(r), {c.removesuffix("_sha"): str(r.get(c) or "") for c in MODEL_COLUMNS})
-    return out
-
-
-def headline(summary: dict) -> dict[str, str]:
-    """Each policy's headline figure, its seeds pooled: the share of the achievable improvement and the mean total
-    severe-injury risk per scenario."""
-    shares = summary.get("achievable_share", {}).get("policies", {})
-    out = {}
-    for policy, entry in summary["policies"].items():
-        risk = entry["overall"].get("total_severe_injury")
-        text = "risk n/a" if risk is None else f"risk {100 * risk:.2f} %"
-        share = shares.get(policy, {}).get("overall")
-        if share is not None and policy not in ("braking", "oracle"):
-            text = f"share {share:.1f} %, {text}"
-        out[policy] = text
-    return out
+NCAP = "ncap"  # the Euro NCAP protocol: an env family with its own command, not a bank of this one
 
 
 def run(cfg) -> dict:
@@ -174,54 +25,12 @@ def run(cfg) -> dict:
     sealed = sealed_bank_problem(cfg, typed.evaluate.family)
     if sealed:
         raise StageError(sealed)
-    if typed.evaluate.family == "ncap":
+    if typed.evaluate.family == NCAP:
         raise StageError(
             f"the Euro NCAP bank is its own command: python -m worldmodel.ncap experiment={typed.experiment}"
         )
     with writer_lock(artifacts.eval_dir(cfg), "one evaluation"):
-        if typed.evaluate.family in peers.REGISTRY:  # a peer system's own family and report
-            return peers.peer(typed.evaluate.family).evaluate(cfg)
-        return _evaluate_porav(cfg, typed)
-
-
-def _evaluate_porav(cfg, typed) -> dict:
-    from .training import tensorboard
-
-    entries = bank(typed)
-    out = artifacts.eval_dir(cfg)
-    t0 = time.perf_counter()
-
-    workers = resolve_workers(typed.evaluate.num_workers)
-    agents = [a.key for a in artifacts.trained_agents(cfg)]
-    record = artifacts.provenance(cfg, "eval")
-    for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs
-        policy_for(cfg, key)
-    names = [p for p in SCRIPTED_POLICIES if p in typed.evaluate.policies] + agents
-    rows = [r for policy_rows in evaluate_policies(cfg, names, entries, workers).values() for r in policy_rows]
-    if not agents:
-        log.info(
-            "[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
-            "`python -m worldmodel.train_agent experiment=%s reward=r1`.",
-            artifacts.runs_root(cfg),
-            typed.experiment,
-        )
-
-    write_results_csv(rows, out / "results.csv")
-    writer = tensorboard(out)
-    artifacts.write_provenance(out, record)
-    summary = write_report(rows, out, tb_writer=writer)  # summary.json last: it marks the evaluation complete
-    writer.close()
-    record_evaluation(cfg, "porav", len(entries), models_by_policy(rows), headline(summary))
-    n_policies = len(agents) + len(typed.evaluate.policies)
-    log.info(
-        "[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s",
-        len(entries),
-        n_policies,
-        time.perf_counter() - t0,
-        out / "tables.md",
-        out / "heatmaps.png",
-    )
-    return summary
+        return registry.system(typed.evaluate.family).evaluate(cfg)
 
 
 main = hydra_main("evaluate")(run)

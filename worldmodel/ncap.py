@@ -37,10 +37,10 @@ import numpy as np
 
 from envs.ncap import bank, car_bank, car_points, verdict
 
-from . import artifacts, peers
+from . import artifacts, registry
 from .common import make_env, set_threads, writer_lock
 from .config import hydra_main, validate
-from .policies import env_overrides, porav_policies
+from .policies import env_overrides
 from .report.ncap import figure, summarise, tables
 
 log = logging.getLogger(__name__)
@@ -168,10 +168,8 @@ def _evaluate(cfg, typed, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     pedestrians, cars = specs_of(typed.ncap)
-    porav_step = typed.env.step_s if typed.env.family == "porav" else 1.0 / 15.0
-    groups = [("porav", porav_step, porav_policies(cfg), "r2", takeover)]
     # family, step, policies, reward the env reports, takeover TTC (None: from the start, since when to act is theirs)
-    groups += [(f, 0.1, peers.peer(f).ncap_policies(cfg), peers.peer(f).NCAP_REWARD, None) for f in peers.REGISTRY]
+    groups = [(name, *registry.system(name).ncap_group(cfg, takeover)) for name in registry.names()]
     total = sum(len(pedestrians) + (len(cars) if both else 0) for g in groups for _, _, _, both in g[2])
     rows: list[dict] = []
     with tqdm(total=total, desc="ncap", unit="run") as bar:

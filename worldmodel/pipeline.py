@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from omegaconf import OmegaConf
 
-from . import artifacts, launcher
+from . import artifacts, launcher, registry
 from .artifacts import AgentId
 from .common import StageError, atomic_write_text, writer_lock
 from .config import agent_preset, hydra_main, peer_preset, preset_globals, validate
@@ -92,12 +92,13 @@ class Step:
 
 
 def peer_seeds(cfg, variant: str) -> list[int]:
-    """The seeds a peer's agent trains with: those of ``seeds`` (``seed`` when empty). Chae's DQN, evaluated as
-    ensembles of ``evaluate.chae.ensemble`` k consecutive seeds, trains every member instead: ensemble s is seeds
-    s*k..s*k+k-1 and drives under seed s, so ``seeds=[0,1,2]`` gives three ensembles of three runs."""
+    """The seeds a peer's agent trains with: those of ``seeds`` (``seed`` when empty). A family whose agents are
+    judged as ensembles of k consecutive seeds (``Family.ensemble_key``: Chae's DQN) trains every member instead:
+    ensemble s is seeds s*k..s*k+k-1 and drives under seed s, so ``seeds=[0,1,2]`` gives three ensembles of three
+    runs."""
     seeds = list(cfg.seeds) or [cfg.seed]
-    family = preset_globals(variant).get("env", {}).get("family")
-    k = cfg.evaluate.chae.ensemble if family == "chae" else 0
+    family = registry.family(preset_globals(variant).get("env", {}).get("family") or registry.default().name)
+    k = OmegaConf.select(cfg, family.ensemble_key) if family.ensemble_key else 0
     if k:
         return sorted({m for s in seeds for m in range(s * k, s * k + k)})
     return sorted(seeds)
@@ -113,8 +114,8 @@ def steps(cfg) -> list[Step]:
 
     seeds = list(cfg.seeds) or [cfg.seed]
     agents = {AgentId(r, s, v) for v in cfg.agents for r in agent_preset(cfg, v).rewards for s in seeds}
-    porav = bool(cfg.agents)  # agents=[]: the paper's family is left out, its agents and its evaluations alike
-    if porav:
+    paper = bool(cfg.agents)  # agents=[]: the paper's family is left out, its agents and its evaluations alike
+    if paper:
         agents |= set(artifacts.trained_agents(cfg))
     peers = [peer_preset(p) for p in cfg.peers]
     peer_agents = {AgentId(r, s, v) for v in peers for r in agent_preset(cfg, v).rewards for s in peer_seeds(cfg, v)}
@@ -142,7 +143,9 @@ def steps(cfg) -> list[Step]:
         globals_ = preset_globals(peer_preset(family))  # evaluated as its paper's preset sets the family up
         for bank in cfg.banks:
             changes = {**globals_, "evaluate": {"family": family, "bank": bank}}
-            peer_steps.append(Step(f"eval_{family}{eval_suffix(bank)}", "eval", evaluate.run, changes))
+            name = registry.family(family).folder + eval_suffix(bank)
+            peer_steps.append(Step(name, "eval", evaluate.run, changes))
+    paper_eval, banks = registry.default().folder, cfg.banks if paper else []
     needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes)) for s in agent_steps)
     if needs_demos and cfg.demos.episodes < 1:
         users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes))]
@@ -153,7 +156,7 @@ def steps(cfg) -> list[Step]:
         Step("rnn", "rnn", train_rnn.run),
         *([Step("demos", "demos", demonstrate.run)] if needs_demos else []),
         *agent_steps,
-        *[Step(f"eval{eval_suffix(b)}", "eval", evaluate.run, {"evaluate": {"bank": b}}) for b in cfg.banks if porav],
+        *[Step(f"{paper_eval}{eval_suffix(b)}", "eval", evaluate.run, {"evaluate": {"bank": b}}) for b in banks],
         *peer_steps,
     ]
 

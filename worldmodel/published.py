@@ -35,7 +35,7 @@ from collections import Counter
 from itertools import zip_longest
 from pathlib import Path
 
-from . import banks, report
+from . import banks, registry, report
 from .common import atomic_write_bytes, atomic_write_text
 
 ROWS, TABLES, META = ".rows.csv.gz", ".tables.md", ".meta.json"
@@ -80,34 +80,33 @@ def read_rows(path: Path, family: str) -> list[dict]:
 def render_tables(rows: list[dict], meta: dict) -> str:
     """The tables of one evaluation, from its rows and the settings its summary recorded (``meta["render"]``)."""
     family, how = meta["family"], meta.get("render", {})
-    if family == "porav":
-        return report.tables_markdown(rows)
     if family == ACTION_EFFECT:
         return action_effect_tables(rows, how)
     if family == NCAP:
         from .report import ncap
 
         return ncap.tables(rows, {**ncap.summarise(rows), **how})
-    from . import peers
-
-    if family not in peers.REGISTRY:
+    if family not in registry.names():
         raise RecheckError(f"no renderer for family {family!r}")
-    return peers.peer(family).render_tables(rows, how)
+    return registry.system(family).render_tables(rows, how)
 
 
 def family_of(eval_dir: Path) -> str:
-    return next((f for f in (*banks.FAMILIES[1:], NCAP) if eval_dir.name.startswith(f"eval_{f}")), "porav")
+    """The family whose evaluation folder (``artifacts.eval_dir``) ``eval_dir`` is, by its name."""
+    named = {f.folder: f.name for f in registry.families()} | {f"eval_{NCAP}": NCAP}
+    longest = sorted(named, key=len, reverse=True)  # eval_chae before eval: every folder name starts with "eval"
+    return next(named[folder] for folder in longest if eval_dir.name.startswith(folder))
 
 
 def bank_of(eval_dir: Path, family: str) -> tuple[str, int | None]:
     """(bank, seed) from an evaluation folder's name (``artifacts.eval_dir``); the NCAP protocol has no seed."""
     if family == NCAP:
         return NCAP, None
-    name = eval_dir.name.removeprefix("eval").removeprefix(f"_{family}" if family != "porav" else "")
+    name = eval_dir.name.removeprefix(registry.family(family).folder)
     if name == "_test" or name.startswith("_test_"):
-        return "test", banks.TEST_SEEDS[family]
+        return "test", banks.test_seed(family)
     match = re.match(r"_seed(\d+)", name)
-    return "validation", int(match.group(1)) if match else banks.VALIDATION_SEEDS[family][0]
+    return "validation", int(match.group(1)) if match else banks.validation_seeds(family)[0]
 
 
 ACTION_EFFECT = "action_effect"  # the world model's action effect (worldmodel/action_effect.py), from runs/NAME/rnn/

@@ -28,7 +28,7 @@ import numpy as np
 
 from envs.streams import AGENT_EPISODE_SEEDS, AGENT_FOCUS_EPISODES
 
-from . import artifacts
+from . import artifacts, registry
 from .action_map import ActionMap
 from .common import StageError, check_finite, make_env, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
@@ -79,13 +79,24 @@ def run(cfg) -> dict:
         return run_chooser(cfg, agent_id)
     if typed.agent.learner == "counterfactual":
         return run_counterfactual(cfg, agent_id)
-    if typed.agent.learner == "dqn" or typed.agent.obs == "lidar":  # Chae's or Merola's DQN, Kim's LIDAR agents
-        return run_peer(cfg, agent_id, agent_id.family)
+    family = registry.of_reward(agent_id.reward)
+    if family.trains(typed.agent.learner, typed.agent.obs):  # e.g. Chae's or Merola's DQN, Kim's LIDAR agents
+        return run_family(cfg, agent_id, family.name)
+    if typed.agent.learner != "ddpg":
+        raise StageError(
+            f"no trainer for agent.learner={typed.agent.learner} on family {family.name} (reward "
+            f"{agent_id.reward}): its learners are {', '.join(family.learners) or 'none of its own'}; this loop "
+            "trains ddpg, chooser and counterfactual agents"
+        )
     if typed.agent.obs == "privileged":  # the true state (envs/privileged.py): no world model, no camera
         from .agent_obs import PrivilegedEncoder
 
-        if agent_id.family != "porav" or typed.env.family != "porav":
-            raise StageError("obs=privileged trains on the paper's street scenarios: env.family=porav, reward=r1 or r2")
+        paper = registry.default()
+        if family is not paper or typed.env.family != paper.name:
+            raise StageError(
+                f"obs=privileged trains on the paper's street scenarios: env.family={paper.name}, reward="
+                + " or ".join(paper.rewards)
+            )
         sim = make_env(cfg, camera=False)
         encoder = PrivilegedEncoder(sim)
     else:
@@ -320,13 +331,10 @@ def run_counterfactual(cfg, agent_id) -> dict:
         return run_.finish(metrics)
 
 
-def run_peer(cfg, agent_id, family: str) -> dict:
-    """A peer system's learner on its own scenario family (``worldmodel/peers/<family>``): Chae et al.'s braking
-    DQN (``agent.learner=dqn``) or Kim et al.'s LIDAR agents (``agent.obs=lidar``: the DDPG, the chooser). Its
-    ``train`` returns the metrics, with ``summary`` (a line for the log)."""
-    from . import peers
-
-    peer = peers.peer(family)
+def run_family(cfg, agent_id, family: str) -> dict:
+    """A family's own learner (``worldmodel/families/<family>``; e.g. Chae et al.'s braking DQN, Kim et al.'s LIDAR
+    agents). Its ``train`` returns the metrics, with ``summary`` (a line for the log)."""
+    peer = registry.system(family)
     # the training seed, into the process-wide generators too, which a checkpoint saves and restores
     seed_everything(agent_id.seed)
     record = artifacts.provenance(cfg, "agent")

@@ -59,7 +59,6 @@ from .evaluation import (  # noqa: F401
     _draw_problems,
 )
 from .experiment import (  # noqa: F401
-    PEERS,
     ExperimentConfig,
     register,
 )

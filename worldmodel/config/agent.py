@@ -281,7 +281,7 @@ class CounterfactualConfig(Checked):
 @dataclass
 class KimChooserConfig(Checked):
     """The LIDAR chooser on family kim (``agent.learner=kim_chooser``, ``agent=kim_chooser``;
-    worldmodel/peers/kim/chooser.py): it brakes, and switches once to the manoeuvre whose ``kim_unaware`` cost
+    worldmodel/families/kim/chooser.py): it brakes, and switches once to the manoeuvre whose ``kim_unaware`` cost
     (ISS) an MLP predicts lowest from the LIDAR view. The defaults made the figures of docs/results/kim/."""
 
     # labelled straight-line braking episodes of the training distribution, the last 15 % held out to choose the
@@ -315,7 +315,7 @@ OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "fram
 
 @dataclass
 class SelectConfig(Checked):
-    """Checkpoint selection for Chae's DQN (``agent.chae.select``; ``worldmodel/peers/chae/``). Every ``every``
+    """Checkpoint selection for Chae's DQN (``agent.chae.select``; ``worldmodel/families/chae/``). Every ``every``
     episodes once ``start`` of the run has passed, the greedy agent drives a validation draw of Chae's trials
     (``trials`` Scenario-1 trials at each TTC of ``ttcs`` and as many Scenario-2 trials, seeded by ``seed``: never
     the evaluation's ``evaluate.chae.seed``), and ``best.pt`` keeps the checkpoint that, among those bumping in at
@@ -400,7 +400,7 @@ class SelectConfig(Checked):
 
 @dataclass
 class ChaeAgentConfig(Checked):
-    """Chae et al.'s DQN (``agent=dqn_chae``, family chae; worldmodel/peers/chae/): how long it trains, what it is
+    """Chae et al.'s DQN (``agent=dqn_chae``, family chae; worldmodel/families/chae/): how long it trains, what it is
     trained on, and the checkpoint it keeps."""
 
     episodes: int = 6000  # training episodes (~40 steps each)
@@ -430,7 +430,7 @@ class ChaeAgentConfig(Checked):
 
 @dataclass
 class KimAgentConfig(Checked):
-    """Kim et al.'s LIDAR agents (``agent=ddpg_kim`` and its variants, family kim; worldmodel/peers/kim/)."""
+    """Kim et al.'s LIDAR agents (``agent=ddpg_kim`` and its variants, family kim; worldmodel/families/kim/)."""
 
     # environment steps of training (the paper: 100k); a key of its own, so that a scale can shrink it while the
     # preset keeps the paper's other settings
@@ -455,7 +455,7 @@ class KimAgentConfig(Checked):
 
 @dataclass
 class MerolaAgentConfig(Checked):
-    """Merola et al.'s DDQN (``agent=ddqn_merola``, family merola; worldmodel/peers/merola.py)."""
+    """Merola et al.'s DDQN (``agent=ddqn_merola``, family merola; worldmodel/families/merola/system.py)."""
 
     # environment steps of training, whole episodes (the paper: 360k); a key of its own, so that a scale can shrink
     # it while the preset keeps the paper's other settings. 100k: what two cores afford (docs/results/merola/)
@@ -501,9 +501,9 @@ class AgentConfig(DDPGConfig):
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
     # learner "counterfactual": a DDPG actor trained against the simulator's exact costs of its manoeuvres
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
-    # learner "kim_chooser" (worldmodel/peers/kim/chooser.py): the chooser on family kim, from the LIDAR
+    # learner "kim_chooser" (worldmodel/families/kim/chooser.py): the chooser on family kim, from the LIDAR
     kim_chooser: KimChooserConfig = field(default_factory=KimChooserConfig)
-    # learner "dqn" (worldmodel/peers/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
+    # learner "dqn" (worldmodel/families/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
     # each peer's own training keys: Chae's DQN, Kim's LIDAR agents, Merola's DDQN
     chae: ChaeAgentConfig = field(default_factory=ChaeAgentConfig)

@@ -16,8 +16,9 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
+from .. import registry
 from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
-from .experiment import PEERS, ExperimentConfig
+from .experiment import ExperimentConfig
 
 
 def agent_preset(cfg, name: str):
@@ -66,13 +67,12 @@ def _composed_preset(name: str | None, scale: str | None):
 def peer_preset(name: str) -> str | None:
     """The agent preset a ``peers`` entry names: a peer family's paper preset (``kim`` -> ddpg_kim), or any preset
     of a peer family by its own name (``ddpg_kim_fd``); None when it is neither."""
-    from ..peers import REGISTRY
-
-    if name in REGISTRY:
-        return REGISTRY[name]
+    known = registry.peers()
+    if name in known:
+        return known[name]
     if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
         return None
-    return name if preset_globals(name).get("env", {}).get("family") in REGISTRY else None
+    return name if preset_globals(name).get("env", {}).get("family") in known else None
 
 
 def oracle_settings(cfg) -> dict:
@@ -145,7 +145,8 @@ def validate(cfg) -> ExperimentConfig:
         raise StageError(f"config {err}") from None
     if isinstance(typed, ExperimentConfig):
         if any(peer_preset(p) is None for p in typed.peers):
-            requirement = f"name a peer system ({', '.join(PEERS)}) or an agent preset of one (e.g. ddpg_kim_fd)"
+            known = ", ".join(registry.peers())
+            requirement = f"name a peer system ({known}) or an agent preset of one (e.g. ddpg_kim_fd)"
             raise StageError(f"config {ConfigValueError('peers', list(typed.peers), requirement)}")
         # a CUDA device this machine lacks, or bf16 off CUDA, stops here, before any work
         check_amp(typed.amp, resolve_device(typed.device))

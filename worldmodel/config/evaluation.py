@@ -49,7 +49,7 @@ class OracleConfig(Checked):
 # or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard; and the
 # planner braking straight until the hazard covers 1 or 3 pixels of the camera frame: the camera's cap
 SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2", "oracle_pixels1", "oracle_pixels3")
-# family chae's scripted policies, in the order their rows are written (worldmodel/peers/chae/ SCRIPTED)
+# family chae's scripted policies, in the order their rows are written (worldmodel/families/chae/ SCRIPTED)
 CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
 
 
@@ -64,7 +64,7 @@ def _draw_problems(section, key: str, prefix: str = ""):
 
 @dataclass
 class ChaeEvalConfig(Checked):
-    """Chae et al.'s evaluation on family chae (worldmodel/peers/chae/): Table I's bump rate per TTC, Scenario 2's
+    """Chae et al.'s evaluation on family chae (worldmodel/families/chae/): Table I's bump rate per TTC, Scenario 2's
     unnecessary stops, stopping distances, and contact, impact speed and injury."""
 
     trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
@@ -76,7 +76,7 @@ class ChaeEvalConfig(Checked):
     # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
     # 1,000 trials per TTC, where each run alone would cost as much again per seed
     singles: bool = True
-    # scripted policies beside every dqn agent (CHAE_SCRIPTED_POLICIES; peers.chae.SCRIPTED builds them). Fewer for
+    # scripted policies beside every dqn agent (CHAE_SCRIPTED_POLICIES; built in families/chae/). Fewer for
     # a large draw whose scripted rows are already known: they are deterministic, the same trials give the same rows
     policies: list[str] = field(default_factory=lambda: list(CHAE_SCRIPTED_POLICIES))
 
@@ -99,7 +99,7 @@ class ChaeEvalConfig(Checked):
 
 @dataclass
 class KimEvalConfig(Checked):
-    """Kim et al.'s evaluation on family kim (worldmodel/peers/kim/): Table 2's avoidance and injury per
+    """Kim et al.'s evaluation on family kim (worldmodel/families/kim/): Table 2's avoidance and injury per
     scenario, on the paper's 30 trials per scenario and on ``trials`` with 95 % intervals, and pairwise tests."""
 
     trials: int = 200  # seeded trials per scenario; the first 30 are the paper-sized table
@@ -130,7 +130,7 @@ class KimEvalConfig(Checked):
 
 @dataclass
 class MerolaEvalConfig(Checked):
-    """Merola et al.'s scenarios (worldmodel/peers/merola.py): collision rate, ego delta-v, injury risk and return
+    """Merola et al.'s scenarios (worldmodel/families/merola/): collision rate, ego delta-v, injury risk and return
     per scenario for braking, the planner, the paper's world-model agents and every ddqn_merola agent."""
 
     trials: int = 100  # seeded trials per scenario, the same for every policy

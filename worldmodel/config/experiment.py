@@ -9,7 +9,6 @@ from hydra.core.config_store import ConfigStore
 
 from ..common import CONF_DIR, Checked, ConfigValueError
 from ..common import positive_fields as _positive
-from ..peers import REGISTRY
 from .agent import AgentConfig, RewardConfig
 from .data import CollectConfig, DemosConfig, EnvConfig, PathsConfig
 from .evaluation import EvaluateConfig, NcapConfig
@@ -18,7 +17,6 @@ from .world_model import RNNConfig, VAEConfig
 # an experiment names folders under data/ and runs/: one plain folder name, so that it never writes into runs/ itself
 # or outside it
 EXPERIMENT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
-PEERS = REGISTRY  # peer system -> its agent preset (conf/agent/), on its own family (worldmodel/peers/)
 LAUNCHERS = ("inline", "local", "slurm")  # how the pipeline runs its steps (worldmodel/launcher.py)
 
 

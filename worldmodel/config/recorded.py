@@ -3,29 +3,21 @@
 Options added to a section at their off value, keys removed or moved since a run was recorded, and keys that only
 another learner reads are brought back to that layout before hashing (``artifacts.provenance``), so a change of
 the config's shape alone never makes a recorded run stale. A change of what a run computes must change its hash.
+The rules for a family's own sections (``agent.<section>``, ``evaluate.<section>``) are declared with the family
+(``Family.hashed_as``, ``hashed_defaults``, ``removed_eval_keys``: worldmodel/registry.py); the rest are here.
 """
 
 from __future__ import annotations
+
+from .. import registry
 
 RECORDED_WORKERS = 2  # the chooser's labelling processes in the runs recorded while the count was hashed
 RNN_MEASUREMENT_KEYS = ("effect_points", "effect_horizon", "horizon_episodes")
 # Keys added to a config section after runs were recorded: at these values they mean what their absence meant, so
 # they are left out of the hash and older runs stay current.
 ADDED_DEFAULTS = {
-    "env": {"step_s": 1.0 / 15.0, "family": "porav", "tele_fov_deg": None, "lateral_exit_m": 25.0},
-    "agent": {
-        "obs": "worldmodel",
-        "paper_obs": "worldmodel",
-        "episodes": 3000,
-        "lidar_scans": 0,
-        "lidar_rays": 36,
-        "peer_total_steps": 100_000,
-        "resnet_weights": None,
-        "kim_impact_offset_spread": 0.0,
-        "bc_steer_weight": 1.0,
-        "chae_ttc_range": [1.5, 4.0],
-        "chae_noise_m": 0.1,
-    },
+    "env": {"step_s": 1.0 / 15.0, "tele_fov_deg": None, "lateral_exit_m": 25.0},  # and env.family: the default
+    "agent": {"obs": "worldmodel", "paper_obs": "worldmodel", "lidar_scans": 0, "lidar_rays": 36},
 }
 # Agent keys that only their own learner reads.
 LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",), "counterfactual": ("counterfactual",)}
@@ -35,41 +27,44 @@ DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
 COUNTERFACTUAL_OPTIONS_OFF = {"critic_obs": "actor", "search": 0}
 # Keys removed from a config section after runs were recorded, with the one value they ever had in a run: they are
 # put back before hashing, so those runs stay current. (Removed keys that were also added defaults simply stay out.)
-REMOVED_KEYS = {
-    ("agent", "dqn"): {"trauma_lead": 0},
-    ("evaluate", "chae"): {"ensemble_pool": 0, "ensemble_vote": False},
-}
-# Agent keys that moved into a peer's own section, at their old names: they are put back there before hashing, so the
-# runs recorded before the move stay current. Kim's and Merola's total_steps were one key, peer_total_steps.
-MOVED_KEYS = {
-    ("chae", "episodes"): "episodes",
-    ("chae", "ttc_range"): "chae_ttc_range",
-    ("chae", "noise_m"): "chae_noise_m",
-    ("chae", "select"): "select",
-    ("kim", "impact_offset_spread"): "kim_impact_offset_spread",
-    ("kim", "bc_steer_weight"): "bc_steer_weight",
-    ("merola", "resnet_weights"): "resnet_weights",
-}
+REMOVED_KEYS = {("agent", "dqn"): {"trauma_lead": 0}}
+
+
+def _removed_keys() -> dict:
+    families = {("evaluate", f.section): f.removed_eval_keys for f in registry.families() if f.removed_eval_keys}
+    return {**REMOVED_KEYS, **families}
+
+
+def _added_defaults() -> dict:
+    agent = {k: v for f in registry.families() for k, v in f.hashed_defaults.items()}
+    return {
+        "env": {**ADDED_DEFAULTS["env"], "family": registry.default().name},
+        "agent": {**ADDED_DEFAULTS["agent"], **agent},
+    }
 
 
 def _legacy_layout(agent) -> None:
+    """Each family's section back at the flat agent keys the runs before the sections were hashed with
+    (``Family.hashed_as``). A flat key two families moved into one old name (Kim's and Merola's total_steps were
+    one key, peer_total_steps) is that of the family whose observations the agent has, else of the first declared."""
     if not isinstance(agent, dict):
         return
-    sections = {name: agent.pop(name, None) or {} for name in ("chae", "kim", "merola")}
-    for (section, key), old in MOVED_KEYS.items():
-        if key in sections[section]:
-            agent[old] = sections[section][key]
-    # one peer trained at a time: Merola's camera frames, else Kim's (a scale set both alike)
-    steps = sections["merola" if str(agent.get("obs", "")).startswith("frames") else "kim"].get("total_steps")
-    if steps is not None:
-        agent["peer_total_steps"] = steps
+    families = [f for f in registry.families() if f.section]
+    sections = {f.section: agent.pop(f.section, None) or {} for f in families}
+    put = set()
+    for f in families:
+        own = agent.get("obs") in f.observations
+        for key, old in f.hashed_as.items():
+            if key in sections[f.section] and (old not in put or own):
+                agent[old] = sections[f.section][key]
+                put.add(old)
 
 
 def as_recorded(settings: dict) -> dict:
     """``settings`` (a stage's config sections, plain dicts) as the runs recorded so far hashed them: moved keys
     back at their old names, added options at their off values left out, removed keys put back."""
     _legacy_layout(settings.get("agent"))
-    for (section, sub), removed in REMOVED_KEYS.items():
+    for (section, sub), removed in _removed_keys().items():
         part = settings.get(section, {})
         part = part.get(sub) if isinstance(part, dict) else None
         if isinstance(part, dict):
@@ -92,7 +87,10 @@ def as_recorded(settings: dict) -> dict:
         for key, off in COUNTERFACTUAL_OPTIONS_OFF.items():
             if key in counterfactual and counterfactual[key] == off:
                 counterfactual.pop(key)  # off: the learner as before the option
-    chooses = isinstance(agent, dict) and agent.get("learner") == "dqn" and settings.get("reward") == "chae"
+    chooses = isinstance(agent, dict) and any(
+        f.selects_checkpoints and settings.get("reward") in f.rewards and agent.get("learner") in f.learners
+        for f in registry.families()
+    )
     if isinstance(agent, dict) and not (chooses and agent.get("select", {}).get("every")):
         agent.pop("select", None)  # only Chae's DQN chooses its checkpoint on a validation draw; 0 = as before
     select = agent.get("select") if isinstance(agent, dict) else None
@@ -111,12 +109,11 @@ def as_recorded(settings: dict) -> dict:
     if isinstance(chooser, dict) and chooser.get("mask_camera") == "wide":
         chooser.pop("mask_camera")  # the world model's camera, as before the second one
     evaluate = settings.get("evaluate")
-    if isinstance(evaluate, dict) and evaluate.get("family", "porav") == "porav":
+    if isinstance(evaluate, dict) and evaluate.get("family", registry.default().name) == registry.default().name:
         evaluate.pop("family", None)  # the paper's bank, as before the families existed
-        evaluate.pop("chae", None)
-        evaluate.pop("kim", None)
-        evaluate.pop("merola", None)
-    for section, defaults in ADDED_DEFAULTS.items():
+        for section in registry.sections():
+            evaluate.pop(section, None)
+    for section, defaults in _added_defaults().items():
         values = settings.get(section)
         if isinstance(values, dict):
             for key, default in defaults.items():

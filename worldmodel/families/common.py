@@ -187,7 +187,7 @@ def record_if_test(cfg, family: str, rows: list[dict], record: dict, headline: d
             policies[key] = models_of(cfg, key, record["inputs"].get(key)) if trained else {}
     first = (rows[0]["policy"], rows[0]["policy_seed"]) if rows else None
     scenarios = sum(1 for r in rows if (r["policy"], r["policy_seed"]) == first)  # every policy runs them all
-    record_evaluation(cfg, family, scenarios, policies, headline)
+    record_evaluation(cfg, family, artifacts.eval_dir(cfg) / "results.csv", scenarios, policies, headline)
 
 
 def world_model_step_s(typed) -> float:

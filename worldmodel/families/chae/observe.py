@@ -9,8 +9,10 @@ from envs.chae import STEP_S, PedestrianHistory
 
 from ... import artifacts
 from ...common import make_env
+from . import FAMILY as DECLARED
 
-FAMILY, PRESET, NCAP_REWARD = "chae", "dqn_chae", "chae"  # the Peer interface (worldmodel/peers/__init__.py)
+FAMILY, PRESET = DECLARED.name, DECLARED.preset  # as the package declares them
+NCAP_REWARD = "chae"  # the reward its env reports on the Euro NCAP bank
 # Chae's state to roughly unit scale: dx up to ~85 m, dy up to ~6 m, speed up to ~17 m/s
 HISTORY_SCALE = np.tile(np.array([1 / 50.0, 1 / 4.0, 1 / 20.0], np.float32), PedestrianHistory.steps)
 

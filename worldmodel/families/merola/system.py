@@ -42,11 +42,11 @@ from envs.merola import SCENARIOS, MerolaSpec
 from envs.merola import sample as sample_merola
 from envs.streams import MEROLA_TRAINING_EPISODES
 
-from .. import artifacts
-from ..artifacts import AgentId
-from ..common import StageError, decision_device, make_env, percent, resolve_device
-from ..stats import wilson
-from .common import (
+from ... import artifacts
+from ...artifacts import AgentId
+from ...common import StageError, decision_device, make_env, percent, resolve_device
+from ...stats import wilson
+from ..common import (
     DQNPolicy,
     dqn_checkpoint,
     dqn_config,
@@ -58,9 +58,11 @@ from .common import (
     world_model_step_s,
     write_rows,
 )
+from . import FAMILY as DECLARED
 
 log = logging.getLogger(__name__)
-FAMILY, PRESET, NCAP_REWARD = "merola", "ddqn_merola", "merola"  # the Peer interface (worldmodel/peers/__init__.py)
+FAMILY, PRESET = DECLARED.name, DECLARED.preset  # as the package declares them
+NCAP_REWARD = "merola"  # the reward its env reports on the Euro NCAP bank
 PEDALS, STEERS = (-1.0, 0.0, 1.0), (-0.5, 0.0, 0.5)
 ACTIONS = np.array([(s, p) for p in PEDALS for s in STEERS], dtype=np.float32)  # index -> [steer, pedal]
 FRAMES = 4
@@ -112,7 +114,7 @@ def vae_features(vae):
 def resnet_features(net):
     from envs.camera import colorize
 
-    from ..models.resnet import IMAGENET_MEAN, IMAGENET_STD
+    from ...models.resnet import IMAGENET_MEAN, IMAGENET_STD
 
     mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
     std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
@@ -129,7 +131,7 @@ def observer(cfg, obs: str) -> FrameStack:
     if obs not in OBSERVATIONS:
         raise StageError(f"agent.obs={obs}: ddqn_merola sees one of {', '.join(OBSERVATIONS)}")
     if obs == "frames_resnet":
-        from ..models.resnet import load_resnet18
+        from ...models.resnet import load_resnet18
 
         net = load_resnet18(cfg.agent.merola.resnet_weights)
         with torch.inference_mode():
@@ -156,8 +158,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     steps have been taken; the learning rate decays over exactly that many updates."""
     from tqdm import tqdm
 
-    from ..config import validate
-    from ..models.dqn import DQN
+    from ...config import validate
+    from ...models.dqn import DQN
 
     if agent_id.reward != "merola":
         raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
@@ -223,7 +225,7 @@ def summary(metrics: dict) -> str:
 
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
     """A trained ddqn_merola agent, greedy, with the hyperparameters and observation it was trained with."""
-    from ..models.dqn import DQN, DQNConfig
+    from ...models.dqn import DQN, DQNConfig
 
     state = artifacts.load_agent_state(cfg, agent_id, "last")
     if state.get("family") != "merola":
@@ -421,7 +423,7 @@ def scripted(cfg) -> list:
     from envs.kim import Aeb3m
     from envs.planner import PrivilegedPlanner
 
-    from ..config import oracle_settings
+    from ...config import oracle_settings
 
     make = {
         "braking": StraightLineBraking,
@@ -434,9 +436,9 @@ def scripted(cfg) -> list:
 def evaluate(cfg) -> dict:
     """``evaluate.family=merola``: braking, the planner, the paper's world-model agents and every ddqn_merola agent
     on the same seeded trials."""
-    from ..config import validate
-    from ..policies import porav_policies
-    from ..training import tensorboard
+    from ...config import validate
+    from ...policies import porav_policies
+    from ...training import tensorboard
 
     typed = validate(cfg)
     c = drawn(typed, "merola")
@@ -493,3 +495,8 @@ def evaluate(cfg) -> dict:
         out / "tables.md",
     )
     return summary
+
+
+def ncap_group(cfg, takeover_ttc_s: float) -> tuple:
+    """Its agents drive from the test's start, at Merola's 0.1 s steps."""
+    return 0.1, ncap_policies(cfg), NCAP_REWARD, None

@@ -12,8 +12,10 @@ from envs.kim import sample as sample_kim
 from envs.lidar import RANGE_M, LidarHistory
 
 from ...common import StageError, make_env
+from . import FAMILY as DECLARED
 
-FAMILY, PRESET, NCAP_REWARD = "kim", "ddpg_kim", "kim_unaware"  # the Peer interface (worldmodel/peers/__init__.py)
+FAMILY, PRESET = DECLARED.name, DECLARED.preset  # as the package declares them
+NCAP_REWARD = "kim_unaware"  # the reward its env reports on the Euro NCAP bank
 GOAL_REWARDS = ("kim_aware",)  # rewards whose agent also sees the goal (Kim et al. §II-F)
 
 

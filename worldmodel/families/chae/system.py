@@ -23,7 +23,7 @@ variant. Writes ``runs/NAME/eval_chae/``.
 The package, by job: ``observe`` (what the agent sees, the family's env), ``train`` (the trainer), ``select``
 (checkpoint selection: validation, rescoring), ``policies`` (scripted rules, trained agents and their ensembles),
 ``evaluate`` (the bank, the evaluation, the NCAP policies) and ``report`` (summary, tables, figures). Everything
-the rest of the repository uses is importable from ``worldmodel.peers.chae``.
+the rest of the repository uses is importable from ``worldmodel.families.chae``.
 """
 
 from __future__ import annotations
@@ -76,3 +76,8 @@ from .select import (  # noqa: F401
     validated_path,
 )
 from .train import CHECKPOINT_EPISODES, bumped, episode_scenario, first_target, summary, train  # noqa: F401
+
+
+def ncap_group(cfg, takeover_ttc_s: float) -> tuple:
+    """When to brake is its job: from the test's start, at Chae's 0.1 s steps."""
+    return 0.1, ncap_policies(cfg), NCAP_REWARD, None

@@ -83,3 +83,8 @@ __all__ = [
     "training_scenario",
     "train",
 ]
+
+
+def ncap_group(cfg, takeover_ttc_s: float) -> tuple:
+    """Its agents drive from the test's start, at Kim's 0.1 s steps."""
+    return 0.1, ncap_policies(cfg), NCAP_REWARD, None

@@ -1,0 +1,19 @@
+"""Merola et al. 2022 on our simulator: a DDQN on camera frames that brakes and steers, on family ``merola``.
+What it runs is ``system.py``."""
+
+from ...registry import Family
+
+FAMILY = Family(
+    name="merola",
+    system="worldmodel.families.merola.system",
+    rewards=("merola",),
+    validation_seeds=(2022, 77),
+    sealed_seed=17734,
+    suite_test_seed=61004,
+    preset="ddqn_merola",
+    section="merola",
+    learners=("dqn",),
+    observations=("frames_vae", "frames_resnet"),
+    hashed_as={"resnet_weights": "resnet_weights", "total_steps": "peer_total_steps"},
+    hashed_defaults={"resnet_weights": None},
+)
