@@ -68,19 +68,10 @@ def build_actors(
     spec: ScenarioSpec, rng: np.random.Generator, ego_x0: float, ego_front: float, car_length: float, car_width: float
 ) -> tuple[Actors, float]:
     """Place hazards and traffic for ``spec``; returns the actors and the junction position."""
-    car_xy = np.zeros((CAR_POOL, 2))
-    car_vel = np.zeros((CAR_POOL, 2))
-    car_heading = np.zeros(CAR_POOL)
-    car_active = np.zeros(CAR_POOL, dtype=bool)
-    car_hazard = np.zeros(CAR_POOL, dtype=bool)
-    ped_xy = np.zeros((PEDESTRIAN_POOL, 2))
-    ped_vel = np.zeros((PEDESTRIAN_POOL, 2))
-    ped_active = np.zeros(PEDESTRIAN_POOL, dtype=bool)
-    ped_hazard = np.zeros(PEDESTRIAN_POOL, dtype=bool)
-    ped_stop_y = np.full(PEDESTRIAN_POOL, np.nan)
-
     bumper_at_ttc = ego_x0 + ego_front + spec.ego_speed * spec.ttc
-    collision_point = (bumper_at_ttc, EGO_LANE_Y) if spec.hazard != "none" else None
+    actors = Actors.empty((bumper_at_ttc, EGO_LANE_Y) if spec.hazard != "none" else None)
+    car_xy, car_vel, car_heading, car_active = actors.car_xy, actors.car_vel, actors.car_heading, actors.car_active
+    ped_xy, ped_vel, ped_active, ped_stop_y = actors.ped_xy, actors.ped_vel, actors.ped_active, actors.ped_stop_y
     junction_x = bumper_at_ttc + car_width / 2 if spec.car_hazard else float(rng.uniform(30.0, 150.0))
 
     n_car = n_ped = 0
@@ -91,7 +82,7 @@ def build_actors(
         car_xy[0] = (junction_x, EGO_LANE_Y + side * v * spec.ttc)
         car_vel[0] = (0.0, -side * v)
         car_heading[0] = -side * math.pi / 2
-        car_active[0] = car_hazard[0] = True
+        car_active[0] = actors.car_hazard[0] = True
         n_car = 1
     if spec.pedestrian_hazard:
         v = spec.pedestrian_speed
@@ -106,7 +97,7 @@ def build_actors(
         ped_xy[0] = np.array(meet) - direction * reach
         ped_vel[0] = direction * v
         ped_stop_y[0] = side * -(SIDEWALK_OUTER - 1.0)  # on the far sidewalk
-        ped_active[0] = ped_hazard[0] = True
+        ped_active[0] = actors.ped_hazard[0] = True
         n_ped = 1
 
     # Oncoming traffic anywhere ahead or beside; same-direction traffic well beyond the collision point.
@@ -137,16 +128,4 @@ def build_actors(
         ped_active[n_ped] = True
         n_ped += 1
 
-    return Actors(
-        car_xy,
-        car_vel,
-        car_heading,
-        car_active,
-        car_hazard,
-        ped_xy,
-        ped_vel,
-        ped_active,
-        ped_hazard,
-        ped_stop_y,
-        collision_point,
-    ), junction_x
+    return actors, junction_x

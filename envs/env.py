@@ -30,32 +30,12 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from . import chae, geometry, kim, merola, ncap
+from . import crashes, families, geometry
 from .actors import PEDESTRIAN_HALF_SIZE, PEDESTRIAN_RADIUS, Actors, build_actors
-from .injury import damaged_side, occupant_injury, pedestrian_injury, plastic_delta_v
 from .rewards import REGISTRY, StepContext, step_rewards
 from .scenario import ScenarioSpec, sample_scenario
-from .scene import CLASS_NAMES, EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
+from .scene import EGO_LANE_Y, LANE_WIDTH, NUM_CLASSES, SCENE_X, StaticLayout, sample_layout
 from .vehicle import VehicleParams, VehicleState, integrate
-
-# Every family but the paper's is a module with FAMILY, a frozen spec class, sample(rng) and build(spec, ego_front)
-# -> (actors, state); the state's hooks (substep, context, end, outcome, horizon_s) drive its episodes. A spec may
-# say where the ego starts across the road (``ego_y``); a module may bring its own obstacles (``layout(spec,
-# state, rng)``) instead of the street's, with the bodies and the ground that draw them for the camera.
-FAMILY_MODULES = {chae.FAMILY: chae, ncap.FAMILY: ncap, kim.FAMILY: kim, merola.FAMILY: merola}
-SPEC_TYPES = (ScenarioSpec, *(m.SPEC for m in FAMILY_MODULES.values()))
-FAMILIES = ("porav", *FAMILY_MODULES)  # env.reset() without a scenario samples from ``family``
-
-
-def spec_from_dict(d: dict):
-    """A scenario spec of any family from its dict (``"family"`` absent: the paper's, ``porav``)."""
-    family = d.get("family", "porav")
-    if family == "porav":
-        return ScenarioSpec.from_dict(d)
-    if family in FAMILY_MODULES:
-        return FAMILY_MODULES[family].SPEC.from_dict(d)
-    raise ValueError(f"unknown scenario family {family!r}: known are {', '.join(FAMILIES)}")
-
 
 DT = 1.0 / 15.0
 MAX_SPEED_OBS = 40.0
@@ -143,7 +123,7 @@ class UrbanCollisionEnv(gym.Env):
             "car_mass": car_mass > 0.0,
             "substeps": substeps >= 1,
             "step_s": 0.0 < step_s <= 0.5,
-            "family": family in FAMILIES,
+            "family": family in families.names(),
             "horizon_after_ttc_s": horizon_after_ttc_s is None or horizon_after_ttc_s > 0.0,
             "reward": reward in REGISTRY,
             "render_mode": render_mode in (None, "rgb_array"),
@@ -235,13 +215,13 @@ class UrbanCollisionEnv(gym.Env):
         super().reset(seed=seed)
         spec = (options or {}).get("scenario")
         if spec is None:
-            module = FAMILY_MODULES.get(self.family)
+            module = families.MODULES.get(self.family)
             spec = module.sample(self.np_random) if module is not None else sample_scenario(self.np_random)
         elif isinstance(spec, dict):
-            spec = spec_from_dict(spec)
-        elif not isinstance(spec, SPEC_TYPES):
+            spec = families.spec_from_dict(spec)
+        elif not isinstance(spec, types := families.spec_types()):
             raise TypeError(
-                f"options['scenario'] must be a scenario spec ({', '.join(t.__name__ for t in SPEC_TYPES)}) or its "
+                f"options['scenario'] must be a scenario spec ({', '.join(t.__name__ for t in types)}) or its "
                 f"dict, not {type(spec).__name__}"
             )
         self.scenario = spec
@@ -252,7 +232,7 @@ class UrbanCollisionEnv(gym.Env):
         self.family_state = None
         own_layout = None
         if not isinstance(spec, ScenarioSpec):
-            module = FAMILY_MODULES[spec.family]
+            module = families.MODULES[spec.family]
             self.actors, self.family_state = module.build(spec, self._hl, **self.family_options)
             own_layout = getattr(module, "layout", None)
             junction_x = float(rng.uniform(200.0, 300.0))  # the junction well beyond where the episode ends
@@ -296,9 +276,43 @@ class UrbanCollisionEnv(gym.Env):
         if a.shape != (2,) or not np.all(np.isfinite(a)):
             raise ValueError(f"action must be 2 finite numbers [steer, throttle/brake], got {action!r}")
         steer, pedal = float(min(1.0, max(-1.0, a[0]))), float(min(1.0, max(-1.0, a[1])))
-
-        ego, act, p, dt = self.ego, self.actors, self.params, self.step_s
+        ego, act, dt = self.ego, self.actors, self.step_s
         speed_before = ego.v
+        hits, crashed = self._move(steer, pedal)
+        self.t_step += 1
+
+        self.collisions.extend(hits)
+        state = self.family_state
+        family = state.context(act, ego.x + self._hl, ego) if state is not None else {}
+        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family, ego.psi))
+        for name, value in rewards.items():
+            self.returns[name] += value
+        self.min_speed = min(self.min_speed, ego.v)
+        departed = abs(ego.y - self.lane_y) > LANE_WIDTH / 2
+        self.ever_departed |= departed
+
+        left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > self.lateral_exit_m
+        family_end = state.end(act, ego.x + self._hl, ego.v, family, ego) if state is not None else None
+        terminated = crashed or left_scene or family_end is not None
+        truncated = not terminated and self.t_step >= self.horizon_steps
+        if family_end is not None and not crashed:
+            self._last_end = family_end
+        elif crashed:
+            self._last_end = "crash"
+        elif left_scene:
+            self._last_end = "left_scene"
+        elif truncated:
+            self._last_end = "horizon"
+        reward = rewards[self.reward_name]
+        info = self._info(hits, rewards)
+        if terminated or truncated:
+            info["outcome"] = self.outcome()
+        return self._observe(), reward, terminated, truncated, info
+
+    def _move(self, steer: float, pedal: float) -> tuple[list[dict], bool]:
+        """Drive one step in sub-steps, testing the ego's footprint against every road user and static body near
+        it at each, up to the first crash: (the collisions, whether the ego crashed)."""
+        ego, act, p, dt = self.ego, self.actors, self.params, self.step_s
         sub_dt = dt / self.substeps
         reach = self._car_radius + (ego.v + 3.0) * dt + 1.0
         lo = np.array([ego.x - reach, ego.y - reach])
@@ -334,7 +348,7 @@ class UrbanCollisionEnv(gym.Env):
                 py = ped_xy[i][1] + ped_vel[i][1] * tau
                 if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, px, py, PEDESTRIAN_RADIUS):
                     act.ped_active[i] = False
-                    hits.append(self._pedestrian_hit(i, t0 + tau))
+                    hits.append(crashes.pedestrian_hit(ego, i, t0 + tau, bool(act.ped_hazard[i])))
             for i in car_idx:
                 cx = car_xy[i][0] + car_vel[i][0] * tau
                 cy = car_xy[i][1] + car_vel[i][1] * tau
@@ -343,52 +357,24 @@ class UrbanCollisionEnv(gym.Env):
                     ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, math.cos(h), math.sin(h), self._hl, self._hw
                 ):
                     point = geometry.closest_point(ego.x, ego.y, cx, cy, math.cos(h), math.sin(h), self._hl, self._hw)
-                    hits.append(self._vehicle_crash(i, t0 + tau, c, s, point))
+                    hits.append(crashes.vehicle_crash(self, i, t0 + tau, c, s, point))
                     crashed = True
             for i in rect_idx:
                 cx, cy, hx, hy, cls = self._rect_rows[i]
                 if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, 1.0, 0.0, hx, hy):
                     point = geometry.closest_point(ego.x, ego.y, cx, cy, 1.0, 0.0, hx, hy)
-                    hits.append(self._static_crash(int(i), int(cls), t0 + tau, point))
+                    hits.append(crashes.static_crash(self, int(i), int(cls), t0 + tau, point))
                     crashed = True
             for i in circ_idx:
                 cx, cy, r, cls = self._circle_rows[i]
                 if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, r):
-                    hits.append(self._static_crash(int(i), int(cls), t0 + tau, (cx, cy)))
+                    hits.append(crashes.static_crash(self, int(i), int(cls), t0 + tau, (cx, cy)))
                     crashed = True
             if crashed:
                 done_sub = k
                 break
         act.advance(done_sub * sub_dt)
-        self.t_step += 1
-
-        self.collisions.extend(hits)
-        state = self.family_state
-        family = state.context(act, ego.x + self._hl, ego) if state is not None else {}
-        rewards = step_rewards(StepContext(hits, speed_before, ego.v, np.array([steer, pedal]), dt, family, ego.psi))
-        for name, value in rewards.items():
-            self.returns[name] += value
-        self.min_speed = min(self.min_speed, ego.v)
-        departed = abs(ego.y - self.lane_y) > LANE_WIDTH / 2
-        self.ever_departed |= departed
-
-        left_scene = not (SCENE_X[0] + 10.0 < ego.x < SCENE_X[1] - 20.0) or abs(ego.y) > self.lateral_exit_m
-        family_end = state.end(act, ego.x + self._hl, ego.v, family, ego) if state is not None else None
-        terminated = crashed or left_scene or family_end is not None
-        truncated = not terminated and self.t_step >= self.horizon_steps
-        if family_end is not None and not crashed:
-            self._last_end = family_end
-        elif crashed:
-            self._last_end = "crash"
-        elif left_scene:
-            self._last_end = "left_scene"
-        elif truncated:
-            self._last_end = "horizon"
-        reward = rewards[self.reward_name]
-        info = self._info(hits, rewards)
-        if terminated or truncated:
-            info["outcome"] = self.outcome()
-        return self._observe(), reward, terminated, truncated, info
+        return hits, crashed
 
     # ------------------------------------------------------------------ planning
     def snapshot(self) -> dict:
@@ -448,85 +434,6 @@ class UrbanCollisionEnv(gym.Env):
         )
 
     # ------------------------------------------------------------------ collisions
-    def _ego_side(self, point: tuple[float, float]) -> str:
-        """Which side of the ego a contact at world ``point`` damages (front, rear, near = left, far = right)."""
-        e = self.ego
-        dx, dy = point[0] - e.x, point[1] - e.y
-        c, s = math.cos(e.psi), math.sin(e.psi)
-        return damaged_side(dx * c + dy * s, -dx * s + dy * c, self._hl, self._hw)
-
-    def _pedestrian_hit(self, i: int, t: float) -> dict:
-        risk = pedestrian_injury(self.ego.v)
-        return {
-            "kind": "pedestrian",
-            "id": int(i),
-            "class": "Pedestrians",
-            "time": t,
-            "hazard": bool(self.actors.ped_hazard[i]),
-            "impact_speed": self.ego.v,
-            "relative_speed": self.ego.v,
-            "delta_v_ego": 0.0,
-            "delta_v_other": self.ego.v,
-            "injury": [risk],
-            "n_involved": 1,
-            "injury_sum": risk,
-            "pedestrian_injury": risk,
-            "occupant_injury": 0.0,
-            "ego_occupant_injury": 0.0,
-            "ego_side": "front",
-        }
-
-    def _vehicle_crash(self, i: int, t: float, c: float, s: float, point: tuple[float, float]) -> dict:
-        ego = self.ego
-        vx, vy = self.actors.car_vel[i]
-        rel = math.hypot(ego.v * c - vx, ego.v * s - vy)
-        dv_ego, dv_other = plastic_delta_v(self.ego_mass, self.car_mass, rel)
-        p_ego, p_other = occupant_injury(dv_ego), occupant_injury(dv_other)
-        n = self.occupants_per_car
-        injury = [p_ego] * n + [p_other] * n
-        return {
-            "kind": "vehicle",
-            "id": int(i),
-            "class": "Vehicles",
-            "time": t,
-            "hazard": bool(self.actors.car_hazard[i]),
-            "impact_speed": ego.v,
-            "relative_speed": rel,
-            "delta_v_ego": dv_ego,
-            "delta_v_other": dv_other,
-            "injury": injury,
-            "n_involved": 2 * n,
-            "injury_sum": float(sum(injury)),
-            "pedestrian_injury": 0.0,
-            "occupant_injury": float(sum(injury)),
-            "ego_occupant_injury": n * p_ego,
-            "ego_side": self._ego_side(point),
-        }
-
-    def _static_crash(self, i: int, cls: int, t: float, point: tuple[float, float]) -> dict:
-        # A static object is rigid: the ego stops dead, so its delta-v is its whole speed.
-        dv = self.ego.v
-        n = self.occupants_per_car
-        risk = occupant_injury(dv)
-        return {
-            "kind": "static",
-            "id": i,
-            "class": CLASS_NAMES[cls],
-            "time": t,
-            "hazard": False,
-            "impact_speed": dv,
-            "relative_speed": dv,
-            "delta_v_ego": dv,
-            "delta_v_other": 0.0,
-            "injury": [risk] * n,
-            "n_involved": n,
-            "injury_sum": n * risk,
-            "pedestrian_injury": 0.0,
-            "occupant_injury": n * risk,
-            "ego_occupant_injury": n * risk,
-            "ego_side": self._ego_side(point),
-        }
-
     # ------------------------------------------------------------------ observation / info
     def _observe(self) -> dict:
         size = (self.image_size, self.image_size)

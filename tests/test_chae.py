@@ -23,7 +23,7 @@ from envs.chae import (
     brake_action,
     sample_chae,
 )
-from envs.env import spec_from_dict
+from envs.families import spec_from_dict
 from envs.policies import ConstantAction
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from envs import UrbanCollisionEnv, rollout
 from envs.camera import EYE_HEIGHT, CrossroadsGround
-from envs.env import spec_from_dict
+from envs.families import spec_from_dict
 from envs.injury import injury_severity_score
 from envs.kim import (
     BLOCK_BOXES,

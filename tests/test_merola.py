@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from envs import UrbanCollisionEnv, rollout
-from envs.env import spec_from_dict
+from envs.families import spec_from_dict
 from envs.merola import DRIFT_AFTER_S, SCENARIOS, MerolaSpec, sample
 from envs.policies import ConstantAction
 from envs.rewards import MEROLA_IMPACT_FULL_MS, StepContext, merola

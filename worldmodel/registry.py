@@ -26,7 +26,7 @@ DECLARED = (
 class Family:
     """What the shared code needs to know of one scenario family.
 
-    Its env module is ``envs/<name>.py`` (registered in ``envs.env.FAMILY_MODULES``), except the paper's own."""
+    Its env module is ``envs/<name>.py`` (registered in ``envs/families.py``), except the paper's own."""
 
     name: str
     system: str  # the module implementing System, imported when the family trains, evaluates or reports

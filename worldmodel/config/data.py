@@ -197,9 +197,10 @@ class EnvConfig(Checked):
             yield ConfigValueError("tele_fov_deg", self.tele_fov_deg, "it must be in [10, 170] degrees, or null")
         if not 0.0 < self.step_s <= 0.5:
             yield ConfigValueError("step_s", self.step_s, "it must be in (0, 0.5] seconds")
-        from envs.env import FAMILIES
+        from envs.families import names
 
-        if self.family not in FAMILIES:
-            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(FAMILIES)}")
+        known = names()
+        if self.family not in known:
+            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(known)}")
         if self.horizon_after_ttc_s is not None and self.horizon_after_ttc_s <= 0:
             yield ConfigValueError("horizon_after_ttc_s", self.horizon_after_ttc_s, "it must be > 0 (or null)")

@@ -186,10 +186,11 @@ class EvaluateConfig(Checked):
 
         if self.bank not in BANKS:
             yield ConfigValueError("bank", self.bank, f"it must be one of {', '.join(BANKS)}")
-        from envs.env import FAMILIES
+        from envs.families import names
 
-        if self.family not in FAMILIES:
-            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(FAMILIES)}")
+        known = names()
+        if self.family not in known:
+            yield ConfigValueError("family", self.family, f"it must be one of {', '.join(known)}")
         yield from _draw_problems(self, "validation_seed")
         unknown = [h for h in self.hazards if h not in ("pedestrian", "car", "both")]
         if unknown:
