@@ -34,7 +34,7 @@ import time
 import numpy as np
 import torch
 
-from worldmodel import artifacts, counterfactual
+from worldmodel import artifacts, counterfactual, counterfactual_labels
 from worldmodel.config import compose
 
 MARGINS = (0.0, 0.01)  # R2 units of predicted saving a switch must exceed; 0.01 is what "the decision matters" means
@@ -97,11 +97,11 @@ def main(argv=None) -> int:
         parser.error(f"--sizes must lie in [1, episodes - held-out] = [1, {args.episodes - args.held_out}]")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = compose("train_agent", [*args.overrides, "reward=r2", "agent=counterfactual"])
-    c = counterfactual.cfg_counterfactual(cfg)
-    data = counterfactual.labels(cfg, 0, args.episodes, counterfactual.labels_dir(cfg, 0))
+    c = counterfactual_labels.cfg_counterfactual(cfg)
+    data = counterfactual_labels.labels(cfg, 0, args.episodes, counterfactual_labels.labels_dir(cfg, 0))
     views = {
-        "world model": counterfactual.encode_states(artifacts.load_world_model(cfg), data, c.decisions),
-        "true state": counterfactual.privileged_states(data, c.decisions),
+        "world model": counterfactual_labels.encode_states(artifacts.load_world_model(cfg), data, c.decisions),
+        "true state": counterfactual_labels.privileged_states(data, c.decisions),
     }
     episode, u, costs = data["episode"], data["u"], data["costs"]
     held = episode >= args.episodes - args.held_out
@@ -126,7 +126,7 @@ def main(argv=None) -> int:
     best_cost = costs[held].min(axis=1)
     lines = [
         f"Experiment {cfg.experiment}: round-0 labels of {args.episodes} braking episodes "
-        f"({counterfactual.labels_dir(cfg, 0)}), the last {args.held_out} held out: {int(held.sum())} decision "
+        f"({counterfactual_labels.labels_dir(cfg, 0)}), the last {args.held_out} held out: {int(held.sum())} decision "
         f"states, {c.proposals} labelled shifts each. Held out, braking costs {100 * brake_cost.mean():.2f} points "
         f"of R2 per state and the cheapest labelled shift {100 * best_cost.mean():.2f}.",
         "",

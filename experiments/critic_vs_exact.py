@@ -200,7 +200,7 @@ def shift_inputs(candidates, hold_s, step_s: float) -> np.ndarray:
 
 def cost_critic(state: dict):
     """The counterfactual checkpoint's ``CostCritic`` (eval mode), its sizes read from the weights."""
-    from worldmodel.counterfactual import CostCritic
+    from worldmodel.models.counterfactual import CostCritic
 
     sd = state["critic"]  # each member a first layer of its own, u joining after it
     members = len({k.split(".")[1] for k in sd if k.startswith("trunks.")})
@@ -212,10 +212,10 @@ def cost_critic(state: dict):
 
 def counterfactual_scores(state: dict, encoded: np.ndarray, candidates) -> np.ndarray:
     """The counterfactual critic's predicted cost (members' mean) of every candidate on states at its decision 0."""
-    from worldmodel import counterfactual
+    from worldmodel.models import counterfactual as counterfactual_models
 
     u = shift_inputs(candidates, state["hold_s"], float(state["step_s"]))
-    x = counterfactual.features(encoded, np.zeros(len(encoded)), int(state["decisions"]))
+    x = counterfactual_models.features(encoded, np.zeros(len(encoded)), int(state["decisions"]))
     if x.shape[1] != int(state["in_dim"]):
         raise ValueError(f"its critic reads {state['in_dim']} features, the world model gives {x.shape[1]}")
     critic = cost_critic(state)

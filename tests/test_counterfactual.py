@@ -11,8 +11,9 @@ import pytest
 
 from envs import UrbanCollisionEnv, sample_focus_scenario
 from envs.counterfactual import BRAKE, Shift, ShiftPolicy, ShiftSpace, label_episode, shift_cost
-from worldmodel import artifacts, counterfactual
+from worldmodel import artifacts, counterfactual, counterfactual_labels
 from worldmodel.config import CounterfactualConfig, validate
+from worldmodel.models import counterfactual as counterfactual_models
 
 CONTINUATIONS = CounterfactualConfig().continuations(1.0 / 15.0)
 
@@ -113,16 +114,16 @@ def labelled(smoke_builds):
     ]
     cfg = compose("train_agent", overrides)
     c = validate(cfg).agent.counterfactual
-    directory = counterfactual.labels_dir(cfg, 0)
-    data = counterfactual.labels(cfg, 0, c.episodes, directory)
+    directory = counterfactual_labels.labels_dir(cfg, 0)
+    data = counterfactual_labels.labels(cfg, 0, c.episodes, directory)
     encoder = artifacts.load_world_model(cfg)
-    data["x"] = counterfactual.encode_states(encoder, data, c.decisions)
+    data["x"] = counterfactual_labels.encode_states(encoder, data, c.decisions)
     return cfg, c, data
 
 
 def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelled):
     cfg, c, data = labelled
-    held = counterfactual.held_out_rows(data["episode"])
+    held = counterfactual_labels.held_out_rows(data["episode"])
     assert 0 < held.sum() < len(held)
     assert counterfactual.pairwise_order(np.zeros_like(data["costs"][held]), data["costs"][held]) == 0.5
     fit = CounterfactualConfig(**{**vars(c), "critic_steps": 400, "batch_size": 64})
@@ -131,7 +132,7 @@ def test_the_fitted_critic_orders_held_out_shifts_better_than_a_constant(labelle
     )
     assert figures["pairwise_order"] > 0.6, figures
     # and the actor it trains, which starts as braking, ends with a lower objective on the held-out states
-    actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
+    actor = counterfactual_models.ShiftActor(data["x"].shape[1], (64, 64))
     figures = counterfactual.fit_actor(actor, critic, data["x"], data["x"], data["state"], held, fit, seed=0, round_=0)
     assert figures["objective"] < figures["braking_objective"], figures
 
@@ -142,8 +143,8 @@ def test_search_picks_shifts_no_worse_than_the_actors_or_braking_and_a_true_stat
     import torch
 
     cfg, c, data = labelled
-    held = counterfactual.held_out_rows(data["episode"])
-    true_state = counterfactual.privileged_states(data, c.decisions)
+    held = counterfactual_labels.held_out_rows(data["episode"])
+    true_state = counterfactual_labels.privileged_states(data, c.decisions)
     fit = CounterfactualConfig(**{**vars(c), "critic_steps": 300, "actor_steps": 150, "batch_size": 64, "search": 16})
     critic, _ = counterfactual.fit_critic(true_state, data["u"], data["costs"], data["state"], held, fit, 0, 0)
     xc = torch.from_numpy(true_state)
@@ -155,7 +156,7 @@ def test_search_picks_shifts_no_worse_than_the_actors_or_braking_and_a_true_stat
         braking = counterfactual.objective(critic, torch.zeros_like(u), xc, fit, scale)[0]
     assert (found <= own + 1e-6).all() and (found <= braking + 1e-6).all()
     assert (found < own - 1e-6).any(), "the search never improved on a random shift: the check would be empty"
-    actor = counterfactual.ShiftActor(data["x"].shape[1], (64, 64))
+    actor = counterfactual_models.ShiftActor(data["x"].shape[1], (64, 64))
     figures = counterfactual.fit_actor(actor, critic, data["x"], true_state, data["state"], held, fit, seed=0, round_=0)
     assert figures["objective"] < figures["braking_objective"], figures
 
@@ -186,7 +187,7 @@ def test_on_the_true_state_it_trains_and_acts_without_world_model_or_camera(expe
     env.reset(options={"scenario": spec})
     built.reset()
     built.bind(env)
-    expected = counterfactual.actor_decision(counterfactual.actor_from_state(state), state["decisions"])(
+    expected = counterfactual_labels.actor_decision(counterfactual_models.actor_from_state(state), state["decisions"])(
         privileged_state(env), 0
     )
     built.act({"seg": None}, None)

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, train_agent, train_vae
+from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, recheck, train_agent, train_vae
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose, validate
 from worldmodel.families import common as peers_common
@@ -398,7 +398,7 @@ def test_peer_chae_trains_and_evaluates_on_its_own_family(experiment, tmp_path, 
     assert "Chae et al. (paper" in (runs / "eval_chae/tables.md").read_text()
     # its rows, committed, give its tables again
     published.publish(runs / "eval_chae", root / "docs/chae/validation", "pipeline peers=[chae]")
-    assert published.recheck(root / "docs") == []
+    assert recheck.recheck(root / "docs") == []
     assert not (runs / "eval/results.csv").read_text().count("chae")  # the paper's bank is left alone
     with caplog.at_level(logging.INFO, logger="worldmodel.pipeline"):
         pipeline.run(smoke_cfg(root, "pipeline", "peers=[chae]"))
@@ -461,7 +461,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
         assert (runs / "eval_merola" / name).exists(), name
     for family in ("kim", "merola"):  # their rows, committed, give their tables again
         published.publish(runs / f"eval_{family}", root / f"docs/{family}/validation", "evaluate")
-    assert published.recheck(root / "docs") == []
+    assert recheck.recheck(root / "docs") == []
 
     ncap.run(smoke_cfg(root, "ncap", "ncap.tests=[CPNA-25]"))
     summary = json.loads((runs / "eval_ncap/summary.json").read_text())["policies"]
@@ -485,7 +485,7 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
     tables = (runs / "eval_ncap/tables.md").read_text()
     assert "CCRb 6 m/s², 12 m" in tables and (runs / "eval_ncap/ncap.png").exists()
     published.publish(runs / "eval_ncap", root / "docs/ncap/smoke", "ncap")  # its rows give its tables again
-    assert published.recheck(root / "docs") == []
+    assert recheck.recheck(root / "docs") == []
     # the bank runs after the pipeline, not in it: the experiment's stage times are not what made these rows
     assert (runs / "pipeline.json").exists() and not (root / "docs/ncap" / published.STAGE_TIMES).exists()
 

@@ -8,7 +8,8 @@ import re
 
 import pytest
 
-from worldmodel import banks, evaluate, published
+from worldmodel import banks, evaluate, published, recheck
+from worldmodel.report import __main__ as report_cli
 from worldmodel.report import read_results_csv, write_results_csv
 
 TEST_SEED = banks.test_seed("porav")  # the suite's test-only stand-in for the sealed seed
@@ -56,7 +57,7 @@ def test_published_rows_are_the_evaluation_rows_and_give_its_tables(results):
     write_results_csv(read_results_csv(out / "test.rows.csv.gz"), out / "again.csv.gz")
     assert (out / "again.csv.gz").read_bytes() == first
     (out / "again.csv.gz").unlink()
-    assert published.recheck(out.parent) == []
+    assert recheck.recheck(out.parent) == []
 
 
 def test_the_headline_gives_both_banks_with_intervals(results):
@@ -85,7 +86,7 @@ def test_the_pooled_table_pools_the_validation_banks_and_recheck_holds_it(result
     copy = tmp_path / "x"
     shutil.copytree(out, copy)
     (copy / published.POOLED).write_text(text.replace(planner, planner.replace("| 100.0 | —", "| 99.0 | —")))
-    (problem,) = published.recheck(copy, root / "ledger.csv")
+    (problem,) = recheck.recheck(copy, root / "ledger.csv")
     assert "pooled.md" in problem
 
 
@@ -100,7 +101,7 @@ def test_recheck_names_an_edited_number(results, tmp_path):
     original = tables.splitlines()[line - 1]
     edited = original.replace("|", "| 99.9 |", 2).replace("| 99.9 |", "|", 1)  # one cell more, after the name
     (copy / "test.tables.md").write_text(tables.replace(original, edited, 1))
-    (problem,) = published.recheck(copy, root / "ledger.csv")
+    (problem,) = recheck.recheck(copy, root / "ledger.csv")
     assert f"test.tables.md, line {line} (Straight-line braking)" in problem and "committed 99.9" in problem
 
 
@@ -115,7 +116,7 @@ def test_recheck_fails_when_the_rows_change_under_a_table(results, tmp_path):
         if r["policy"] == "oracle_brake1":
             r["occupant_injury"] = 0.5  # a ceiling that hurts its occupants
     write_results_csv(rows, copy / "test.rows.csv.gz")
-    problems = published.recheck(copy, root / "ledger.csv")
+    problems = recheck.recheck(copy, root / "ledger.csv")
     assert any("test.tables.md" in p for p in problems) and any("headline.md" in p for p in problems)
 
 
@@ -125,15 +126,15 @@ def test_recheck_holds_a_published_test_evaluation_to_its_ledger_row(results, tm
     root, out = results
     ledger = (root / "ledger.csv").read_text()
     rows, meta = published.published(out)["test"]
-    assert published.ledger_problems("test", rows, meta, root / "ledger.csv") == []
+    assert recheck.ledger_problems("test", rows, meta, root / "ledger.csv") == []
     validation_rows, validation_meta = published.published(out)["validation"]
-    assert published.ledger_problems("validation", validation_rows, validation_meta, None) == []
+    assert recheck.ledger_problems("validation", validation_rows, validation_meta, None) == []
 
     def problems(text):
         (tmp_path / "ledger.csv").write_text(text)
-        return published.ledger_problems("test", rows, meta, tmp_path / "ledger.csv")
+        return recheck.ledger_problems("test", rows, meta, tmp_path / "ledger.csv")
 
-    (missing,) = published.ledger_problems("test", rows, meta, None)
+    (missing,) = recheck.ledger_problems("test", rows, meta, None)
     assert "no ledger.csv" in missing
     (other,) = problems(ledger.replace(",t,smoke,", ",another,smoke,"))
     assert f"has no row for the porav test bank (seed {TEST_SEED}), experiment 't'" in other
@@ -149,7 +150,7 @@ def test_edited_rows_under_tables_rendered_again_are_caught_by_the_ledgers_diges
     import shutil
 
     root, out = results
-    assert banks.read_ledger(root / "ledger.csv")[-1]["rows_sha"] == published.rows_sha(out / "test.rows.csv.gz")
+    assert banks.read_ledger(root / "ledger.csv")[-1]["rows_sha"] == recheck.rows_sha(out / "test.rows.csv.gz")
     copy = tmp_path / "x"
     shutil.copytree(out, copy)
     rows = read_results_csv(copy / "test.rows.csv.gz")
@@ -158,7 +159,7 @@ def test_edited_rows_under_tables_rendered_again_are_caught_by_the_ledgers_diges
     rows, meta = published.published(copy)["test"]
     (copy / "test.tables.md").write_text(published.render_tables(rows, meta))
     published.write_headline(copy)
-    (problem,) = published.recheck(copy, root / "ledger.csv")
+    (problem,) = recheck.recheck(copy, root / "ledger.csv")
     assert "test: the rows are not the evaluation" in problem and "SHA-256" in problem
 
 
@@ -166,9 +167,9 @@ def test_the_committed_rows_carry_the_model_hashes_the_ledger_recorded(tmp_path)
     """On the committed headline: the ledger's actor hash of one agent changed, and its rows no longer match."""
     rows, meta = published.published(published.RESULTS / "porav")["test"]
     ledger = (published.RESULTS / "ledger.csv").read_text()
-    assert published.ledger_problems("test", rows, meta, published.RESULTS / "ledger.csv") == []
+    assert recheck.ledger_problems("test", rows, meta, published.RESULTS / "ledger.csv") == []
     (tmp_path / "ledger.csv").write_text(ledger.replace("actor=03535b7c244d", "actor=000000000000"))
-    (problem,) = published.ledger_problems("test", rows, meta, tmp_path / "ledger.csv")
+    (problem,) = recheck.ledger_problems("test", rows, meta, tmp_path / "ledger.csv")
     assert "agent_r1/seed0's actor is 03535b7c244d in the rows, 000000000000 in the ledger" in problem
 
 
@@ -182,7 +183,7 @@ def test_the_readme_table_sits_between_its_markers():
 
 def test_every_committed_table_is_what_its_rows_give():
     """docs/results as committed: every published evaluation and headline recomputes from its rows."""
-    assert published.recheck(published.RESULTS) == []
+    assert recheck.recheck(published.RESULTS) == []
 
 
 def test_every_table_without_rows_says_so_at_its_top():
@@ -285,7 +286,7 @@ def test_publish_names_the_malformed_file_and_line(results, tmp_path, capsys, da
     cells = lines[3].split(",")
     lines[3] = ",".join(cells[:5]) if damage == "short line" else ",".join([*cells[:4], "fast", *cells[5:]])
     (copy / "results.csv").write_text("\n".join(lines) + "\n")
-    assert published.main(["publish", str(copy), str(tmp_path / "out" / "validation"), "--command", "x"]) == 2
+    assert report_cli.main(["publish", str(copy), str(tmp_path / "out" / "validation"), "--command", "x"]) == 2
     said = capsys.readouterr().out
     assert said.startswith("error: ") and f"{copy / 'results.csv'}, line 4" in said and "Traceback" not in said
     assert not (tmp_path / "out").exists()
@@ -298,7 +299,7 @@ def test_recheck_lists_the_tables_it_cannot_hold_to_rows(results, capsys):
     rowless = out / "an_investigation_tables.md"
     rowless.write_text("| policy | share |\n|---|---:|\n| braking | 0.0 |\n")
     try:
-        assert published.main(["recheck", str(out.parent)]) == 0
+        assert report_cli.main(["recheck", str(out.parent)]) == 0
     finally:
         rowless.unlink()
     said = capsys.readouterr().out.splitlines()
@@ -317,8 +318,8 @@ def test_recheck_counts_every_policys_rows_so_a_removed_row_is_found(results):
     victim = next(i for i, r in enumerate(rows) if r["policy"] == "oracle")
     try:
         write_results_csv(rows[:victim] + rows[victim + 1 :], path)
-        problems = published.recheck(out.parent)
+        problems = recheck.recheck(out.parent)
     finally:
         path.write_bytes(whole)
     assert any("validation: oracle (seed 0) has" in p and "a row was removed or added" in p for p in problems)
-    assert published.recheck(out.parent) == []
+    assert recheck.recheck(out.parent) == []

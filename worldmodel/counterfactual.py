@@ -31,314 +31,37 @@ from __future__ import annotations
 
 import json
 import logging
-import math
-import time
-from pathlib import Path
 
-import h5py
 import numpy as np
 import torch
-from torch import nn
 from tqdm import tqdm
 
-from envs.counterfactual import ShiftPolicy, brake_decision, label_episode
+from envs.counterfactual import ShiftPolicy
 from envs.privileged import PRIVILEGED_DIM
-from envs.streams import COUNTERFACTUAL_LABEL_EPISODES, COUNTERFACTUAL_MINIBATCHES
+from envs.streams import COUNTERFACTUAL_MINIBATCHES
 
 from . import artifacts
 from .action_map import ActionMap
 from .common import (
     StageError,
-    atomic_output,
     check_finite,
-    make_env,
-    read_shards,
-    resolve_workers,
     seed_everything,
     set_threads,
-    worker_pool,
 )
 from .config import validate
-from .models.ddpg import Actor, mlp
+from .counterfactual_labels import (
+    actor_decision,
+    encode_states,
+    held_out_rows,
+    labels,
+    labels_dir,
+    privileged_states,
+)
+from .models.counterfactual import CostCritic, ShiftActor, actor_from_state
 from .stats import rank_agreement
 
 log = logging.getLogger(__name__)
-SHARD = 25  # labelled episodes per file
-HELD_OUT = 0.15  # share of each round's labelled episodes held out, to measure the critic
-FRAME_KEYS = ("seg", "speed", "action")  # per frame, up to the last decision
-DECISION_KEYS = ("t", "u", "costs", "static", "chosen", "state")  # per decision
 CHECK_EVERY = 500  # minibatches between held-out measurements in TensorBoard
-
-
-def cfg_counterfactual(cfg):
-    from omegaconf import OmegaConf
-
-    from .config import CounterfactualConfig
-
-    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(CounterfactualConfig), cfg.agent.counterfactual))
-
-
-def label_seed(cfg) -> int:
-    seed = cfg.agent.counterfactual.get("label_seed")
-    return cfg.seed if seed is None else seed
-
-
-def labels_dir(cfg, round_: int, run_dir: Path | None = None) -> Path:
-    """Round 0: ``data/NAME/counterfactual_labels/<hash of the label settings>-seed<S>/`` (braking's states, shared
-    by every run with those settings). Later rounds: ``<run>/labels/round<r>/``, since the actor drives them."""
-    if round_ > 0:
-        return Path(run_dir) / "labels" / f"round{round_}"
-    settings = cfg_counterfactual(cfg).label_settings(cfg.env.step_s)
-    return (
-        artifacts.data_dir(cfg)
-        / "counterfactual_labels"
-        / f"{artifacts.config_sha256(settings)[:10]}-seed{label_seed(cfg)}"
-    )
-
-
-# ----------------------------------------------------------------------------- the networks
-class Normalised(nn.Module):
-    """Fixed per-feature statistics of the training states (buffers, so they travel with the checkpoint)."""
-
-    def __init__(self, in_dim: int):
-        super().__init__()
-        self.register_buffer("mean", torch.zeros(in_dim))
-        self.register_buffer("std", torch.ones(in_dim))
-
-    def fit(self, x: torch.Tensor) -> None:
-        self.mean.copy_(x.mean(0))
-        self.std.copy_(x.std(0).clamp_min(1e-2))  # a feature constant in training stays 0
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.mean) / self.std
-
-
-class CostCritic(nn.Module):
-    """(state features, u) -> every member's predicted R2 cost, shape (members, batch). Each member reads the state
-    through a first layer of its own, and u joins after it; a linear head on that layer guesses the true state
-    (``envs.privileged``), a training target only (``aux``)."""
-
-    def __init__(self, in_dim: int, members: int, hidden, aux_dim: int = PRIVILEGED_DIM):
-        super().__init__()
-        hidden = [int(h) for h in hidden]
-        self.norm = Normalised(in_dim)
-        self.trunks = nn.ModuleList(nn.Sequential(nn.Linear(in_dim, hidden[0]), nn.ReLU()) for _ in range(members))
-        self.heads = nn.ModuleList(mlp(hidden[0] + 3, hidden[1:], 1) for _ in range(int(members)))
-        self.aux = nn.ModuleList(nn.Linear(hidden[0], aux_dim) for _ in range(int(members)))
-
-    def member(self, m: int, x: torch.Tensor, u: torch.Tensor, aux: bool = False):
-        h = self.trunks[m](self.norm(x))
-        out = self.heads[m](torch.cat([h, u], dim=1))[:, 0]
-        return (out, self.aux[m](h)) if aux else out
-
-    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return torch.stack([self.member(m, x, u) for m in range(len(self.heads))])
-
-    def grid(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """Every member's cost of each state's ``k`` shifts ``u`` (batch, k, 3): (members, batch, k). Each state's
-        first layer is computed once, not once per shift."""
-        x = self.norm(x)
-        out = []
-        for trunk, head in zip(self.trunks, self.heads, strict=True):
-            h = trunk(x)[:, None].expand(-1, u.shape[1], -1)
-            out.append(head(torch.cat([h, u], dim=2))[..., 0])
-        return torch.stack(out)
-
-
-class ShiftActor(nn.Module):
-    """The paper's actor network (``models.ddpg.Actor``) on the normalised state features: u in [-1, 1]^3, braking
-    at initialisation. A linear head on its first hidden layer guesses the true state (``aux``; training only)."""
-
-    def __init__(self, in_dim: int, hidden, aux_dim: int = PRIVILEGED_DIM):
-        super().__init__()
-        self.norm = Normalised(in_dim)
-        self.actor = Actor(in_dim, 3, tuple(int(h) for h in hidden), final_bound=0.0)
-        self.aux = nn.Linear(int(hidden[0]), aux_dim)
-
-    def forward(self, x: torch.Tensor, aux: bool = False):
-        net = self.actor.net
-        h = net[1](net[0](self.norm(x)))
-        u = torch.tanh(net[2:](h))
-        return (u, self.aux(h)) if aux else u
-
-
-def features(encoded: np.ndarray, d: np.ndarray, decisions: int) -> np.ndarray:
-    """The learner's state: the world model's view, then the decision's index as a share of the decisions."""
-    return np.concatenate([encoded, (np.asarray(d, np.float32) / decisions)[:, None]], axis=1).astype(np.float32)
-
-
-# ----------------------------------------------------------------------------- labels
-def label_scenario(seed: int, round_: int, episode: int, c):
-    from envs import sample_focus_scenario
-
-    rng = np.random.default_rng([int(seed), COUNTERFACTUAL_LABEL_EPISODES, int(round_), int(episode)])
-    return sample_focus_scenario(rng, c.hazard_share, tuple(c.speed_range), tuple(c.ttc_range)), rng
-
-
-def proposer(rng: np.random.Generator, c):
-    """The shifts labelled at a decision: the policy's choice, braking, ``local_share`` of the rest near the
-    choice and the others uniform over [-1, 1]^3."""
-
-    def propose(d: int, chosen: np.ndarray) -> np.ndarray:
-        chosen = np.asarray(chosen, np.float32).reshape(1, 3)
-        head = chosen if not chosen.any() else np.concatenate([chosen, np.zeros((1, 3), np.float32)])
-        rest = c.proposals - len(head)
-        local = int(round(rest * c.local_share))
-        near = np.clip(chosen + rng.normal(0.0, c.local_std, (local, 3)), -1.0, 1.0)
-        far = rng.uniform(-1.0, 1.0, (rest - local, 3))
-        return np.concatenate([head, near, far]).astype(np.float32)[: c.proposals]
-
-    return propose
-
-
-def shift_policy(c, step_s: float, decide=brake_decision, encoder=None, name: str = "counterfactual") -> ShiftPolicy:
-    """The decision structure of config ``c``: braking's by default, or ``decide(x, d)`` on the world model's view
-    ``encoder`` (which then sees every frame up to the last decision)."""
-    return ShiftPolicy(
-        c.space(step_s),
-        decide,
-        c.decisions,
-        c.interval(step_s),
-        name=name,
-        encode=None if encoder is None else encoder.encode,
-        note_action=None if encoder is None else encoder.note_action,
-        reset_view=None if encoder is None else encoder.reset,
-    )
-
-
-def actor_decision(actor: ShiftActor, decisions: int):
-    """``decide(x, d)`` of a trained actor on the world model's view ``x``."""
-
-    def decide(x: np.ndarray, d: int) -> np.ndarray:
-        inp = features(np.asarray(x, np.float32)[None], np.array([d]), decisions)
-        with torch.inference_mode():
-            return actor(torch.from_numpy(inp).to(actor.norm.mean.device))[0].cpu().numpy()
-
-    return decide
-
-
-def _label_shard(task) -> int:
-    """Worker: label the episodes of one shard (driven by braking, or by the actor in ``actor_state``) and write
-    it atomically."""
-    cfg_dict, round_, shard, path, n, actor_state = task
-    from omegaconf import OmegaConf
-
-    cfg = OmegaConf.create(cfg_dict)
-    c = cfg_counterfactual(cfg)
-    step_s = cfg.env.step_s
-    env = make_env(cfg, camera=True)
-    twin = env.planning_twin()
-    if actor_state is None:
-        policy = shift_policy(c, step_s)
-    else:
-        set_threads(1)
-        if actor_state.get("obs") == "privileged":
-            from .agent_obs import PrivilegedEncoder
-
-            encoder = PrivilegedEncoder(env)
-        else:
-            encoder = artifacts.load_world_model(cfg)
-        actor = actor_from_state(actor_state)
-        policy = shift_policy(c, step_s, actor_decision(actor, c.decisions), encoder)
-    parts = []
-    first, stop = shard * SHARD, min((shard + 1) * SHARD, n)
-    for e in range(first, stop):
-        spec, rng = label_scenario(label_seed(cfg), round_, e, c)
-        lab = label_episode(env, spec, policy, proposer(rng, c), c.continuations(step_s), twin)
-        parts.append(lab)
-    env.close()
-    with atomic_output(Path(path)) as tmp, h5py.File(tmp, "w") as f:
-        for key in FRAME_KEYS + DECISION_KEYS:
-            f.create_dataset(key, data=np.concatenate([p[key] for p in parts]), compression="gzip")
-        f.create_dataset(
-            "frame_episode",
-            data=np.concatenate([np.full(len(p["speed"]), e, np.int32) for e, p in zip(range(first, stop), parts)]),
-        )
-        f.create_dataset(
-            "episode",
-            data=np.concatenate([np.full(len(p["t"]), e, np.int32) for e, p in zip(range(first, stop), parts)]),
-        )
-        f.attrs["episodes"] = [first, stop]
-    return shard
-
-
-def _shard_holds(path: Path, first: int, stop: int) -> bool:
-    try:
-        with h5py.File(path, "r") as f:
-            return [int(x) for x in f.attrs["episodes"]] == [first, stop]
-    except (OSError, KeyError):
-        return False  # unreadable or unfinished: labelled again
-
-
-def labels(cfg, round_: int, n: int, directory: Path, actor_state: dict | None = None, stop=None) -> dict | None:
-    """Round ``round_``'s ``n`` labelled episodes in ``directory``, labelling what is missing (driven by braking,
-    or by the actor of ``actor_state``). None when ``stop`` was requested before they were all labelled."""
-    c = cfg_counterfactual(cfg)
-    directory.mkdir(parents=True, exist_ok=True)
-    meta = directory / "settings.json"
-    if not meta.exists():
-        meta.write_text(json.dumps({**c.label_settings(cfg.env.step_s), "seed": label_seed(cfg), "round": round_}))
-    paths = [directory / f"shard_{k:04d}.h5" for k in range(math.ceil(n / SHARD))]
-    todo = [k for k, p in enumerate(paths) if not _shard_holds(p, k * SHARD, min((k + 1) * SHARD, n))]
-    if todo and round_ > 0 and actor_state is None:
-        raise StageError(
-            f"{directory} misses {len(todo)} shards of labels that an earlier actor of this run drove: delete "
-            f"{directory.parent.parent} to train the run again"
-        )
-    if todo:
-        from omegaconf import OmegaConf
-
-        cfg_dict = OmegaConf.to_container(cfg, resolve=True)
-        tasks = [(cfg_dict, round_, k, str(paths[k]), n, actor_state) for k in todo]
-        t0 = time.perf_counter()
-        total = sum(min(SHARD, n - k * SHARD) for k in todo)
-        with tqdm(total=total, desc=f"counterfactual labels (round {round_})", unit="episode") as bar:
-            workers = min(resolve_workers(c.num_workers), len(tasks))
-            if workers <= 1:
-                for task in tasks:
-                    k = _label_shard(task)
-                    bar.update(min(SHARD, n - k * SHARD))
-                    if stop is not None and stop.requested:
-                        return None
-            else:
-                with worker_pool(workers) as pool:
-                    for k in pool.imap_unordered(_label_shard, tasks):
-                        bar.update(min(SHARD, n - k * SHARD))
-        log.info(
-            "[counterfactual] labelled %d shards of round %d in %.0f s", len(todo), round_, time.perf_counter() - t0
-        )
-    return read_shards(paths, (*FRAME_KEYS, *DECISION_KEYS, "frame_episode", "episode"))
-
-
-def encode_states(encoder, data: dict, decisions: int) -> np.ndarray:
-    """Every labelled decision state as a live run's world model sees it (the frames before it fed with the actions
-    the driving policy took): ``features`` of shape (decisions labelled, encoder.dim + 1)."""
-    from .agent_obs import encode_episode
-
-    out = np.empty((len(data["t"]), encoder.dim), np.float32)
-    d = np.empty(len(data["t"]), np.int64)
-    for e in tqdm(np.unique(data["episode"]), desc="encode labelled states", unit="episode", leave=False):
-        frames = np.flatnonzero(data["frame_episode"] == e)
-        rows = np.flatnonzero(data["episode"] == e)
-        encoded = encode_episode(encoder, data["seg"][frames], data["speed"][frames], data["action"][frames])
-        out[rows] = encoded[data["t"][rows]]
-        d[rows] = np.arange(len(rows))
-    return features(out, d, decisions)
-
-
-def privileged_states(data: dict, decisions: int) -> np.ndarray:
-    """Every labelled decision state as ``obs=privileged`` sees it: the true state recorded there."""
-    d = np.empty(len(data["t"]), np.int64)
-    for e in np.unique(data["episode"]):
-        rows = np.flatnonzero(data["episode"] == e)
-        d[rows] = np.arange(len(rows))
-    return features(data["state"], d, decisions)
-
-
-def held_out_rows(episode: np.ndarray) -> np.ndarray:
-    """True for the decisions of the last ``HELD_OUT`` share of a round's labelled episodes."""
-    episodes = np.unique(episode)
-    return np.isin(episode, episodes[int(round(len(episodes) * (1 - HELD_OUT))) :])
 
 
 # ----------------------------------------------------------------------------- fitting
@@ -511,17 +234,10 @@ def actor_figures(actor: ShiftActor, critic: CostCritic, x, xc, c) -> dict:
 
 
 # ----------------------------------------------------------------------------- the stage
-def actor_from_state(state: dict) -> ShiftActor:
-    actor = ShiftActor(int(state["in_dim"]), state["actor_hidden"])
-    actor.load_state_dict(state["actor"])
-    return actor.eval()
-
-
 def train(cfg, run_, agent_id) -> dict:
     """Every round's labels, critic and actor, resuming after the last finished phase; saves through ``run_``."""
     typed = validate(cfg)
     c = typed.agent.counterfactual
-    step_s = typed.env.step_s
     set_threads(typed.threads)
     # the training draws from its own seeded generators only; the process-wide ones are seeded too, because the
     # checkpoint saves their state, which would otherwise be whatever ran in this process before
@@ -534,35 +250,13 @@ def train(cfg, run_, agent_id) -> dict:
     critic_in = PRIVILEGED_DIM + 1 if critic_true_state else in_dim
     saved = run_.state or {}
     done = list(saved.get("done", []))
-    torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
-    actor = ShiftActor(in_dim, typed.agent.actor_hidden)
-    critic = None
-    if "actor" in saved:
-        actor.load_state_dict(saved["actor"])
-    if saved.get("critic") is not None:
-        critic = CostCritic(critic_in, c.critic_members, c.critic_hidden)
-        critic.load_state_dict(saved["critic"])
+    actor, critic = networks(typed, saved, in_dim, critic_in)
     history = dict(saved.get("history", {}))
     if done:
         run_.resumed(f"after {done[-1]}")
     per_round = c.critic_steps + c.actor_steps
-    base = {
-        "learner": "counterfactual",
-        "in_dim": in_dim,
-        "critic_in_dim": critic_in,
-        "critic_obs": "privileged" if critic_true_state else typed.agent.obs,
-        "actor_hidden": list(typed.agent.actor_hidden),
-        "decisions": c.decisions,
-        "interval": c.interval(step_s),
-        "hold_s": [float(h) for h in c.hold_s],
-        "step_s": float(step_s),
-        "obs_dim": in_dim - 1,
-        "obs": typed.agent.obs,
-        "use_speed": typed.agent.use_speed,
-        "frame_view": typed.agent.frame_view,
-        "action_map": ActionMap().to_dict(),
-        "reward": agent_id.reward,
-    }
+    critic_obs = "privileged" if critic_true_state else typed.agent.obs
+    base = checkpoint_settings(typed, agent_id.reward, in_dim, critic_in, critic_obs)
 
     def save(log_step: int) -> None:
         run_.save(
@@ -614,12 +308,53 @@ def train(cfg, run_, agent_id) -> dict:
         done.append(f"actor{r}")
         save((r + 1) * per_round - 1)
         log.info("[counterfactual] round %d actor, held out: %s", r, history[f"actor{r}"])
+    return finished_metrics(run_, agent_id.reward, data_rounds, history)
+
+
+def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActor, CostCritic | None]:
+    """The actor (seeded, braking at first) and the critic, with the weights of the checkpoint ``saved``."""
+    c = typed.agent.counterfactual
+    torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
+    actor = ShiftActor(in_dim, typed.agent.actor_hidden)
+    critic = None
+    if "actor" in saved:
+        actor.load_state_dict(saved["actor"])
+    if saved.get("critic") is not None:
+        critic = CostCritic(critic_in, c.critic_members, c.critic_hidden)
+        critic.load_state_dict(saved["critic"])
+    return actor, critic
+
+
+def checkpoint_settings(typed, reward: str, in_dim: int, critic_in: int, critic_obs: str) -> dict:
+    """What a checkpoint records beside the weights: what the actor and the critic read, and how it drives."""
+    c, step_s = typed.agent.counterfactual, typed.env.step_s
+    return {
+        "learner": "counterfactual",
+        "in_dim": in_dim,
+        "critic_in_dim": critic_in,
+        "critic_obs": critic_obs,
+        "actor_hidden": list(typed.agent.actor_hidden),
+        "decisions": c.decisions,
+        "interval": c.interval(step_s),
+        "hold_s": [float(h) for h in c.hold_s],
+        "step_s": float(step_s),
+        "obs_dim": in_dim - 1,
+        "obs": typed.agent.obs,
+        "use_speed": typed.agent.use_speed,
+        "frame_view": typed.agent.frame_view,
+        "action_map": ActionMap().to_dict(),
+        "reward": reward,
+    }
+
+
+def finished_metrics(run_, reward: str, data_rounds: list[dict], history: dict) -> dict:
+    """The run's metrics: how many episodes and states each round labelled, and each phase's held-out figures."""
     if not data_rounds:  # a finished run resumed: nothing to do, its metrics stand
         if run_.marker.exists():
             return json.loads(run_.marker.read_text())
-        return {"reward": agent_id.reward, "learner": "counterfactual", "history": history}
+        return {"reward": reward, "learner": "counterfactual", "history": history}
     return {
-        "reward": agent_id.reward,
+        "reward": reward,
         "learner": "counterfactual",
         "labelled_episodes": {f"round{r}": int(len(np.unique(d["episode"]))) for r, d in enumerate(data_rounds)},
         "labelled_states": int(sum(len(d["t"]) for d in data_rounds)),
