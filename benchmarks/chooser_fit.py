@@ -39,7 +39,7 @@ def peak_mb() -> int:
 
 
 def main(out: str, *overrides: str) -> None:
-    from worldmodel import artifacts, chooser
+    from worldmodel import chooser, loading
     from worldmodel.common import seed_everything, set_threads
     from worldmodel.config import compose, validate
 
@@ -61,7 +61,7 @@ def main(out: str, *overrides: str) -> None:
         data = {k: np.concatenate(v) for k, v in tiled.items()}
         del tiled
     t0 = time.perf_counter()
-    encoder = artifacts.load_world_model(cfg)
+    encoder = loading.load_world_model(cfg)
     steps = chooser.decide_steps_for(c.decide_s, typed.env.step_s)
     x = chooser.scorer_inputs(encoder, data, steps, c.mask_view, c.mask_camera)
     times["inputs_s"] = time.perf_counter() - t0

@@ -27,7 +27,7 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from worldmodel import artifacts, chooser
+from worldmodel import artifacts, chooser, loading
 from worldmodel.artifacts import AgentId
 from worldmodel.banks import validation_draw
 from worldmodel.config import compose
@@ -41,8 +41,8 @@ def predictions(base: list[str], seeds: list[int], val: dict) -> list[np.ndarray
     encoder = None
     for seed in seeds:
         cfg = compose("train_agent", [*base, f"seed={seed}"])
-        encoder = encoder or artifacts.load_world_model(cfg)
-        state = artifacts.load_agent_state(cfg, AgentId.of(cfg), "last")
+        encoder = encoder or loading.load_world_model(cfg)
+        state = loading.load_agent_state(cfg, AgentId.of(cfg), "last")
         scorer = chooser.build_policy("floor", encoder, state).scores.scorer
         x = chooser.scorer_inputs(
             encoder, val, int(state["decide_steps"]), bool(state.get("mask_view")), state.get("mask_camera", "wide")

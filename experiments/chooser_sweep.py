@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from worldmodel import artifacts, chooser
+from worldmodel import artifacts, chooser, loading
 from worldmodel.config import compose
 from worldmodel.report import _mean, read_results_csv
 
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
                         for d in (train, val)
                     )
                 else:
-                    encoder = artifacts.load_world_model(vcfg)
+                    encoder = loading.load_world_model(vcfg)
                     x = chooser.scorer_inputs(encoder, train, steps, bool(c.mask_view), c.mask_camera)
                     xv = chooser.scorer_inputs(encoder, val, steps, bool(c.mask_view), c.mask_camera)
                 encoded[key] = (x, train, xv)

@@ -19,7 +19,7 @@ import argparse
 import numpy as np
 import torch
 
-from worldmodel import artifacts, imitation
+from worldmodel import imitation, loading
 from worldmodel.action_map import ActionMap
 from worldmodel.common import set_threads
 from worldmodel.config import compose
@@ -54,7 +54,7 @@ def fit(x, y, xv, yv, steps: int = 4000, seed: int = 0) -> float:
 def first_swerves(cfg, actions: np.ndarray, split: str) -> np.ndarray:
     """Row indices (into the split's transitions, stored episode by episode) of each episode's first frame with
     |u_steer| > 0.3: where the teacher commits to a side."""
-    store = artifacts.open_demos(cfg)
+    store = loading.open_demos(cfg)
     lengths = [int(store.attrs(i)["n_steps"]) for i in sorted(store.episodes(split))]
     store.close()
     rows, start = [], 0
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     cfg = compose("train_agent", [*args.overrides, "agent.use_speed=true"])
     set_threads(1)
-    encoder = artifacts.load_world_model(cfg, use_speed=True, frame_view=True)
+    encoder = loading.load_world_model(cfg, use_speed=True, frame_view=True)
     action_map = ActionMap("brake", "grip")
     train, _ = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent, "train")
     held, _ = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent, "validation")

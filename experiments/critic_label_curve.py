@@ -34,7 +34,7 @@ import time
 import numpy as np
 import torch
 
-from worldmodel import artifacts, counterfactual, counterfactual_labels
+from worldmodel import artifacts, counterfactual, counterfactual_labels, loading
 from worldmodel.config import compose
 
 MARGINS = (0.0, 0.01)  # R2 units of predicted saving a switch must exceed; 0.01 is what "the decision matters" means
@@ -100,7 +100,7 @@ def main(argv=None) -> int:
     c = counterfactual_labels.cfg_counterfactual(cfg)
     data = counterfactual_labels.labels(cfg, 0, args.episodes, counterfactual_labels.labels_dir(cfg, 0))
     views = {
-        "world model": counterfactual_labels.encode_states(artifacts.load_world_model(cfg), data, c.decisions),
+        "world model": counterfactual_labels.encode_states(loading.load_world_model(cfg), data, c.decisions),
         "true state": counterfactual_labels.privileged_states(data, c.decisions),
     }
     episode, u, costs = data["episode"], data["u"], data["costs"]

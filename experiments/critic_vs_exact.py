@@ -56,7 +56,7 @@ import numpy as np
 import torch
 
 from envs.chooser import decide_steps_for
-from worldmodel import artifacts, chooser
+from worldmodel import artifacts, chooser, loading
 from worldmodel.action_map import ActionMap
 from worldmodel.banks import dir_suffix, sealed_seed_problem, validation_draw
 from worldmodel.config import compose
@@ -242,13 +242,13 @@ def score_agents(cfg, val: dict, candidates) -> tuple[list[Scored], list[str]]:
     def view(settings: dict) -> tuple[np.ndarray, int]:
         key = tuple(sorted(settings.items()))
         if key not in encoded:
-            encoder = artifacts.load_world_model(cfg, **settings)
+            encoder = loading.load_world_model(cfg, **settings)
             encoded[key] = chooser.encode_labels(encoder, val)
         return encoded[key], encoded[key].shape[1]
 
     scored, skipped = [], []
     for agent in artifacts.trained_agents(cfg, "porav"):
-        state = artifacts.load_agent_state(cfg, agent, "last")
+        state = loading.load_agent_state(cfg, agent, "last")
         learner, obs = state.get("learner", "ddpg"), state.get("obs", "worldmodel")
         if learner == "chooser":
             skipped.append(f"{agent.key}: the chooser, whose scorer is a cost model of these candidates (no critic)")
@@ -257,7 +257,7 @@ def score_agents(cfg, val: dict, candidates) -> tuple[list[Scored], list[str]]:
             skipped.append(f"{agent.key}: it sees obs={obs}, not the world model's view of the frames")
             continue
         if learner == "ddpg" and "critic" in state.get("agent", {}):
-            x, dim = view(artifacts.agent_input(state, cfg.vae.latent_dim))
+            x, dim = view(loading.agent_input(state, cfg.vae.latent_dim))
             if dim != int(state["obs_dim"]):
                 skipped.append(f"{agent.key}: it reads {state['obs_dim']} inputs, the world model gives {dim}")
                 continue
@@ -266,7 +266,7 @@ def score_agents(cfg, val: dict, candidates) -> tuple[list[Scored], list[str]]:
         elif learner == "counterfactual" and state.get("critic_obs") == "privileged":
             skipped.append(f"{agent.key}: its critic reads the true state (critic_obs=privileged), not these frames")
         elif learner == "counterfactual" and state.get("critic") is not None:
-            x, _ = view(artifacts.agent_input(state, cfg.vae.latent_dim))
+            x, _ = view(loading.agent_input(state, cfg.vae.latent_dim))
             rows = np.flatnonzero(val["t"] == 0)
             try:
                 scores = counterfactual_scores(state, x[rows], candidates)

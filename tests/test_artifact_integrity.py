@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from worldmodel import artifacts, pipeline, train_vae
+from worldmodel import artifacts, loading, pipeline, train_vae
 from worldmodel.common import StageError, file_sha256
 
 REPO = Path(__file__).resolve().parent.parent
@@ -40,19 +40,19 @@ def test_a_checkpoint_changed_after_its_run_finished_is_refused_then_rebuilt_as_
 
     change_a_weight(best)
     with pytest.raises(StageError, match="not the file its run wrote") as refused:
-        artifacts.load_vae(cfg)
+        loading.load_vae(cfg)
     with pytest.raises(StageError, match="changed since"):
         train_vae.run(stage_cfg("train_vae", "resume=true", root=root))
     row = plan_row(stage_cfg("pipeline", root=root), "vae")
     assert row["state"] == "stale" and any("best.pt" in r and "after its run finished" in r for r in row["reasons"])
-    artifacts.load_vae(stage_cfg("train_vae", "allow_stale=true", root=root))  # loads, with a warning
+    loading.load_vae(stage_cfg("train_vae", "allow_stale=true", root=root))  # loads, with a warning
 
     # the advice: delete the run's folder and rerun the command it names
     folder = re.search(r"or delete (\S+) and rerun", str(refused.value)).group(1)
     assert Path(folder) == best.parent
     shutil.rmtree(folder)
     train_vae.run(cfg)
-    artifacts.load_vae(cfg)
+    loading.load_vae(cfg)
     assert plan_row(stage_cfg("pipeline", root=root), "vae")["state"] == "complete"
 
 
@@ -65,11 +65,11 @@ def test_an_unreadable_checkpoint_names_advice_that_works(stage_cfg, experiment_
     artifacts.write_provenance(best.parent, record)
     best.write_bytes(b"not a checkpoint" + best.read_bytes()[16:])
     with pytest.raises(StageError, match="cannot be read") as refused:
-        artifacts.load_vae(cfg)
+        loading.load_vae(cfg)
     folder = re.search(r"Delete (\S+) \(the run that wrote it\)", str(refused.value)).group(1)
     shutil.rmtree(folder)
     train_vae.run(cfg)
-    artifacts.load_vae(cfg)
+    loading.load_vae(cfg)
 
 
 def test_a_dataset_is_its_content_and_older_records_are_read_as_written(stage_cfg, experiment_copy):
@@ -97,14 +97,14 @@ def test_a_dataset_is_its_content_and_older_records_are_read_as_written(stage_cf
         state = torch.load(vae / name, weights_only=False)
         torch.save({**state, "provenance": {**state["provenance"], "inputs": old}}, vae / name)
     assert plan_row(stage_cfg("pipeline", root=root), "vae")["state"] == "complete"
-    artifacts.load_vae(cfg)
+    loading.load_vae(cfg)
 
     # and another dataset is another dataset
     manifest.write_text(content.replace('"episodes": ', '"episodes": 1', 1))
     assert artifacts.rollouts_id(cfg) != identity
     assert plan_row(stage_cfg("pipeline", root=root), "vae")["state"] == "stale"
     with pytest.raises(StageError, match="is stale"):
-        artifacts.load_vae(cfg)
+        loading.load_vae(cfg)
 
 
 def hold_lock(directory: Path) -> subprocess.Popen:

@@ -15,7 +15,7 @@ from envs import StraightLineBraking, UrbanCollisionEnv, rollout, sample_focus_s
 from envs.chooser import ExactCosts, ManoeuvreChooser, chooser_candidates, cost_labels, decide_steps_for
 from envs.planner import Manoeuvre
 from envs.views import CLASS_NAMES, HAZARD_CLASSES
-from worldmodel import artifacts, chooser, policies, train_agent
+from worldmodel import artifacts, chooser, loading, policies, train_agent
 from worldmodel.common import StageError, make_env
 
 CANDIDATES = chooser_candidates(steers=(1.0,), lane_change_s=(0.3,))  # braking + 4 manoeuvres: cheap to label
@@ -238,7 +238,7 @@ def test_trained_chooser_acts_on_the_inputs_it_was_trained_on(trained):
     assert isinstance(policy, ManoeuvreChooser) and models["actor_sha"]
     data = chooser.labels(cfg)
     rows = np.flatnonzero(data["episode"] == 0)
-    encoder = artifacts.load_world_model(cfg)
+    encoder = loading.load_world_model(cfg)
     offline_x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True, "tele")[rows]
     band = offline_x[:, -policy.scores.mask.dim :].reshape(-1, *policy.scores.mask.shape)
     classes = [CLASS_NAMES.index(c) for c in HAZARD_CLASSES]
@@ -281,7 +281,7 @@ def test_a_trained_chooser_that_switches_late_costs_offline_what_it_costs_live(t
     ecfg = compose("evaluate", base)
     policy, _, _ = policies.policy_for(ecfg, agent.key)
     data = chooser.labels(cfg)
-    encoder = artifacts.load_world_model(cfg)
+    encoder = loading.load_world_model(cfg)
     x = chooser.scorer_inputs(encoder, data, policy.decide_steps, True, "tele")
     with torch.no_grad():
         pred = policy.scores.scorer(torch.from_numpy(x[:])).numpy().astype(np.float64)
@@ -323,8 +323,8 @@ def test_a_finished_chooser_resumed_with_a_new_floor_keeps_its_scorer(trained, t
     )
     again = train_agent.run(floored)
     assert again["checks"] == metrics["checks"]
-    before = artifacts.load_agent_state(cfg, artifacts.AgentId.of(cfg), "last")
-    after = artifacts.load_agent_state(floored, artifacts.AgentId.of(floored), "last")
+    before = loading.load_agent_state(cfg, artifacts.AgentId.of(cfg), "last")
+    after = loading.load_agent_state(floored, artifacts.AgentId.of(floored), "last")
     assert after["min_brake_cost"] == 0.5 and before["min_brake_cost"] == 0.0
     for name, value in before["scorer"].items():
         assert torch.equal(value, after["scorer"][name]), name

@@ -11,7 +11,7 @@ import pytest
 
 from envs import UrbanCollisionEnv, sample_focus_scenario
 from envs.counterfactual import BRAKE, Shift, ShiftPolicy, ShiftSpace, label_episode, shift_cost
-from worldmodel import artifacts, counterfactual, counterfactual_labels
+from worldmodel import counterfactual, counterfactual_labels, loading
 from worldmodel.config import CounterfactualConfig, validate
 from worldmodel.models import counterfactual as counterfactual_models
 
@@ -116,7 +116,7 @@ def labelled(smoke_builds):
     c = validate(cfg).agent.counterfactual
     directory = counterfactual_labels.labels_dir(cfg, 0)
     data = counterfactual_labels.labels(cfg, 0, c.episodes, directory)
-    encoder = artifacts.load_world_model(cfg)
+    encoder = loading.load_world_model(cfg)
     data["x"] = counterfactual_labels.encode_states(encoder, data, c.decisions)
     return cfg, c, data
 

@@ -63,7 +63,7 @@ def test_a_sealed_draw_or_the_test_bank_is_refused(capsys):
 
 
 def test_on_a_smoke_ddpg(smoke_builds, tmp_path, capsys):
-    from worldmodel import artifacts, chooser, train_agent
+    from worldmodel import chooser, loading, train_agent
     from worldmodel.artifacts import AgentId
     from worldmodel.config import compose
 
@@ -85,9 +85,9 @@ def test_on_a_smoke_ddpg(smoke_builds, tmp_path, capsys):
         assert 0 <= float(r["agree"]) <= int(r["pairs"])
 
     # the critic's own Q on the labelled states, and a critic made constant orders exactly half of the pairs
-    state = artifacts.load_agent_state(cfg, AgentId("r2", 0), "last")
+    state = loading.load_agent_state(cfg, AgentId("r2", 0), "last")
     candidates = chooser.cfg_chooser(cfg).candidates(cfg.env.step_s)
-    encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim))
+    encoder = loading.load_world_model(cfg, **loading.agent_input(state, cfg.vae.latent_dim))
     x = chooser.encode_labels(encoder, val)
     scores = cve.ddpg_scores(state, x, val["speed"], candidates)
     f = cve.summarize(scores, val["costs"], val["episode"], boot=100)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import artifacts, demonstrate, imitation, train_agent
+from worldmodel import artifacts, demonstrate, imitation, loading, train_agent
 from worldmodel.action_map import ActionMap
 from worldmodel.common import StageError
 from worldmodel.data import RolloutStore, validate
@@ -68,7 +68,7 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
     shutil.copytree(root, tmp_path, dirs_exist_ok=True)
     base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", *base[2:]]
     cfg = compose("train_agent", [*base, *DEMOS, *LEARNER, "agent.total_steps=0", "agent.bc_pretrain_steps=50"])
-    encoder = artifacts.load_world_model(cfg)  # speed and the frame's hazard profiles, as LEARNER asks
+    encoder = loading.load_world_model(cfg)  # speed and the frame's hazard profiles, as LEARNER asks
     assert encoder.dim == 2 * encoder.latent_dim + 1 + encoder.frame_view.dim
     action_map = ActionMap("brake", "grip")
     demos, info = imitation.demonstration_buffer(cfg, encoder, action_map, "r2", cfg.agent)
@@ -109,7 +109,7 @@ def test_demonstrations_become_the_transitions_a_live_run_would_give(with_demos,
 
     # cloning runs and moves the actor away from its zero start
     train_agent.run(cfg)
-    actor, _ = artifacts.load_actor(cfg, artifacts.AgentId.of(cfg))
+    actor, _ = loading.load_actor(cfg, artifacts.AgentId.of(cfg))
     with torch.no_grad():
         assert actor(torch.from_numpy(first)).abs().max() > 0.01
     # evaluation rebuilds the agent's own input from its checkpoint, whatever the current config says

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import artifacts, train_vae
+from worldmodel import artifacts, loading, train_vae
 from worldmodel.common import StageError, resolve_device, resolve_loader_workers, resolve_workers, to_cpu, usable_cores
 from worldmodel.config import compose, validate
 
@@ -158,7 +158,7 @@ def test_loader_workers_read_the_same_batches_in_the_same_order(smoke_builds):
     """The DataLoader path gives what the training process reads itself: the same frames, the same order."""
     from worldmodel.data import iter_frame_batches, loaded_frame_batches
 
-    store = artifacts.open_rollouts(
+    store = loading.open_rollouts(
         compose("train_vae", [f"paths.data_root={smoke_builds('rollouts')}/data", "experiment=t", "scale=smoke"])
     )
     episodes = store.episodes("train")

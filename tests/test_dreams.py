@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import artifacts, dreams, train_rnn
+from worldmodel import artifacts, dreams, loading, train_rnn
 from worldmodel.common import make_env
 from worldmodel.latents import Latents
 
@@ -58,8 +58,8 @@ def test_the_metric_is_zero_for_identical_branches_and_positive_for_real_ones(ba
 
 def test_dreams_start_from_the_branch_point_and_follow_the_action_input(bank):
     cfg, real, _ = bank
-    vae, _ = artifacts.load_vae(cfg)
-    rnn, _ = artifacts.load_rnn(cfg)
+    vae, _ = loading.load_vae(cfg)
+    rnn, _ = loading.load_rnn(cfg)
     dreamt = dreams.dream_branches(vae, rnn, real)
     assert dreamt.shape == real["seg"].shape and dreamt.dtype == np.uint8
     # with the action's weights zeroed, every action dreams the same future
@@ -74,12 +74,12 @@ def test_an_untrained_residual_lstm_dreams_decoded_persistence(smoke_builds):
 
     root = smoke_builds("rnn")
     cfg = compose("train_rnn", [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t"])
-    vae, _ = artifacts.load_vae(cfg)
-    rnn = artifacts.build_rnn(cfg).eval()
+    vae, _ = loading.load_vae(cfg)
+    rnn = loading.build_rnn(cfg).eval()
     with torch.no_grad():
         rnn.fc.weight.zero_()
         rnn.fc.bias.zero_()
-    store = artifacts.open_rollouts(cfg)
+    store = loading.open_rollouts(cfg)
     lat = Latents(artifacts.latents_path(cfg))
     try:
         q = dreams.horizon_quality(vae, rnn, store, lat, store.episodes("train", branches=False), horizon=3, every=2)

@@ -208,7 +208,7 @@ def test_wrapper_path_with_env_actions_matches_modules(real_episodes):
 
 
 def test_same_results_after_loading_checkpoints_the_way_the_agent_does(stage_cfg, real_episodes):
-    from worldmodel import artifacts
+    from worldmodel import artifacts, loading
     from worldmodel.common import atomic_torch_save
 
     cfg = stage_cfg("train_agent")
@@ -225,7 +225,7 @@ def test_same_results_after_loading_checkpoints_the_way_the_agent_does(stage_cfg
         },
         artifacts.rnn_dir(cfg) / "best.pt",
     )
-    encoder = artifacts.load_world_model(cfg)
+    encoder = loading.load_world_model(cfg)
     assert encoder.vae is not vae  # freshly built modules, weights only from the files
     policy = LearnedPolicy("fast", encoder, actor)
     assert_policy_matches(policy, Reference(vae, rnn, actor), real_episodes[:2])

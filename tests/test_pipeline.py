@@ -13,7 +13,19 @@ import pytest
 import torch
 
 from envs import StraightLineBraking
-from worldmodel import artifacts, banks, evaluate, ncap, pipeline, policies, published, recheck, train_agent, train_vae
+from worldmodel import (
+    artifacts,
+    banks,
+    evaluate,
+    loading,
+    ncap,
+    pipeline,
+    policies,
+    published,
+    recheck,
+    train_agent,
+    train_vae,
+)
 from worldmodel.common import StageError, make_env
 from worldmodel.config import compose, validate
 from worldmodel.families import common as peers_common
@@ -259,10 +271,10 @@ def test_agent_built_on_another_vae_refuses_to_load(new_vae):
     cfg = smoke_cfg(new_vae, "evaluate", "vae.kl_weight=0.5")
     agent = artifacts.AgentId("r1", 0)
     with pytest.raises(StageError, match=r"agent_r1/seed0/last.pt is stale: it was built on vae") as err:
-        artifacts.load_actor(cfg, agent)
+        loading.load_actor(cfg, agent)
     assert str(new_vae / "runs/t/vae/best.pt") in str(err.value)
     assert "python -m worldmodel.train_agent experiment=t reward=r1 seed=0" in str(err.value)
-    actor, _ = artifacts.load_actor(smoke_cfg(new_vae, "evaluate", "vae.kl_weight=0.5", "allow_stale=true"), agent)
+    actor, _ = loading.load_actor(smoke_cfg(new_vae, "evaluate", "vae.kl_weight=0.5", "allow_stale=true"), agent)
     with pytest.raises(StageError, match="stale"):  # evaluation stops before any scenario runs
         evaluate.run(cfg)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import artifacts, train_rnn, train_vae
+from worldmodel import artifacts, loading, train_rnn, train_vae
 from worldmodel.common import StageError
 from worldmodel.latents import Latents
 
@@ -64,7 +64,7 @@ def test_lstm_trained_on_another_vae_refuses_to_load(stage_cfg, with_vae, caplog
     old_vae = artifacts.vae_id(stage_cfg("train_rnn"))
     new_vae = retrain_vae(stage_cfg, with_vae)
     with pytest.raises(StageError) as err:
-        artifacts.load_rnn(stage_cfg("train_rnn"))
+        loading.load_rnn(stage_cfg("train_rnn"))
     message = str(err.value)
     for part in (
         str(with_vae / "runs/t/rnn/best.pt"),
@@ -76,7 +76,7 @@ def test_lstm_trained_on_another_vae_refuses_to_load(stage_cfg, with_vae, caplog
     ):
         assert part in message, (part, message)
     with caplog.at_level(logging.WARNING):
-        rnn, _ = artifacts.load_rnn(stage_cfg("train_rnn", "allow_stale=true"))
+        rnn, _ = loading.load_rnn(stage_cfg("train_rnn", "allow_stale=true"))
     assert "stale" in caplog.text and isinstance(rnn, torch.nn.Module)
 
 
@@ -86,8 +86,8 @@ def test_validation_draws_inputs_as_training_does(stage_cfg, with_vae):
         cfg = stage_cfg("train_rnn", f"rnn.sample_inputs={str(sample_inputs).lower()}")
         artifacts.retire(cfg, with_vae / "runs/t/rnn")
         metrics = train_rnn.run(cfg)
-        model, _ = artifacts.load_rnn(cfg)
-        store = artifacts.open_rollouts(cfg)
+        model, _ = loading.load_rnn(cfg)
+        store = loading.open_rollouts(cfg)
         lat = Latents(artifacts.latents_path(cfg))
         L, D, B = int(cfg.rnn.seq_len), int(cfg.vae.latent_dim), int(cfg.rnn.batch_size)
         units = train_rnn.windows(store.lengths, store.episodes("validation"), L)
@@ -112,7 +112,7 @@ def test_train_resume_continue(stage_cfg, with_vae):
     assert three["epoch"] == 3 and three["step"] == 3 * one["step"]
     assert {int(s["step"]) for s in three["optimizer"]["state"].values()} == {3 * one["step"]}
     with pytest.raises(StageError, match="hidden"):
-        artifacts.load_rnn(stage_cfg("train_rnn", "rnn.hidden=256"))
+        loading.load_rnn(stage_cfg("train_rnn", "rnn.hidden=256"))
 
 
 def test_sequence_windows_cover_every_transition_once():
@@ -128,8 +128,8 @@ def test_streamed_encoding_equals_encoding_each_episode(stage_cfg, smoke_builds,
     from worldmodel.latents import encode_dataset
 
     cfg = stage_cfg("train_rnn", root=smoke_builds("vae"))
-    vae, vae_path = artifacts.load_vae(cfg, "best")
-    store = artifacts.open_rollouts(cfg)
+    vae, vae_path = loading.load_vae(cfg, "best")
+    store = loading.open_rollouts(cfg)
     out = tmp_path / "streamed.h5"
     leftover = tmp_path / f".streamed.h5.tmp-{dead_pid}"  # what a killed encoder leaves behind
     leftover.write_bytes(b"half a file")

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from envs import CLASS_NAMES
-from worldmodel import artifacts, train_vae
+from worldmodel import loading, train_vae
 from worldmodel.common import StageError
 
 
@@ -67,7 +67,7 @@ def test_latent_size_mismatch_with_checkpoint_is_named(stage_cfg, rollouts):
     with pytest.raises(StageError, match="latent"):
         train_vae.run(stage_cfg("train_vae", "vae.batch_size=8", "vae.latent_dim=64", "resume=true"))
     with pytest.raises(StageError, match="vae.latent_dim"):
-        artifacts.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
+        loading.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
 
 
 @pytest.mark.parametrize(

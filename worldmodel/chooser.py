@@ -37,7 +37,7 @@ from envs.scene import CLASS_NAMES
 from envs.streams import CHOOSER_MINIBATCHES
 from envs.views import MaskView
 
-from . import artifacts
+from . import artifacts, loading
 
 # the labels, which the experiments and the tests also read through this module
 from .chooser_labels import (  # noqa: F401
@@ -420,7 +420,7 @@ def train(cfg, run_, agent_id) -> dict:
     steps = decide_steps_for(c.decide_s, typed.env.step_s)
     candidates = c.candidates(typed.env.step_s)
     data = labels(cfg)
-    encoder = artifacts.load_world_model(cfg)
+    encoder = loading.load_world_model(cfg)
     x = scorer_inputs(encoder, data, steps, c.mask_view, c.mask_camera)
     for frames in ("seg", TELE_KEY):  # read into the inputs: ~0.5 GB with 15,000 labelled episodes
         data.pop(frames, None)

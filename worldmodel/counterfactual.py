@@ -40,7 +40,7 @@ from envs.counterfactual import ShiftPolicy
 from envs.privileged import PRIVILEGED_DIM
 from envs.streams import COUNTERFACTUAL_MINIBATCHES
 
-from . import artifacts
+from . import loading
 from .action_map import ActionMap
 from .common import (
     StageError,
@@ -243,7 +243,7 @@ def train(cfg, run_, agent_id) -> dict:
     # checkpoint saves their state, which would otherwise be whatever ran in this process before
     seed_everything(typed.seed)
     privileged = typed.agent.obs == "privileged"  # the true state instead of the world model's view
-    encoder = None if privileged else artifacts.load_world_model(cfg)
+    encoder = None if privileged else loading.load_world_model(cfg)
     in_dim = (PRIVILEGED_DIM if privileged else encoder.dim) + 1
     # the critic only trains the actor, so it may read the true state while the actor reads the world model's view
     critic_true_state = privileged or c.critic_obs == "privileged"

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from envs.counterfactual import ShiftPolicy, brake_decision, label_episode
 from envs.streams import COUNTERFACTUAL_LABEL_EPISODES
 
-from . import artifacts
+from . import artifacts, loading
 from .common import StageError, atomic_output, make_env, read_shards, resolve_workers, set_threads, worker_pool
 from .models.counterfactual import ShiftActor, actor_from_state, features
 
@@ -125,7 +125,7 @@ def _label_shard(task) -> int:
 
             encoder = PrivilegedEncoder(env)
         else:
-            encoder = artifacts.load_world_model(cfg)
+            encoder = loading.load_world_model(cfg)
         actor = actor_from_state(actor_state)
         policy = shift_policy(c, step_s, actor_decision(actor, c.decisions), encoder)
     parts = []

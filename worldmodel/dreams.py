@@ -419,7 +419,7 @@ def run(cfg) -> dict:
     """
     import json
 
-    from . import artifacts
+    from . import artifacts, loading
     from .common import atomic_write_text, resolve_device, set_threads
     from .config import validate
     from .latents import Latents
@@ -427,10 +427,10 @@ def run(cfg) -> dict:
     typed = validate(cfg)
     set_threads(typed.threads)
     device = resolve_device(typed.device)
-    vae, _ = artifacts.load_vae(cfg, "best")
-    rnn, rnn_path = artifacts.load_rnn(cfg, "best")
+    vae, _ = loading.load_vae(cfg, "best")
+    rnn, rnn_path = loading.load_rnn(cfg, "best")
     vae, rnn = vae.to(device), rnn.to(device)
-    store = artifacts.open_rollouts(cfg)
+    store = loading.open_rollouts(cfg)
     lat = Latents(artifacts.latents_path(cfg))
     rows: list[dict] = []
     try:

@@ -19,7 +19,7 @@ from envs import sample_focus_scenario
 from envs.planner import PrivilegedPlanner
 from envs.streams import DAGGER_SCENARIOS
 
-from . import artifacts
+from . import loading
 from .action_map import ActionMap
 from .agent_obs import WorldModelView, encode_episode
 from .common import make_env
@@ -34,7 +34,7 @@ def demonstration_buffer(
     frozen world model as a live run would feed it, every action as the actor output that asks for it, rewards
     scaled and folded into ``agent.n_step`` returns like the agent's own. ``hp``: ``cfg``'s agent section (typed,
     or as composed). ``split``: the store's ``train`` or ``validation`` episodes, or all of them."""
-    store = artifacts.open_demos(cfg)
+    store = loading.open_demos(cfg)
     splits = ("train", "validation") if split is None else (split,)
     episodes = sorted(i for s in splits for i in store.episodes(s))
     total = sum(int(store.attrs(i)["n_steps"]) for i in episodes)

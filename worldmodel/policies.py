@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from . import artifacts
+from . import artifacts, loading
 from .action_map import ActionMap
 from .artifacts import AgentId
 from .config import oracle_settings
@@ -70,25 +70,25 @@ def learned_policy(cfg, agent: AgentId, state: dict | None = None):
     from .common import decision_device
 
     device = decision_device(cfg)
-    actor, state = artifacts.load_actor(cfg, agent, state=state)
+    actor, state = loading.load_actor(cfg, agent, state=state)
     # each agent acts as it was trained: its own input (speed or not, or the true state) and its own action map
     if state.get("obs") == "privileged":  # bound to each episode's env by rollout; no world model, no camera
         from .agent_obs import PrivilegedEncoder
 
         encoder = PrivilegedEncoder(device=device)
     else:
-        encoder = artifacts.load_world_model(cfg, **artifacts.agent_input(state, cfg.vae.latent_dim), device=device)
+        encoder = loading.load_world_model(cfg, **loading.agent_input(state, cfg.vae.latent_dim), device=device)
     if actor is None and state.get("learner") == "counterfactual":
         from .counterfactual import build_policy
 
-        return build_policy(agent.policy, encoder, state, device=device), agent.seed, artifacts.models_of(cfg, agent)
+        return build_policy(agent.policy, encoder, state, device=device), agent.seed, loading.models_of(cfg, agent)
     if actor is None:  # a chooser (agent.learner=chooser)
         from .chooser import build_policy
 
-        return build_policy(agent.policy, encoder, state, device=device), agent.seed, artifacts.models_of(cfg, agent)
+        return build_policy(agent.policy, encoder, state, device=device), agent.seed, loading.models_of(cfg, agent)
     actor = actor.to(device)
     policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
-    return policy, agent.seed, artifacts.models_of(cfg, agent)
+    return policy, agent.seed, loading.models_of(cfg, agent)
 
 
 def env_overrides(policy) -> dict:

@@ -28,7 +28,7 @@ import numpy as np
 
 from envs.streams import AGENT_EPISODE_SEEDS, AGENT_FOCUS_EPISODES
 
-from . import artifacts, registry
+from . import artifacts, loading, registry
 from .action_map import ActionMap
 from .common import StageError, check_finite, make_env, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
@@ -100,7 +100,7 @@ def run(cfg) -> dict:
         sim = make_env(cfg, camera=False)
         encoder = PrivilegedEncoder(sim)
     else:
-        encoder = artifacts.load_world_model(cfg)
+        encoder = loading.load_world_model(cfg)
         sim = make_env(cfg)
     hp = typed.agent
     action_map = ActionMap(hp.anchor, hp.steer, sim.params)

@@ -25,7 +25,7 @@ import torch
 from envs import CLASS_NAMES, NUM_CLASSES
 from envs.streams import RNN_OPEN_LOOP_START, RNN_VALIDATION_INPUTS
 
-from . import artifacts, dreams
+from . import artifacts, dreams, loading
 from .common import StageError, autocast, check_finite, module_device, resolve_device, seed_everything, set_threads
 from .config import hydra_main, validate
 from .latents import Latents, encode_dataset, is_current
@@ -187,11 +187,11 @@ def run(cfg) -> dict:
     typed = validate(cfg)
     hp, seed = typed.rnn, typed.seed
     set_threads(typed.threads)
-    vae, vae_path = artifacts.load_vae(cfg, "best")
-    store = artifacts.open_rollouts(cfg)
+    vae, vae_path = loading.load_vae(cfg, "best")
+    store = loading.open_rollouts(cfg)
     seed_everything(seed)
     device = resolve_device(typed.device)
-    model = artifacts.build_rnn(cfg).to(device)  # built on the CPU first: the same initial weights on every device
+    model = loading.build_rnn(cfg).to(device)  # built on the CPU first: the same initial weights on every device
     opt = torch.optim.Adam(model.parameters(), lr=hp.lr)
     L, D, B = hp.seq_len, typed.vae.latent_dim, hp.batch_size
     sample_inputs = hp.sample_inputs
@@ -211,7 +211,7 @@ def run(cfg) -> dict:
                 f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim={D}; delete it to re-encode"
             )
         if run_.state is not None:
-            artifacts.check_rnn_architecture(run_.state, cfg, run_.last)
+            loading.check_rnn_architecture(run_.state, cfg, run_.last)
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         # what a resume or a loader checks the architecture against
@@ -287,7 +287,7 @@ def run(cfg) -> dict:
             snapshot(best=improved)
             log.info("[rnn] epoch %d: validation loss %.4f", epoch, val_loss)
 
-        model, best_path = artifacts.load_rnn(cfg, "best")
+        model, best_path = loading.load_rnn(cfg, "best")
         model.to(device)  # the measurements run where training did
         scores = prediction_iou(model, vae, store, lat, val_eps)
         effect_rows: list[dict] = []

@@ -17,7 +17,7 @@ import torch
 
 from envs import CLASS_NAMES, NUM_CLASSES
 
-from . import artifacts
+from . import artifacts, loading
 from .common import autocast, check_finite, resolve_device, resolve_loader_workers, seed_everything, set_threads
 from .config import hydra_main, validate
 from .data import RolloutStore, iter_frame_batches, loaded_frame_batches
@@ -100,12 +100,12 @@ def run(cfg) -> dict:
 
     typed = validate(cfg)
     set_threads(typed.threads)
-    store = artifacts.open_rollouts(cfg)
+    store = loading.open_rollouts(cfg)
     out = artifacts.vae_dir(cfg)
     seed_everything(typed.seed)
     device = resolve_device(typed.device)
     loader_workers = resolve_loader_workers(typed.loader_workers, device)
-    model = artifacts.build_vae(cfg).to(device)  # built on the CPU first: the same initial weights on every device
+    model = loading.build_vae(cfg).to(device)  # built on the CPU first: the same initial weights on every device
     opt = torch.optim.Adam(model.parameters(), lr=typed.vae.lr)
     epochs, batch_size = typed.vae.epochs, typed.vae.batch_size
     train_eps, val_eps = store.episodes("train"), store.episodes("validation") or store.episodes("train")
@@ -115,7 +115,7 @@ def run(cfg) -> dict:
         if run_.state is None:
             weights = class_weights(store, train_eps, typed.vae.class_balance)
         else:
-            artifacts.check_vae_architecture(run_.state, cfg, run_.last)
+            loading.check_vae_architecture(run_.state, cfg, run_.last)
             weights = run_.state.get("class_weights")
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
         weights_here = None if weights is None else weights.to(device)
@@ -187,7 +187,7 @@ def run(cfg) -> dict:
                 val["pixel_accuracy"],
             )
 
-        model, best_path = artifacts.load_vae(cfg, "best")
+        model, best_path = loading.load_vae(cfg, "best")
         final = evaluate(model.to(device), store, val_eps, 64)
         wall = time.perf_counter() - t0
         metrics = {

@@ -7,7 +7,7 @@ import numpy as np
 
 from envs.chae import STEP_S, PedestrianHistory
 
-from ... import artifacts
+from ... import loading
 from ...common import make_env
 from . import FAMILY as DECLARED
 
@@ -59,7 +59,7 @@ def observer(cfg, obs: str, noise_m: float | None = None):
     in the schema)."""
     if obs == "pedestrian_history":
         return HistoryObserver(cfg.agent.chae.noise_m if noise_m is None else noise_m)
-    return WorldModelObserver(artifacts.load_world_model(cfg, use_speed=True, frame_view=False))
+    return WorldModelObserver(loading.load_world_model(cfg, use_speed=True, frame_view=False))
 
 
 def family_env(cfg, camera: bool, end_on_bump: bool = True):

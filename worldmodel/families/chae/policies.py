@@ -16,7 +16,7 @@ from envs.chae import (
     brake_action,
 )
 
-from ... import artifacts
+from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device
 from ..common import DQNPolicy
@@ -103,11 +103,11 @@ SCRIPTED = {
 def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
     """A trained dqn agent, built with the hyperparameters it was trained with: the checkpoint ``agent.chae.select``
     chose on its validation draw (``best.pt``) when the run validated, else the last one."""
-    state = artifacts.load_agent_state(cfg, agent_id, "last")
+    state = loading.load_agent_state(cfg, agent_id, "last")
     # last.pt says whether the run validated (a best.pt alone could be left from another run's settings); a chae
     # checkpoint is small, so reading best.pt after it costs little
     if state.get("curve", {}).get("validation"):
-        state = artifacts.load_agent_state(cfg, agent_id, "best")
+        state = loading.load_agent_state(cfg, agent_id, "best")
         log.info("[eval chae] %s: best.pt, episode %d, chosen on the validation draw", agent_id.key, state["episode"])
     return policy_from_state(cfg, agent_id, state)
 

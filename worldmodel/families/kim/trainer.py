@@ -10,7 +10,7 @@ import numpy as np
 from envs.kim import kim_action
 from envs.streams import KIM_TRAINING_EPISODES
 
-from ... import artifacts
+from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, percent, resolve_device
 from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
@@ -182,7 +182,7 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
     from ...models.ddpg import DDPG, DDPGConfig
     from ...policies import learned_policy
 
-    state = artifacts.load_agent_state(cfg, agent_id, "last")
+    state = loading.load_agent_state(cfg, agent_id, "last")
     if state.get("learner") == "kim_chooser":
         from .chooser import policy
 

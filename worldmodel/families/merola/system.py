@@ -42,7 +42,7 @@ from envs.merola import SCENARIOS, MerolaSpec
 from envs.merola import sample as sample_merola
 from envs.streams import MEROLA_TRAINING_EPISODES
 
-from ... import artifacts
+from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, make_env, percent, resolve_device
 from ...stats import wilson
@@ -137,7 +137,7 @@ def observer(cfg, obs: str) -> FrameStack:
         with torch.inference_mode():
             per_frame = net(torch.zeros(1, 3, 64, 64)).numel()
         return FrameStack(resnet_features(net), per_frame)
-    vae, _ = artifacts.load_vae(cfg, "best")
+    vae, _ = loading.load_vae(cfg, "best")
     return FrameStack(vae_features(vae), int(vae.latent_dim))
 
 
@@ -227,7 +227,7 @@ def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
     """A trained ddqn_merola agent, greedy, with the hyperparameters and observation it was trained with."""
     from ...models.dqn import DQN, DQNConfig
 
-    state = artifacts.load_agent_state(cfg, agent_id, "last")
+    state = loading.load_agent_state(cfg, agent_id, "last")
     if state.get("family") != "merola":
         raise StageError(f"{agent_id.dir(cfg)} is not a ddqn_merola agent; move it out of {artifacts.runs_root(cfg)}")
     see = observer(cfg, state["obs"])
@@ -394,7 +394,7 @@ def learning_curves(cfg, agents: list[AgentId], path) -> None:
 
     fig, ax = plt.subplots(figsize=(6.4, 3.4))
     for agent in agents:
-        curve = artifacts.load_agent_state(cfg, agent, "last")["curve"]["return"]
+        curve = loading.load_agent_state(cfg, agent, "last")["curve"]["return"]
         if len(curve) >= ROLLING:
             rolling = np.convolve(curve, np.ones(ROLLING) / ROLLING, mode="valid")
             ax.plot(np.arange(ROLLING, len(curve) + 1), rolling, label=agent.key, lw=1)
