@@ -29,6 +29,11 @@ for _module in (chae, ncap, kim, merola):  # one line per family
     register(_module)
 
 
+def unregister(name: str) -> None:
+    """Remove family ``name`` (a test's own family, once the test is done)."""
+    MODULES.pop(name, None)
+
+
 def names() -> tuple[str, ...]:
     """Every family ``UrbanCollisionEnv(family=...)`` can sample, the paper's first."""
     return (PAPER, *MODULES)

@@ -44,18 +44,28 @@ class Reward:
 
 
 REGISTRY: dict[str, Reward] = {}
+REWARDS: tuple[str, ...] = ()  # the registered rewards' names, in order
 
 
 def register(name: str, doc: str) -> Callable:
     """Add ``fn(ctx: StepContext) -> float`` to the registry under ``name``."""
 
     def add(fn: Callable[[StepContext], float]) -> Callable[[StepContext], float]:
+        global REWARDS
         if name in REGISTRY:
             raise ValueError(f"reward {name!r} is registered twice")
         REGISTRY[name] = Reward(name, fn, doc)
+        REWARDS = tuple(REGISTRY)
         return fn
 
     return add
+
+
+def unregister(name: str) -> None:
+    """Remove reward ``name`` (a test's own reward, once the test is done)."""
+    global REWARDS
+    REGISTRY.pop(name, None)
+    REWARDS = tuple(REGISTRY)
 
 
 @register("r1", "Porav & Newman Eq. 7: minus the number of people involved in this step's collisions")
@@ -123,9 +133,6 @@ def merola(ctx: StepContext) -> float:
     if abs(ctx.heading) > MEROLA_PHI_MAX and -steer * ctx.heading > 0.0:
         r -= 1.0
     return r
-
-
-REWARDS = tuple(REGISTRY)
 
 
 def step_rewards(ctx: StepContext) -> dict[str, float]:

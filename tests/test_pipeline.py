@@ -547,3 +547,36 @@ def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what
     timings = json.loads((root / "runs/t/pipeline.json").read_text())
     assert "collect" not in timings and timings["eval"]["complete"]  # the world model was complete: skipped
     assert all(timings.get(f"agent_r2_{a}", {"complete": True})["complete"] for a in ("chooser", "counterfactual"))
+
+
+def test_a_family_defined_in_the_tests_joins_by_one_line_per_registry_and_runs_through_the_pipeline(
+    experiment, tmp_path
+):
+    """docs/design.md §11's steps, as tests/tiny_family.py follows them: a family whose every part is in that file
+    joins the simulator, the rewards, the families and the presets by one line each, and ``peers=[tiny]`` trains
+    its agent on the world model and evaluates it on its own bank; no file of the repository names it."""
+    import tiny_family
+
+    from worldmodel import registry
+
+    root = tmp_path / "tiny"
+    shutil.copytree(experiment / "data", root / "data")  # the world model: only the family's steps run
+    for stage in ("vae", "rnn"):
+        shutil.copytree(experiment / "runs/t" / stage, root / "runs/t" / stage)
+    with tiny_family.registered():
+        pipeline.run(smoke_cfg(root, "pipeline", "agents=[]", "peers=[tiny]", "banks=[validation]"))
+        runs = root / "runs/t"
+        assert (runs / "agent_tiny_ddpg_tiny/seed0/metrics.json").exists()
+        rows = list(csv.DictReader(open(runs / "eval_tiny/results.csv")))
+        assert sorted({r["policy"] for r in rows}) == ["agent_tiny_ddpg_tiny", "braking"]
+        assert [r["scenario_seed"] for r in rows if r["policy"] == "braking"] == [
+            r["scenario_seed"] for r in rows if r["policy"] == "agent_tiny_ddpg_tiny"
+        ]
+        timings = json.loads((runs / "pipeline.json").read_text())
+        assert {"agent_tiny_ddpg_tiny", "eval_tiny"} <= set(timings) and "eval" not in timings
+        # the shared code read it from the registry: provenance, the folder and the step are the family's own
+        assert artifacts.read_provenance(runs / "eval_tiny")["inputs"].keys() == {"agent_tiny_ddpg_tiny/seed0"}
+    assert "tiny" not in registry.names()
+    sources = [p for d in ("worldmodel", "envs", "conf") for p in (REPO / d).rglob("*") if p.suffix in (".py", ".yaml")]
+    named = [p for p in sources if "tiny" in p.read_text()]
+    assert not named, named

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from envs.rewards import REWARDS
+from envs import rewards
 
 from . import registry
 from .common import StageError, atomic_write_text, file_sha256
@@ -47,7 +47,6 @@ from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded
 log = logging.getLogger(__name__)
 
 PROVENANCE = "provenance.json"
-AGENT_REWARDS = REWARDS  # run names are agent_<reward>...: any registered reward (envs/rewards.py)
 
 
 # ----------------------------------------------------------------------------- paths
@@ -98,12 +97,10 @@ def eval_dir(cfg) -> Path:
     """Where an evaluation writes: ``runs/NAME/eval`` for the paper's family and ``runs/NAME/eval_<family>`` for
     another, on the family's default validation draw; ``_test`` added for the sealed test bank and ``_seed<N>`` for
     another validation draw (worldmodel/banks.py)."""
-    from omegaconf import OmegaConf
-
     from .banks import dir_suffix
 
     family = registry.family(cfg.evaluate.get("family") or registry.default().name)
-    seed = OmegaConf.select(cfg, family.seed_key)
+    seed = family.validation_seed(cfg)
     return runs_root(cfg) / (family.folder + dir_suffix(cfg.evaluate.bank, family.name, seed))
 
 
@@ -150,11 +147,12 @@ class AgentId:
         policy, _, seed = key.partition("/seed")
         policy, _, obs = policy.partition("-")
         name = policy.removeprefix("agent_")
-        # reward names may hold underscores: the longest registered one that the name starts with
-        rewards = [r for r in AGENT_REWARDS if name == r or name.startswith(f"{r}_")]
-        if not policy.startswith("agent_") or not rewards or not seed.isdigit():
+        # run names are agent_<reward>...: any registered reward (envs/rewards.py); reward names may hold
+        # underscores: the longest registered one that the name starts with
+        known = [r for r in rewards.REWARDS if name == r or name.startswith(f"{r}_")]
+        if not policy.startswith("agent_") or not known or not seed.isdigit():
             raise ValueError(f"{key!r} does not name an agent (expected e.g. 'agent_r1/seed0' or 'agent_r2_fd/seed0')")
-        reward = max(rewards, key=len)
+        reward = max(known, key=len)
         return cls(reward, int(seed), name[len(reward) + 1 :] or PAPER_VARIANT, obs)
 
     @classmethod

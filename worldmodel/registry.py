@@ -39,7 +39,9 @@ class Family:
     # the family's config sections ``agent.<section>`` and ``evaluate.<section>``; None: it has none
     section: str | None = None
     eval_dir: str = ""  # the evaluation folder under runs/NAME/ (``eval_<name>`` when empty)
-    validation_seed_key: str = ""  # where its validation draw is chosen (``evaluate.<section>.seed`` when empty)
+    # the config key that chooses its validation draw (``evaluate.<section>.seed`` when empty; a family without a
+    # section always draws its first validation seed)
+    validation_seed_key: str = ""
     # which agents its own trainer runs (``System.train``): those with one of these learners or observations; any
     # other agent on the family trains in train_agent's loop on the world model
     learners: tuple[str, ...] = ()
@@ -59,9 +61,12 @@ class Family:
     def folder(self) -> str:
         return self.eval_dir or f"eval_{self.name}"
 
-    @property
-    def seed_key(self) -> str:
-        return self.validation_seed_key or f"evaluate.{self.section or self.name}.seed"
+    def validation_seed(self, cfg) -> int:
+        """The validation draw ``cfg`` chooses for this family."""
+        from omegaconf import OmegaConf
+
+        key = self.validation_seed_key or (f"evaluate.{self.section}.seed" if self.section else "")
+        return int(OmegaConf.select(cfg, key)) if key else self.validation_seeds[0]
 
     def trains(self, learner: str, obs: str) -> bool:
         """Whether the family's own trainer runs an agent with this learner and observation."""
@@ -95,15 +100,21 @@ _REGISTRY: dict[str, Family] = {}
 
 
 def register(family: Family) -> Family:
-    """Add ``family`` (a name registered already is replaced: a test may register its own)."""
-    _REGISTRY[family.name] = family
+    """Add ``family`` after the declared ones (a name registered already is replaced)."""
+    _load()[family.name] = family
     return family
+
+
+def unregister(name: str) -> None:
+    """Remove family ``name`` (a test's own family, once the test is done)."""
+    _load().pop(name, None)
 
 
 def _load() -> dict[str, Family]:
     if not _REGISTRY:
         for module in DECLARED:
-            register(importlib.import_module(module).FAMILY)
+            family = importlib.import_module(module).FAMILY
+            _REGISTRY[family.name] = family
     return _REGISTRY
 
 
