@@ -409,10 +409,36 @@ def fit_identity(cfg) -> str:
     return artifacts.config_sha256(artifacts.provenance(fitted, "agent"))
 
 
-def train(cfg, run_, agent_id) -> dict:
-    """Label (or reuse labels), encode, fit the scorer; saves the chooser's checkpoint through ``run_``."""
+def checkpoint_settings(typed, reward: str, candidates, steps: int, in_dim: int, obs_dim: int) -> dict:
+    """What a chooser's checkpoint records beside the scorer: its inputs, its candidates and its decision rule."""
     from .action_map import ActionMap
 
+    c = typed.agent.chooser
+    return {
+        "learner": "chooser",
+        "in_dim": in_dim,
+        "hidden": list(c.hidden),
+        "dropout": c.dropout,
+        "members": c.ensemble,
+        "target": c.target,
+        "mask_view": c.mask_view,
+        "mask_camera": c.mask_camera,
+        "tele_fov_deg": typed.env.tele_fov_deg if c.mask_view and c.mask_camera == "tele" else None,
+        "candidates": [vars(m) for m in candidates],
+        "decide_steps": steps,
+        "margin": c.margin,
+        "min_brake_cost": c.min_brake_cost,
+        "obs_dim": obs_dim,
+        "use_speed": typed.agent.use_speed,
+        "frame_view": typed.agent.frame_view,
+        "action_map": ActionMap().to_dict(),
+        "reward": reward,
+        "step": c.steps,
+    }
+
+
+def train(cfg, run_, agent_id) -> dict:
+    """Label (or reuse labels), encode, fit the scorer; saves the chooser's checkpoint through ``run_``."""
     typed = validate(cfg)
     c = typed.agent.chooser
     set_threads(typed.threads)
@@ -457,33 +483,10 @@ def train(cfg, run_, agent_id) -> dict:
     margins = {m: float(policy_cost(pred, yv, ev, m).mean()) for m in (0.0, 0.01, 0.02, 0.05, 0.1)}
     rule = {"min_brake_cost": c.min_brake_cost}
     checks = [{"step": s, "held_out_cost": round(v, 5), "held_out_mse": round(m, 6)} for s, v, m in history]
-    state = {
-        "learner": "chooser",
-        "fit_identity": fitted,
-        "checks": checks,
-        "scorer": scorer.state_dict(),
-        "in_dim": int(x.shape[1]),
-        "hidden": list(c.hidden),
-        "dropout": c.dropout,
-        "members": c.ensemble,
-        "target": c.target,
-        "mask_view": c.mask_view,
-        "mask_camera": c.mask_camera,
-        "tele_fov_deg": typed.env.tele_fov_deg if c.mask_view and c.mask_camera == "tele" else None,
-        "candidates": [vars(m) for m in candidates],
-        "decide_steps": steps,
-        "margin": c.margin,
-        "min_brake_cost": c.min_brake_cost,
-        "obs_dim": int(encoder.dim),
-        "use_speed": typed.agent.use_speed,
-        "frame_view": typed.agent.frame_view,
-        "action_map": ActionMap().to_dict(),
-        "reward": agent_id.reward,
-        "step": c.steps,
-        # a stopped fit is refitted from its first minibatch on resume: its curves are then purged from there
-        "log_step": -1 if run_.stop.requested else c.steps,
-    }
-    run_.save(state)
+    settings = checkpoint_settings(typed, agent_id.reward, candidates, steps, int(x.shape[1]), int(encoder.dim))
+    head = {"learner": "chooser", "fit_identity": fitted, "checks": checks, "scorer": scorer.state_dict()}
+    # a stopped fit is refitted from its first minibatch on resume: its curves are then purged from there
+    run_.save({**head, **settings, "log_step": -1 if run_.stop.requested else c.steps})
     return {
         "reward": agent_id.reward,
         "learner": "chooser",

@@ -223,6 +223,28 @@ def bank_figures(rows: list[dict], policy: str) -> dict:
     return out
 
 
+def _headline_row(p: str, entry: dict) -> str:
+    """One policy's row of the headline table: its seeds, its shares on both banks, and its risk on the test bank."""
+    t = entry["test"]
+    seeds = ", ".join(map(str, t["seeds"])) if p not in SCRIPTED else "—"
+    each = ", ".join(f"{v:.1f}" if v is not None else report.MISSING for v in t.get("seed_shares", {}).values())
+    diff = report.MISSING
+    if t.get("difference_pts") is not None:
+        low, high = t["difference_ci95"]
+        diff = f"{t['difference_pts']:+.2f} [{low:+.2f}, {high:+.2f}]"
+    return report._md_row(
+        [
+            entry["label"],
+            seeds,
+            "—" if p == "braking" else _share_text(entry["validation"]),
+            "—" if p == "braking" else _share_text(t),
+            each or "—",
+            "—" if p == "braking" else diff,
+            report._fmt(t["total_risk"], 2),
+        ]
+    )
+
+
 def headline(directory: Path) -> tuple[str, dict]:
     """(headline.md, headline.json) of a directory holding ``validation`` and ``test`` evaluations."""
     evaluations = published(directory)
@@ -272,27 +294,7 @@ def headline(directory: Path) -> tuple[str, dict]:
         ),
         report._md_row(["---", "---", "---:", "---:", "---:", "---:", "---:"]),
     ]
-    for p, entry in data["policies"].items():
-        t = entry["test"]
-        seeds = ", ".join(map(str, t["seeds"])) if p not in SCRIPTED else "—"
-        each = ", ".join(f"{v:.1f}" if v is not None else report.MISSING for v in t.get("seed_shares", {}).values())
-        diff = report.MISSING
-        if t.get("difference_pts") is not None:
-            low, high = t["difference_ci95"]
-            diff = f"{t['difference_pts']:+.2f} [{low:+.2f}, {high:+.2f}]"
-        lines.append(
-            report._md_row(
-                [
-                    entry["label"],
-                    seeds,
-                    "—" if p == "braking" else _share_text(entry["validation"]),
-                    "—" if p == "braking" else _share_text(t),
-                    each or "—",
-                    "—" if p == "braking" else diff,
-                    report._fmt(t["total_risk"], 2),
-                ]
-            )
-        )
+    lines += [_headline_row(p, entry) for p, entry in data["policies"].items()]
     lines += [
         "",
         "_Share = 100 × (braking − policy) / (braking − planner) of the mean total severe-injury risk per scenario, "

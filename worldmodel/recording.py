@@ -199,6 +199,43 @@ def record_dataset(root: Path, settings: dict, *args, label: str, **kwargs) -> d
         return _record_dataset(root, settings, *args, label=label, **kwargs)
 
 
+def _check_existing(root: Path, settings: dict, resume: bool, label: str) -> dict | None:
+    """What is already in ``root``: the summary of a complete dataset with nothing to do, None to record (after
+    setting damaged shards aside), or a StageError when it was recorded otherwise or may not be extended."""
+    manifest_path = root / "manifest.json"
+    config_path = root / "collect_config.json"
+    previous = json.loads(config_path.read_text())
+    if previous.get("schema_version") != settings.get("schema_version"):
+        raise StageError(
+            f"{root} was recorded with data schema version {previous.get('schema_version')}, and this code "
+            f"writes version {settings.get('schema_version')} (data/README.md says what changed). The stages "
+            f"still read it, but it cannot be extended: use another experiment=NAME, or delete {root} to "
+            "recollect it."
+        )
+    if previous != settings:
+        raise StageError(
+            f"{root} was recorded with different settings ({config_path}). Use another "
+            f"experiment=NAME, or delete {root} to start again."
+        )
+    if manifest_path.exists():
+        manifest = json.loads(manifest_path.read_text())
+        damaged = damaged_shards(root, manifest)
+        if not damaged:
+            log.info("[%s] %s is already complete; nothing to do.", label, root)
+            return manifest["summary"]
+        if not resume:
+            raise StageError(
+                f"{root} is complete, but shards {', '.join(damaged)} are missing, truncated or changed. Pass "
+                "resume=true to record them again (the same episodes from the same seeds; the damaged files "
+                f"are kept in {root / DAMAGED})."
+            )
+        set_aside(root, damaged)
+        log.warning("[%s] %s: recording shards %s again", label, root, ", ".join(damaged))
+    elif not resume:
+        raise StageError(f"{root} holds a partial dataset. Pass resume=true to finish it, or delete it.")
+    return None
+
+
 def _record_dataset(
     root: Path,
     settings: dict,
@@ -213,35 +250,9 @@ def _record_dataset(
     manifest_path = root / "manifest.json"
     config_path = root / "collect_config.json"
     if config_path.exists():
-        previous = json.loads(config_path.read_text())
-        if previous.get("schema_version") != settings.get("schema_version"):
-            raise StageError(
-                f"{root} was recorded with data schema version {previous.get('schema_version')}, and this code "
-                f"writes version {settings.get('schema_version')} (data/README.md says what changed). The stages "
-                f"still read it, but it cannot be extended: use another experiment=NAME, or delete {root} to "
-                "recollect it."
-            )
-        if previous != settings:
-            raise StageError(
-                f"{root} was recorded with different settings ({config_path}). Use another "
-                f"experiment=NAME, or delete {root} to start again."
-            )
-        if manifest_path.exists():
-            manifest = json.loads(manifest_path.read_text())
-            damaged = damaged_shards(root, manifest)
-            if not damaged:
-                log.info("[%s] %s is already complete; nothing to do.", label, root)
-                return manifest["summary"]
-            if not resume:
-                raise StageError(
-                    f"{root} is complete, but shards {', '.join(damaged)} are missing, truncated or changed. Pass "
-                    "resume=true to record them again (the same episodes from the same seeds; the damaged files "
-                    f"are kept in {root / DAMAGED})."
-                )
-            set_aside(root, damaged)
-            log.warning("[%s] %s: recording shards %s again", label, root, ", ".join(damaged))
-        elif not resume:
-            raise StageError(f"{root} holds a partial dataset. Pass resume=true to finish it, or delete it.")
+        summary = _check_existing(root, settings, resume, label)
+        if summary is not None:
+            return summary
     root.mkdir(parents=True, exist_ok=True)
     clean_temporaries(root)
     atomic_write_text(config_path, json.dumps(settings, indent=2, sort_keys=True))

@@ -102,6 +102,88 @@ def open_loop_loss(model, z, a, z_next, mask, start: int, steps: int) -> torch.T
     return masked_loss(model, out, z_next[:, start : start + steps], mask[:, start : start + steps])
 
 
+def train_batch(model, opt, batch: tuple, typed, where: tuple[int, int], step: int, checkpoint) -> tuple:
+    """One optimiser step on a batch of windows (z, a, z_next, mask); ``where``: (epoch, batch index), which seeds
+    the open-loop start. Returns (loss, open-loop loss or None)."""
+    hp, (epoch, b) = typed.rnn, where
+    z, a, z_next, mask = batch
+    dream_loss = None
+    with autocast(z.device, typed.amp):
+        out, _ = model(z, a)
+        loss = masked_loss(model, out, z_next, mask)
+        if hp.open_loop_steps:
+            starts = np.random.default_rng([typed.seed, epoch, b, RNN_OPEN_LOOP_START])
+            start = int(starts.integers(0, hp.seq_len - hp.open_loop_steps + 1))
+            dream_loss = open_loop_loss(model, z, a, z_next, mask, start, hp.open_loop_steps)
+            loss = loss + hp.open_loop_weight * dream_loss
+    check_finite(loss.item(), "LSTM loss", step, checkpoint)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+    opt.step()
+    return loss, dream_loss
+
+
+def log_losses(writer, step: int, loss, dream_loss, opt) -> None:
+    writer.add_scalar("loss/train", loss.item(), step)
+    if dream_loss is not None:
+        writer.add_scalar("loss/train_open_loop", dream_loss.item(), step)
+    writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
+
+
+def log_validation(writer, model, vae, store, lat, episode: int, val_loss: float, step: int) -> None:
+    """The validation loss, and Fig. 2's strip of one held-out episode."""
+    writer.add_scalar("loss/validation", val_loss, step)
+    model.eval()
+    writer.add_image(
+        "fig2: z_{t-1} | z_t | predicted z_{t+1} | real t+1",
+        fig2_strip(model, vae, store, lat, episode),
+        step,
+        dataformats="HWC",
+    )
+    model.train()
+
+
+def final_metrics(cfg, run_, world, device, step: int, best_val: float, reencoded: bool, t0: float) -> dict:
+    """The best checkpoint's measurements (metrics.json): next-frame IoU against persistence, and what the LSTM
+    dreams (``dreams.measure``), whose action-effect rows are written beside it. ``world``: (vae, store, latents)."""
+    hp = validate(cfg).rnn
+    vae, store, lat = world
+    val_eps = store.episodes("validation") or store.episodes("train")
+    model, best_path = loading.load_rnn(cfg, "best")
+    model.to(device)  # the measurements run where training did
+    scores = prediction_iou(model, vae, store, lat, val_eps)
+    effect_rows: list[dict] = []
+    validation = store.episodes("validation", branches=False)
+    scores.update(dreams.measure(cfg, vae, model, store, lat, validation, run_.writer, rows=effect_rows))
+    lat.close()
+    if effect_rows:  # the points behind the action effect, for reports that commit them
+        dreams.write_effect_rows(effect_rows, run_.dir / "action_effect.rows.csv.gz")
+    metrics = {
+        "checkpoint": str(best_path),
+        "epochs": hp.epochs,
+        "steps": step,
+        "head": hp.head,
+        "validation_loss": best_val,
+        "reencoded_latents": reencoded,
+        **scores,
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
+    m, p = scores["model"], scores["persistence"]
+    for cls in ("vehicles_iou", "pedestrians_iou"):
+        if m[cls] is not None and p[cls] is not None:
+            metrics[f"{cls}_gain_over_persistence"] = m[cls] - p[cls]
+    log.info(
+        "[rnn] next-frame IoU vehicles %s (persistence %s), pedestrians %s (persistence %s); wrote %s",
+        m["vehicles_iou"],
+        p["vehicles_iou"],
+        m["pedestrians_iou"],
+        p["pedestrians_iou"],
+        run_.marker,
+    )
+    return metrics
+
+
 @torch.inference_mode()
 def prediction_iou(rnn, vae, store, lat: Latents, episodes: list[int], max_frames: int = 3000) -> dict:
     """Held-out next-frame IoU of decoded predictions, persistence (z_{t+1} = z_t) and reconstruction.
@@ -200,7 +282,6 @@ def run(cfg) -> dict:
     train_units = windows(store.lengths, train_eps, L)
     val_units = windows(store.lengths, val_eps, L)
     epochs = hp.epochs
-    open_loop = hp.open_loop_steps
 
     with TrainingRun(cfg, "train_rnn", artifacts.rnn_dir(cfg), artifacts.provenance(cfg, "rnn")) as run_:
         # after the run's checks: a refused resume must not cost an encoding
@@ -215,12 +296,7 @@ def run(cfg) -> dict:
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         # what a resume or a loader checks the architecture against
-        arch = {
-            "latent_dim": D,
-            "hidden": hp.hidden,
-            "head": hp.head,
-            "residual": hp.residual,
-        }
+        arch = {"latent_dim": D, "hidden": hp.hidden, "head": hp.head, "residual": hp.residual}
 
         def snapshot(best: bool = False):
             run_.save_epochs(model, opt, (epoch, batch_in_epoch, step, best_val), best=best, **arch)
@@ -241,28 +317,13 @@ def run(cfg) -> dict:
                 z, a, z_next, mask = make_batch(lat, units, L, D, gen, sample_inputs=sample_inputs)
                 if b < batch_in_epoch:
                     continue
-                z, a, z_next, mask = (t.to(device, non_blocking=True) for t in (z, a, z_next, mask))
-                with autocast(device, typed.amp):
-                    out, _ = model(z, a)
-                    loss = masked_loss(model, out, z_next, mask)
-                    if open_loop:
-                        starts = np.random.default_rng([seed, epoch, b, RNN_OPEN_LOOP_START])
-                        start = int(starts.integers(0, L - open_loop + 1))
-                        dream_loss = open_loop_loss(model, z, a, z_next, mask, start, open_loop)
-                        loss = loss + hp.open_loop_weight * dream_loss
-                check_finite(loss.item(), "LSTM loss", step, run_.last)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-                opt.step()
+                batch = tuple(t.to(device, non_blocking=True) for t in (z, a, z_next, mask))
+                loss, dream_loss = train_batch(model, opt, batch, typed, (epoch, b), step, run_.last)
                 step += 1
                 batch_in_epoch = b + 1
                 bar.update(1)
                 if step % LOG_EVERY == 0:
-                    writer.add_scalar("loss/train", loss.item(), step)
-                    if open_loop:
-                        writer.add_scalar("loss/train_open_loop", dream_loss.item(), step)
-                    writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
+                    log_losses(writer, step, loss, dream_loss, opt)
                 if run_.stop.requested:
                     break
             bar.close()
@@ -271,15 +332,7 @@ def run(cfg) -> dict:
                 lat.close()
                 return run_.stopped(step)
             val_loss = validation_loss(model, lat, val_units, L, D, B, seed, sample_inputs=sample_inputs)
-            writer.add_scalar("loss/validation", val_loss, step)
-            model.eval()
-            writer.add_image(
-                "fig2: z_{t-1} | z_t | predicted z_{t+1} | real t+1",
-                fig2_strip(model, vae, store, lat, val_eps[0]),
-                step,
-                dataformats="HWC",
-            )
-            model.train()
+            log_validation(writer, model, vae, store, lat, val_eps[0], val_loss, step)
             epoch += 1
             batch_in_epoch = 0
             improved = val_loss < best_val
@@ -287,37 +340,7 @@ def run(cfg) -> dict:
             snapshot(best=improved)
             log.info("[rnn] epoch %d: validation loss %.4f", epoch, val_loss)
 
-        model, best_path = loading.load_rnn(cfg, "best")
-        model.to(device)  # the measurements run where training did
-        scores = prediction_iou(model, vae, store, lat, val_eps)
-        effect_rows: list[dict] = []
-        validation = store.episodes("validation", branches=False)
-        scores.update(dreams.measure(cfg, vae, model, store, lat, validation, writer, rows=effect_rows))
-        lat.close()
-        if effect_rows:  # the points behind the action effect, for reports that commit them
-            dreams.write_effect_rows(effect_rows, run_.dir / "action_effect.rows.csv.gz")
-        metrics = {
-            "checkpoint": str(best_path),
-            "epochs": epochs,
-            "steps": step,
-            "head": hp.head,
-            "validation_loss": best_val,
-            "reencoded_latents": reencoded,
-            **scores,
-            "wall_s": round(time.perf_counter() - t0, 1),
-        }
-        m, p = scores["model"], scores["persistence"]
-        for cls in ("vehicles_iou", "pedestrians_iou"):
-            if m[cls] is not None and p[cls] is not None:
-                metrics[f"{cls}_gain_over_persistence"] = m[cls] - p[cls]
-        log.info(
-            "[rnn] next-frame IoU vehicles %s (persistence %s), pedestrians %s (persistence %s); wrote %s",
-            m["vehicles_iou"],
-            p["vehicles_iou"],
-            m["pedestrians_iou"],
-            p["pedestrians_iou"],
-            run_.marker,
-        )
+        metrics = final_metrics(cfg, run_, (vae, store, lat), device, step, best_val, reencoded, t0)
         return run_.finish(metrics)
 
 

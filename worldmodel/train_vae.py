@@ -96,7 +96,6 @@ def frame_batches(store: RolloutStore, episodes: list[int], batch_size: int, rng
 
 
 def run(cfg) -> dict:
-    from .models.vae import vae_loss
 
     typed = validate(cfg)
     set_threads(typed.threads)
@@ -141,30 +140,14 @@ def run(cfg) -> dict:
                 if b < batch_in_epoch:  # resuming mid-epoch: skip what was already trained on
                     continue
                 x = batch.to(device, non_blocking=True)
-                with autocast(device, typed.amp):
-                    logits, mu, logvar = model(x)
-                    loss, recon, kl = vae_loss(
-                        logits,
-                        x,
-                        mu,
-                        logvar,
-                        typed.vae.kl_weight,
-                        typed.vae.free_bits,
-                        class_weights=weights_here,
-                    )
-                check_finite(loss.item(), "VAE loss", step, run_.last)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
+                loss, recon, kl = train_batch(model, opt, x, weights_here, typed, step, run_.last)
                 step += 1
                 batch_in_epoch = b + 1
                 frames_seen += len(x)
                 bar.update(1)
                 if step % LOG_EVERY == 0:
-                    for name, value in (("loss/total", loss), ("loss/recon", recon), ("loss/kl", kl)):
-                        writer.add_scalar(name, value.item(), step)
-                    writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
-                    writer.add_scalar("speed/frames_per_s", frames_seen / (time.perf_counter() - t0), step)
+                    rate = frames_seen / (time.perf_counter() - t0)
+                    log_losses(writer, step, {"total": loss, "recon": recon, "kl": kl}, opt, rate)
                 if run_.stop.requested:
                     break
             bar.total = bar.n  # the batch count was an upper bound; end the bar at 100 %
@@ -187,28 +170,58 @@ def run(cfg) -> dict:
                 val["pixel_accuracy"],
             )
 
-        model, best_path = loading.load_vae(cfg, "best")
-        final = evaluate(model.to(device), store, val_eps, 64)
-        wall = time.perf_counter() - t0
-        metrics = {
-            "checkpoint": str(best_path),
-            "epochs": epochs,
-            "steps": step,
-            "heldout_frames": final["frames"],
-            "pixel_accuracy": final["pixel_accuracy"],
-            "recon_nll": final["recon"],
-            "kl": final["kl"],
-            "iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(CLASS_NAMES, final["iou"])},
-            "train_frames_per_s": round(frames_seen / wall, 1) if frames_seen else None,
-        }
-        log.info(
-            "[vae] held-out pixel accuracy %.4f; IoU Vehicles %s, Pedestrians %s; wrote %s",
-            metrics["pixel_accuracy"],
-            metrics["iou"]["Vehicles"],
-            metrics["iou"]["Pedestrians"],
-            out / "metrics.json",
+        return run_.finish(final_metrics(cfg, store, val_eps, device, step, t0, frames_seen))
+
+
+def train_batch(model, opt, x, class_weights, typed, step: int, checkpoint) -> tuple:
+    """One optimiser step on the frames ``x``: (loss, reconstruction, KL)."""
+    from .models.vae import vae_loss
+
+    with autocast(x.device, typed.amp):
+        logits, mu, logvar = model(x)
+        loss, recon, kl = vae_loss(
+            logits, x, mu, logvar, typed.vae.kl_weight, typed.vae.free_bits, class_weights=class_weights
         )
-        return run_.finish(metrics)
+    check_finite(loss.item(), "VAE loss", step, checkpoint)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss, recon, kl
+
+
+def log_losses(writer, step: int, losses: dict, opt, frames_per_s: float) -> None:
+    for name, value in losses.items():
+        writer.add_scalar(f"loss/{name}", value.item(), step)
+    writer.add_scalar("lr", opt.param_groups[0]["lr"], step)
+    writer.add_scalar("speed/frames_per_s", frames_per_s, step)
+
+
+def final_metrics(cfg, store: RolloutStore, val_eps, device, step: int, t0: float, frames_seen: int) -> dict:
+    """The best checkpoint's held-out figures (metrics.json), and the training's frame rate since ``t0``."""
+    typed = validate(cfg)
+    out = artifacts.vae_dir(cfg)
+    model, best_path = loading.load_vae(cfg, "best")
+    final = evaluate(model.to(device), store, val_eps, 64)
+    wall = time.perf_counter() - t0
+    metrics = {
+        "checkpoint": str(best_path),
+        "epochs": typed.vae.epochs,
+        "steps": step,
+        "heldout_frames": final["frames"],
+        "pixel_accuracy": final["pixel_accuracy"],
+        "recon_nll": final["recon"],
+        "kl": final["kl"],
+        "iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(CLASS_NAMES, final["iou"])},
+        "train_frames_per_s": round(frames_seen / wall, 1) if frames_seen else None,
+    }
+    log.info(
+        "[vae] held-out pixel accuracy %.4f; IoU Vehicles %s, Pedestrians %s; wrote %s",
+        metrics["pixel_accuracy"],
+        metrics["iou"]["Vehicles"],
+        metrics["iou"]["Pedestrians"],
+        out / "metrics.json",
+    )
+    return metrics
 
 
 def log_validation(writer, model, store: RolloutStore, episode: int, val: dict, step: int) -> None:

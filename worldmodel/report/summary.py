@@ -86,6 +86,31 @@ def _grid_to_json(ttcs, speeds, arr) -> dict:
     }
 
 
+def _policy_entry(policy: str, prow: list[dict], hazard_rank: dict[str, int]) -> dict:
+    """One policy's part of the summary: overall, by hazard, Table III's rates by TTC, and every cell."""
+    cells = []
+    for (hazard, ttc, speed), group in sorted(
+        _group(prow, "hazard", "ttc", "speed").items(), key=lambda kv: (hazard_rank[kv[0][0]], kv[0][1], kv[0][2])
+    ):
+        cells.append({"hazard": hazard, "ttc": ttc, "speed": speed, **_metrics(group)})
+    by_hazard = [
+        {"hazard": h, **_metrics(g)}
+        for (h,), g in sorted(_group(prow, "hazard").items(), key=lambda kv: hazard_rank[kv[0][0]])
+    ]
+    ped = [r for r in prow if _involves(r["hazard"], "pedestrian")]
+    by_ttc = [
+        {"ttc": t, "rate": _json_number(_mean(g, "pedestrian_collision")), "count": len(g)}
+        for (t,), g in sorted(_group(ped, "ttc").items())
+    ]
+    return {
+        "label": policy_label(policy),
+        "overall": _metrics(prow),
+        "by_hazard": by_hazard,
+        "pedestrian_collision_rate_by_ttc": by_ttc,
+        "cells": cells,
+    }
+
+
 def summarize(rows: Sequence[dict], baseline: str = "braking") -> dict:
     """Aggregate rows per policy and per cell (hazard, TTC, speed). JSON-serialisable, no NaN (None instead).
 
@@ -126,28 +151,7 @@ def summarize(rows: Sequence[dict], baseline: str = "braking") -> dict:
     }
     hazard_rank = {h: i for i, h in enumerate(grid["hazards"])}
     for policy in policies:
-        prow = [r for r in rows if r["policy"] == policy]
-        cells = []
-        for (hazard, ttc, speed), group in sorted(
-            _group(prow, "hazard", "ttc", "speed").items(), key=lambda kv: (hazard_rank[kv[0][0]], kv[0][1], kv[0][2])
-        ):
-            cells.append({"hazard": hazard, "ttc": ttc, "speed": speed, **_metrics(group)})
-        by_hazard = [
-            {"hazard": h, **_metrics(g)}
-            for (h,), g in sorted(_group(prow, "hazard").items(), key=lambda kv: hazard_rank[kv[0][0]])
-        ]
-        ped = [r for r in prow if _involves(r["hazard"], "pedestrian")]
-        by_ttc = [
-            {"ttc": t, "rate": _json_number(_mean(g, "pedestrian_collision")), "count": len(g)}
-            for (t,), g in sorted(_group(ped, "ttc").items())
-        ]
-        out["policies"][policy] = {
-            "label": policy_label(policy),
-            "overall": _metrics(prow),
-            "by_hazard": by_hazard,
-            "pedestrian_collision_rate_by_ttc": by_ttc,
-            "cells": cells,
-        }
+        out["policies"][policy] = _policy_entry(policy, [r for r in rows if r["policy"] == policy], hazard_rank)
     if baseline in policies:
         for policy, metrics in improvement_grids(rows, baseline).items():
             out["improvement"][policy] = {m: _grid_to_json(*g) for m, g in metrics.items()}
