@@ -21,8 +21,6 @@ from worldmodel import (
     ncap,
     pipeline,
     policies,
-    published,
-    recheck,
     train_agent,
     train_vae,
 )
@@ -30,7 +28,7 @@ from worldmodel.common import StageError, make_env
 from worldmodel.config import compose, validate
 from worldmodel.families import common as peers_common
 from worldmodel.families.porav import evaluation as porav_eval
-from worldmodel.report import read_results_csv
+from worldmodel.report import published, read_results_csv, recheck
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -8,9 +8,9 @@ import re
 
 import pytest
 
-from worldmodel import banks, evaluate, published, recheck
+from worldmodel import banks, evaluate
 from worldmodel.report import __main__ as report_cli
-from worldmodel.report import read_results_csv, write_results_csv
+from worldmodel.report import published, read_results_csv, recheck, write_results_csv
 
 TEST_SEED = banks.test_seed("porav")  # the suite's test-only stand-in for the sealed seed
 TINY = ["evaluate.ttcs=[0.75,1.5]", "evaluate.speeds=[20.0]", "evaluate.hazards=[pedestrian]", "evaluate.per_cell=3"]

@@ -1,5 +1,5 @@
 """python -m worldmodel.report publish | headline | pooled | recheck | readme: the committed results' command
-(worldmodel/published.py, worldmodel/recheck.py)."""
+(worldmodel/report/published.py, worldmodel/report/recheck.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 from worldmodel import report
 from worldmodel.common import atomic_write_text
-from worldmodel.published import (
+from worldmodel.report.published import (
     POOLED,
     README,
     RESULTS,
@@ -20,7 +20,7 @@ from worldmodel.published import (
     readme_with_table,
     write_headline,
 )
-from worldmodel.recheck import published_tables, recheck, rowless_tables
+from worldmodel.report.recheck import published_tables, recheck, rowless_tables
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,8 +31,8 @@ import re
 from itertools import zip_longest
 from pathlib import Path
 
-from . import banks, registry, report
-from .common import atomic_write_bytes, atomic_write_text
+from .. import action_effect, banks, registry, report
+from ..common import atomic_write_bytes, atomic_write_text
 
 ROWS, TABLES, META = ".rows.csv.gz", ".tables.md", ".meta.json"
 RESULTS = banks.REPO / "docs" / "results"
@@ -79,7 +79,7 @@ def render_tables(rows: list[dict], meta: dict) -> str:
     if family == ACTION_EFFECT:
         return action_effect_tables(rows, how)
     if family == NCAP:
-        from .report import ncap
+        from . import ncap
 
         return ncap.tables(rows, {**ncap.summarise(rows), **how})
     if family not in registry.names():
@@ -110,22 +110,21 @@ ACTION_EFFECT = "action_effect"  # the world model's action effect (worldmodel/a
 
 def action_effect_tables(rows: list[dict], how: dict) -> str:
     """The action effect's tables (size with intervals, direction, per class) from its per-point rows."""
-    from . import dreams
-
-    effect = dreams.summarise_effect(rows, int(how["horizons"]), int(how["points"]), int(how["boot"]))
-    return "# The world model's action effect\n\n" + dreams.markdown({"action_effect": effect})
+    effect = action_effect.summarise_effect(rows, int(how["horizons"]), int(how["points"]), int(how["boot"]))
+    return "# The world model's action effect\n\n" + "\n".join(action_effect.effect_markdown(effect))
 
 
 def publish_action_effect(rnn_dir: Path, stem: Path, command: str) -> Path:
     """Commit the LSTM stage's action-effect rows and render their tables, after checking that they give the
     stage's own ``metrics.json`` figures again."""
-    from . import dreams
-
     metrics = json.loads((rnn_dir / "metrics.json").read_text())["action_effect"]
     raw = (rnn_dir / "action_effect.rows.csv.gz").read_bytes()
     rows = read_rows(rnn_dir / "action_effect.rows.csv.gz", ACTION_EFFECT)
     how = {"horizons": len(metrics["horizons"]), "points": int(metrics["points"]), "boot": 2000}
-    if json.loads(json.dumps(dreams.summarise_effect(rows, how["horizons"], how["points"], how["boot"]))) != metrics:
+    if (
+        json.loads(json.dumps(action_effect.summarise_effect(rows, how["horizons"], how["points"], how["boot"])))
+        != metrics
+    ):
         raise RecheckError(f"{rnn_dir}: the rows no longer give metrics.json's action effect: measure again")
     meta = {"family": ACTION_EFFECT, "experiment": rnn_dir.parent.name, "command": command, "render": how}
     stem.parent.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Recheck: every committed table under ``docs/results/`` rendered again from the rows beside it, and every published
 test-bank evaluation held to the ledger row that recorded it (``python -m worldmodel.report recheck``; what is
-committed and how: worldmodel/published.py)."""
+committed and how: worldmodel/report/published.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from . import banks, registry
+from .. import banks, registry
 from .published import (
     ACTION_EFFECT,
     NCAP,
