@@ -34,133 +34,167 @@ def bumped(terminated: bool, info: dict) -> bool:
     return terminated and info["outcome"]["end"] == "bump"
 
 
-def train(cfg, run_, agent_id: AgentId) -> dict:
-    """``train_agent`` for ``agent.learner=dqn``: ``agent.chae.episodes`` episodes of family chae."""
-    from tqdm import tqdm
-
-    from ...config import validate
-    from ...models.dqn import DQN
-
+def check_settings(typed, agent_id: AgentId) -> None:
+    """Refuse a dqn run that is not Chae's braking, or whose checkpoint selection would draw the evaluation's
+    trials."""
     if agent_id.reward != "chae":
         raise StageError(
             f"agent.learner=dqn learns Chae's braking with reward chae, not {agent_id.reward}: use agent=dqn_chae"
         )
-    typed = validate(cfg)
-    a = typed.agent
-    episodes = a.chae.episodes
-    sel = a.chae.select
+    sel = typed.agent.chae.select
     for key in ("seed", "rescore_seed") if sel.rescore else ("seed",):
         if sel.every and getattr(sel, key) == typed.evaluate.chae.seed:
             raise StageError(
                 f"agent.chae.select.{key}={getattr(sel, key)} is the evaluation's draw (evaluate.chae.seed): "
                 f"checkpoints must be chosen on other trials; give agent.chae.select.{key} another value"
             )
-    see = observer(cfg, a.obs, noise_m=a.chae.noise_m)
-    see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
-    env = family_env(cfg, see.camera)
-    hp = dqn_config(cfg)
-    agent = DQN(see.dim, len(BRAKE_LEVELS), hp, typed.seed, device=resolve_device(typed.device))
-    episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "end": []})
-    curve.setdefault("validation", [])
-    first_validation = int(np.ceil(sel.start * episodes))
-    validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
 
-    def snapshot(best: bool = False, keep: bool = False):
-        state = dqn_checkpoint(agent, hp, episode, curve, a.obs, see.dim, agent_id.reward, noise_m=see_noise)
+
+def train(cfg, run_, agent_id: AgentId) -> dict:
+    """``train_agent`` for ``agent.learner=dqn``: ``agent.chae.episodes`` episodes of family chae."""
+    from ...config import validate
+
+    check_settings(validate(cfg), agent_id)
+    return ChaeRun(cfg, run_, agent_id).train()
+
+
+class ChaeRun:
+    """One dqn run on family chae: its agent, view and envs, the learning curve, the validations and rescorings."""
+
+    def __init__(self, cfg, run_, agent_id: AgentId):
+        from ...config import validate
+        from ...models.dqn import DQN
+
+        self.cfg, self.run_, self.agent_id = cfg, run_, agent_id
+        self.typed = typed = validate(cfg)
+        a = self.a = typed.agent
+        self.sel = sel = a.chae.select
+        self.see = see = observer(cfg, a.obs, noise_m=a.chae.noise_m)
+        self.see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
+        self.env = family_env(cfg, see.camera)
+        self.hp = dqn_config(cfg)
+        self.agent = DQN(see.dim, len(BRAKE_LEVELS), self.hp, typed.seed, device=resolve_device(typed.device))
+        self.episode, self.curve = resume_dqn(run_, self.agent, see.dim, {"return": [], "end": []})
+        self.curve.setdefault("validation", [])
+        self.first_validation = int(np.ceil(sel.start * a.chae.episodes))
+        self.validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
+        self.recent: deque = deque(maxlen=ROLLING)
+        self.recent.extend(e == "bump" for e in self.curve["end"][-ROLLING:])
+        self.loss = None
+        # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
+        draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {sel.rescore_ttcs or [sel.ttcs[0]]}"
+        self.rescore_cache: dict = self.curve.setdefault("rescorings", {}).setdefault(draw, {})
+
+    def snapshot(self, best: bool = False, keep: bool = False) -> None:
+        state = dqn_checkpoint(
+            self.agent,
+            self.hp,
+            self.episode,
+            self.curve,
+            self.a.obs,
+            self.see.dim,
+            self.agent_id.reward,
+            noise_m=self.see_noise,
+        )
         if keep:
-            atomic_torch_save(state, validated_path(run_.dir, episode))
-        run_.save(state, best=best)
+            atomic_torch_save(state, validated_path(self.run_.dir, self.episode))
+        self.run_.save(state, best=best)
 
-    writer = run_.writer
-    recent: deque = deque(maxlen=ROLLING)
-    recent.extend(e == "bump" for e in curve["end"][-ROLLING:])
-    loss = None
-
-    def play_episode():
+    def play_episode(self) -> None:
         """One training episode, logged; a validation (or a checkpoint) when it falls due."""
-        nonlocal episode, loss
-        spec, view_seed = episode_scenario(typed.seed, episode, a.chae.ttc_range)
-        ret, outcome, loss = play_dqn_episode(env, agent, see, spec, brake_action, bumped, view_seed, loss)
+        typed, sel, curve, writer = self.typed, self.sel, self.curve, self.run_.writer
+        spec, view_seed = episode_scenario(typed.seed, self.episode, self.a.chae.ttc_range)
+        ret, outcome, self.loss = play_dqn_episode(
+            self.env, self.agent, self.see, spec, brake_action, bumped, view_seed, self.loss
+        )
         end = outcome["end"]
         curve["return"].append(float(ret))
         curve["end"].append(end)
-        recent.append(end == "bump")
-        episode += 1
+        self.recent.append(end == "bump")
+        self.episode += 1
+        episode = self.episode
         writer.add_scalar("episode/return", ret, episode)
-        writer.add_scalar("episode/bump_rate_rolling", float(np.mean(recent)), episode)
-        writer.add_scalar("train/epsilon", agent.epsilon(), episode)
-        if loss is not None:
-            writer.add_scalar("train/loss", loss, episode)
-        if validation is not None and episode >= first_validation and episode % sel.every == 0:
-            score = validation.score(DQNPolicy("validation", agent, see, typed.seed), episode)
+        writer.add_scalar("episode/bump_rate_rolling", float(np.mean(self.recent)), episode)
+        writer.add_scalar("train/epsilon", self.agent.epsilon(), episode)
+        if self.loss is not None:
+            writer.add_scalar("train/loss", self.loss, episode)
+        if self.validation is not None and episode >= self.first_validation and episode % sel.every == 0:
+            score = self.validation.score(DQNPolicy("validation", self.agent, self.see, typed.seed), episode)
             improved = selected(curve["validation"] + [score], sel.max_bump) is score
             curve["validation"].append(score)
             writer.add_scalar("validation/max_bump_rate", score["max_bump_rate"], episode)
             writer.add_scalar("validation/unnecessary_stop_rate", score["unnecessary_stop_rate"], episode)
-            snapshot(best=improved, keep=sel.keep)
+            self.snapshot(best=improved, keep=sel.keep)
         elif episode % CHECKPOINT_EPISODES == 0:
-            snapshot()
+            self.snapshot()
 
-    # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
-    draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {sel.rescore_ttcs or [sel.ttcs[0]]}"
-    rescore_cache: dict = curve.setdefault("rescorings", {}).setdefault(draw, {})
-
-    def choose() -> tuple[dict | None, dict | None]:
+    def choose(self) -> tuple[dict | None, dict | None]:
         """The validation score best.pt holds and, with rescoring, the rescoring (best.pt then its choice)."""
+        sel, curve, run_ = self.sel, self.curve, self.run_
         chosen, rescored = selected(curve["validation"], sel.max_bump), None
-        if validation is not None and sel.rescore:
-            rescored = rescore_kept(cfg, agent_id, run_.dir, curve["validation"], sel, rescore_cache)
+        if self.validation is not None and sel.rescore:
+            rescored = rescore_kept(self.cfg, self.agent_id, run_.dir, curve["validation"], sel, self.rescore_cache)
             if rescored["chosen"] is not None:
                 episode_chosen = rescored["chosen"]["episode"]
                 atomic_write_bytes(run_.best, validated_path(run_.dir, episode_chosen).read_bytes())
                 chosen = next(s for s in curve["validation"] if s["episode"] == episode_chosen)
         return chosen, rescored
 
-    # training on needs the rescoring's verdict: without validation (agent.chae.select.every=0) there is none
-    block, blocks = (sel.extend, sel.extend_blocks) if validation is not None and sel.rescore else (0, 0)
-    # the planned episodes, then whole blocks until the rescoring finds a member inside both bars
-    target = first_target(episode, episodes, block)
-    gates = curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
-    run_.restore_random_state()  # building the networks and views drew from them
-    with tqdm(total=target, initial=episode, desc=f"dqn chae ({a.obs})", unit="episode") as bar:
-        while True:
-            while episode < target and not run_.stop.requested:
-                play_episode()
-                bar.update(1)
-            if run_.stop.requested:
-                snapshot()
-                break
-            chosen, rescored = choose()
-            verdict = {"episode": episode, "member": member_found(rescored, sel)}
-            if gates and gates[-1]["episode"] == episode:  # a finished run resumed: the same verdict again
-                gates.pop()
-            gates.append(verdict)
-            snapshot()  # with the rescoring and its verdict in the curve: a resumed run need not drive it again
-            if not block or target >= episodes + blocks * block or gates[-1]["member"]:
-                break
-            log.info("[%s] no rescored member inside both bars at episode %d: %d more", run_.name, episode, block)
-            target += block
-            bar.total = target
-            bar.refresh()
-    env.close()
-    if validation is not None:
-        validation.env.close()
-    if run_.stop.requested:
-        return run_.stopped(agent.steps)
-    last = curve["end"][-ROLLING:]
-    return {
-        "reward": agent_id.reward,
-        "obs": a.obs,
-        "episodes": episode,
-        "steps": agent.steps,
-        "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
-        "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
-        "selected": chosen,
-        "rescored": rescored,
-        "extended": max(0, episode - episodes),
-        "gates": gates,
-        "curve": curve,
-    }
+    def train(self) -> dict:
+        """The planned episodes, then whole blocks of ``select.extend`` until the rescoring finds a member inside
+        both bars (at most ``extend_blocks``); the metrics, or the stopped run's."""
+        from tqdm import tqdm
+
+        sel, run_, episodes = self.sel, self.run_, self.a.chae.episodes
+        # training on needs the rescoring's verdict: without validation (agent.chae.select.every=0) there is none
+        block, blocks = (sel.extend, sel.extend_blocks) if self.validation is not None and sel.rescore else (0, 0)
+        target = first_target(self.episode, episodes, block)
+        gates = self.curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
+        run_.restore_random_state()  # building the networks and views drew from them
+        with tqdm(total=target, initial=self.episode, desc=f"dqn chae ({self.a.obs})", unit="episode") as bar:
+            while True:
+                while self.episode < target and not run_.stop.requested:
+                    self.play_episode()
+                    bar.update(1)
+                if run_.stop.requested:
+                    self.snapshot()
+                    break
+                chosen, rescored = self.choose()
+                verdict = {"episode": self.episode, "member": member_found(rescored, sel)}
+                if gates and gates[-1]["episode"] == self.episode:  # a finished run resumed: the same verdict again
+                    gates.pop()
+                gates.append(verdict)
+                self.snapshot()  # with the rescoring and its verdict in the curve: a resumed run need not drive it
+                if not block or target >= episodes + blocks * block or gates[-1]["member"]:
+                    break
+                log.info(
+                    "[%s] no rescored member inside both bars at episode %d: %d more", run_.name, self.episode, block
+                )
+                target += block
+                bar.total = target
+                bar.refresh()
+        self.env.close()
+        if self.validation is not None:
+            self.validation.env.close()
+        if run_.stop.requested:
+            return run_.stopped(self.agent.steps)
+        return self.metrics(chosen, rescored, gates)
+
+    def metrics(self, chosen: dict | None, rescored: dict | None, gates: list[dict]) -> dict:
+        last = self.curve["end"][-ROLLING:]
+        return {
+            "reward": self.agent_id.reward,
+            "obs": self.a.obs,
+            "episodes": self.episode,
+            "steps": self.agent.steps,
+            "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
+            "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
+            "selected": chosen,
+            "rescored": rescored,
+            "extended": max(0, self.episode - self.a.chae.episodes),
+            "gates": gates,
+            "curve": self.curve,
+        }
 
 
 def first_target(episode: int, episodes: int, block: int) -> int:

@@ -23,11 +23,7 @@ CHECKPOINT_EPISODES = 200
 def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.kim.total_steps`` steps, or the
     LIDAR chooser (``agent.learner=kim_chooser``, ``chooser.train``)."""
-    from tqdm import tqdm
-
     from ...config import validate
-    from ...imitation import mixed_batch
-    from ...models.ddpg import DDPG, DDPGConfig, NStepWindow, ReplayBuffer
 
     if agent_id.family != "kim":
         raise StageError(
@@ -38,112 +34,141 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         from . import chooser
 
         return chooser.train(cfg, run_, agent_id)
-    hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
-    if not hp.lidar_scans:
+    if not typed.agent.lidar_scans:
         raise StageError("obs=lidar needs the LIDAR front end: agent.lidar_scans=4 (agent=ddpg_kim sets it)")
-    total = hp.kim.total_steps
-    see = observer(typed, agent_id.reward)
-    env = family_env(cfg, agent_id.reward)
-    agent = DDPG(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
-    buffer = ReplayBuffer(hp.buffer_size, see.dim, 2)
-    step, episode, curve = 0, 0, {"return": [], "crash": [], "end": []}
-    if run_.state is not None:
-        state = run_.state
-        if state["obs_dim"] != see.dim:
-            raise StageError(
-                f"{run_.last} expects inputs of size {state['obs_dim']}, the LIDAR view gives {see.dim}; "
-                f"delete {run_.dir} to retrain"
-            )
-        agent.load_state_dict(state["agent"])
-        buffer.load_state_dict(state["buffer"])
-        step, episode, curve = int(state["step"]), int(state["episode"]), state["curve"]
-        run_.resumed(f"step {step}, episode {episode}")
-    demos, demo_info = None, {}
-    if hp.demo_share > 0 or (hp.bc_pretrain_steps > 0 and run_.state is None):  # resumed: cloned already
-        demos, demo_info = learn_from_planner(
-            cfg, env, see, agent, hp, run_.side_writer("pretrain"), cloned=run_.state is not None
-        )
-    if run_.state is not None:  # the cloning's figures, which only the run that cloned measured
-        demo_info = {**demo_info, **run_.state.get("demonstrations", {})}
+    return LidarRun(cfg, run_, agent_id).train()
 
-    def snapshot():
-        run_.save(
+
+class LidarRun:
+    """One LIDAR DDPG run on family kim: its agent, replay, view and env, resumed from ``run_``'s checkpoint, and
+    the planner's demonstrations where the preset learns from them."""
+
+    def __init__(self, cfg, run_, agent_id: AgentId):
+        from ...config import validate
+        from ...models.ddpg import DDPG, NStepWindow, ReplayBuffer
+
+        self.run_, self.agent_id = run_, agent_id
+        self.typed = typed = validate(cfg)
+        self.hp = hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
+        self.see = see = observer(typed, agent_id.reward)
+        self.env = family_env(cfg, agent_id.reward)
+        self.agent = DDPG(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
+        self.buffer = ReplayBuffer(hp.buffer_size, see.dim, 2)
+        self.step, self.episode, self.curve = 0, 0, {"return": [], "crash": [], "end": []}
+        if run_.state is not None:
+            self.resume(run_.state)
+        self.demos, self.demo_info = None, {}
+        if hp.demo_share > 0 or (hp.bc_pretrain_steps > 0 and run_.state is None):  # resumed: cloned already
+            self.demos, self.demo_info = learn_from_planner(
+                cfg, self.env, see, self.agent, hp, run_.side_writer("pretrain"), cloned=run_.state is not None
+            )
+        if run_.state is not None:  # the cloning's figures, which only the run that cloned measured
+            self.demo_info = {**self.demo_info, **run_.state.get("demonstrations", {})}
+        self.window = NStepWindow(hp.n_step, hp.gamma)
+        self.recent: deque = deque((not c for c in self.curve["crash"][-ROLLING:]), maxlen=ROLLING)
+        self.losses: dict = {}
+
+    def resume(self, state: dict) -> None:
+        if state["obs_dim"] != self.see.dim:
+            raise StageError(
+                f"{self.run_.last} expects inputs of size {state['obs_dim']}, the LIDAR view gives {self.see.dim}; "
+                f"delete {self.run_.dir} to retrain"
+            )
+        self.agent.load_state_dict(state["agent"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.step, self.episode, self.curve = int(state["step"]), int(state["episode"]), state["curve"]
+        self.run_.resumed(f"step {self.step}, episode {self.episode}")
+
+    def snapshot(self) -> None:
+        from ...models.ddpg import DDPGConfig
+
+        hp = self.hp
+        self.run_.save(
             {
-                "agent": agent.state_dict(),
-                "buffer": buffer.state_dict(),
-                "step": step,
-                "episode": episode,
-                "curve": curve,
+                "agent": self.agent.state_dict(),
+                "buffer": self.buffer.state_dict(),
+                "step": self.step,
+                "episode": self.episode,
+                "curve": self.curve,
                 "obs": "lidar",
-                "obs_dim": see.dim,
-                "lidar_speed": see.speed,
+                "obs_dim": self.see.dim,
+                "lidar_speed": self.see.speed,
                 "learner": "ddpg",
                 "actor_hidden": list(hp.actor_hidden),
                 "ddpg_config": {f.name: getattr(hp, f.name) for f in dataclasses.fields(DDPGConfig)},
-                "reward": agent_id.reward,
-                "demonstrations": demo_info,
+                "reward": self.agent_id.reward,
+                "demonstrations": self.demo_info,
             }
         )
 
-    window = NStepWindow(hp.n_step, hp.gamma)
-    writer = run_.writer
-    recent: deque = deque((not c for c in curve["crash"][-ROLLING:]), maxlen=ROLLING)
-    scale = hp.reward_scale
-    losses: dict = {}
-    run_.restore_random_state()  # building the networks and views drew from them
-    with tqdm(total=total, initial=step, desc=f"ddpg kim ({agent_id.reward})", unit="step") as bar:
-        while step < total and not run_.stop.requested:
-            env.reset(options={"scenario": training_scenario(typed, KIM_TRAINING_EPISODES, episode)})
-            see.reset()
-            x, ret = see(env), 0.0
-            while True:
-                a = agent.random_action() if step < hp.warmup_steps else agent.act(x, explore=True)
-                _, reward, terminated, truncated, info = env.step(kim_action(a, env.ego.v))
-                see.note_action(a)
-                x_next = see(env)
-                for transition in window.push(x, a, reward * scale, x_next, terminated):
+    def play_episode(self, bar) -> None:
+        """One training episode, an update per step once warmed up; logged, and a checkpoint when due."""
+        from ...imitation import mixed_batch
+
+        env, see, agent, buffer, hp = self.env, self.see, self.agent, self.buffer, self.hp
+        env.reset(options={"scenario": training_scenario(self.typed, KIM_TRAINING_EPISODES, self.episode)})
+        see.reset()
+        x, ret = see(env), 0.0
+        while True:
+            a = agent.random_action() if self.step < hp.warmup_steps else agent.act(x, explore=True)
+            _, reward, terminated, truncated, info = env.step(kim_action(a, env.ego.v))
+            see.note_action(a)
+            x_next = see(env)
+            for transition in self.window.push(x, a, reward * hp.reward_scale, x_next, terminated):
+                buffer.add(*transition)
+            if truncated and not terminated:
+                for transition in self.window.flush():
                     buffer.add(*transition)
-                if truncated and not terminated:
-                    for transition in window.flush():
-                        buffer.add(*transition)
-                x, ret = x_next, ret + reward
-                step += 1
-                bar.update(1)
-                if step > hp.warmup_steps and len(buffer) >= hp.batch_size:
-                    if demos is None:  # the paper's agent, drawing exactly what it drew before demonstrations existed
-                        batch = buffer.sample(hp.batch_size, agent.rng)
-                    else:
-                        batch = mixed_batch(buffer, demos, hp.batch_size, hp.demo_share, agent.rng)
-                    losses = agent.update(batch)
-                if terminated or truncated:
-                    break
-            o = info["outcome"]
-            crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
-            curve["return"].append(float(ret))
-            curve["crash"].append(crashed)
-            curve["end"].append(o["end"])
-            recent.append(not crashed)
-            episode += 1
-            writer.add_scalar("episode/return", ret, step)
-            writer.add_scalar("episode/avoidance_rolling", float(np.mean(recent)), step)
-            for k, v in losses.items():
-                writer.add_scalar(f"train/{k}", v, step)
-            if episode % CHECKPOINT_EPISODES == 0:
-                snapshot()
-    snapshot()
-    env.close()
-    if run_.stop.requested:
-        return run_.stopped(step)
-    last = curve["crash"][-ROLLING:]
-    return {
-        "reward": agent_id.reward,
-        "obs": "lidar",
-        "steps": step,
-        "episodes": episode,
-        "recent_avoidance": float(1.0 - np.mean(last)) if last else None,
-        "curve": curve,
-        "demonstrations": demo_info,
-    }
+            x, ret = x_next, ret + reward
+            self.step += 1
+            bar.update(1)
+            if self.step > hp.warmup_steps and len(buffer) >= hp.batch_size:
+                if self.demos is None:  # the paper's agent, drawing exactly what it drew before demonstrations
+                    batch = buffer.sample(hp.batch_size, agent.rng)
+                else:
+                    batch = mixed_batch(buffer, self.demos, hp.batch_size, hp.demo_share, agent.rng)
+                self.losses = agent.update(batch)
+            if terminated or truncated:
+                break
+        self.log_episode(info["outcome"], ret)
+
+    def log_episode(self, o: dict, ret: float) -> None:
+        crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
+        self.curve["return"].append(float(ret))
+        self.curve["crash"].append(crashed)
+        self.curve["end"].append(o["end"])
+        self.recent.append(not crashed)
+        self.episode += 1
+        writer, step = self.run_.writer, self.step
+        writer.add_scalar("episode/return", ret, step)
+        writer.add_scalar("episode/avoidance_rolling", float(np.mean(self.recent)), step)
+        for k, v in self.losses.items():
+            writer.add_scalar(f"train/{k}", v, step)
+        if self.episode % CHECKPOINT_EPISODES == 0:
+            self.snapshot()
+
+    def train(self) -> dict:
+        from tqdm import tqdm
+
+        run_, total = self.run_, self.hp.kim.total_steps
+        run_.restore_random_state()  # building the networks and views drew from them
+        with tqdm(total=total, initial=self.step, desc=f"ddpg kim ({self.agent_id.reward})", unit="step") as bar:
+            while self.step < total and not run_.stop.requested:
+                self.play_episode(bar)
+        self.snapshot()
+        self.env.close()
+        if run_.stop.requested:
+            return run_.stopped(self.step)
+        last = self.curve["crash"][-ROLLING:]
+        return {
+            "reward": self.agent_id.reward,
+            "obs": "lidar",
+            "steps": self.step,
+            "episodes": self.episode,
+            "recent_avoidance": float(1.0 - np.mean(last)) if last else None,
+            "curve": self.curve,
+            "demonstrations": self.demo_info,
+        }
 
 
 def summary(metrics: dict) -> str:
