@@ -69,12 +69,9 @@ def reset_options(cfg, episode: int) -> dict:
 
 
 def run(cfg) -> dict:
-    from .agent_obs import WorldModelView
-
     typed = validate(cfg)
     set_threads(typed.threads)
     agent_id = artifacts.AgentId.of(cfg)
-    name = agent_id.policy
     if typed.agent.learner == "chooser":
         return run_chooser(cfg, agent_id)
     if typed.agent.learner == "counterfactual":
@@ -89,183 +86,234 @@ def run(cfg) -> dict:
             "trains ddpg, chooser and counterfactual agents"
         )
     if typed.agent.obs == "privileged":  # the true state (envs/privileged.py): no world model, no camera
-        from .agent_obs import PrivilegedEncoder
-
         paper = registry.default()
         if family is not paper or typed.env.family != paper.name:
             raise StageError(
                 f"obs=privileged trains on the paper's street scenarios: env.family={paper.name}, reward="
                 + " or ".join(paper.rewards)
             )
-        sim = make_env(cfg, camera=False)
-        encoder = PrivilegedEncoder(sim)
-    else:
-        encoder = loading.load_world_model(cfg)
-        sim = make_env(cfg)
-    hp = typed.agent
-    action_map = ActionMap(hp.anchor, hp.steer, sim.params)
-    env = WorldModelView(sim, encoder, action_map)
-    seed_everything(typed.seed)
-    obs_dim = encoder.dim
-    agent = DDPG(obs_dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
-    buffer = ReplayBuffer(hp.buffer_size, obs_dim, 2)
-    history: deque = deque(maxlen=ROLLING)
-    demos, demo_info = None, {}
-    if hp.demo_share > 0 or hp.bc_pretrain_steps > 0:
-        demos, demo_info = demonstration_buffer(cfg, encoder, action_map, agent_id.reward, hp, "train")
-        held_out, _ = demonstration_buffer(cfg, encoder, action_map, agent_id.reward, hp, "validation")
-        log.info("[%s] %d demonstration transitions from %d planner episodes", name, len(demos), demo_info["episodes"])
-    window = NStepWindow(hp.n_step, hp.gamma)
-    scale = hp.reward_scale
-    current = EpisodeInProgress(env)
-    losses: dict = {}
+    return DDPGRun(cfg, agent_id).train()
 
-    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), artifacts.provenance(cfg, "agent"), name=name) as run_:
-        step, episode, best_return = 0, 0, -float("inf")
-        rounds = hp.dagger_rounds + 1 if hp.bc_pretrain_steps > 0 else 0  # cloning rounds before the first step
-        cloned, cloning_set = 0, None
-        if run_.state is not None:
-            state = run_.state
-            if state["obs_dim"] != obs_dim:
-                raise StageError(
-                    f"{run_.last} expects agent inputs of size {state['obs_dim']}, the world model "
-                    f"gives {obs_dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed); delete {run_.dir} "
-                    "to retrain"
-                )
-            agent.load_state_dict(state["agent"])
-            buffer.load_state_dict(state["buffer"])
-            step, episode, best_return = state["step"], state["episode"], state["best_return"]
-            history.extend(state["history"])
-            cloned, cloning_set = state.get("cloned_rounds", rounds), state.get("cloning_set")
-            demo_info = state.get("demonstrations", demo_info)
-            cloning = f", {cloned} of {rounds} cloning rounds" if rounds else ""
-            run_.resumed(f"step {step}, episode {episode}{cloning}")
 
-        def snapshot(best=False):
-            run_.save(
-                {
-                    "agent": agent.state_dict(),
-                    "buffer": buffer.state_dict(),
-                    "step": step,
-                    "episode": episode,
-                    "best_return": best_return,
-                    "history": list(history),
-                    "obs": hp.obs,
-                    "obs_dim": obs_dim,
-                    "actor_hidden": list(hp.actor_hidden),
-                    "action_map": action_map.to_dict(),
-                    "use_speed": hp.use_speed,
-                    "frame_view": hp.frame_view,
-                    "reward": agent_id.reward,
-                    "demonstrations": demo_info,
-                    "cloned_rounds": cloned,
-                    # the examples the next cloning round fits, DAgger's labels among them; dropped once cloned
-                    "cloning_set": cloning_set if cloned < rounds else None,
-                    "in_progress": {
-                        **current.state_dict(),
-                        "return": ep_return,
-                        "window": window.state_dict(),
-                        "losses": dict(losses),
-                    },
-                },
-                best=best,
+class DDPGRun:
+    """The paper's DDPG in the live simulator, acting from the world model's view of the camera (or, with
+    ``obs=privileged``, from the true state), with its cloning rounds and demonstrations where the preset asks."""
+
+    def __init__(self, cfg, agent_id):
+        from .agent_obs import WorldModelView
+
+        self.cfg, self.agent_id = cfg, agent_id
+        self.typed = typed = validate(cfg)
+        if typed.agent.obs == "privileged":
+            from .agent_obs import PrivilegedEncoder
+
+            sim = make_env(cfg, camera=False)
+            encoder = PrivilegedEncoder(sim)
+        else:
+            encoder = loading.load_world_model(cfg)
+            sim = make_env(cfg)
+        self.hp = hp = typed.agent
+        self.encoder, self.action_map = encoder, ActionMap(hp.anchor, hp.steer, sim.params)
+        self.env = WorldModelView(sim, encoder, self.action_map)
+        seed_everything(typed.seed)
+        self.obs_dim = encoder.dim
+        self.agent = DDPG(self.obs_dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
+        self.buffer = ReplayBuffer(hp.buffer_size, self.obs_dim, 2)
+        self.history: deque = deque(maxlen=ROLLING)
+        self.demos, self.demo_info, self.held_out = None, {}, None
+        if hp.demo_share > 0 or hp.bc_pretrain_steps > 0:
+            self.demos, self.demo_info = demonstration_buffer(
+                cfg, encoder, self.action_map, agent_id.reward, hp, "train"
             )
+            self.held_out, _ = demonstration_buffer(cfg, encoder, self.action_map, agent_id.reward, hp, "validation")
+            log.info(
+                "[%s] %d demonstration transitions from %d planner episodes",
+                agent_id.policy,
+                len(self.demos),
+                self.demo_info["episodes"],
+            )
+        self.window = NStepWindow(hp.n_step, hp.gamma)
+        self.current = EpisodeInProgress(self.env)
+        self.losses: dict = {}
+        self.step, self.episode, self.best_return = 0, 0, -float("inf")
+        self.rounds = hp.dagger_rounds + 1 if hp.bc_pretrain_steps > 0 else 0  # cloning rounds before the first step
+        self.cloned, self.cloning_set, self.ep_return = 0, None, 0.0
 
-        ep_return = 0.0
-        if cloned < rounds:  # a stop waits for the round to end: each round is saved, and resumes after it
-            if cloning_set is None:
-                cloning_set = (demos.obs[: len(demos)], demos.actions[: len(demos)])
-            resumed_at = cloned * hp.bc_pretrain_steps if run_.state is not None else None
-            pretrain_writer = run_.side_writer("pretrain", purge_step=resumed_at)
-            while cloned < rounds and not run_.stop.requested:
-                cloning_set = cloning_round(
-                    cfg, agent, encoder, action_map, cloning_set, held_out, cloned, run_, pretrain_writer, demo_info
-                )
-                cloned += 1
-                if cloned == rounds:
-                    agent.sync_targets()
-                snapshot()
+    def resume(self, run_) -> None:
+        state = run_.state
+        if state["obs_dim"] != self.obs_dim:
+            raise StageError(
+                f"{run_.last} expects agent inputs of size {state['obs_dim']}, the world model "
+                f"gives {self.obs_dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed); delete "
+                f"{run_.dir} to retrain"
+            )
+        self.agent.load_state_dict(state["agent"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.step, self.episode, self.best_return = state["step"], state["episode"], state["best_return"]
+        self.history.extend(state["history"])
+        self.cloned, self.cloning_set = state.get("cloned_rounds", self.rounds), state.get("cloning_set")
+        self.demo_info = state.get("demonstrations", self.demo_info)
+        cloning = f", {self.cloned} of {self.rounds} cloning rounds" if self.rounds else ""
+        run_.resumed(f"step {self.step}, episode {self.episode}{cloning}")
 
-        from tqdm import tqdm
+    def snapshot(self, best: bool = False) -> None:
+        hp = self.hp
+        self.run_.save(
+            {
+                "agent": self.agent.state_dict(),
+                "buffer": self.buffer.state_dict(),
+                "step": self.step,
+                "episode": self.episode,
+                "best_return": self.best_return,
+                "history": list(self.history),
+                "obs": hp.obs,
+                "obs_dim": self.obs_dim,
+                "actor_hidden": list(hp.actor_hidden),
+                "action_map": self.action_map.to_dict(),
+                "use_speed": hp.use_speed,
+                "frame_view": hp.frame_view,
+                "reward": self.agent_id.reward,
+                "demonstrations": self.demo_info,
+                "cloned_rounds": self.cloned,
+                # the examples the next cloning round fits, DAgger's labels among them; dropped once cloned
+                "cloning_set": self.cloning_set if self.cloned < self.rounds else None,
+                "in_progress": {
+                    **self.current.state_dict(),
+                    "return": self.ep_return,
+                    "window": self.window.state_dict(),
+                    "losses": dict(self.losses),
+                },
+            },
+            best=best,
+        )
 
-        writer = run_.writer
+    def clone_rounds(self) -> None:
+        """The cloning rounds still to do (each saved: a stop waits for the round to end, and resumes after it)."""
+        run_ = self.run_
+        if self.cloning_set is None:
+            self.cloning_set = (self.demos.obs[: len(self.demos)], self.demos.actions[: len(self.demos)])
+        resumed_at = self.cloned * self.hp.bc_pretrain_steps if run_.state is not None else None
+        pretrain_writer = run_.side_writer("pretrain", purge_step=resumed_at)
+        while self.cloned < self.rounds and not run_.stop.requested:
+            self.cloning_set = cloning_round(
+                self.cfg,
+                self.agent,
+                self.encoder,
+                self.action_map,
+                self.cloning_set,
+                self.held_out,
+                self.cloned,
+                run_,
+                pretrain_writer,
+                self.demo_info,
+            )
+            self.cloned += 1
+            if self.cloned == self.rounds:
+                self.agent.sync_targets()
+            self.snapshot()
+
+    def start(self):
+        """The episode in progress: the checkpoint's, replayed to its step, or a new one."""
+        run_ = self.run_
         progress = run_.state.get("in_progress") if run_.state is not None else None
         if progress and len(progress["actions"]):
-            obs, info = current.resume(progress, run_.last)
-            ep_return = progress["return"]
-            window.load_state_dict(progress["window"])
-            losses = dict(progress["losses"])
-        else:
-            obs, info = current.reset(**reset_options(typed, episode))
-            ep_return = 0.0
-        t0, steps_this_run = time.perf_counter(), 0
-        with tqdm(total=hp.total_steps, initial=step, desc=f"agent {agent_id.reward}", unit="step") as bar:
-            while step < hp.total_steps and not run_.stop.requested:
-                action = agent.random_action() if step < hp.warmup_steps else agent.act(obs, explore=True)
-                next_obs, r, terminated, truncated, info = current.step(action)
-                for transition in window.push(obs, action, r * scale, next_obs, terminated):
-                    buffer.add(*transition)
-                if truncated and not terminated:
-                    for transition in window.flush():
-                        buffer.add(*transition)
-                obs = next_obs
-                ep_return += r
-                step += 1
-                steps_this_run += 1
-                bar.update(1)
+            obs, info = self.current.resume(progress, run_.last)
+            self.ep_return = progress["return"]
+            self.window.load_state_dict(progress["window"])
+            self.losses = dict(progress["losses"])
+            return obs
+        obs, info = self.current.reset(**reset_options(self.typed, self.episode))
+        self.ep_return = 0.0
+        return obs
 
-                if step > hp.warmup_steps and len(buffer) >= hp.batch_size:
-                    losses = agent.update(mixed_batch(buffer, demos, hp.batch_size, hp.demo_share, agent.rng))
-                    for key in ("critic_loss", "actor_loss"):
-                        if key in losses:
-                            check_finite(losses[key], key.replace("_", " "), step, run_.last)
+    def act_and_learn(self, obs):
+        """One step: act, store its n-step transitions, update; at an episode's end, log it and start the next.
+        Returns the next observation."""
+        hp, agent, buffer, run_ = self.hp, self.agent, self.buffer, self.run_
+        action = agent.random_action() if self.step < hp.warmup_steps else agent.act(obs, explore=True)
+        next_obs, r, terminated, truncated, info = self.current.step(action)
+        for transition in self.window.push(obs, action, r * hp.reward_scale, next_obs, terminated):
+            buffer.add(*transition)
+        if truncated and not terminated:
+            for transition in self.window.flush():
+                buffer.add(*transition)
+        obs = next_obs
+        self.ep_return += r
+        self.step += 1
+        if self.step > hp.warmup_steps and len(buffer) >= hp.batch_size:
+            self.losses = agent.update(mixed_batch(buffer, self.demos, hp.batch_size, hp.demo_share, agent.rng))
+            for key in ("critic_loss", "actor_loss"):
+                if key in self.losses:
+                    check_finite(self.losses[key], key.replace("_", " "), self.step, run_.last)
+        if terminated or truncated:
+            o = info["outcome"]
+            self.history.append({k: o[k] for k in OUTCOME_KEYS} | {"return": self.ep_return, "hazard": o["hazard"]})
+            rolling = log_episode(run_.writer, self.history, o, self.ep_return, len(self.current), self.step)
+            self.episode += 1
+            # the next episode starts before any save, so that a checkpoint here holds no finished one
+            obs, info = self.current.reset(**reset_options(self.typed, self.episode))
+            self.ep_return = 0.0
+            if self.step > hp.warmup_steps and len(self.history) >= min(ROLLING, 20) and rolling > self.best_return:
+                self.best_return = rolling
+                self.snapshot(best=True)
+        return obs
 
-                if terminated or truncated:
-                    o = info["outcome"]
-                    history.append({k: o[k] for k in OUTCOME_KEYS} | {"return": ep_return, "hazard": o["hazard"]})
-                    rolling = log_episode(writer, history, o, ep_return, len(current), step)
-                    episode += 1
-                    # the next episode starts before any save, so that a checkpoint here holds no finished one
-                    obs, info = current.reset(**reset_options(typed, episode))
-                    ep_return = 0.0
-                    if step > hp.warmup_steps and len(history) >= min(ROLLING, 20) and rolling > best_return:
-                        best_return = rolling
-                        snapshot(best=True)
+    def train(self) -> dict:
+        from tqdm import tqdm
 
-                if losses and step % 50 == 0:
-                    for k, v in losses.items():
-                        writer.add_scalar(f"train/{k}", v, step)
-                    writer.add_scalar("speed/steps_per_s", steps_this_run / (time.perf_counter() - t0), step)
-                if step % hp.checkpoint_every == 0:
-                    snapshot()
-        snapshot()
-        env.close()
-        if run_.stop.requested:
-            return run_.stopped(step)
+        agent_id, hp = self.agent_id, self.hp
+        record = artifacts.provenance(self.cfg, "agent")
+        with TrainingRun(self.cfg, "train_agent", agent_id.dir(self.cfg), record, name=agent_id.policy) as run_:
+            self.run_ = run_
+            if run_.state is not None:
+                self.resume(run_)
+            if self.cloned < self.rounds:
+                self.clone_rounds()
+            writer = run_.writer
+            obs = self.start()
+            t0, steps_this_run = time.perf_counter(), 0
+            with tqdm(total=hp.total_steps, initial=self.step, desc=f"agent {agent_id.reward}", unit="step") as bar:
+                while self.step < hp.total_steps and not run_.stop.requested:
+                    obs = self.act_and_learn(obs)
+                    steps_this_run += 1
+                    bar.update(1)
+                    if self.losses and self.step % 50 == 0:
+                        for k, v in self.losses.items():
+                            writer.add_scalar(f"train/{k}", v, self.step)
+                        rate = steps_this_run / (time.perf_counter() - t0)
+                        writer.add_scalar("speed/steps_per_s", rate, self.step)
+                    if self.step % hp.checkpoint_every == 0:
+                        self.snapshot()
+            self.snapshot()
+            self.env.close()
+            if run_.stop.requested:
+                return run_.stopped(self.step)
+            return run_.finish(self.metrics(round(steps_this_run / (time.perf_counter() - t0), 1)))
 
-        recent = list(history)
+    def metrics(self, steps_per_s: float) -> dict:
+        recent = list(self.history)
         metrics = {
-            "reward": agent_id.reward,
-            "steps": step,
-            "episodes": episode,
+            "reward": self.agent_id.reward,
+            "steps": self.step,
+            "episodes": self.episode,
             "rolling_return": float(np.mean([h["return"] for h in recent])) if recent else None,
-            "best_rolling_return": best_return if best_return > -float("inf") else None,
+            "best_rolling_return": self.best_return if self.best_return > -float("inf") else None,
             "recent_collision_rate": {
                 k: float(np.mean([h[f"{k}_collision"] for h in recent])) if recent else None
                 for k in ("pedestrian", "vehicle", "static")
             },
-            "steps_per_s": round(steps_this_run / (time.perf_counter() - t0), 1),
-            "demonstrations": demo_info,
+            "steps_per_s": steps_per_s,
+            "demonstrations": self.demo_info,
         }
         log.info(
             "[%s] %d steps, %d episodes; rolling return %s; wrote %s",
-            name,
-            step,
-            episode,
+            self.agent_id.policy,
+            self.step,
+            self.episode,
             metrics["rolling_return"],
-            run_.dir,
+            self.run_.dir,
         )
-        return run_.finish(metrics)
+        return metrics
 
 
 def cloning_round(cfg, agent, encoder, action_map, cloning_set, held_out, round_: int, run_, writer, demo_info: dict):
