@@ -206,3 +206,36 @@ def test_the_tests_readme_names_every_test_file():
     listed = (ROOT / "tests/README.md").read_text()
     missing = [p.name for p in sorted((ROOT / "tests").glob("test_*.py")) if f"`{p.name}`" not in listed]
     assert missing == [], f"add {', '.join(missing)} to the table in tests/README.md"
+
+
+MAX_MODULE_LINES, MAX_FUNCTION_LINES = 600, 80  # a module or a function longer than these is split
+
+
+def oversized(paths) -> list[str]:
+    """Modules over MAX_MODULE_LINES lines and functions (methods included, docstring and all) over
+    MAX_FUNCTION_LINES."""
+    found = []
+    for path in paths:
+        text = path.read_text()
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            found.append(f"{path.relative_to(ROOT)}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text, filename=str(path))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {length} lines")
+    return found
+
+
+def test_no_module_or_function_of_the_pipeline_or_the_simulator_is_oversized():
+    paths = sorted([*(ROOT / "worldmodel").rglob("*.py"), *(ROOT / "envs").rglob("*.py")])
+    assert not oversized(paths)
+
+
+def test_the_size_check_finds_a_long_function(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    src = tmp_path / "long.py"
+    src.write_text("def f():\n" + "    x = 1\n" * (MAX_FUNCTION_LINES - 1))
+    assert oversized([src]) == []  # exactly at the limit
+    src.write_text("def f():\n" + "    x = 1\n" * MAX_FUNCTION_LINES)
+    assert oversized([src]) == ["long.py:1 f: 81 lines"]
