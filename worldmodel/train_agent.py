@@ -232,11 +232,7 @@ class DDPGRun:
         hp, agent, buffer, run_ = self.hp, self.agent, self.buffer, self.run_
         action = agent.random_action() if self.step < hp.warmup_steps else agent.act(obs, explore=True)
         next_obs, r, terminated, truncated, info = self.current.step(action)
-        for transition in self.window.push(obs, action, r * hp.reward_scale, next_obs, terminated):
-            buffer.add(*transition)
-        if truncated and not terminated:
-            for transition in self.window.flush():
-                buffer.add(*transition)
+        self.window.store(buffer, obs, action, r * hp.reward_scale, next_obs, terminated, truncated)
         obs = next_obs
         self.ep_return += r
         self.step += 1

@@ -173,6 +173,15 @@ class NStepWindow:
             out.append(self._emit(len(self.pending)))
         return out
 
+    def store(self, buffer, obs, action, reward: float, next_obs, terminated: bool, truncated: bool) -> None:
+        """Push one step and add what it completes to ``buffer``: at a truncation, every pending transition,
+        whose returns are cut there (bootstrapped from the last observation)."""
+        for transition in self.push(obs, action, reward, next_obs, terminated):
+            buffer.add(*transition)
+        if truncated and not terminated:
+            for transition in self.flush():
+                buffer.add(*transition)
+
     def state_dict(self) -> list[tuple]:
         """The transitions still waiting for their n steps: a checkpoint inside an episode keeps them."""
         return list(self.pending)

@@ -114,11 +114,7 @@ class LidarRun:
             _, reward, terminated, truncated, info = env.step(kim_action(a, env.ego.v))
             see.note_action(a)
             x_next = see(env)
-            for transition in self.window.push(x, a, reward * hp.reward_scale, x_next, terminated):
-                buffer.add(*transition)
-            if truncated and not terminated:
-                for transition in self.window.flush():
-                    buffer.add(*transition)
+            self.window.store(buffer, x, a, reward * hp.reward_scale, x_next, terminated, truncated)
             x, ret = x_next, ret + reward
             self.step += 1
             bar.update(1)
