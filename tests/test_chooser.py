@@ -17,6 +17,7 @@ from envs.planner import Manoeuvre
 from envs.views import CLASS_NAMES, HAZARD_CLASSES
 from worldmodel import artifacts, chooser, loading, policies, train_agent
 from worldmodel.common import StageError, make_env
+from worldmodel.models import chooser as chooser_models
 
 CANDIDATES = chooser_candidates(steers=(1.0,), lane_change_s=(0.3,))  # braking + 4 manoeuvres: cheap to label
 
@@ -148,7 +149,7 @@ def test_policy_cost_by_hand():
 
 def test_chunked_prediction_equals_one_forward_pass():
     torch.manual_seed(0)
-    scorer = chooser.Scorer(12 + 2 * 8 * 8, 3, hidden=(16,), members=2, mask_shape=(2, 8, 8)).eval()
+    scorer = chooser_models.Scorer(12 + 2 * 8 * 8, 3, hidden=(16,), members=2, mask_shape=(2, 8, 8)).eval()
     x = torch.randn(50, 12 + 2 * 8 * 8)
     with torch.no_grad():
         whole = scorer(x).numpy()
@@ -354,7 +355,7 @@ def test_static_penalty_needs_labels_with_static_flags(trained, tmp_path):
 
 
 def test_the_scorers_pooling_gives_max_pool_2d_values_and_gradients_before_or_after_its_relu():
-    """The frame band's CNN pools with ``chooser.MaxPool2x2`` before its ReLU; ``nn.MaxPool2d(2)`` after the ReLU gives
+    """The frame band's CNN pools with ``MaxPool2x2`` before its ReLU; ``nn.MaxPool2d(2)`` after the ReLU gives
     the same outputs and the same gradients to the input, on maps with ties (whole windows equal, as a sparse band's
     convolutions give) and negative values."""
     from torch import nn
@@ -366,12 +367,12 @@ def test_the_scorers_pooling_gives_max_pool_2d_values_and_gradients_before_or_af
     grad = torch.randn(6, 5, 6, 8)
     a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
     reference = nn.MaxPool2d(2)(torch.relu(a))
-    ours = torch.relu(chooser.MaxPool2x2()(b))
+    ours = torch.relu(chooser_models.MaxPool2x2()(b))
     reference.backward(grad)
     ours.backward(grad)
     assert torch.equal(reference, ours) and torch.equal(a.grad, b.grad)
     with torch.no_grad():
-        assert torch.equal(chooser.MaxPool2x2()(x), nn.MaxPool2d(2)(x))
+        assert torch.equal(chooser_models.MaxPool2x2()(x), nn.MaxPool2d(2)(x))
 
 
 def test_the_scorer_inputs_rows_are_what_mask_view_gives_episode_by_episode():
@@ -385,7 +386,7 @@ def test_the_scorer_inputs_rows_are_what_mask_view_gives_episode_by_episode():
     episode = np.array([0, 1, 0, 2, 1, 0, 2, 2, 1, 0, 3, 1])
     vec = rng.normal(size=(12, 3)).astype(np.float32)
     rows = chooser.MASK_ROWS["tele"]
-    inputs = chooser.ScorerInputs(vec, *chooser.band_masks(seg, episode, rows))
+    inputs = chooser_models.ScorerInputs(vec, *chooser.band_masks(seg, episode, rows))
     expected = np.empty(inputs.shape, np.float32)
     for e in np.unique(episode):
         view = MaskView(rows)

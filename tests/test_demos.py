@@ -14,6 +14,7 @@ from worldmodel import artifacts, demonstrate, imitation, loading, train_agent
 from worldmodel.action_map import ActionMap
 from worldmodel.common import StageError
 from worldmodel.data import RolloutStore, validate
+from worldmodel.learners import ddpg as ddpg_learner
 
 DEMOS = ["demos.episodes=3", "demos.episodes_per_shard=1"]
 LEARNER = [
@@ -182,12 +183,12 @@ def test_minibatches_mix_demonstrations_in_the_asked_share():
 
 
 def test_focus_share_draws_training_episodes_from_the_focus_mix(stage_cfg):
-    paper = train_agent.reset_options(stage_cfg("train_agent"), 7)
+    paper = ddpg_learner.reset_options(stage_cfg("train_agent"), 7)
     assert set(paper) == {"seed"}
     cfg = stage_cfg("train_agent", "agent.focus_share=1.0")
-    focus = [train_agent.reset_options(cfg, e) for e in range(20)]
+    focus = [ddpg_learner.reset_options(cfg, e) for e in range(20)]
     specs = [f["options"]["scenario"] for f in focus]
     assert all(15.0 <= s.ego_speed <= 30.0 and 0.25 <= s.ttc <= 1.1 for s in specs)
     assert sum(s.hazard != "none" for s in specs) >= 12  # 85 % hazards
-    again = train_agent.reset_options(cfg, 3)
+    again = ddpg_learner.reset_options(cfg, 3)
     assert again["options"]["scenario"] == specs[3]  # depends only on (seed, episode)

@@ -578,3 +578,34 @@ def test_a_family_defined_in_the_tests_joins_by_one_line_per_registry_and_runs_t
     sources = [p for d in ("worldmodel", "envs", "conf") for p in (REPO / d).rglob("*") if p.suffix in (".py", ".yaml")]
     named = [p for p in sources if "tiny" in p.read_text()]
     assert not named, named
+
+
+def test_a_learner_defined_in_the_tests_joins_by_one_line_per_registry_and_is_trained_and_evaluated(
+    experiment, tmp_path
+):
+    """docs/design.md §11's steps for a learner, as tests/tiny_learner.py follows them: a learner whose every part
+    is in that file joins the learners and the presets by one line each; ``agents=[tiny_constant]`` trains it with
+    train_agent and evaluates it on the paper's bank beside braking, which acts as it did in the module's run."""
+    import tiny_learner
+
+    from worldmodel import registry
+
+    root = tmp_path / "learner"
+    shutil.copytree(experiment / "data", root / "data")  # the world model: only the learner's steps run
+    for stage in ("vae", "rnn"):
+        shutil.copytree(experiment / "runs/t" / stage, root / "runs/t" / stage)
+    with tiny_learner.registered():
+        overrides = ("agents=[tiny_constant]", "banks=[validation]", "evaluate.policies=[braking]")
+        pipeline.run(smoke_cfg(root, "pipeline", *overrides))
+        runs = root / "runs/t"
+        action = json.loads((runs / "agent_r2_tiny_constant/seed0/metrics.json").read_text())["action"]
+        assert len(action) == 2 and -1.0 <= action[1] <= 1.0
+        rows = read_results_csv(runs / "eval/results.csv")
+        assert {r["policy"] for r in rows} == {"braking", "agent_r2_tiny_constant"}
+        ours = [r for r in rows if r["policy"] == "braking"]
+        module_run = [r for r in read_results_csv(experiment / "runs/t/eval/results.csv") if r["policy"] == "braking"]
+        assert ours == module_run  # the same bank, and braking the same on it
+        assert sum(r["policy"] == "agent_r2_tiny_constant" for r in rows) == len(ours)
+    assert "tiny_constant" not in registry.LEARNERS
+    sources = [p for d in ("worldmodel", "envs", "conf") for p in (REPO / d).rglob("*") if p.suffix in (".py", ".yaml")]
+    assert not [p for p in sources if "tiny_constant" in p.read_text()]

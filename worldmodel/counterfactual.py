@@ -40,7 +40,7 @@ from envs.counterfactual import ShiftPolicy
 from envs.privileged import PRIVILEGED_DIM
 from envs.streams import COUNTERFACTUAL_MINIBATCHES
 
-from . import loading
+from . import artifacts, loading
 from .action_map import ActionMap
 from .common import (
     StageError,
@@ -234,6 +234,22 @@ def actor_figures(actor: ShiftActor, critic: CostCritic, x, xc, c) -> dict:
 
 
 # ----------------------------------------------------------------------------- the stage
+def run(cfg, agent_id) -> dict:
+    """``agent.learner=counterfactual`` (``python -m worldmodel.train_agent``): the actor trained against the
+    simulator's exact costs of its manoeuvres, in the agent's run folder."""
+    from .training import TrainingRun
+
+    if agent_id.reward != "r2":
+        raise StageError("the counterfactual actor learns R2 costs (injury risk): train it with reward=r2")
+    record = artifacts.provenance(cfg, "agent")
+    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+        metrics = train(cfg, run_, agent_id)
+        if metrics.get("stopped"):
+            return run_.stopped(run_.state["step"] if run_.state else 0)
+        log.info("[%s] %s; wrote %s", agent_id.policy, metrics["history"], run_.dir)
+        return run_.finish(metrics)
+
+
 def train(cfg, run_, agent_id) -> dict:
     """Every round's labels, critic and actor, resuming after the last finished phase; saves through ``run_``."""
     typed = validate(cfg)

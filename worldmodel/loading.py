@@ -184,12 +184,12 @@ def agent_input(state: dict, latent_dim: int) -> dict:
 
 def load_actor(cfg, agent: AgentId, which: str = "last", state: dict | None = None):
     """A trained actor (eval mode) and its checkpoint (``state``, if the caller has already loaded it); refuses one
-    built on another VAE or LSTM. A chooser's or a counterfactual actor's checkpoint (``agent.learner=chooser``,
-    ``counterfactual``) has no DDPG actor: the actor returned is None."""
+    built on another VAE or LSTM. Another learner's checkpoint (a chooser's, a counterfactual actor's) has no
+    DDPG actor: the actor returned is None."""
     from .models.ddpg import Actor
 
     state = load_agent_state(cfg, agent, which) if state is None else state
-    if state.get("learner", "ddpg") in ("chooser", "counterfactual"):
+    if state.get("learner", "ddpg") != "ddpg":
         return None, state
     actor = Actor(state["obs_dim"], 2, tuple(state["actor_hidden"]))
     actor.load_state_dict(state["agent"]["actor"])

@@ -3,8 +3,7 @@
 
 from __future__ import annotations
 
-from . import artifacts, loading
-from .action_map import ActionMap
+from . import artifacts, loading, registry
 from .artifacts import AgentId
 from .config import oracle_settings
 from .report import MODEL_COLUMNS
@@ -64,13 +63,12 @@ def policy_for(cfg, name: str):
 
 
 def learned_policy(cfg, agent: AgentId, state: dict | None = None):
-    """(policy, training seed, model hashes) for a trained world-model agent; ``state``: its checkpoint, if the
-    caller has already loaded it (they are large: the replay memory is in them)."""
-    from .agent_obs import LearnedPolicy
+    """(policy, training seed, model hashes) for a trained agent, rebuilt by its learner (``registry.LEARNERS``);
+    ``state``: its checkpoint, if the caller has already loaded it (they are large: the replay memory is in them)."""
     from .common import decision_device
 
     device = decision_device(cfg)
-    actor, state = loading.load_actor(cfg, agent, state=state)
+    state = loading.load_agent_state(cfg, agent) if state is None else state
     # each agent acts as it was trained: its own input (speed or not, or the true state) and its own action map
     if state.get("obs") == "privileged":  # bound to each episode's env by rollout; no world model, no camera
         from .agent_obs import PrivilegedEncoder
@@ -78,16 +76,8 @@ def learned_policy(cfg, agent: AgentId, state: dict | None = None):
         encoder = PrivilegedEncoder(device=device)
     else:
         encoder = loading.load_world_model(cfg, **loading.agent_input(state, cfg.vae.latent_dim), device=device)
-    if actor is None and state.get("learner") == "counterfactual":
-        from .counterfactual import build_policy
-
-        return build_policy(agent.policy, encoder, state, device=device), agent.seed, loading.models_of(cfg, agent)
-    if actor is None:  # a chooser (agent.learner=chooser)
-        from .chooser import build_policy
-
-        return build_policy(agent.policy, encoder, state, device=device), agent.seed, loading.models_of(cfg, agent)
-    actor = actor.to(device)
-    policy = LearnedPolicy(agent.policy, encoder, actor, action_map=ActionMap.from_dict(state.get("action_map")))
+    learner = registry.learner_module(state.get("learner", "ddpg"))
+    policy = learner.build_policy(agent.policy, encoder, state, device=device)
     return policy, agent.seed, loading.models_of(cfg, agent)
 
 

@@ -157,3 +157,66 @@ def sections() -> tuple[str, ...]:
 def system(name: str) -> System:
     """What family ``name`` runs (imported on first use: each pulls in its own models)."""
     return importlib.import_module(family(name).system)
+
+
+# ----------------------------------------------------------------------------- learners
+@dataclasses.dataclass(frozen=True)
+class Learner:
+    """What the shared code needs to know of one learner (``agent.learner``)."""
+
+    name: str
+    sees: tuple[str, ...]  # the observations (``agent.obs``) it can act from
+    # the module implementing Trainer: ``run(cfg, agent_id) -> metrics`` trains one agent inside its own TrainingRun,
+    # and ``build_policy(name, encoder, state, device)`` rebuilds it from its checkpoint for the evaluations; empty
+    # for a learner only families train (their ``system.train`` and evaluations)
+    module: str = ""
+    # agent keys that only this learner reads: left out of every other learner's config hash
+    own_keys: tuple[str, ...] = ()
+
+
+@runtime_checkable
+class LearnerModule(Protocol):
+    def run(self, cfg, agent_id) -> dict: ...
+
+    def build_policy(self, name: str, encoder, state: dict, device="cpu"): ...
+
+
+# One entry per learner, in the order errors list them.
+LEARNERS: dict[str, Learner] = {
+    learner.name: learner
+    for learner in (
+        Learner("ddpg", ("worldmodel", "lidar", "privileged"), "worldmodel.learners.ddpg"),
+        Learner("chooser", ("worldmodel",), "worldmodel.chooser"),
+        # a family's: Chae's and Merola's DQN (worldmodel/families/chae/, merola/), on their own views
+        Learner(
+            "dqn", ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"), own_keys=("dqn", "episodes")
+        ),
+        Learner("kim_chooser", ("lidar",), own_keys=("kim_chooser",)),  # family kim's (worldmodel/families/kim/)
+        Learner("counterfactual", ("worldmodel", "privileged"), "worldmodel.counterfactual", ("counterfactual",)),
+    )
+}
+
+
+def register_learner(learner: Learner) -> Learner:
+    """Add ``learner`` (a name registered already is replaced)."""
+    LEARNERS[learner.name] = learner
+    return learner
+
+
+def unregister_learner(name: str) -> None:
+    """Remove learner ``name`` (a test's own learner, once the test is done)."""
+    LEARNERS.pop(name, None)
+
+
+def learner(name: str) -> Learner:
+    if name not in LEARNERS:
+        raise KeyError(f"unknown learner {name!r}: known are {', '.join(LEARNERS)}")
+    return LEARNERS[name]
+
+
+def learner_module(name: str) -> LearnerModule:
+    """What learner ``name`` runs (imported on first use)."""
+    module = learner(name).module
+    if not module:
+        raise KeyError(f"learner {name!r} is trained and evaluated by its scenario family, not on its own")
+    return importlib.import_module(module)

@@ -17,7 +17,6 @@ LSTM), ``agent`` (every learner and the reward), ``evaluation`` (the banks' sect
 from __future__ import annotations
 
 from .agent import (  # noqa: F401
-    LEARNERS,
     MASK_CAMERAS,
     OBSERVATIONS,
     AgentConfig,

@@ -305,7 +305,6 @@ class KimChooserConfig(Checked):
                 yield ConfigValueError(f"kim_chooser.{key}", getattr(self, key), "it must be >= 0")
 
 
-LEARNERS = ("ddpg", "chooser", "dqn", "kim_chooser", "counterfactual")
 # what an agent sees: the world model's [z, zhat(, speed)] from the camera, or Chae's privileged 15-value
 # pedestrian history (envs/chae.py); a DDPG or chooser agent always sees the world model
 # LIDAR scans (Kim), or Merola's last 4 camera frames as frozen VAE means or ResNet-18 features; "privileged": the
@@ -516,6 +515,7 @@ class AgentConfig(DDPGConfig):
 
     def problems(self):
         from ..action_map import ANCHORS, STEERS
+        from ..registry import LEARNERS
 
         if self.learner not in LEARNERS:
             yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
@@ -532,13 +532,7 @@ class AgentConfig(DDPGConfig):
         for key in ("obs", "paper_obs"):
             if getattr(self, key) not in OBSERVATIONS:
                 yield ConfigValueError(key, getattr(self, key), f"it must be one of {', '.join(OBSERVATIONS)}")
-        seen_by = {
-            "ddpg": ("worldmodel", "lidar", "privileged"),
-            "chooser": ("worldmodel",),
-            "counterfactual": ("worldmodel", "privileged"),
-            "dqn": ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"),
-            "kim_chooser": ("lidar",),
-        }
+        seen_by = {name: learner.sees for name, learner in LEARNERS.items()}
         if self.learner in seen_by and self.obs not in seen_by[self.learner]:
             yield ConfigValueError(
                 "obs", self.obs, f"the {self.learner} learner sees one of: {', '.join(seen_by[self.learner])}"

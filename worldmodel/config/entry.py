@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from .. import registry
 from ..common import CONF_DIR, ConfigValueError, StageError, check_amp, resolve_device, return_freed_memory
-from .experiment import ExperimentConfig
+from .experiment import ExperimentConfig, agent_presets
 
 
 def agent_preset(cfg, name: str):
@@ -55,7 +55,7 @@ def _changed(before: dict, after: dict) -> dict:
 def _composed_preset(name: str | None, scale: str | None):
     """``train_agent``'s config composed with ``agent=<name>`` (the default preset when None) at ``scale`` (none
     when None); cached, since the pipeline asks for each preset many times."""
-    if name is not None and not preset_exists(name):
+    if name is not None and name not in agent_presets():
         raise StageError(
             f"agent variant {name!r} has no preset {CONF_DIR / 'agent' / name}.yaml: restore it, or move its runs aside"
         )
@@ -64,23 +64,13 @@ def _composed_preset(name: str | None, scale: str | None):
     return compose("train_agent", overrides)
 
 
-def preset_exists(name: str) -> bool:
-    """Whether ``agent=<name>`` names a preset: a file ``conf/agent/<name>.yaml``, or one a plugin put into Hydra's
-    ConfigStore (group ``agent``, package ``_global_``: docs/design.md §11)."""
-    from hydra.core.config_store import ConfigStore
-
-    if (CONF_DIR / "agent" / f"{name}.yaml").exists():
-        return True
-    return f"{name}.yaml" in ConfigStore.instance().repo.get("agent", {})
-
-
 def peer_preset(name: str) -> str | None:
     """The agent preset a ``peers`` entry names: a peer family's paper preset (``kim`` -> ddpg_kim), or any preset
     of a peer family by its own name (``ddpg_kim_fd``); None when it is neither."""
     known = registry.peers()
     if name in known:
         return known[name]
-    if not preset_exists(name):
+    if name not in agent_presets():
         return None
     return name if preset_globals(name).get("env", {}).get("family") in known else None
 

@@ -20,6 +20,13 @@ EXPERIMENT_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
 LAUNCHERS = ("inline", "local", "slurm")  # how the pipeline runs its steps (worldmodel/launcher.py)
 
 
+def agent_presets() -> list[str]:
+    """Every name ``agent=<name>`` takes: a file ``conf/agent/<name>.yaml``, or a preset a plugin put into Hydra's
+    ConfigStore (group ``agent``, package ``_global_``: docs/design.md §11)."""
+    stored = ConfigStore.instance().repo.get("agent", {})
+    return sorted({p.stem for p in (CONF_DIR / "agent").glob("*.yaml")} | {n.removesuffix(".yaml") for n in stored})
+
+
 @dataclass
 class ExperimentConfig(Checked):
     """Every stage's config: shared keys, then one section per stage or component."""
@@ -113,9 +120,9 @@ class ExperimentConfig(Checked):
                     f"agent.{key}", getattr(a, key), "it learns from planner demonstrations: set demos.episodes > 0"
                 )
         for name in self.agents:
-            if not (CONF_DIR / "agent" / f"{name}.yaml").exists():
-                known = sorted(p.stem for p in (CONF_DIR / "agent").glob("*.yaml"))
-                yield ConfigValueError("agents", list(self.agents), f"{name!r} is not a preset: use {', '.join(known)}")
+            if name not in agent_presets():
+                known = ", ".join(agent_presets())
+                yield ConfigValueError("agents", list(self.agents), f"{name!r} is not a preset: use {known}")
         from ..banks import BANKS
 
         if not self.banks or any(b not in BANKS for b in self.banks):

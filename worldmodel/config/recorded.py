@@ -19,8 +19,6 @@ ADDED_DEFAULTS = {
     "env": {"step_s": 1.0 / 15.0, "tele_fov_deg": None, "lateral_exit_m": 25.0},  # and env.family: the default
     "agent": {"obs": "worldmodel", "paper_obs": "worldmodel", "lidar_scans": 0, "lidar_rays": 36},
 }
-# Agent keys that only their own learner reads.
-LEARNER_KEYS = {"dqn": ("dqn", "episodes"), "kim_chooser": ("kim_chooser",), "counterfactual": ("counterfactual",)}
 # DQN options added after runs were recorded, with the value that leaves the learner as it was before them.
 DQN_OPTIONS_OFF = {"value_rescale": False, "trauma_weight_final": None}
 # Counterfactual-actor options added after runs were recorded, with the value that leaves the learner as it was.
@@ -71,9 +69,9 @@ def as_recorded(settings: dict) -> dict:
             for key, value in removed.items():
                 part.setdefault(key, value)
     agent = settings.get("agent")
-    for learner, keys in LEARNER_KEYS.items():  # one learner's keys do not shape the others
-        if isinstance(agent, dict) and agent.get("learner") != learner:
-            for key in keys:
+    for learner in registry.LEARNERS.values():  # keys only one learner reads (Learner.own_keys) shape no other
+        if isinstance(agent, dict) and agent.get("learner") != learner.name:
+            for key in learner.own_keys:
                 agent.pop(key, None)
     dqn = agent.get("dqn") if isinstance(agent, dict) else None
     if isinstance(dqn, dict):
