@@ -283,8 +283,7 @@ def run(cfg, agent_id) -> dict:
 
     if agent_id.reward != "r2":
         raise StageError("the chooser learns R2 costs (injury risk): train it with reward=r2")
-    record = artifacts.provenance(cfg, "agent")
-    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+    with TrainingRun.for_agent(cfg, agent_id) as run_:
         if run_.state is not None:  # the scorer trains in minutes: a stopped run starts again (labels are kept)
             run_.resumed("refitting the scorer from the stored labels, unless only its decision rule changed")
         metrics = train(cfg, run_, agent_id)

@@ -40,7 +40,7 @@ from envs.counterfactual import ShiftPolicy
 from envs.privileged import PRIVILEGED_DIM
 from envs.streams import COUNTERFACTUAL_MINIBATCHES
 
-from . import artifacts, loading
+from . import loading
 from .action_map import ActionMap
 from .common import (
     StageError,
@@ -241,8 +241,7 @@ def run(cfg, agent_id) -> dict:
 
     if agent_id.reward != "r2":
         raise StageError("the counterfactual actor learns R2 costs (injury risk): train it with reward=r2")
-    record = artifacts.provenance(cfg, "agent")
-    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+    with TrainingRun.for_agent(cfg, agent_id) as run_:
         metrics = train(cfg, run_, agent_id)
         if metrics.get("stopped"):
             return run_.stopped(run_.state["step"] if run_.state else 0)

@@ -44,8 +44,7 @@ def run_family(cfg, agent_id, family: str) -> dict:
     peer = registry.system(family)
     # the training seed, into the process-wide generators too, which a checkpoint saves and restores
     seed_everything(agent_id.seed)
-    record = artifacts.provenance(cfg, "agent")
-    with TrainingRun(cfg, "train_agent", agent_id.dir(cfg), record, name=agent_id.policy) as run_:
+    with TrainingRun.for_agent(cfg, agent_id) as run_:
         metrics = peer.train(cfg, run_, agent_id)
         if metrics.get("stopped"):
             return metrics

@@ -117,6 +117,12 @@ class TrainingRun:
         self._side_writers: list = []
 
     # ------------------------------------------------------------------ life cycle
+
+    @classmethod
+    def for_agent(cls, cfg, agent_id) -> TrainingRun:
+        """``train_agent``'s run of the agent ``agent_id``: its folder, its provenance and its name."""
+        return cls(cfg, "train_agent", agent_id.dir(cfg), artifacts.provenance(cfg, "agent"), name=agent_id.policy)
+
     def __enter__(self) -> TrainingRun:
         self._held = contextlib.ExitStack()
         self._held.enter_context(writer_lock(self.dir, f"the {self.name} run"))

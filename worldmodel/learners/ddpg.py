@@ -25,12 +25,12 @@ import numpy as np
 
 from envs.streams import AGENT_EPISODE_SEEDS, AGENT_FOCUS_EPISODES
 
-from .. import artifacts, loading, registry
+from .. import loading, registry
 from ..action_map import ActionMap
 from ..common import StageError, check_finite, make_env, resolve_device, seed_everything
 from ..config import validate
 from ..imitation import clone, cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
-from ..models.ddpg import DDPG, NStepWindow, ReplayBuffer
+from ..models.ddpg import DDPG, NStepWindow, ReplayBuffer, progress_state
 from ..training import EpisodeInProgress, TrainingRun
 
 log = logging.getLogger(__name__)
@@ -155,10 +155,7 @@ class DDPGRun:
         hp = self.hp
         self.run_.save(
             {
-                "agent": self.agent.state_dict(),
-                "buffer": self.buffer.state_dict(),
-                "step": self.step,
-                "episode": self.episode,
+                **progress_state(self.agent, self.buffer, self.step, self.episode),
                 "best_return": self.best_return,
                 "history": list(self.history),
                 "obs": hp.obs,
@@ -253,8 +250,7 @@ class DDPGRun:
         from tqdm import tqdm
 
         agent_id, hp = self.agent_id, self.hp
-        record = artifacts.provenance(self.cfg, "agent")
-        with TrainingRun(self.cfg, "train_agent", agent_id.dir(self.cfg), record, name=agent_id.policy) as run_:
+        with TrainingRun.for_agent(self.cfg, agent_id) as run_:
             self.run_ = run_
             if run_.state is not None:
                 self.resume(run_)

@@ -141,6 +141,11 @@ class Critic(nn.Module):
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
 
 
+def progress_state(agent: DDPG, buffer: ReplayBuffer, step: int, episode: int) -> dict:
+    """What a DDPG run's checkpoint starts with: the networks and optimisers, the replay memory, and where it is."""
+    return {"agent": agent.state_dict(), "buffer": buffer.state_dict(), "step": step, "episode": episode}
+
+
 class NStepWindow:
     """Turns one-step transitions into n-step ones, in order, within one episode.
 

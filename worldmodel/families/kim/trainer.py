@@ -80,15 +80,12 @@ class LidarRun:
         self.run_.resumed(f"step {self.step}, episode {self.episode}")
 
     def snapshot(self) -> None:
-        from ...models.ddpg import DDPGConfig
+        from ...models.ddpg import DDPGConfig, progress_state
 
         hp = self.hp
         self.run_.save(
             {
-                "agent": self.agent.state_dict(),
-                "buffer": self.buffer.state_dict(),
-                "step": self.step,
-                "episode": self.episode,
+                **progress_state(self.agent, self.buffer, self.step, self.episode),
                 "curve": self.curve,
                 "obs": "lidar",
                 "obs_dim": self.see.dim,
