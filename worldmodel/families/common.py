@@ -8,6 +8,7 @@ import copy
 import csv
 import dataclasses
 import json
+import logging
 import re
 import time
 from pathlib import Path
@@ -18,6 +19,8 @@ from envs.chae import brake_action
 
 from .. import artifacts
 from ..common import StageError
+
+log = logging.getLogger(__name__)
 
 
 def dqn_config(cfg):
@@ -139,6 +142,56 @@ def drawn(typed, family: str):
     c = copy.copy(getattr(typed.evaluate, family))
     c.seed = draw_seed(typed.evaluate.bank, family, c.seed)
     return c
+
+
+@dataclasses.dataclass
+class Driven:
+    """What a family's evaluation drove: every row, the family's trained agents, and how many trials and policies."""
+
+    rows: list[dict]
+    agents: list
+    trials: int
+    policies: int
+
+
+def evaluation(cfg, family: str, columns, drive, report, train_with: str, folder=None) -> dict:
+    """The evaluation every peer family fills in (``evaluate.family=<family>``): its bank of ``evaluate.<family>``
+    drawn for ``evaluate.bank``; ``drive(cfg, c) -> Driven``, every policy on the same trials (each loaded before
+    the first trial runs); the rows, with each trained policy's model hashes; ``report(cfg, c, driven, out) ->
+    (summary, headline)``, its tables, figures and TensorBoard; on the test bank a ledger row; then provenance and
+    ``summary.json``, last. ``train_with``: the preset that trains the family's agents, for the hint when there are
+    none; ``folder(c)``: a suffix of the evaluation's folder for a draw the bank's seed does not tell."""
+    from ..config import validate
+
+    c = drawn(validate(cfg), family)
+    out = artifacts.eval_dir(cfg)
+    out = out.with_name(out.name + (folder(c) if folder else ""))
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    record = artifacts.provenance(cfg, "eval")
+    done = drive(cfg, c)
+    if not done.agents:
+        log.info(
+            "[eval %s] no agents of the family under %s. Train one with "
+            "`python -m worldmodel.train_agent experiment=%s agent=%s`.",
+            family,
+            artifacts.runs_root(cfg),
+            cfg.experiment,
+            train_with,
+        )
+    write_rows(out, done.rows, columns, cfg, record)
+    summary, headline = report(cfg, c, done, out)
+    record_if_test(cfg, family, done.rows, record, headline)
+    seal(out, summary, record, t0)
+    log.info(
+        "[eval %s] %d trials x %d policies in %.0f s: %s",
+        family,
+        done.trials,
+        done.policies,
+        summary["wall_s"],
+        out / "tables.md",
+    )
+    return summary
 
 
 def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:

@@ -4,7 +4,6 @@ writes ``runs/NAME/eval_chae/``, and what runs on the Euro NCAP bank."""
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -12,8 +11,8 @@ from envs.chae import V_INIT_RANGE, V_PED_RANGE, ChaeSpec, LatestSafeBraking
 from envs.streams import CHAE_BANK_SCENARIO_2
 
 from ... import artifacts
-from ..common import drawn, record_if_test, seal, write_rows
-from .observe import FAMILY, family_env
+from ..common import Driven, evaluation
+from .observe import FAMILY, PRESET, family_env
 from .policies import SCRIPTED, TTCBraking, ensembles, load_policy
 from .report import figures, learning_curves, summarise, tables
 
@@ -97,15 +96,12 @@ def run_policy(env, policy, entries, policy_seed: int = 0, leave: bool = True) -
 
 def evaluate(cfg) -> dict:
     """``evaluate.family=chae``: every scripted policy and dqn agent on the same seeded trials."""
-    from ...config import validate
-    from ...training import tensorboard
+    return evaluation(cfg, FAMILY, COLUMNS, drive, report, PRESET)
 
-    c = drawn(validate(cfg), "chae")
-    out = artifacts.eval_dir(cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+
+def drive(cfg, c) -> Driven:
+    """Every scripted policy of ``c.policies`` (no camera), then every dqn agent and ensemble, on the same trials."""
     entries = bank(c)
-    record = artifacts.provenance(cfg, "eval")
     agents, learned = driven(cfg, c)  # fail fast, before any trial runs
     rows = []
     plain = family_env(cfg, camera=False, end_on_bump=False)
@@ -116,19 +112,18 @@ def evaluate(cfg) -> dict:
         env = family_env(cfg, camera=policy.see.camera, end_on_bump=False)
         rows += run_policy(env, policy, entries, policy.policy_seed)
         env.close()
-    if not agents:
-        log.info(
-            "[eval chae] no dqn agents under %s: scripted policies only. Train one with "
-            "`python -m worldmodel.train_agent experiment=%s agent=dqn_chae`.",
-            artifacts.runs_root(cfg),
-            cfg.experiment,
-        )
-    write_rows(out, rows, COLUMNS, cfg, record)
-    summary = summarise(rows, c.ttcs)
+    return Driven(rows, agents, len(entries), len(c.policies) + len(learned))
+
+
+def report(cfg, c, done: Driven, out) -> tuple[dict, dict]:
+    """Table I's layout and the bars, the stopping distances and learning curves; each run's headline."""
+    from ...training import tensorboard
+
+    summary = summarise(done.rows, c.ttcs)
     summary["render"] = {"trials": c.trials, "ttcs": c.ttcs}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, c.trials))
-    figures(rows, summary, out)
-    learning_curves(cfg, agents, out / "learning_curves.png")
+    figures(done.rows, summary, out)
+    learning_curves(cfg, done.agents, out / "learning_curves.png")
     writer = tensorboard(out)
     for policy, s in summary["policies"].items():
         for ttc, rate in s["bump_rate"].items():
@@ -139,16 +134,7 @@ def evaluate(cfg) -> dict:
         + ("n/a" if r["stops"] is None else f"{r['stops']:.2f} %")
         for r in summary["runs"]
     }
-    record_if_test(cfg, "chae", rows, record, headline)
-    seal(out, summary, record, t0)
-    log.info(
-        "[eval chae] %d trials x %d policies in %.0f s: %s",
-        len(entries),
-        len(c.policies) + len(learned),
-        summary["wall_s"],
-        out / "tables.md",
-    )
-    return summary
+    return summary, headline
 
 
 def driven(cfg, c) -> tuple[list, list]:

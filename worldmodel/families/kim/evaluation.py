@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -15,8 +14,8 @@ from envs.rewards import crash_iss
 from envs.streams import KIM_BANK_CROSSING
 
 from ... import artifacts
-from ..common import drawn, record_if_test, seal, world_model_step_s, write_rows
-from .observe import FAMILY, GOAL_REWARDS, family_env
+from ..common import Driven, evaluation, world_model_step_s
+from .observe import FAMILY, GOAL_REWARDS, PRESET, family_env
 from .report import CEILING, FLOOR, figure, summarise, tables
 from .trainer import load_policy
 
@@ -142,19 +141,18 @@ def draw_suffix(c) -> str:
 def evaluate(cfg) -> dict:
     """``evaluate.family=kim``: AEB-3m, braking, the planner, every LIDAR and world-model agent of the family and
     (``evaluate.kim.world_model_agents``) the paper's street-trained agents, on the same seeded trials."""
+    return evaluation(cfg, FAMILY, COLUMNS, drive, report, PRESET, folder=draw_suffix)
+
+
+def drive(cfg, c) -> Driven:
+    """The scripted policies and the LIDAR agents at Kim's 0.1 s steps, then the camera agents at their world
+    model's."""
     from ...config import validate
     from ...policies import porav_policies
-    from ...training import tensorboard
 
     typed = validate(cfg)
-    c = drawn(typed, "kim")
-    out = artifacts.eval_dir(cfg)
-    out = out.with_name(out.name + draw_suffix(c))
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
     specs = bank(c)
     agents = artifacts.trained_agents(cfg, family="kim")
-    record = artifacts.provenance(cfg, "eval")
     loaded = [(a, *load_policy(cfg, a)) for a in agents]  # fail fast, before any trial runs
     lidar = [(p, a.seed) for a, p, camera in loaded if not camera]
     camera = [(p, a.seed) for a, p, camera in loaded if camera]
@@ -172,15 +170,14 @@ def evaluate(cfg) -> dict:
         for policy, seed in camera:
             rows += run_policy(env, policy, specs, seed)
         env.close()
-    if not agents:
-        log.info(
-            "[eval kim] no kim agents under %s. Train one with `python -m worldmodel.train_agent experiment=%s "
-            "agent=ddpg_kim` (LIDAR) or agent=ddpg_wm_kim (camera).",
-            artifacts.runs_root(cfg),
-            cfg.experiment,
-        )
-    write_rows(out, rows, COLUMNS, cfg, record)
-    summary = summarise(rows, c.paper_trials)
+    return Driven(rows, agents, len(specs), len(c.policies) + len(lidar) + len(camera))
+
+
+def report(cfg, c, done: Driven, out) -> tuple[dict, dict]:
+    """Table 2's layout, the shares of the achievable avoidance and the figure; each policy's headline."""
+    from ...training import tensorboard
+
+    summary = summarise(done.rows, c.paper_trials)
     summary["render"] = {"trials": c.trials, "paper_trials": c.paper_trials}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, c.trials, c.paper_trials))
     figure(summary, out / "avoidance.png")
@@ -192,13 +189,4 @@ def evaluate(cfg) -> dict:
     for p, share in summary["shares"].items():
         if p not in (FLOOR, CEILING) and share["share"] is not None:
             headline[p] += f", share {share['share']:.1f} %"
-    record_if_test(cfg, "kim", rows, record, headline)
-    seal(out, summary, record, t0)
-    log.info(
-        "[eval kim] %d trials x %d policies in %.0f s: %s",
-        len(specs),
-        len(c.policies) + len(lidar) + len(camera),
-        summary["wall_s"],
-        out / "tables.md",
-    )
-    return summary
+    return summary, headline

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import time
 from collections import deque
 
 import numpy as np
@@ -48,15 +47,13 @@ from ...common import StageError, decision_device, make_env, percent, resolve_de
 from ...stats import wilson
 from ..common import (
     DQNPolicy,
+    Driven,
     dqn_checkpoint,
     dqn_config,
-    drawn,
+    evaluation,
     play_dqn_episode,
-    record_if_test,
     resume_dqn,
-    seal,
     world_model_step_s,
-    write_rows,
 )
 from . import FAMILY as DECLARED
 
@@ -436,18 +433,17 @@ def scripted(cfg) -> list:
 def evaluate(cfg) -> dict:
     """``evaluate.family=merola``: braking, the planner, the paper's world-model agents and every ddqn_merola agent
     on the same seeded trials."""
+    return evaluation(cfg, FAMILY, COLUMNS, drive, report, PRESET)
+
+
+def drive(cfg, c) -> Driven:
+    """The scripted policies without the camera, the ddqn agents at 0.1 s, the paper's agents at their own steps."""
     from ...config import validate
     from ...policies import porav_policies
-    from ...training import tensorboard
 
     typed = validate(cfg)
-    c = drawn(typed, "merola")
-    out = artifacts.eval_dir(cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
     specs = bank(c)
     agents = artifacts.trained_agents(cfg, family="merola")
-    record = artifacts.provenance(cfg, "eval")
     learned = [load_policy(cfg, a) for a in agents]  # fail fast, before any trial runs
     world_model = [(p, s) for p, s, camera, _ in porav_policies(cfg) if camera] if c.world_model_agents else []
     rows = []
@@ -464,20 +460,19 @@ def evaluate(cfg) -> dict:
         for policy, seed in world_model:
             rows += run_policy(env, policy, specs, "world model", seed)
         env.close()
-    if not agents:
-        log.info(
-            "[eval merola] no ddqn_merola agents under %s. Train one with "
-            "`python -m worldmodel.train_agent experiment=%s agent=ddqn_merola`.",
-            artifacts.runs_root(cfg),
-            cfg.experiment,
-        )
-    write_rows(out, rows, COLUMNS, cfg, record)
-    summary = summarise(rows)
+    return Driven(rows, agents, len(specs), len({(r["policy"], r["policy_seed"]) for r in rows}))
+
+
+def report(cfg, c, done: Driven, out) -> tuple[dict, dict]:
+    """The collision, delta-v, risk and return table per scenario, its figure and the learning curves."""
+    from ...training import tensorboard
+
+    summary = summarise(done.rows)
     summary["render"] = {"trials": c.trials}  # what tables() is given
     (out / "tables.md").write_text(tables(summary, c.trials))
     figure(summary, out / "collisions.png")
-    if agents:
-        learning_curves(cfg, agents, out / "learning_curves.png")
+    if done.agents:
+        learning_curves(cfg, done.agents, out / "learning_curves.png")
     writer = tensorboard(out)
     for name, s in summary["policies"].items():
         writer.add_scalar(f"merola/{name}/collision_rate", s["scenarios"]["all"]["collision_rate"], 0)
@@ -485,16 +480,7 @@ def evaluate(cfg) -> dict:
     headline = {
         p: f"collisions {s['scenarios']['all']['collision_rate']:.1f} %" for p, s in summary["policies"].items()
     }
-    record_if_test(cfg, "merola", rows, record, headline)
-    seal(out, summary, record, t0)
-    log.info(
-        "[eval merola] %d trials x %d policies in %.0f s: %s",
-        len(specs),
-        len(summary["policies"]),
-        summary["wall_s"],
-        out / "tables.md",
-    )
-    return summary
+    return summary, headline
 
 
 def ncap_group(cfg, takeover_ttc_s: float) -> tuple:
