@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldmodel import artifacts, collect, train_agent, train_rnn, train_vae, training
+from worldmodel import artifacts, train_agent, train_vae, training
 from worldmodel.config import compose
 
 REPO = Path(__file__).resolve().parent.parent
@@ -45,20 +45,15 @@ def smoke(stage: str, data: Path, runs: Path, *overrides: str):
 
 
 @pytest.fixture(scope="module")
-def rollouts(tmp_path_factory) -> Path:
-    """``data/`` root of a smoke-scale rollout dataset, shared by this module's tests (they only read it)."""
-    root = tmp_path_factory.mktemp("world")
-    collect.run(smoke("collect", root / "data", root / "runs"))
-    return root / "data"
+def rollouts(smoke_builds) -> Path:
+    """``data/`` root of the session's smoke-scale experiment, built by the real stages (the tests only read it)."""
+    return smoke_builds("rnn") / "data"
 
 
 @pytest.fixture(scope="module")
-def world_model(rollouts) -> Path:
-    """``runs/`` root holding a smoke-scale VAE and LSTM trained by the real stages."""
-    runs = rollouts.parent / "runs"
-    train_vae.run(smoke("train_vae", rollouts, runs))
-    train_rnn.run(smoke("train_rnn", rollouts, runs))
-    return runs
+def world_model(smoke_builds) -> Path:
+    """``runs/`` root holding the session's smoke-scale VAE and LSTM (read only; the tests copy what they change)."""
+    return smoke_builds("rnn") / "runs"
 
 
 @pytest.fixture(scope="module")

@@ -195,7 +195,7 @@ def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots, stage_c
 # ----------------------------------------------------------------------------- the world model's LSTM
 def test_lstm_sigterm_mid_epoch_resumes_bit_for_bit(two_roots, stage_cfg):
     a, b = two_roots("vae")
-    epochs = ("rnn.epochs=2",)
+    epochs = ("rnn.epochs=2", "rnn.effect_points=0", "rnn.horizon_episodes=0")  # the training alone, not the dreams
     train_rnn.run(stage_cfg("train_rnn", *epochs, root=a))
     stopped_then_resumed(stage_cfg, b, train_rnn.run, "train_rnn", epochs, stop_at_update=3)
     train_rnn.run(stage_cfg("train_rnn", *epochs, "resume=true", root=b))

@@ -13,6 +13,10 @@ from worldmodel import artifacts, loading, train_rnn, train_vae
 from worldmodel.common import StageError
 from worldmodel.latents import Latents
 
+# What the stage measures after training (next-frame IoU aside: the dreams, the action effect) is tested in
+# tests/test_dreams.py; these tests check the training and its inputs, and skip it (0 skips a measurement).
+NO_DREAMS = ("rnn.effect_points=0", "rnn.horizon_episodes=0")
+
 
 @pytest.fixture
 def with_vae(experiment_copy):
@@ -35,22 +39,22 @@ def test_missing_vae_names_the_command(stage_cfg):
 
 
 def test_reencodes_only_when_the_vae_checkpoint_changes(stage_cfg, with_vae):
-    first = train_rnn.run(stage_cfg("train_rnn"))
+    first = train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS))
     assert first["reencoded_latents"] is True
     latents = with_vae / "data/t/latents.h5"
     stamp = latents.stat().st_mtime_ns
 
     # Same VAE: the encoding is reused.
-    second = train_rnn.run(stage_cfg("train_rnn", "rnn.epochs=2", "resume=true"))
+    second = train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS, "rnn.epochs=2", "resume=true"))
     assert second["reencoded_latents"] is False and latents.stat().st_mtime_ns == stamp
 
     # Another VAE: resuming the LSTM run started on the old one is refused, naming what changed ...
     new_vae = retrain_vae(stage_cfg, with_vae)
     with pytest.raises(StageError, match=r"vae .* -> " + artifacts.short(new_vae)):
-        train_rnn.run(stage_cfg("train_rnn", "rnn.epochs=3", "resume=true"))
+        train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS, "rnn.epochs=3", "resume=true"))
     # ... and a fresh LSTM run encodes the dataset again with the new VAE.
-    artifacts.retire(stage_cfg("train_rnn"), with_vae / "runs/t/rnn")
-    third = train_rnn.run(stage_cfg("train_rnn"))
+    artifacts.retire(stage_cfg("train_rnn", *NO_DREAMS), with_vae / "runs/t/rnn")
+    third = train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS))
     assert third["reencoded_latents"] is True and latents.stat().st_mtime_ns != stamp
     lat = Latents(latents)
     assert lat.f.attrs["vae_sha256"] == new_vae
@@ -60,11 +64,11 @@ def test_reencodes_only_when_the_vae_checkpoint_changes(stage_cfg, with_vae):
 
 
 def test_lstm_trained_on_another_vae_refuses_to_load(stage_cfg, with_vae, caplog):
-    train_rnn.run(stage_cfg("train_rnn"))
-    old_vae = artifacts.vae_id(stage_cfg("train_rnn"))
+    train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS))
+    old_vae = artifacts.vae_id(stage_cfg("train_rnn", *NO_DREAMS))
     new_vae = retrain_vae(stage_cfg, with_vae)
     with pytest.raises(StageError) as err:
-        loading.load_rnn(stage_cfg("train_rnn"))
+        loading.load_rnn(stage_cfg("train_rnn", *NO_DREAMS))
     message = str(err.value)
     for part in (
         str(with_vae / "runs/t/rnn/best.pt"),
@@ -76,14 +80,14 @@ def test_lstm_trained_on_another_vae_refuses_to_load(stage_cfg, with_vae, caplog
     ):
         assert part in message, (part, message)
     with caplog.at_level(logging.WARNING):
-        rnn, _ = loading.load_rnn(stage_cfg("train_rnn", "allow_stale=true"))
+        rnn, _ = loading.load_rnn(stage_cfg("train_rnn", *NO_DREAMS, "allow_stale=true"))
     assert "stale" in caplog.text and isinstance(rnn, torch.nn.Module)
 
 
 def test_validation_draws_inputs_as_training_does(stage_cfg, with_vae):
     """best.pt is chosen on the validation loss, so it must see the inputs training sees (rnn.sample_inputs)."""
     for sample_inputs in (False, True):
-        cfg = stage_cfg("train_rnn", f"rnn.sample_inputs={str(sample_inputs).lower()}")
+        cfg = stage_cfg("train_rnn", *NO_DREAMS, f"rnn.sample_inputs={str(sample_inputs).lower()}")
         artifacts.retire(cfg, with_vae / "runs/t/rnn")
         metrics = train_rnn.run(cfg)
         model, _ = loading.load_rnn(cfg)
@@ -105,14 +109,14 @@ def test_validation_draws_inputs_as_training_does(stage_cfg, with_vae):
 
 
 def test_train_resume_continue(stage_cfg, with_vae):
-    train_rnn.run(stage_cfg("train_rnn", "rnn.epochs=1"))
+    train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS, "rnn.epochs=1"))
     one = torch.load(with_vae / "runs/t/rnn/last.pt", weights_only=False)
-    train_rnn.run(stage_cfg("train_rnn", "rnn.epochs=3", "resume=true"))
+    train_rnn.run(stage_cfg("train_rnn", *NO_DREAMS, "rnn.epochs=3", "resume=true"))
     three = torch.load(with_vae / "runs/t/rnn/last.pt", weights_only=False)
     assert three["epoch"] == 3 and three["step"] == 3 * one["step"]
     assert {int(s["step"]) for s in three["optimizer"]["state"].values()} == {3 * one["step"]}
     with pytest.raises(StageError, match="hidden"):
-        loading.load_rnn(stage_cfg("train_rnn", "rnn.hidden=256"))
+        loading.load_rnn(stage_cfg("train_rnn", *NO_DREAMS, "rnn.hidden=256"))
 
 
 def test_sequence_windows_cover_every_transition_once():
