@@ -75,7 +75,7 @@ def run(cfg, agent_id) -> dict:
                 f"obs=privileged trains on the paper's street scenarios: env.family={paper.name}, reward="
                 + " or ".join(paper.rewards)
             )
-    return DDPGRun(cfg, agent_id).train()
+    return DDPGRun(cfg, typed, agent_id).train()
 
 
 def build_policy(name: str, encoder, state: dict, device="cpu"):
@@ -94,11 +94,11 @@ class DDPGRun:
     """The paper's DDPG in the live simulator, acting from the world model's view of the camera (or, with
     ``obs=privileged``, from the true state), with its cloning rounds and demonstrations where the preset asks."""
 
-    def __init__(self, cfg, agent_id):
+    def __init__(self, cfg, typed, agent_id):
+        """``typed``: ``cfg`` validated."""
         from ..agent_obs import WorldModelView
 
-        self.cfg, self.agent_id = cfg, agent_id
-        self.typed = typed = validate(cfg)
+        self.cfg, self.typed, self.agent_id = cfg, typed, agent_id
         if typed.agent.obs == "privileged":
             from ..agent_obs import PrivilegedEncoder
 

@@ -54,19 +54,19 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` for ``agent.learner=dqn``: ``agent.chae.episodes`` episodes of family chae."""
     from ...config import validate
 
-    check_settings(validate(cfg), agent_id)
-    return ChaeRun(cfg, run_, agent_id).train()
+    typed = validate(cfg)
+    check_settings(typed, agent_id)
+    return ChaeRun(cfg, typed, run_, agent_id).train()
 
 
 class ChaeRun:
     """One dqn run on family chae: its agent, view and envs, the learning curve, the validations and rescorings."""
 
-    def __init__(self, cfg, run_, agent_id: AgentId):
-        from ...config import validate
+    def __init__(self, cfg, typed, run_, agent_id: AgentId):
+        """``typed``: ``cfg`` validated."""
         from ...models.dqn import DQN
 
-        self.cfg, self.run_, self.agent_id = cfg, run_, agent_id
-        self.typed = typed = validate(cfg)
+        self.cfg, self.typed, self.run_, self.agent_id = cfg, typed, run_, agent_id
         a = self.a = typed.agent
         self.sel = sel = a.chae.select
         self.see = see = observer(cfg, a.obs, noise_m=a.chae.noise_m)

@@ -36,19 +36,18 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         return chooser.train(cfg, run_, agent_id)
     if not typed.agent.lidar_scans:
         raise StageError("obs=lidar needs the LIDAR front end: agent.lidar_scans=4 (agent=ddpg_kim sets it)")
-    return LidarRun(cfg, run_, agent_id).train()
+    return LidarRun(cfg, typed, run_, agent_id).train()
 
 
 class LidarRun:
     """One LIDAR DDPG run on family kim: its agent, replay, view and env, resumed from ``run_``'s checkpoint, and
     the planner's demonstrations where the preset learns from them."""
 
-    def __init__(self, cfg, run_, agent_id: AgentId):
-        from ...config import validate
+    def __init__(self, cfg, typed, run_, agent_id: AgentId):
+        """``typed``: ``cfg`` validated."""
         from ...models.ddpg import DDPG, NStepWindow, ReplayBuffer
 
-        self.run_, self.agent_id = run_, agent_id
-        self.typed = typed = validate(cfg)
+        self.typed, self.run_, self.agent_id = typed, run_, agent_id
         self.hp = hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
         self.see = see = observer(typed, agent_id.reward)
         self.env = family_env(cfg, agent_id.reward)
