@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from worldmodel.models.ddpg import DDPG, Actor, Critic, DDPGConfig, ReplayBuffer
+from worldmodel.models.td3 import TD3, make_agent
 
 torch.set_num_threads(1)
 
@@ -390,7 +391,8 @@ def test_n_step_target_discounts_by_gamma_to_the_k():
 
 
 def test_twin_critic_target_takes_the_smaller_target_q():
-    agent = DDPG(3, 1, DDPGConfig(**SMALL, twin_critics=True), seed=0)
+    agent = make_agent(3, 1, DDPGConfig(**SMALL, twin_critics=True), seed=0)
+    assert isinstance(agent, TD3)
     with torch.no_grad():  # make the two target critics disagree by a known amount
         agent.critic2_target.net[-1].bias += 5.0
     batch = {
@@ -443,9 +445,31 @@ def test_critic_with_the_action_at_its_second_layer_uses_the_action():
 
 def test_default_learner_is_unchanged_by_the_new_options():
     """All options off: the same networks, from the same seed, as before they existed (no second critic drawn)."""
-    agent = DDPG(4, 2, DDPGConfig(**SMALL), seed=3)
-    assert agent.critic2 is None and isinstance(agent.critic.net[0], torch.nn.Linear)
-    assert agent.critic.net[0].in_features == 6
+    agent = make_agent(4, 2, DDPGConfig(**SMALL), seed=3)
+    assert type(agent) is DDPG and not hasattr(agent, "critic2")
+    assert isinstance(agent.critic.net[0], torch.nn.Linear) and agent.critic.net[0].in_features == 6
+
+
+def test_ddpg_refuses_the_options_of_td3():
+    with pytest.raises(ValueError, match="agent.policy_delay, agent.target_noise: TD3's options"):
+        DDPG(4, 2, DDPGConfig(**SMALL, policy_delay=2, target_noise=0.1), seed=3)
+
+
+def test_td3_with_its_options_off_learns_exactly_as_ddpg():
+    """TD3 is DDPG plus its options: built with none of them on, it draws and learns the same bits."""
+    plain, td3 = DDPG(4, 2, DDPGConfig(**SMALL), seed=3), TD3(4, 2, DDPGConfig(**SMALL), seed=3)
+    rng = np.random.default_rng(0)
+    batch = {
+        "obs": torch.randn(8, 4, generator=torch.Generator().manual_seed(1)),
+        "actions": torch.as_tensor(rng.uniform(-1, 1, (8, 2)), dtype=torch.float32),
+        "rewards": torch.as_tensor(rng.normal(size=8), dtype=torch.float32),
+        "next_obs": torch.randn(8, 4, generator=torch.Generator().manual_seed(2)),
+        "terminated": torch.zeros(8),
+    }
+    for _ in range(3):
+        assert plain.update(batch) == td3.update(batch)
+    for p, q in zip(plain.actor.parameters(), td3.actor.parameters(), strict=True):
+        assert torch.equal(p, q)
 
 
 def test_cloning_fits_a_known_state_to_action_map():

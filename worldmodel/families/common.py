@@ -1,4 +1,4 @@
-"""What every peer's trainer and evaluation share: resuming a DQN run, its training episode, its checkpoint, and
+"""What every peer's trainer and evaluation share: resuming a DQN run, its training episodes, its checkpoint, and
 writing an evaluation directory (``results.csv`` first, ``summary.json`` last, since its presence marks the
 evaluation complete)."""
 
@@ -52,9 +52,9 @@ class DQNPolicy:
         return action
 
 
-def resume_dqn(run_, agent, obs_dim: int, curve: dict) -> tuple[int, dict]:
-    """(episode, curve) to continue from: the run's checkpoint loaded into ``agent``, or (0, ``curve``) when fresh.
-    Refuses a checkpoint whose input size is not the observation's."""
+def resume_dqn(run_, learner, obs_dim: int, curve: dict) -> tuple[int, dict]:
+    """(episode, curve) to continue from: the run's checkpoint loaded into ``learner`` (a ``DQNLearner``), or
+    (0, ``curve``) when fresh. Refuses a checkpoint whose input size is not the observation's."""
     if run_.state is None:
         return 0, curve
     if run_.state["obs_dim"] != obs_dim:
@@ -62,43 +62,40 @@ def resume_dqn(run_, agent, obs_dim: int, curve: dict) -> tuple[int, dict]:
             f"{run_.last} expects inputs of size {run_.state['obs_dim']}, the observation gives {obs_dim}; "
             f"delete {run_.dir} to retrain"
         )
-    agent.load_state_dict(run_.state["agent"])
+    learner.load_state_dict(run_.state)
     episode = int(run_.state["episode"])
     run_.resumed(f"episode {episode}")
     return episode, run_.state["curve"]
 
 
-def play_dqn_episode(env, agent, see, spec, action_of, trauma_of=None, view_seed=None, loss=None):
-    """One training episode of a DQN learner on scenario ``spec``: reset the env and the observer (on
-    ``view_seed``), then act, step, observe, remember and update once per step until the episode ends. An action
-    index becomes the env's [steer, pedal] through ``action_of``; ``trauma_of(terminated, info)`` says whether a
-    transition goes into the trauma memory too (None: none does). Returns the episode's return, its outcome and the
-    latest loss (``loss`` while no update has reported one)."""
-    obs, _ = env.reset(options={"scenario": spec})
-    see.reset(view_seed)
-    x, ret = see(env, obs), 0.0
-    while True:
-        a = agent.act(x)
-        action = action_of(a)
-        obs, reward, terminated, truncated, info = env.step(action)
-        see.note_action(action)
-        x_next = see(env, obs)
-        trauma = False if trauma_of is None else trauma_of(terminated, info)
-        agent.remember(x, a, reward, x_next, terminated, trauma=trauma, episode_end=terminated or truncated)
-        stats = agent.update()
-        loss = stats["loss"] if stats else loss
-        x, ret = x_next, ret + reward
-        if terminated or truncated:
-            return ret, info["outcome"], loss
+class DQNEpisodes:
+    """A peer family's training episodes for a DQN learner (``learners.loop.Episodes``): episode k's scenario and
+    the observer's noise seed are ``scenario_of(k)``; an action index becomes the simulator's [steer, pedal]
+    through ``action_of``, which the observer notes."""
+
+    def __init__(self, env, see, scenario_of, action_of):
+        self.env, self.see, self.scenario_of, self.action_of = env, see, scenario_of, action_of
+
+    def start(self, episode: int):
+        spec, view_seed = self.scenario_of(episode)
+        obs, _ = self.env.reset(options={"scenario": spec})
+        self.see.reset(view_seed)
+        return self.see(self.env, obs)
+
+    def step(self, action_index) -> tuple:
+        action = self.action_of(action_index)
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.see.note_action(action)
+        return self.see(self.env, obs), reward, terminated, truncated, info
 
 
-def dqn_checkpoint(agent, hp, episode: int, curve: dict, obs: str, obs_dim: int, reward: str, **extra) -> dict:
-    """A dqn run's ``last.pt``: network, optimiser, memories and RNG (``agent.state_dict``), the learning curve, and
-    what ``load_policy`` needs to rebuild it (observation, its size, the hyperparameters)."""
+def dqn_checkpoint(learner, hp, episode: int, curve: dict, obs: str, obs_dim: int, reward: str, **extra) -> dict:
+    """A dqn run's ``last.pt``: network, optimiser, memories and RNG (the ``DQNLearner``'s state), the learning
+    curve, and what ``load_policy`` needs to rebuild it (observation, its size, the hyperparameters)."""
     return {
-        "agent": agent.state_dict(),
+        **learner.state_dict(),
         "episode": episode,
-        "step": agent.steps,
+        "step": learner.steps,
         "log_step": episode,  # its TensorBoard curves count episodes: a resumed run purges what came after this
         "curve": curve,
         "obs": obs,

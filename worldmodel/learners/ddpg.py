@@ -27,11 +27,13 @@ from envs.streams import AGENT_EPISODE_SEEDS, AGENT_FOCUS_EPISODES
 
 from .. import loading, registry
 from ..action_map import ActionMap
-from ..common import StageError, check_finite, make_env, resolve_device, seed_everything
+from ..common import StageError, make_env, resolve_device, seed_everything
 from ..config import validate
 from ..imitation import clone, cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
-from ..models.ddpg import DDPG, NStepWindow, ReplayBuffer, progress_state
+from ..models.ddpg import NStepWindow, ReplayBuffer
+from ..models.td3 import make_agent
 from ..training import EpisodeInProgress, TrainingRun
+from .loop import Callbacks, EpisodeLoop
 
 log = logging.getLogger(__name__)
 ROLLING = 100
@@ -90,7 +92,61 @@ def build_policy(name: str, encoder, state: dict, device="cpu"):
     )
 
 
-class DDPGRun:
+class DDPGLearner:
+    """DDPG or TD3 (``models.td3.make_agent``) as a ``Learner`` of the training loop (learners/loop.py): uniform
+    random actions for ``warmup_steps``, then the actor with Gaussian noise; each step's transition through the
+    n-step window into the replay memory, its reward times ``reward_scale``; once warmed up, one minibatch per step,
+    with the planner's demonstrations mixed in where ``demos`` holds them (``demo_share`` of each batch).
+
+    The n-step window holds only transitions of the episode in progress: a run that saves inside episodes keeps it
+    with that episode."""
+
+    def __init__(self, agent, hp, demos=None):
+        """``hp``: the typed ``agent`` section (warm-up, batch, replay size, n-step, reward scale, demo share)."""
+        self.agent, self.hp, self.demos = agent, hp, demos
+        self.buffer = ReplayBuffer(hp.buffer_size, agent.obs_dim, agent.act_dim)
+        self.window = NStepWindow(hp.n_step, hp.gamma)
+        self.steps = 0
+
+    def act(self, obs, explore: bool) -> np.ndarray:
+        if explore and self.steps < self.hp.warmup_steps:
+            return self.agent.random_action()
+        return self.agent.act(obs, explore=explore)
+
+    def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool, info: dict) -> None:
+        self.window.store(self.buffer, obs, action, reward * self.hp.reward_scale, next_obs, terminated, truncated)
+        self.steps += 1
+
+    def update(self) -> dict | None:
+        hp, agent = self.hp, self.agent
+        if self.steps <= hp.warmup_steps or len(self.buffer) < hp.batch_size:
+            return None
+        return agent.update(mixed_batch(self.buffer, self.demos, hp.batch_size, hp.demo_share, agent.rng))
+
+    def state_dict(self) -> dict:
+        return {"agent": self.agent.state_dict(), "buffer": self.buffer.state_dict(), "step": self.steps}
+
+    def load_state_dict(self, state) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.steps = int(state["step"])
+
+
+class WorldModelEpisodes:
+    """The paper's training episodes (``reset_options``) through the world model's view, each kept as it goes
+    (``EpisodeInProgress``) so that a checkpoint inside it resumes exactly."""
+
+    def __init__(self, view, typed):
+        self.current, self.typed = EpisodeInProgress(view), typed
+
+    def start(self, episode: int):
+        return self.current.reset(**reset_options(self.typed, episode))[0]
+
+    def step(self, action) -> tuple:
+        return self.current.step(action)
+
+
+class DDPGRun(Callbacks):
     """The paper's DDPG in the live simulator, acting from the world model's view of the camera (or, with
     ``obs=privileged``, from the true state), with its cloning rounds and demonstrations where the preset asks."""
 
@@ -112,29 +168,30 @@ class DDPGRun:
         self.env = WorldModelView(sim, encoder, self.action_map)
         seed_everything(typed.seed)
         self.obs_dim = encoder.dim
-        self.agent = DDPG(self.obs_dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
-        self.buffer = ReplayBuffer(hp.buffer_size, self.obs_dim, 2)
+        self.learner = DDPGLearner(
+            make_agent(self.obs_dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device)), hp
+        )
+        self.agent = self.learner.agent
         self.history: deque = deque(maxlen=ROLLING)
-        self.demos, self.demo_info, self.held_out = None, {}, None
+        self.demo_info, self.held_out = {}, None
         if hp.demo_share > 0 or hp.bc_pretrain_steps > 0:
-            self.demos, self.demo_info = demonstration_buffer(
+            self.learner.demos, self.demo_info = demonstration_buffer(
                 cfg, encoder, self.action_map, agent_id.reward, hp, "train"
             )
             self.held_out, _ = demonstration_buffer(cfg, encoder, self.action_map, agent_id.reward, hp, "validation")
             log.info(
                 "[%s] %d demonstration transitions from %d planner episodes",
                 agent_id.policy,
-                len(self.demos),
+                len(self.learner.demos),
                 self.demo_info["episodes"],
             )
-        self.window = NStepWindow(hp.n_step, hp.gamma)
-        self.current = EpisodeInProgress(self.env)
-        self.losses: dict = {}
-        self.step, self.episode, self.best_return = 0, 0, -float("inf")
+        self.episodes = WorldModelEpisodes(self.env, typed)
+        self.best_return = -float("inf")
         self.rounds = hp.dagger_rounds + 1 if hp.bc_pretrain_steps > 0 else 0  # cloning rounds before the first step
-        self.cloned, self.cloning_set, self.ep_return = 0, None, 0.0
+        self.cloned, self.cloning_set = 0, None
 
-    def resume(self, run_) -> None:
+    def resume(self, run_) -> int:
+        """Restore the learner and the run's counters from ``run_``'s checkpoint; returns its episode count."""
         state = run_.state
         if state["obs_dim"] != self.obs_dim:
             raise StageError(
@@ -142,20 +199,21 @@ class DDPGRun:
                 f"gives {self.obs_dim} (vae.latent_dim / agent.use_speed / agent.frame_view changed); delete "
                 f"{run_.dir} to retrain"
             )
-        self.agent.load_state_dict(state["agent"])
-        self.buffer.load_state_dict(state["buffer"])
-        self.step, self.episode, self.best_return = state["step"], state["episode"], state["best_return"]
+        self.learner.load_state_dict(state)
+        self.best_return = state["best_return"]
         self.history.extend(state["history"])
         self.cloned, self.cloning_set = state.get("cloned_rounds", self.rounds), state.get("cloning_set")
         self.demo_info = state.get("demonstrations", self.demo_info)
         cloning = f", {self.cloned} of {self.rounds} cloning rounds" if self.rounds else ""
-        run_.resumed(f"step {self.step}, episode {self.episode}{cloning}")
+        run_.resumed(f"step {self.learner.steps}, episode {state['episode']}{cloning}")
+        return state["episode"]
 
     def snapshot(self, best: bool = False) -> None:
-        hp = self.hp
+        hp, loop = self.hp, self.loop
         self.run_.save(
             {
-                **progress_state(self.agent, self.buffer, self.step, self.episode),
+                **self.learner.state_dict(),
+                "episode": loop.episode,
                 "best_return": self.best_return,
                 "history": list(self.history),
                 "obs": hp.obs,
@@ -170,10 +228,10 @@ class DDPGRun:
                 # the examples the next cloning round fits, DAgger's labels among them; dropped once cloned
                 "cloning_set": self.cloning_set if self.cloned < self.rounds else None,
                 "in_progress": {
-                    **self.current.state_dict(),
-                    "return": self.ep_return,
-                    "window": self.window.state_dict(),
-                    "losses": dict(self.losses),
+                    **self.episodes.current.state_dict(),
+                    "return": loop.ret,
+                    "window": self.learner.window.state_dict(),
+                    "losses": dict(loop.losses),
                 },
             },
             best=best,
@@ -181,9 +239,9 @@ class DDPGRun:
 
     def clone_rounds(self) -> None:
         """The cloning rounds still to do (each saved: a stop waits for the round to end, and resumes after it)."""
-        run_ = self.run_
+        run_, demos = self.run_, self.learner.demos
         if self.cloning_set is None:
-            self.cloning_set = (self.demos.obs[: len(self.demos)], self.demos.actions[: len(self.demos)])
+            self.cloning_set = (demos.obs[: len(demos)], demos.actions[: len(demos)])
         resumed_at = self.cloned * self.hp.bc_pretrain_steps if run_.state is not None else None
         pretrain_writer = run_.side_writer("pretrain", purge_step=resumed_at)
         while self.cloned < self.rounds and not run_.stop.requested:
@@ -204,47 +262,38 @@ class DDPGRun:
                 self.agent.sync_targets()
             self.snapshot()
 
-    def start(self):
+    def start(self) -> None:
         """The episode in progress: the checkpoint's, replayed to its step, or a new one."""
-        run_ = self.run_
+        run_, loop = self.run_, self.loop
         progress = run_.state.get("in_progress") if run_.state is not None else None
         if progress and len(progress["actions"]):
-            obs, info = self.current.resume(progress, run_.last)
-            self.ep_return = progress["return"]
-            self.window.load_state_dict(progress["window"])
-            self.losses = dict(progress["losses"])
-            return obs
-        obs, info = self.current.reset(**reset_options(self.typed, self.episode))
-        self.ep_return = 0.0
-        return obs
+            obs, _ = self.episodes.current.resume(progress, run_.last)
+            self.learner.window.load_state_dict(progress["window"])
+            loop.losses = dict(progress["losses"])
+            loop.begin(obs, progress["return"], len(progress["actions"]))
+        else:
+            loop.begin()
 
-    def act_and_learn(self, obs):
-        """One step: act, store its n-step transitions, update; at an episode's end, log it and start the next.
-        Returns the next observation."""
-        hp, agent, buffer, run_ = self.hp, self.agent, self.buffer, self.run_
-        action = agent.random_action() if self.step < hp.warmup_steps else agent.act(obs, explore=True)
-        next_obs, r, terminated, truncated, info = self.current.step(action)
-        self.window.store(buffer, obs, action, r * hp.reward_scale, next_obs, terminated, truncated)
-        obs = next_obs
-        self.ep_return += r
-        self.step += 1
-        if self.step > hp.warmup_steps and len(buffer) >= hp.batch_size:
-            self.losses = agent.update(mixed_batch(buffer, self.demos, hp.batch_size, hp.demo_share, agent.rng))
-            for key in ("critic_loss", "actor_loss"):
-                if key in self.losses:
-                    check_finite(self.losses[key], key.replace("_", " "), self.step, run_.last)
-        if terminated or truncated:
-            o = info["outcome"]
-            self.history.append({k: o[k] for k in OUTCOME_KEYS} | {"return": self.ep_return, "hazard": o["hazard"]})
-            rolling = log_episode(run_.writer, self.history, o, self.ep_return, len(self.current), self.step)
-            self.episode += 1
-            # the next episode starts before any save, so that a checkpoint here holds no finished one
-            obs, info = self.current.reset(**reset_options(self.typed, self.episode))
-            self.ep_return = 0.0
-            if self.step > hp.warmup_steps and len(self.history) >= min(ROLLING, 20) and rolling > self.best_return:
-                self.best_return = rolling
-                self.snapshot(best=True)
-        return obs
+    def on_episode(self, loop, outcome: dict, ret: float, length: int) -> None:
+        self.history.append({k: outcome[k] for k in OUTCOME_KEYS} | {"return": ret, "hazard": outcome["hazard"]})
+        rolling = log_episode(self.run_.writer, self.history, outcome, ret, length, loop.step)
+        # the next episode has started (a mid-episode loop): a checkpoint here holds no finished one
+        if loop.step > self.hp.warmup_steps and len(self.history) >= min(ROLLING, 20) and rolling > self.best_return:
+            self.best_return = rolling
+            self.snapshot(best=True)
+
+    def on_step(self, loop) -> None:
+        step = loop.step
+        if loop.losses and step % 50 == 0:
+            for k, v in loop.losses.items():
+                self.run_.writer.add_scalar(f"train/{k}", v, step)
+            self.run_.writer.add_scalar("speed/steps_per_s", self.rate(), step)
+        if step % self.hp.checkpoint_every == 0:
+            self.snapshot()
+
+    def rate(self) -> float:
+        """Steps per second in this process."""
+        return (self.loop.step - self.first_step) / (time.perf_counter() - self.t0)
 
     def train(self) -> dict:
         from tqdm import tqdm
@@ -252,37 +301,28 @@ class DDPGRun:
         agent_id, hp = self.agent_id, self.hp
         with TrainingRun.for_agent(self.cfg, agent_id) as run_:
             self.run_ = run_
-            if run_.state is not None:
-                self.resume(run_)
+            episode = self.resume(run_) if run_.state is not None else 0
+            self.loop = EpisodeLoop(self.learner, self.episodes, run_, self, episode=episode, mid_episode=True)
             if self.cloned < self.rounds:
                 self.clone_rounds()
-            writer = run_.writer
-            obs = self.start()
-            t0, steps_this_run = time.perf_counter(), 0
-            with tqdm(total=hp.total_steps, initial=self.step, desc=f"agent {agent_id.reward}", unit="step") as bar:
-                while self.step < hp.total_steps and not run_.stop.requested:
-                    obs = self.act_and_learn(obs)
-                    steps_this_run += 1
-                    bar.update(1)
-                    if self.losses and self.step % 50 == 0:
-                        for k, v in self.losses.items():
-                            writer.add_scalar(f"train/{k}", v, self.step)
-                        rate = steps_this_run / (time.perf_counter() - t0)
-                        writer.add_scalar("speed/steps_per_s", rate, self.step)
-                    if self.step % hp.checkpoint_every == 0:
-                        self.snapshot()
+            self.start()
+            self.t0, self.first_step = time.perf_counter(), self.loop.step
+            with tqdm(
+                total=hp.total_steps, initial=self.loop.step, desc=f"agent {agent_id.reward}", unit="step"
+            ) as bar:
+                self.loop.run(lambda: self.loop.step >= hp.total_steps, bar)
             self.snapshot()
             self.env.close()
             if run_.stop.requested:
-                return run_.stopped(self.step)
-            return run_.finish(self.metrics(round(steps_this_run / (time.perf_counter() - t0), 1)))
+                return run_.stopped(self.loop.step)
+            return run_.finish(self.metrics(round(self.rate(), 1)))
 
     def metrics(self, steps_per_s: float) -> dict:
         recent = list(self.history)
         metrics = {
             "reward": self.agent_id.reward,
-            "steps": self.step,
-            "episodes": self.episode,
+            "steps": self.loop.step,
+            "episodes": self.loop.episode,
             "rolling_return": float(np.mean([h["return"] for h in recent])) if recent else None,
             "best_rolling_return": self.best_return if self.best_return > -float("inf") else None,
             "recent_collision_rate": {
@@ -295,8 +335,8 @@ class DDPGRun:
         log.info(
             "[%s] %d steps, %d episodes; rolling return %s; wrote %s",
             self.agent_id.policy,
-            self.step,
-            self.episode,
+            self.loop.step,
+            self.loop.episode,
             metrics["rolling_return"],
             self.run_.dir,
         )

@@ -6,8 +6,8 @@ copy. The critic regresses onto
     y = r + gamma * (1 - terminated) * Q'(s', mu'(s'))
 
 and the actor ascends Q(s, mu(s)). Written in the spirit of CleanRL's ``ddpg_continuous_action.py`` but as
-an importable module: the training loop (environment, warm-up, logging, checkpoint files) lives in the stage
-that uses it. A typical loop::
+an importable module: the project trains it through ``learners/ddpg.py:DDPGLearner`` in the one training loop
+(``learners/loop.py``), which adds warm-up, n-step returns and demonstrations. Bare, a loop reads::
 
     agent = DDPG(obs_dim, act_dim, DDPGConfig(), seed=0)   # the project passes its typed `agent` config section
     buffer = ReplayBuffer(agent.cfg.buffer_size, obs_dim, act_dim)
@@ -33,7 +33,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .ddpg_config import DDPGConfig
+from .ddpg_config import DDPGConfig, td3_options
 from .replay import CircularStore
 
 
@@ -141,11 +141,6 @@ class Critic(nn.Module):
         return self.net(torch.cat([obs, action], dim=-1)).squeeze(-1)
 
 
-def progress_state(agent: DDPG, buffer: ReplayBuffer, step: int, episode: int) -> dict:
-    """What a DDPG run's checkpoint starts with: the networks and optimisers, the replay memory, and where it is."""
-    return {"agent": agent.state_dict(), "buffer": buffer.state_dict(), "step": step, "episode": episode}
-
-
 class NStepWindow:
     """Turns one-step transitions into n-step ones, in order, within one episode.
 
@@ -225,49 +220,68 @@ class ReplayBuffer(CircularStore):
 
 
 class DDPG:
-    """Actor, critic(s), their targets and optimisers, and the agent's own random generator.
+    """Lillicrap's DDPG: an actor, a critic, their targets and optimisers, and the agent's own random generator.
 
-    With every learner option off this is Lillicrap's DDPG. ``twin_critics``, ``policy_delay`` and
-    ``target_noise`` make it TD3; ``n_step`` is read from each transition's ``steps``; ``bc_weight`` adds
-    behaviour cloning on the samples a batch marks as demonstrations (``batch["demo"]``), Q-filtered if asked.
+    ``n_step`` is read from each transition's ``steps``; ``bc_weight`` adds behaviour cloning on the samples a
+    batch marks as demonstrations (``batch["demo"]``), Q-filtered if asked. TD3's options (``twin_critics``,
+    ``policy_delay``, ``target_noise``) belong to ``worldmodel.models.td3.TD3``, which extends this class;
+    ``td3.make_agent`` builds whichever of the two a config asks for.
     """
 
     def __init__(self, obs_dim: int, act_dim: int, cfg: DDPGConfig, seed: int, device="cpu"):
+        if type(self) is DDPG and td3_options(cfg):
+            raise ValueError(
+                f"{', '.join(td3_options(cfg))}: TD3's options; build worldmodel.models.td3.TD3, or let "
+                "worldmodel.models.td3.make_agent choose"
+            )
         self.obs_dim, self.act_dim, self.cfg = int(obs_dim), int(act_dim), cfg
         self.device = torch.device(device)
         self.rng = np.random.default_rng(seed)
         self.updates = 0
-        lidar = {"lidar_scans": cfg.lidar_scans, "lidar_rays": cfg.lidar_rays}
-        critic = lambda: Critic(obs_dim, act_dim, cfg.critic_hidden, cfg.critic_action_layer, **lidar)  # noqa: E731
         # Initialise the networks from `seed` without consuming or resetting the global torch RNG,
         # which the caller may be using for something else.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.actor = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound, **lidar)
-            self.critic = critic()
-            self.actor_target = Actor(obs_dim, act_dim, cfg.actor_hidden, cfg.actor_final_bound, **lidar)
-            self.critic_target = critic()
-            self.critic2 = critic() if cfg.twin_critics else None
-            self.critic2_target = critic() if cfg.twin_critics else None
-            # the target-smoothing noise draws from its own torch generator, saved with the agent
+            self.actor = self._actor()
+            self.critic = self._critic()
+            self.actor_target = self._actor()
+            self.critic_target = self._critic()
+            self._build_more_critics()
+            # the generator of TD3's target-smoothing noise; every agent saves one, so that checkpoints share a shape
             self.torch_rng = torch.Generator().manual_seed(int(seed))
-        self.actor_target.load_state_dict(self.actor.state_dict())
-        self.critic_target.load_state_dict(self.critic.state_dict())
-        if self.critic2 is not None:
-            self.critic2_target.load_state_dict(self.critic2.state_dict())
-        # Targets are only ever read under no_grad and moved by soft_update.
-        for target in self._targets():
-            target.requires_grad_(False)
+        for online, target in self._pairs():
+            target.load_state_dict(online.state_dict())
+            target.requires_grad_(False)  # targets are only ever read under no_grad and moved by soft_update
         # built on the CPU from the seed, then moved: the same initial weights on every device
-        for net in (self.actor, self.critic, self.critic2, *self._targets()):
-            if net is not None:
+        for pair in self._pairs():
+            for net in pair:
                 net.to(self.device)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
-        critic_params = list(self.critic.parameters()) + (list(self.critic2.parameters()) if self.critic2 else [])
-        self.critic_optimizer = torch.optim.Adam(critic_params, lr=cfg.critic_lr)
+        self.critic_optimizer = torch.optim.Adam(self._critic_parameters(), lr=cfg.critic_lr)
+
+    def _actor(self) -> Actor:
+        cfg = self.cfg
+        return Actor(self.obs_dim, self.act_dim, cfg.actor_hidden, cfg.actor_final_bound, **self._lidar())
+
+    def _critic(self) -> Critic:
+        cfg = self.cfg
+        return Critic(self.obs_dim, self.act_dim, cfg.critic_hidden, cfg.critic_action_layer, **self._lidar())
+
+    def _lidar(self) -> dict:
+        return {"lidar_scans": self.cfg.lidar_scans, "lidar_rays": self.cfg.lidar_rays}
+
+    def _build_more_critics(self) -> None:
+        """TD3 builds its second critic and target here, drawing from the seeded generator after the first pair."""
+
+    def _pairs(self) -> list[tuple[nn.Module, nn.Module]]:
+        """(online, target) for the actor and every critic."""
+        return [(self.actor, self.actor_target), (self.critic, self.critic_target)]
+
+    def _critic_parameters(self) -> list:
+        return list(self.critic.parameters())
 
     def _targets(self):
-        return [t for t in (self.actor_target, self.critic_target, self.critic2_target) if t is not None]
+        return [target for _, target in self._pairs()]
 
     # ------------------------------------------------------------------ acting
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -288,23 +302,32 @@ class DDPG:
     @torch.no_grad()
     def td_target(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """y = R + g^k (1 - terminated) Q'(s', mu'(s')) from the target networks; R and k are the transition's
-        (n-step) return and length, k = 1 for a one-step transition. With twin critics Q' is the smaller of the
-        two; with ``target_noise`` mu'(s') is smoothed by clipped Gaussian noise (TD3).
+        (n-step) return and length, k = 1 for a one-step transition (TD3 changes ``target_action`` and
+        ``target_q``).
 
         Only true terminations stop the bootstrap; a time-limit truncation must be stored with terminated=0.
         """
         next_obs = batch["next_obs"]
-        next_action = self.actor_target(next_obs)
-        if self.cfg.target_noise > 0:
-            # drawn on the CPU generator, then moved: the same noise on every device
-            noise = torch.randn(next_action.shape, generator=self.torch_rng).to(self.device) * self.cfg.target_noise
-            next_action = (next_action + noise.clamp(-0.5, 0.5)).clamp(-1.0, 1.0)
-        next_q = self.critic_target(next_obs, next_action)
-        if self.critic2_target is not None:
-            next_q = torch.minimum(next_q, self.critic2_target(next_obs, next_action))
+        next_q = self.target_q(next_obs, self.target_action(next_obs))
         steps = batch.get("steps")
         discount = self.cfg.gamma if steps is None else self.cfg.gamma**steps
         return batch["rewards"] + discount * (1.0 - batch["terminated"]) * next_q
+
+    def target_action(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """mu'(s'), the action the target bootstraps from."""
+        return self.actor_target(next_obs)
+
+    def target_q(self, next_obs: torch.Tensor, next_action: torch.Tensor) -> torch.Tensor:
+        """Q'(s', a')."""
+        return self.critic_target(next_obs, next_action)
+
+    def critic_loss(self, batch: Mapping[str, torch.Tensor], q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The critic's regression onto the target; ``q`` is Q(s, a) on the batch."""
+        return F.mse_loss(q, target)
+
+    def actor_due(self) -> bool:
+        """Whether this update moves the actor and the targets too (DDPG: every one)."""
+        return True
 
     def bc_loss(self, batch: Mapping[str, torch.Tensor], policy_action: torch.Tensor, q_policy: torch.Tensor):
         """Behaviour cloning on the batch's demonstration samples: mean over them of keep * |mu(s) - a|^2, where
@@ -321,20 +344,19 @@ class DDPG:
         return (keep * error).sum() / n_demo, float(keep.sum() / n_demo)
 
     def update(self, batch: Mapping[str, torch.Tensor]) -> dict[str, float]:
-        """One gradient step on the critic(s); every ``policy_delay``-th call also one on the actor, then a soft
-        update of the targets. The batch may be on the CPU: it is moved to the agent's device."""
+        """One gradient step on the critic(s); then, when ``actor_due`` (every call; TD3: every
+        ``policy_delay``-th), one on the actor and a soft update of the targets. The batch may be on the CPU: it is
+        moved to the agent's device."""
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         target = self.td_target(batch)
         q = self.critic(batch["obs"], batch["actions"])
-        critic_loss = F.mse_loss(q, target)
-        if self.critic2 is not None:
-            critic_loss = critic_loss + F.mse_loss(self.critic2(batch["obs"], batch["actions"]), target)
+        critic_loss = self.critic_loss(batch, q, target)
         self.critic_optimizer.zero_grad()
         critic_loss.backward()
         self.critic_optimizer.step()
         self.updates += 1
         out = {"critic_loss": critic_loss.item(), "q_mean": q.mean().item()}
-        if self.updates % self.cfg.policy_delay:
+        if not self.actor_due():
             return out
 
         # The actor is judged by the critic just updated (as in Lillicrap's Algorithm 1). The gradients this
@@ -377,18 +399,13 @@ class DDPG:
 
     def sync_targets(self) -> None:
         """Targets := online networks (after pre-training, so the targets start from what was learnt)."""
-        self.actor_target.load_state_dict(self.actor.state_dict())
-        self.critic_target.load_state_dict(self.critic.state_dict())
-        if self.critic2 is not None:
-            self.critic2_target.load_state_dict(self.critic2.state_dict())
+        for online, target in self._pairs():
+            target.load_state_dict(online.state_dict())
 
     @torch.no_grad()
     def soft_update(self) -> None:
         """target <- (1 - tau) * target + tau * online, for the actor and every critic."""
-        pairs = [(self.actor, self.actor_target), (self.critic, self.critic_target)]
-        if self.critic2 is not None:
-            pairs.append((self.critic2, self.critic2_target))
-        for online, target in pairs:
+        for online, target in self._pairs():
             for p, tp in zip(online.parameters(), target.parameters()):
                 tp.lerp_(p, self.cfg.tau)
 
@@ -405,20 +422,23 @@ class DDPG:
             "torch_rng": self.torch_rng.get_state(),
             "updates": self.updates,
         }
-        if self.critic2 is not None:
-            state.update(critic2=self.critic2.state_dict(), critic2_target=self.critic2_target.state_dict())
+        state.update(self._more_critics_state())
         if getattr(self, "_clone_optimizer", None) is not None:  # cloning rounds share it: a resumed round goes on
             state["clone_optimizer"] = self._clone_optimizer.state_dict()
         return state
+
+    def _more_critics_state(self) -> dict[str, Any]:
+        return {}
+
+    def _load_more_critics(self, state: Mapping[str, Any]) -> None:
+        """TD3 loads its second critic and target here."""
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         self.actor_target.load_state_dict(state["actor_target"])
         self.critic_target.load_state_dict(state["critic_target"])
-        if self.critic2 is not None:
-            self.critic2.load_state_dict(state["critic2"])
-            self.critic2_target.load_state_dict(state["critic2_target"])
+        self._load_more_critics(state)
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.rng.bit_generator.state = state["rng"]

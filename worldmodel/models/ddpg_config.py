@@ -91,3 +91,9 @@ class DDPGConfig(Checked):
             yield ConfigValueError("lidar_scans", self.lidar_scans, "it must be >= 0 (0: no LIDAR encoder)")
         if self.lidar_scans and self.lidar_rays < 8:
             yield ConfigValueError("lidar_rays", self.lidar_rays, "a scan needs at least 8 rays for the convolutions")
+
+
+def td3_options(cfg: DDPGConfig) -> list[str]:
+    """The TD3 options ``cfg`` turns on (``worldmodel.models.td3.TD3``): none for Lillicrap's DDPG."""
+    on = {"twin_critics": cfg.twin_critics, "policy_delay": cfg.policy_delay > 1, "target_noise": cfg.target_noise > 0}
+    return [f"agent.{key}" for key, set_ in on.items() if set_]

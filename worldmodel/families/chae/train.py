@@ -13,7 +13,9 @@ from envs.streams import CHAE_TRAINING_EPISODES
 
 from ...artifacts import AgentId
 from ...common import StageError, atomic_torch_save, atomic_write_bytes, percent, resolve_device
-from ..common import DQNPolicy, dqn_checkpoint, dqn_config, play_dqn_episode, resume_dqn
+from ...learners.dqn import DQNLearner
+from ...learners.loop import Callbacks, EpisodeLoop
+from ..common import DQNEpisodes, DQNPolicy, dqn_checkpoint, dqn_config, resume_dqn
 from .observe import HistoryObserver, family_env, observer
 from .report import ROLLING
 from .select import Validation, member_found, rescore_kept, selected, validated_path
@@ -59,8 +61,8 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     return ChaeRun(cfg, typed, run_, agent_id).train()
 
 
-class ChaeRun:
-    """One dqn run on family chae: its agent, view and envs, the learning curve, the validations and rescorings."""
+class ChaeRun(Callbacks):
+    """One dqn run on family chae: its learner, view and envs, the learning curve, the validations and rescorings."""
 
     def __init__(self, cfg, typed, run_, agent_id: AgentId):
         """``typed``: ``cfg`` validated."""
@@ -73,23 +75,26 @@ class ChaeRun:
         self.see_noise = see.view.noise_m if isinstance(see, HistoryObserver) else None  # what load_policy rebuilds
         self.env = family_env(cfg, see.camera)
         self.hp = dqn_config(cfg)
-        self.agent = DQN(see.dim, len(BRAKE_LEVELS), self.hp, typed.seed, device=resolve_device(typed.device))
-        self.episode, self.curve = resume_dqn(run_, self.agent, see.dim, {"return": [], "end": []})
+        agent = DQN(see.dim, len(BRAKE_LEVELS), self.hp, typed.seed, device=resolve_device(typed.device))
+        self.learner, self.agent = DQNLearner(agent, trauma_of=bumped), agent
+        episode, self.curve = resume_dqn(run_, self.learner, see.dim, {"return": [], "end": []})
         self.curve.setdefault("validation", [])
         self.first_validation = int(np.ceil(sel.start * a.chae.episodes))
         self.validation = Validation(sel, family_env(cfg, see.camera)) if sel.every else None
         self.recent: deque = deque(maxlen=ROLLING)
         self.recent.extend(e == "bump" for e in self.curve["end"][-ROLLING:])
-        self.loss = None
+        ttcs = a.chae.ttc_range
+        episodes = DQNEpisodes(self.env, see, lambda k: episode_scenario(typed.seed, k, ttcs), brake_action)
+        self.loop = EpisodeLoop(self.learner, episodes, run_, self, episode=episode, bar_unit="episode")
         # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
         draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {sel.rescore_ttcs or [sel.ttcs[0]]}"
         self.rescore_cache: dict = self.curve.setdefault("rescorings", {}).setdefault(draw, {})
 
     def snapshot(self, best: bool = False, keep: bool = False) -> None:
         state = dqn_checkpoint(
-            self.agent,
+            self.learner,
             self.hp,
-            self.episode,
+            self.loop.episode,
             self.curve,
             self.a.obs,
             self.see.dim,
@@ -97,27 +102,22 @@ class ChaeRun:
             noise_m=self.see_noise,
         )
         if keep:
-            atomic_torch_save(state, validated_path(self.run_.dir, self.episode))
+            atomic_torch_save(state, validated_path(self.run_.dir, self.loop.episode))
         self.run_.save(state, best=best)
 
-    def play_episode(self) -> None:
-        """One training episode, logged; a validation (or a checkpoint) when it falls due."""
+    def on_episode(self, loop, outcome: dict, ret: float, length: int) -> None:
+        """A training episode logged; a validation (or a checkpoint) when one falls due."""
         typed, sel, curve, writer = self.typed, self.sel, self.curve, self.run_.writer
-        spec, view_seed = episode_scenario(typed.seed, self.episode, self.a.chae.ttc_range)
-        ret, outcome, self.loss = play_dqn_episode(
-            self.env, self.agent, self.see, spec, brake_action, bumped, view_seed, self.loss
-        )
         end = outcome["end"]
         curve["return"].append(float(ret))
         curve["end"].append(end)
         self.recent.append(end == "bump")
-        self.episode += 1
-        episode = self.episode
+        episode = loop.episode
         writer.add_scalar("episode/return", ret, episode)
         writer.add_scalar("episode/bump_rate_rolling", float(np.mean(self.recent)), episode)
         writer.add_scalar("train/epsilon", self.agent.epsilon(), episode)
-        if self.loss is not None:
-            writer.add_scalar("train/loss", self.loss, episode)
+        if "loss" in loop.losses:
+            writer.add_scalar("train/loss", loop.losses["loss"], episode)
         if self.validation is not None and episode >= self.first_validation and episode % sel.every == 0:
             score = self.validation.score(DQNPolicy("validation", self.agent, self.see, typed.seed), episode)
             improved = selected(curve["validation"] + [score], sel.max_bump) is score
@@ -145,30 +145,28 @@ class ChaeRun:
         both bars (at most ``extend_blocks``); the metrics, or the stopped run's."""
         from tqdm import tqdm
 
-        sel, run_, episodes = self.sel, self.run_, self.a.chae.episodes
+        sel, run_, loop, episodes = self.sel, self.run_, self.loop, self.a.chae.episodes
         # training on needs the rescoring's verdict: without validation (agent.chae.select.every=0) there is none
         block, blocks = (sel.extend, sel.extend_blocks) if self.validation is not None and sel.rescore else (0, 0)
-        target = first_target(self.episode, episodes, block)
+        target = first_target(loop.episode, episodes, block)
         gates = self.curve.setdefault("gates", [])  # each rescoring's verdict: did it find a member inside both bars?
         run_.restore_random_state()  # building the networks and views drew from them
-        with tqdm(total=target, initial=self.episode, desc=f"dqn chae ({self.a.obs})", unit="episode") as bar:
+        with tqdm(total=target, initial=loop.episode, desc=f"dqn chae ({self.a.obs})", unit="episode") as bar:
             while True:
-                while self.episode < target and not run_.stop.requested:
-                    self.play_episode()
-                    bar.update(1)
+                loop.run(lambda end=target: loop.episode >= end, bar)
                 if run_.stop.requested:
                     self.snapshot()
                     break
                 chosen, rescored = self.choose()
-                verdict = {"episode": self.episode, "member": member_found(rescored, sel)}
-                if gates and gates[-1]["episode"] == self.episode:  # a finished run resumed: the same verdict again
+                verdict = {"episode": loop.episode, "member": member_found(rescored, sel)}
+                if gates and gates[-1]["episode"] == loop.episode:  # a finished run resumed: the same verdict again
                     gates.pop()
                 gates.append(verdict)
                 self.snapshot()  # with the rescoring and its verdict in the curve: a resumed run need not drive it
                 if not block or target >= episodes + blocks * block or gates[-1]["member"]:
                     break
                 log.info(
-                    "[%s] no rescored member inside both bars at episode %d: %d more", run_.name, self.episode, block
+                    "[%s] no rescored member inside both bars at episode %d: %d more", run_.name, loop.episode, block
                 )
                 target += block
                 bar.total = target
@@ -185,13 +183,13 @@ class ChaeRun:
         return {
             "reward": self.agent_id.reward,
             "obs": self.a.obs,
-            "episodes": self.episode,
+            "episodes": self.loop.episode,
             "steps": self.agent.steps,
             "recent_bump_rate": float(np.mean([e == "bump" for e in last])) if last else None,
             "recent_stop_rate": float(np.mean([e == "stop" for e in last])) if last else None,
             "selected": chosen,
             "rescored": rescored,
-            "extended": max(0, self.episode - self.a.chae.episodes),
+            "extended": max(0, self.loop.episode - self.a.chae.episodes),
             "gates": gates,
             "curve": self.curve,
         }

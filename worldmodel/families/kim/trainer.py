@@ -13,6 +13,7 @@ from envs.streams import KIM_TRAINING_EPISODES
 from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, percent, resolve_device
+from ...learners.loop import Callbacks, EpisodeLoop
 from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
 from .teach import learn_from_planner
 
@@ -39,52 +40,71 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     return LidarRun(cfg, typed, run_, agent_id).train()
 
 
-class LidarRun:
-    """One LIDAR DDPG run on family kim: its agent, replay, view and env, resumed from ``run_``'s checkpoint, and
+class LidarEpisodes:
+    """Family kim's training episodes through the LIDAR view: the DDPG's action in [-1, 1]^2 becomes the family's
+    steering and acceleration (``kim_action``)."""
+
+    def __init__(self, env, see: LidarObserver, typed):
+        self.env, self.see, self.typed = env, see, typed
+
+    def start(self, episode: int):
+        self.env.reset(options={"scenario": training_scenario(self.typed, KIM_TRAINING_EPISODES, episode)})
+        self.see.reset()
+        return self.see(self.env)
+
+    def step(self, action) -> tuple:
+        _, reward, terminated, truncated, info = self.env.step(kim_action(action, self.env.ego.v))
+        self.see.note_action(action)
+        return self.see(self.env), reward, terminated, truncated, info
+
+
+class LidarRun(Callbacks):
+    """One LIDAR DDPG run on family kim: its learner, view and env, resumed from ``run_``'s checkpoint, and
     the planner's demonstrations where the preset learns from them."""
 
     def __init__(self, cfg, typed, run_, agent_id: AgentId):
         """``typed``: ``cfg`` validated."""
-        from ...models.ddpg import DDPG, NStepWindow, ReplayBuffer
+        from ...learners.ddpg import DDPGLearner
+        from ...models.td3 import make_agent
 
         self.typed, self.run_, self.agent_id = typed, run_, agent_id
         self.hp = hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
         self.see = see = observer(typed, agent_id.reward)
         self.env = family_env(cfg, agent_id.reward)
-        self.agent = DDPG(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device))
-        self.buffer = ReplayBuffer(hp.buffer_size, see.dim, 2)
-        self.step, self.episode, self.curve = 0, 0, {"return": [], "crash": [], "end": []}
+        self.learner = DDPGLearner(make_agent(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device)), hp)
+        episode, self.curve = 0, {"return": [], "crash": [], "end": []}
         if run_.state is not None:
-            self.resume(run_.state)
-        self.demos, self.demo_info = None, {}
+            episode = self.resume(run_.state)
+        self.demo_info = {}
         if hp.demo_share > 0 or (hp.bc_pretrain_steps > 0 and run_.state is None):  # resumed: cloned already
-            self.demos, self.demo_info = learn_from_planner(
-                cfg, self.env, see, self.agent, hp, run_.side_writer("pretrain"), cloned=run_.state is not None
+            self.learner.demos, self.demo_info = learn_from_planner(
+                cfg, self.env, see, self.learner.agent, hp, run_.side_writer("pretrain"), cloned=run_.state is not None
             )
         if run_.state is not None:  # the cloning's figures, which only the run that cloned measured
             self.demo_info = {**self.demo_info, **run_.state.get("demonstrations", {})}
-        self.window = NStepWindow(hp.n_step, hp.gamma)
         self.recent: deque = deque((not c for c in self.curve["crash"][-ROLLING:]), maxlen=ROLLING)
-        self.losses: dict = {}
+        self.loop = EpisodeLoop(self.learner, LidarEpisodes(self.env, see, typed), run_, self, episode=episode)
 
-    def resume(self, state: dict) -> None:
+    def resume(self, state: dict) -> int:
+        """Restore the learner and the curve; returns the checkpoint's episode count."""
         if state["obs_dim"] != self.see.dim:
             raise StageError(
                 f"{self.run_.last} expects inputs of size {state['obs_dim']}, the LIDAR view gives {self.see.dim}; "
                 f"delete {self.run_.dir} to retrain"
             )
-        self.agent.load_state_dict(state["agent"])
-        self.buffer.load_state_dict(state["buffer"])
-        self.step, self.episode, self.curve = int(state["step"]), int(state["episode"]), state["curve"]
-        self.run_.resumed(f"step {self.step}, episode {self.episode}")
+        self.learner.load_state_dict(state)
+        self.curve = state["curve"]
+        self.run_.resumed(f"step {self.learner.steps}, episode {state['episode']}")
+        return int(state["episode"])
 
     def snapshot(self) -> None:
-        from ...models.ddpg import DDPGConfig, progress_state
+        from ...models.ddpg import DDPGConfig
 
         hp = self.hp
         self.run_.save(
             {
-                **progress_state(self.agent, self.buffer, self.step, self.episode),
+                **self.learner.state_dict(),
+                "episode": self.loop.episode,
                 "curve": self.curve,
                 "obs": "lidar",
                 "obs_dim": self.see.dim,
@@ -97,66 +117,37 @@ class LidarRun:
             }
         )
 
-    def play_episode(self, bar) -> None:
-        """One training episode, an update per step once warmed up; logged, and a checkpoint when due."""
-        from ...imitation import mixed_batch
-
-        env, see, agent, buffer, hp = self.env, self.see, self.agent, self.buffer, self.hp
-        env.reset(options={"scenario": training_scenario(self.typed, KIM_TRAINING_EPISODES, self.episode)})
-        see.reset()
-        x, ret = see(env), 0.0
-        while True:
-            a = agent.random_action() if self.step < hp.warmup_steps else agent.act(x, explore=True)
-            _, reward, terminated, truncated, info = env.step(kim_action(a, env.ego.v))
-            see.note_action(a)
-            x_next = see(env)
-            self.window.store(buffer, x, a, reward * hp.reward_scale, x_next, terminated, truncated)
-            x, ret = x_next, ret + reward
-            self.step += 1
-            bar.update(1)
-            if self.step > hp.warmup_steps and len(buffer) >= hp.batch_size:
-                if self.demos is None:  # the paper's agent, drawing exactly what it drew before demonstrations
-                    batch = buffer.sample(hp.batch_size, agent.rng)
-                else:
-                    batch = mixed_batch(buffer, self.demos, hp.batch_size, hp.demo_share, agent.rng)
-                self.losses = agent.update(batch)
-            if terminated or truncated:
-                break
-        self.log_episode(info["outcome"], ret)
-
-    def log_episode(self, o: dict, ret: float) -> None:
+    def on_episode(self, loop, o: dict, ret: float, length: int) -> None:
         crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
         self.curve["return"].append(float(ret))
         self.curve["crash"].append(crashed)
         self.curve["end"].append(o["end"])
         self.recent.append(not crashed)
-        self.episode += 1
-        writer, step = self.run_.writer, self.step
+        writer, step = self.run_.writer, loop.step
         writer.add_scalar("episode/return", ret, step)
         writer.add_scalar("episode/avoidance_rolling", float(np.mean(self.recent)), step)
-        for k, v in self.losses.items():
+        for k, v in loop.losses.items():
             writer.add_scalar(f"train/{k}", v, step)
-        if self.episode % CHECKPOINT_EPISODES == 0:
+        if loop.episode % CHECKPOINT_EPISODES == 0:
             self.snapshot()
 
     def train(self) -> dict:
         from tqdm import tqdm
 
-        run_, total = self.run_, self.hp.kim.total_steps
+        run_, loop, total = self.run_, self.loop, self.hp.kim.total_steps
         run_.restore_random_state()  # building the networks and views drew from them
-        with tqdm(total=total, initial=self.step, desc=f"ddpg kim ({self.agent_id.reward})", unit="step") as bar:
-            while self.step < total and not run_.stop.requested:
-                self.play_episode(bar)
+        with tqdm(total=total, initial=loop.step, desc=f"ddpg kim ({self.agent_id.reward})", unit="step") as bar:
+            loop.run(lambda: loop.step >= total, bar)
         self.snapshot()
         self.env.close()
         if run_.stop.requested:
-            return run_.stopped(self.step)
+            return run_.stopped(loop.step)
         last = self.curve["crash"][-ROLLING:]
         return {
             "reward": self.agent_id.reward,
             "obs": "lidar",
-            "steps": self.step,
-            "episodes": self.episode,
+            "steps": loop.step,
+            "episodes": loop.episode,
             "recent_avoidance": float(1.0 - np.mean(last)) if last else None,
             "curve": self.curve,
             "demonstrations": self.demo_info,
@@ -196,7 +187,8 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
     """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim), the LIDAR chooser
     (agent=kim_chooser), or a world-model agent (agent=ddpg_wm_kim) that acts from camera frames at the world
     model's step length."""
-    from ...models.ddpg import DDPG, DDPGConfig
+    from ...models.ddpg import DDPGConfig
+    from ...models.td3 import make_agent
     from ...policies import learned_policy
 
     state = loading.load_agent_state(cfg, agent_id, "last")
@@ -225,6 +217,6 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
             f"agent=ddpg_kim reward={agent_id.reward} seed={agent_id.seed}`"
         )
     hp = DDPGConfig(**state["ddpg_config"])  # as it was trained, whatever the evaluation's agent section says
-    agent = DDPG(see.dim, 2, hp, agent_id.seed, device=decision_device(cfg))
+    agent = make_agent(see.dim, 2, hp, agent_id.seed, device=decision_device(cfg))
     agent.load_state_dict(state["agent"])
     return LidarPolicy(agent_id.policy, agent, see, agent_id.seed), False

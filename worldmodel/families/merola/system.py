@@ -44,14 +44,16 @@ from envs.streams import MEROLA_TRAINING_EPISODES
 from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, make_env, percent, resolve_device
+from ...learners.dqn import DQNLearner
+from ...learners.loop import Callbacks, EpisodeLoop
 from ...stats import wilson
 from ..common import (
+    DQNEpisodes,
     DQNPolicy,
     Driven,
     dqn_checkpoint,
     dqn_config,
     evaluation,
-    play_dqn_episode,
     resume_dqn,
     world_model_step_s,
 )
@@ -153,63 +155,77 @@ def episode_scenario(seed: int, episode: int) -> MerolaSpec:
 def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` for ``agent.variant=ddqn_merola``: episodes of family merola until ``agent.merola.total_steps``
     steps have been taken; the learning rate decays over exactly that many updates."""
-    from tqdm import tqdm
-
     from ...config import validate
-    from ...models.dqn import DQN
 
     if agent_id.reward != "merola":
         raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
-    typed = validate(cfg)
-    total = typed.agent.merola.total_steps
-    see = observer(cfg, typed.agent.obs)
-    env = family_env(cfg)
-    hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
-    agent = DQN(see.dim, len(ACTIONS), hp, typed.seed, device=resolve_device(typed.device))
-    episode, curve = resume_dqn(run_, agent, see.dim, {"return": [], "collision": [], "scenario": []})
+    return MerolaRun(cfg, validate(cfg), run_, agent_id).train()
 
-    def snapshot():
-        obs = typed.agent.obs
-        run_.save(dqn_checkpoint(agent, hp, episode, curve, obs, see.dim, agent_id.reward, family="merola"))
 
-    writer = run_.writer
-    recent: deque = deque(curve["return"][-ROLLING:], maxlen=ROLLING)
-    crashes: deque = deque(curve["collision"][-ROLLING:], maxlen=ROLLING)
-    loss = None
-    run_.restore_random_state()  # building the networks and views drew from them
-    with tqdm(total=total, initial=agent.steps, desc=f"ddqn merola ({typed.agent.obs})", unit="step") as bar:
-        while agent.steps < total and not run_.stop.requested:
-            spec = episode_scenario(typed.seed, episode)
-            ret, o, loss = play_dqn_episode(env, agent, see, spec, merola_action, loss=loss)  # no trauma memory
-            crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
-            curve["return"].append(float(ret))
-            curve["collision"].append(int(crashed))
-            curve["scenario"].append(env.scenario.scenario)
-            recent.append(float(ret))
-            crashes.append(int(crashed))
-            episode += 1
-            bar.update(agent.steps - bar.n)
-            writer.add_scalar("episode/return", ret, episode)
-            writer.add_scalar("episode/return_rolling", float(np.mean(recent)), episode)
-            writer.add_scalar("episode/collision_rate_rolling", float(np.mean(crashes)), episode)
-            writer.add_scalar("train/epsilon", agent.epsilon(), episode)
-            if loss is not None:
-                writer.add_scalar("train/loss", loss, episode)
-            if episode % CHECKPOINT_EPISODES == 0:
-                snapshot()
-    snapshot()
-    env.close()
-    if run_.stop.requested:
-        return run_.stopped(agent.steps)
-    return {
-        "reward": agent_id.reward,
-        "obs": typed.agent.obs,
-        "episodes": episode,
-        "steps": agent.steps,
-        "recent_return": float(np.mean(recent)) if recent else None,
-        "recent_collision_rate": float(np.mean(crashes)) if crashes else None,
-        "curve": curve,
-    }
+class MerolaRun(Callbacks):
+    """One ddqn_merola run: its learner (no trauma memory), frame-stack view and env, and the learning curve."""
+
+    def __init__(self, cfg, typed, run_, agent_id: AgentId):
+        """``typed``: ``cfg`` validated."""
+        from ...models.dqn import DQN
+
+        self.typed, self.run_, self.agent_id = typed, run_, agent_id
+        self.total = total = typed.agent.merola.total_steps
+        self.see = see = observer(cfg, typed.agent.obs)
+        self.env = family_env(cfg)
+        self.hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
+        agent = DQN(see.dim, len(ACTIONS), self.hp, typed.seed, device=resolve_device(typed.device))
+        self.learner = DQNLearner(agent)
+        episode, self.curve = resume_dqn(run_, self.learner, see.dim, {"return": [], "collision": [], "scenario": []})
+        self.recent: deque = deque(self.curve["return"][-ROLLING:], maxlen=ROLLING)
+        self.crashes: deque = deque(self.curve["collision"][-ROLLING:], maxlen=ROLLING)
+        episodes = DQNEpisodes(self.env, see, lambda k: (episode_scenario(typed.seed, k), None), merola_action)
+        self.loop = EpisodeLoop(self.learner, episodes, run_, self, episode=episode)
+
+    def snapshot(self) -> None:
+        obs, dim, loop = self.typed.agent.obs, self.see.dim, self.loop
+        reward = self.agent_id.reward
+        self.run_.save(dqn_checkpoint(self.learner, self.hp, loop.episode, self.curve, obs, dim, reward, family=FAMILY))
+
+    def on_episode(self, loop, o: dict, ret: float, length: int) -> None:
+        crashed = bool(o["vehicle_collision"] or o["static_collision"] or o["pedestrian_collision"])
+        self.curve["return"].append(float(ret))
+        self.curve["collision"].append(int(crashed))
+        self.curve["scenario"].append(self.env.scenario.scenario)
+        self.recent.append(float(ret))
+        self.crashes.append(int(crashed))
+        writer, episode = self.run_.writer, loop.episode
+        writer.add_scalar("episode/return", ret, episode)
+        writer.add_scalar("episode/return_rolling", float(np.mean(self.recent)), episode)
+        writer.add_scalar("episode/collision_rate_rolling", float(np.mean(self.crashes)), episode)
+        writer.add_scalar("train/epsilon", self.learner.agent.epsilon(), episode)
+        if "loss" in loop.losses:
+            writer.add_scalar("train/loss", loop.losses["loss"], episode)
+        if episode % CHECKPOINT_EPISODES == 0:
+            self.snapshot()
+
+    def train(self) -> dict:
+        from tqdm import tqdm
+
+        run_, loop = self.run_, self.loop
+        run_.restore_random_state()  # building the networks and views drew from them
+        with tqdm(
+            total=self.total, initial=loop.step, desc=f"ddqn merola ({self.typed.agent.obs})", unit="step"
+        ) as bar:
+            loop.run(lambda: loop.step >= self.total, bar)
+        self.snapshot()
+        self.env.close()
+        if run_.stop.requested:
+            return run_.stopped(loop.step)
+        return {
+            "reward": self.agent_id.reward,
+            "obs": self.typed.agent.obs,
+            "episodes": loop.episode,
+            "steps": loop.step,
+            "recent_return": float(np.mean(self.recent)) if self.recent else None,
+            "recent_collision_rate": float(np.mean(self.crashes)) if self.crashes else None,
+            "curve": self.curve,
+        }
 
 
 def summary(metrics: dict) -> str:
