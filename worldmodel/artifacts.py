@@ -42,7 +42,7 @@ from envs import rewards
 
 from . import registry
 from .common import StageError, atomic_write_text, file_sha256
-from .config.recorded import RECORDED_WORKERS, RNN_MEASUREMENT_KEYS, as_recorded, inputs_as_recorded
+from .config.recorded import as_recorded, inputs_as_recorded
 
 log = logging.getLogger(__name__)
 
@@ -259,24 +259,17 @@ def _config(cfg, *keys: str) -> dict:
 
 
 def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
-    """The current inputs of ``stage`` (``vae``, ``rnn``, ``agent``, ``eval``) and the hash of its config keys."""
+    """The current inputs of ``stage`` (``vae``, ``rnn``, ``agent``, ``eval``) and the hash of its config keys
+    (which keys count, and how: each section declares it, worldmodel/config/recorded.py)."""
     if stage == "vae":
         inputs, settings = {"rollouts": rollouts_id(cfg)}, _config(cfg, "seed", "vae")
     elif stage == "rnn":
         inputs, settings = {"rollouts": rollouts_id(cfg), "vae": vae_id(cfg)}, _config(cfg, "seed", "rnn")
-        for key in RNN_MEASUREMENT_KEYS:  # what the stage measures after training, not what it trains
-            settings["rnn"].pop(key, None)
-        if not int(settings["rnn"].get("open_loop_steps", 0)):  # off: the model is trained as before the option
-            settings["rnn"].pop("open_loop_steps", None)
-            settings["rnn"].pop("open_loop_weight", None)
     elif stage == "agent":
         agent = agent or AgentId.of(cfg)
         uses_world_model = cfg.agent.get("obs", "worldmodel") == "worldmodel"
         inputs = {name: identity(cfg) for name, identity in world_model_inputs(cfg.agent.get("obs", "worldmodel"))}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
-        chooser = settings["agent"].get("chooser")
-        if isinstance(chooser, dict) and chooser.get("num_workers") is not None:  # labels equal for any count (tested)
-            chooser["num_workers"] = RECORDED_WORKERS
         if uses_demos(cfg) and not uses_world_model:
             # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/families/kim/): what
             # makes them is part of its settings, not an input on disk
@@ -296,11 +289,6 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         family = registry.family(cfg.evaluate.get("family") or registry.default().name)
         inputs = {a.key: actor_id(cfg, a) for a in trained_agents(cfg, family.name)}
         settings = _config(cfg, "evaluate", "env")
-        settings["evaluate"].pop("num_workers")  # rows are identical for any worker count (tested)
-        settings["evaluate"].pop("retest")  # permission to use a test bank again, not a setting of the evaluation
-        for other in registry.sections():  # another family's settings do not shape this evaluation
-            if other != family.section:
-                settings["evaluate"].pop(other, None)
     else:
         raise ValueError(f"no provenance for stage {stage!r}")
     return {"inputs": inputs, "config": config_sha256(as_recorded(settings))}

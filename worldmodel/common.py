@@ -74,10 +74,37 @@ def positive_fields(obj, *keys: str) -> Iterator[ConfigValueError]:
 
 class Checked:
     """A config dataclass whose ``problems()`` run when it is built (``OmegaConf.to_object`` or directly);
-    the first problem is raised."""
+    the first problem is raised.
+
+    A section also says how a run's config hash covers its keys (``as_recorded``, applied by
+    worldmodel/config/recorded.py), so that a new option is declared once, where it is defined:
+
+    - ``UNHASHED``: keys that shape no result (a worker count, a permission, a measurement made after training);
+    - ``ADDED_OFF``: options added after runs were recorded, each with the value that leaves a run as it was before
+      the option; at that value the key stays out of the hash, so recorded runs stay current;
+    - ``REMOVED``: keys removed since runs were recorded, with the one value they ever had; put back before hashing.
+
+    (Plain class attributes, not dataclass fields: they are not config keys.)"""
+
+    UNHASHED = ()
+    ADDED_OFF = {}
+    REMOVED = {}
 
     def problems(self) -> Iterator[ConfigValueError]:
         return iter(())
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        """``values``, this section as a plain dict, changed in place to how recorded runs hashed it. ``settings``:
+        the stage's whole settings, for a rule that depends on another section. A section with a conditional rule
+        extends this."""
+        for key in cls.UNHASHED:
+            values.pop(key, None)
+        for key, value in cls.REMOVED.items():
+            values.setdefault(key, value)
+        for key, off in cls.ADDED_OFF.items():
+            if key in values and values[key] == off:
+                values.pop(key)
 
     def __post_init__(self) -> None:
         for problem in self.problems():

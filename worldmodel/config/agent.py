@@ -69,6 +69,19 @@ class ChooserConfig(Checked):
     # (envs.chooser.hazard_state): learning by cheating for perception; the guess never acts. 0 = no head
     aux_weight: float = 0.0
 
+    # the labels are equal for any worker count (tested): recorded runs hashed the count they ran with
+    RECORDED_WORKERS = 2
+    ADDED_OFF = {"label_seed": None, "mask_camera": "wide"}  # each seed its own labels; the world model's camera
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        if values.get("num_workers") is not None:
+            values["num_workers"] = cls.RECORDED_WORKERS
+        for key in ("min_brake_cost", "static_penalty"):
+            if not values.get(key):
+                values.pop(key, None)  # off: the chooser as before the option
+        super().as_recorded(values, settings)
+
     def problems(self):
         from envs.chooser import chooser_candidates
 
@@ -190,6 +203,14 @@ class CounterfactualConfig(Checked):
     # (envs.privileged: the hazards, the ego, what blocks each escape path): learning by cheating for perception,
     # as the chooser's head, which took its camera scorer from ~5 % to ~20-30 % of the planner's gain. 0 = no head
     aux_weight: float = 1.0
+
+    ADDED_OFF = {"critic_obs": "actor", "search": 0}
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        if not values.get("search"):
+            values.pop("search_weight", None)  # read only by the search
+        super().as_recorded(values, settings)
 
     def problems(self):
         yield from (
@@ -345,6 +366,17 @@ class SelectConfig(Checked):
     extend: int = 1000
     extend_blocks: int = 0
 
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        if not (values.get("extend") and values.get("extend_blocks")):
+            values.pop("extend", None)  # off: the run's length as before the option
+            values.pop("extend_blocks", None)
+        if not values.get("rescore"):
+            for key in ("keep", "rescore", "rescore_seed", "rescore_trials", "rescore_ttcs", "max_stops"):
+                values.pop(
+                    key, None
+                )  # no rescoring: best.pt chosen as before the option (keeping files changes nothing)
+
     def problems(self):
         for err in _positive(self, "trials"):
             yield ConfigValueError(f"chae.select.{err.key}", err.value, err.requirement)
@@ -410,6 +442,20 @@ class ChaeAgentConfig(Checked):
     # it. 0.1 keeps older runs current; dqn_chae sets 0.05, where Chae's Table I points (docs/results/chae/)
     noise_m: float = 0.1
     select: SelectConfig = field(default_factory=SelectConfig)  # which checkpoint best.pt keeps
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        """``select`` shapes only a run of a learner that chooses its checkpoint on a validation draw, with
+        ``select.every`` set (0: as before the option)."""
+        from ..registry import families
+
+        agent = settings.get("agent") or {}
+        chooses = any(
+            f.selects_checkpoints and settings.get("reward") in f.rewards and agent.get("learner") in f.learners
+            for f in families()
+        )
+        if not (chooses and (values.get("select") or {}).get("every")):
+            values.pop("select", None)
 
     def problems(self):
         for err in _positive(self, "episodes"):
@@ -512,6 +558,8 @@ class AgentConfig(DDPGConfig):
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
     paper_obs: str = "worldmodel"
+
+    ADDED_OFF = {**DDPGConfig.ADDED_OFF, "obs": "worldmodel", "paper_obs": "worldmodel"}
 
     def problems(self):
         from ..action_map import ANCHORS, STEERS

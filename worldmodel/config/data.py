@@ -187,6 +187,16 @@ class EnvConfig(Checked):
     # through (the side street's opening, a gap between buildings) leaves; a huge value lets such episodes go on
     lateral_exit_m: float = 25.0
 
+    ADDED_OFF = {"step_s": 1.0 / 15.0, "tele_fov_deg": None, "lateral_exit_m": 25.0}
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        from ..registry import default
+
+        if values.get("family") == default().name:
+            values.pop("family")  # the paper's scenes, as before the families existed
+        super().as_recorded(values, settings)
+
     def problems(self):
         if self.image_size != 64:
             yield ConfigValueError("image_size", self.image_size, "the VAE's encoder takes 64x64 frames")

@@ -173,6 +173,22 @@ class EvaluateConfig(Checked):
     kim: KimEvalConfig = field(default_factory=KimEvalConfig)
     merola: MerolaEvalConfig = field(default_factory=MerolaEvalConfig)
 
+    UNHASHED = ("num_workers", "retest")  # rows are identical for any worker count (tested); a permission
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        """Only the evaluated family's own section shapes an evaluation; the paper's bank hashes as before the
+        families existed (no family, no sections)."""
+        from .. import registry
+
+        family = registry.family(values.get("family") or registry.default().name)
+        for section in registry.sections():
+            if section != family.section or family is registry.default():
+                values.pop(section, None)
+        if family is registry.default():
+            values.pop("family", None)
+        super().as_recorded(values, settings)
+
     def problems(self):
         yield from _positive(self, "per_cell")
         yield from worker_count_problems(self, "num_workers")

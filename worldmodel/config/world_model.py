@@ -64,6 +64,15 @@ class RNNConfig(Checked):
     effect_horizon: int = 10
     horizon_episodes: int = 40
 
+    UNHASHED = ("effect_points", "effect_horizon", "horizon_episodes")  # measured after training, not trained
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        if not int(values.get("open_loop_steps", 0)):  # off: the model is trained as before the option
+            values.pop("open_loop_steps", None)
+            values.pop("open_loop_weight", None)
+        super().as_recorded(values, settings)
+
     def problems(self):
         yield from _positive(self, "hidden", "batch_size", "epochs", "lr", "seq_len", "gaussians", "effect_horizon")
         if self.open_loop_steps < 0 or self.open_loop_steps >= self.seq_len:

@@ -72,6 +72,8 @@ class DDPGConfig(Checked):
     lidar_rays: int = 36
     """rays per LIDAR scan (``lidar_scans`` > 0)"""
 
+    ADDED_OFF = {"lidar_scans": 0, "lidar_rays": 36}  # how recorded runs hashed it (``Checked``)
+
     def problems(self):
         yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr", "bc_lr")
         for key in ("gamma", "tau"):

@@ -73,6 +73,10 @@ class DQNConfig(Checked):
     """clip the gradients' global norm to this before each step; None = no clipping. With ``loss="sum"`` the
     gradient grows with the batch, and one collision penalty can be large"""
 
+    # how recorded runs hashed it (``Checked``): the options that leave the learner as before them, and a removed key
+    ADDED_OFF = {"value_rescale": False, "trauma_weight_final": None}
+    REMOVED = {"trauma_lead": 0}
+
     def problems(self):
         yield from positive_fields(self, "lr", "total_steps", "batch_size", "buffer_size", "target_every")
         yield from positive_fields(self, "eps_decay_steps")
