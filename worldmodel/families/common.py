@@ -18,7 +18,7 @@ import numpy as np
 from envs.chae import brake_action
 
 from .. import artifacts
-from ..common import StageError
+from ..common import StageError, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -131,13 +131,21 @@ def write_rows(out: Path, rows: list[dict], columns, cfg=None, record: dict | No
 
 
 def drawn(typed, family: str):
-    """The typed ``evaluate.<family>`` of the typed config ``typed`` (``validate(cfg)``) with the seed of the bank
-    ``evaluate.bank`` names: its own (a validation draw) or the family's sealed test seed (worldmodel/banks.py). A
-    copy with the seed set, not ``dataclasses.replace``: building the section anew would refuse a test seed."""
+    """The typed section of ``typed`` (``validate(cfg)``) that draws ``family``'s bank (``evaluate.<section>``, or
+    ``evaluate`` itself for a family without a section: ``Family.validation_seed_key`` names it), with its validation
+    seed replaced by the seed of the bank ``evaluate.bank`` names: its own (a validation draw) or the family's sealed
+    test seed (worldmodel/banks.py). A copy with the seed set, not ``dataclasses.replace``: building the section
+    anew would refuse a test seed."""
+    from .. import registry
     from ..banks import draw_seed
 
-    c = copy.copy(getattr(typed.evaluate, family))
-    c.seed = draw_seed(typed.evaluate.bank, family, c.seed)
+    f = registry.family(family)
+    *path, leaf = (f.validation_seed_key or f"evaluate.{f.section}.seed").split(".")
+    section = typed
+    for part in path:
+        section = getattr(section, part)
+    c = copy.copy(section)
+    setattr(c, leaf, draw_seed(typed.evaluate.bank, family, getattr(c, leaf)))
     return c
 
 
@@ -151,13 +159,15 @@ class Driven:
     policies: int
 
 
-def evaluation(cfg, family: str, columns, drive, report, train_with: str, folder=None) -> dict:
-    """The evaluation every peer family fills in (``evaluate.family=<family>``): its bank of ``evaluate.<family>``
-    drawn for ``evaluate.bank``; ``drive(cfg, c) -> Driven``, every policy on the same trials (each loaded before
-    the first trial runs); the rows, with each trained policy's model hashes; ``report(cfg, c, driven, out) ->
-    (summary, headline)``, its tables, figures and TensorBoard; on the test bank a ledger row; then provenance and
-    ``summary.json``, last. ``train_with``: the preset that trains the family's agents, for the hint when there are
-    none; ``folder(c)``: a suffix of the evaluation's folder for a draw the bank's seed does not tell."""
+def evaluation(cfg, family: str, columns, drive, report, train_with: str, folder=None, write=None) -> dict:
+    """The evaluation every family fills in (``evaluate.family=<family>``): its bank, drawn for ``evaluate.bank``
+    from the section ``drawn`` gives; ``drive(cfg, c) -> Driven``, every policy on the same trials (each loaded
+    before the first trial runs); the rows, with each trained policy's model hashes; ``report(cfg, c, driven, out)
+    -> (summary, headline)``, its tables, figures and TensorBoard; on the test bank a ledger row; then provenance
+    and ``summary.json``, last. ``train_with``: the preset that trains the family's agents, for the hint when there
+    are none; ``folder(c)``: a suffix of the evaluation's folder for a draw the bank's seed does not tell;
+    ``write(out, rows)``: the family's own rows file, whose rows carry their model hashes already (default: ``columns``
+    with the hashes added, ``write_rows``)."""
     from ..config import validate
 
     c = drawn(validate(cfg), family)
@@ -176,7 +186,10 @@ def evaluation(cfg, family: str, columns, drive, report, train_with: str, folder
             cfg.experiment,
             train_with,
         )
-    write_rows(out, done.rows, columns, cfg, record)
+    if write is None:
+        write_rows(out, done.rows, columns, cfg, record)
+    else:
+        write(out, done.rows)
     summary, headline = report(cfg, c, done, out)
     record_if_test(cfg, family, done.rows, record, headline)
     seal(out, summary, record, t0)
@@ -195,7 +208,7 @@ def seal(out: Path, summary: dict, record: dict, t0: float) -> dict:
     """Provenance, the wall time, then ``summary.json``: last, because it marks the evaluation complete."""
     artifacts.write_provenance(out, record)
     summary["wall_s"] = round(time.perf_counter() - t0, 1)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1))
     return summary
 
 

@@ -97,6 +97,7 @@ __all__ = [
     "seed_spread",
     "summarize",
     "tables_markdown",
+    "render_report",
     "write_report",
     "write_results_csv",
 ]
@@ -105,7 +106,17 @@ __all__ = [
 def write_report(
     rows: Sequence[dict], out_dir: str | Path, tb_writer=None, step: int = 0, baseline: str = "braking"
 ) -> dict:
-    """Write ``summary.json``, ``tables.md`` and ``heatmaps.png`` into ``out_dir`` (atomically); return the summary.
+    """``render_report``, then ``summary.json`` (atomically, last); return the summary."""
+    summary = render_report(rows, out_dir, tb_writer, step, baseline)
+    atomic_write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    return summary
+
+
+def render_report(
+    rows: Sequence[dict], out_dir: str | Path, tb_writer=None, step: int = 0, baseline: str = "braking"
+) -> dict:
+    """Write ``tables.md`` and ``heatmaps.png`` into ``out_dir`` (atomically); return the summary, which the caller
+    writes (``summary.json`` marks an evaluation complete, so it comes last).
 
     With a ``torch.utils.tensorboard.SummaryWriter`` it also logs the heatmap figure as an image
     (``report/heatmaps``, the same pixels ``add_figure`` would log, from a single draw), the
@@ -115,9 +126,9 @@ def write_report(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     summary = summarize(rows, baseline=baseline)
+    json.dumps(summary, allow_nan=False)  # a NaN in the summary is a bug upstream: refuse it before writing anything
     tables = tables_markdown(rows)
     fig = heatmaps_figure(rows, baseline=baseline)
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
     atomic_write_text(out_dir / "tables.md", tables)
     rgb = _render_rgb(fig)  # drawn once (constrained layout is the slow part), reused for the PNG and TensorBoard
     atomic_write_bytes(out_dir / "heatmaps.png", _png_bytes(rgb, fig.dpi))

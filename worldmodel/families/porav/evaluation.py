@@ -20,14 +20,14 @@ deterministic, so the rows are identical to a single-process run (tested).
 from __future__ import annotations
 
 import logging
-import time
 
 from ... import artifacts
-from ...banks import draw_seed, ledger_key, record_evaluation
+from ...banks import draw_seed
 from ...common import make_env, resolve_workers, worker_pool
-from ...config import SCRIPTED_POLICIES, validate
+from ...config import SCRIPTED_POLICIES
 from ...policies import EXACT_CHOOSER, NO_MODELS, env_overrides, policy_for
-from ...report import MODEL_COLUMNS, OUTCOME_COLUMNS, write_report, write_results_csv
+from ...report import OUTCOME_COLUMNS, render_report, write_results_csv
+from ..common import Driven, evaluation
 from . import FAMILY
 
 log = logging.getLogger(__name__)
@@ -37,10 +37,14 @@ def bank(cfg):
     """The scenarios of ``evaluate.bank``: a validation bank, or the sealed test bank (the same grid, drawn from
     another seed; worldmodel/banks.py). ``cfg``: the typed config (``validate``), or the composed one, whose values
     have the same types."""
+    e = cfg.evaluate
+    return bank_of(e, draw_seed(e.bank, FAMILY.name, e.validation_seed))
+
+
+def bank_of(e, seed: int):
+    """The grid of the ``evaluate`` section ``e`` drawn from ``seed``."""
     from envs import scenario_bank
 
-    e = cfg.evaluate
-    seed = draw_seed(e.bank, FAMILY.name, e.validation_seed)
     return scenario_bank(
         ttcs=tuple(e.ttcs), speeds=tuple(e.speeds), hazards=tuple(e.hazards), per_cell=e.per_cell, seed=int(seed)
     )
@@ -143,14 +147,6 @@ def evaluate_policies(cfg, names: list[str], entries, workers: int) -> dict[str,
     return rows
 
 
-def models_by_policy(rows) -> dict[str, dict[str, str]]:
-    """Each policy's key (``agent_r2/seed1`` for a trained one) -> the short hashes of its models."""
-    out: dict[str, dict[str, str]] = {}
-    for r in rows:
-        out.setdefault(ledger_key(r), {c.removesuffix("_sha"): str(r.get(c) or "") for c in MODEL_COLUMNS})
-    return out
-
-
 def headline(summary: dict) -> dict[str, str]:
     """Each policy's headline figure, its seeds pooled: the share of the achievable improvement and the mean total
     severe-injury risk per scenario."""
@@ -167,42 +163,32 @@ def headline(summary: dict) -> dict[str, str]:
 
 
 def evaluate(cfg) -> dict:
-    """Every scripted policy of ``evaluate.policies`` and every trained agent of the family on its bank."""
-    from ...training import tensorboard
+    """Every scripted policy of ``evaluate.policies`` and every trained agent of the family on its bank (the
+    evaluation skeleton, ``families.common.evaluation``)."""
+    return evaluation(cfg, FAMILY.name, None, drive, report, FAMILY.preset, write=write)
 
-    typed = validate(cfg)
-    entries = bank(typed)
-    out = artifacts.eval_dir(cfg)
-    t0 = time.perf_counter()
 
-    workers = resolve_workers(typed.evaluate.num_workers)
+def drive(cfg, e) -> Driven:
+    """Every policy through the bank of ``e`` (``evaluate``, its validation seed drawn for the bank), in
+    ``evaluate.num_workers`` processes."""
+    entries = bank_of(e, e.validation_seed)
     agents = [a.key for a in artifacts.trained_agents(cfg)]
-    record = artifacts.provenance(cfg, "eval")
     for key in agents:  # fail fast on a broken or stale checkpoint, before any scenario runs
         policy_for(cfg, key)
-    names = [p for p in SCRIPTED_POLICIES if p in typed.evaluate.policies] + agents
-    rows = [r for policy_rows in evaluate_policies(cfg, names, entries, workers).values() for r in policy_rows]
-    if not agents:
-        log.info(
-            "[eval] no trained agents under %s; evaluating the scripted policies only. Train one with "
-            "`python -m worldmodel.train_agent experiment=%s reward=r1`.",
-            artifacts.runs_root(cfg),
-            typed.experiment,
-        )
+    names = [p for p in SCRIPTED_POLICIES if p in e.policies] + agents
+    rows = evaluate_policies(cfg, names, entries, resolve_workers(e.num_workers))
+    return Driven([r for policy_rows in rows.values() for r in policy_rows], agents, len(entries), len(names))
 
-    write_results_csv(rows, out / "results.csv")
+
+def write(out, rows: list[dict]) -> None:
+    write_results_csv(rows, out / "results.csv")  # its rows carry their models' hashes (policies.policy_for)
+
+
+def report(cfg, e, done: Driven, out) -> tuple[dict, dict]:
+    """``tables.md`` (paper Tables I-III), ``heatmaps.png`` (Fig. 5 layout) and both in TensorBoard."""
+    from ...training import tensorboard
+
     writer = tensorboard(out)
-    artifacts.write_provenance(out, record)
-    summary = write_report(rows, out, tb_writer=writer)  # summary.json last: it marks the evaluation complete
+    summary = render_report(done.rows, out, tb_writer=writer)
     writer.close()
-    record_evaluation(cfg, FAMILY.name, out / "results.csv", len(entries), models_by_policy(rows), headline(summary))
-    n_policies = len(agents) + len(typed.evaluate.policies)
-    log.info(
-        "[eval] %d scenarios x %d policies in %.0f s. Tables: %s  Heatmaps: %s",
-        len(entries),
-        n_policies,
-        time.perf_counter() - t0,
-        out / "tables.md",
-        out / "heatmaps.png",
-    )
-    return summary
+    return summary, headline(summary)
