@@ -55,7 +55,7 @@ def test_evaluation_workers_leave_no_semaphores_behind(tmp_path):
     lines = console(tmp_path, "evaluate", *tiny, "evaluate.policies=[braking]", "evaluate.num_workers=2")
     assert not [line for line in lines if "resource_tracker" in line or "leaked" in line]
     assert stray(lines) == []
-    assert any("[eval] 4 scenarios x 1 policies" in line for line in lines)
+    assert any("[eval porav] 4 scenarios x 1 policies" in line for line in lines)
 
 
 def test_a_root_that_cannot_be_written_is_one_sentence_and_exit_2(tmp_path):

@@ -194,7 +194,7 @@ def evaluation(cfg, family: str, columns, drive, report, train_with: str, folder
     record_if_test(cfg, family, done.rows, record, headline)
     seal(out, summary, record, t0)
     log.info(
-        "[eval %s] %d trials x %d policies in %.0f s: %s",
+        "[eval %s] %d scenarios x %d policies in %.0f s: %s",
         family,
         done.trials,
         done.policies,
