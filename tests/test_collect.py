@@ -190,6 +190,24 @@ def test_values_that_would_fail_later_are_refused_by_name_before_anything_is_wri
     assert not (tmp_path / "data").exists() and not (tmp_path / "runs").exists()
 
 
+def test_a_config_validated_again_comes_back_as_its_own_copy_and_a_refused_one_is_refused_again(stage_cfg):
+    """validate keeps what it checked: the same config gives an equal typed config that the caller may change
+    without changing the next one, and an impossible value is refused however often it is asked about."""
+    from omegaconf import OmegaConf
+
+    from worldmodel.config import validate
+
+    cfg = stage_cfg("train_agent")
+    first = validate(cfg)
+    first.agent.tau = 0.5
+    again = validate(cfg)
+    assert again.agent.tau != 0.5 and again == validate(cfg) and again is not validate(cfg)
+    assert validate(OmegaConf.merge(cfg, {"agent": {"tau": 0.25}})).agent.tau == 0.25
+    for _ in range(2):
+        with pytest.raises(StageError, match="agent.tau=5.0"):
+            validate(OmegaConf.merge(cfg, {"agent": {"tau": 5.0}}))
+
+
 def test_a_branch_under_the_parents_own_action_replays_the_parent(stage_cfg):
     """The snapshot a branch starts from is the recorded state itself: continuing it with the action the autopilot
     took reproduces the recorded next frame bit for bit."""
