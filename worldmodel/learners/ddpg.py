@@ -30,7 +30,7 @@ from ..action_map import ActionMap
 from ..common import StageError, make_env, resolve_device, seed_everything
 from ..config import validate
 from ..imitation import clone, cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
-from ..models.ddpg import NStepWindow, ReplayBuffer
+from ..models.ddpg import DDPGConfig, NStepWindow, ReplayBuffer
 from ..models.td3 import make_agent
 from ..training import EpisodeInProgress, TrainingRun
 from .loop import Callbacks, EpisodeLoop
@@ -101,27 +101,31 @@ class DDPGLearner:
     The n-step window holds only transitions of the episode in progress: a run that saves inside episodes keeps it
     with that episode."""
 
-    def __init__(self, agent, hp, demos=None):
-        """``hp``: the typed ``agent`` section (warm-up, batch, replay size, n-step, reward scale, demo share)."""
-        self.agent, self.hp, self.demos = agent, hp, demos
+    def __init__(self, agent, reward_scale: float = 1.0, demo_share: float = 0.0, demos=None):
+        """``agent``: a DDPG or TD3, whose config (``agent.cfg``, DDPG's keys alone) sets the warm-up, the batch,
+        the replay's size and the n-step returns; rewards go into the replay times ``reward_scale``, and
+        ``demo_share`` of every batch comes from ``demos`` where it holds demonstrations."""
+        self.agent, self.reward_scale, self.demo_share, self.demos = agent, reward_scale, demo_share, demos
+        hp = agent.cfg
         self.buffer = ReplayBuffer(hp.buffer_size, agent.obs_dim, agent.act_dim)
         self.window = NStepWindow(hp.n_step, hp.gamma)
         self.steps = 0
 
     def act(self, obs, explore: bool) -> np.ndarray:
-        if explore and self.steps < self.hp.warmup_steps:
+        if explore and self.steps < self.agent.cfg.warmup_steps:
             return self.agent.random_action()
         return self.agent.act(obs, explore=explore)
 
     def observe(self, obs, action, reward: float, next_obs, terminated: bool, truncated: bool, info: dict) -> None:
-        self.window.store(self.buffer, obs, action, reward * self.hp.reward_scale, next_obs, terminated, truncated)
+        self.window.store(self.buffer, obs, action, reward * self.reward_scale, next_obs, terminated, truncated)
         self.steps += 1
 
     def update(self) -> dict | None:
-        hp, agent = self.hp, self.agent
+        agent = self.agent
+        hp = agent.cfg
         if self.steps <= hp.warmup_steps or len(self.buffer) < hp.batch_size:
             return None
-        return agent.update(mixed_batch(self.buffer, self.demos, hp.batch_size, hp.demo_share, agent.rng))
+        return agent.update(mixed_batch(self.buffer, self.demos, hp.batch_size, self.demo_share, agent.rng))
 
     def state_dict(self) -> dict:
         return {"agent": self.agent.state_dict(), "buffer": self.buffer.state_dict(), "step": self.steps}
@@ -168,9 +172,8 @@ class DDPGRun(Callbacks):
         self.env = WorldModelView(sim, encoder, self.action_map)
         seed_everything(typed.seed)
         self.obs_dim = encoder.dim
-        self.learner = DDPGLearner(
-            make_agent(self.obs_dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device)), hp
-        )
+        agent = make_agent(self.obs_dim, 2, DDPGConfig.of(hp), seed=typed.seed, device=resolve_device(typed.device))
+        self.learner = DDPGLearner(agent, hp.reward_scale, hp.demo_share)
         self.agent = self.learner.agent
         self.history: deque = deque(maxlen=ROLLING)
         self.demo_info, self.held_out = {}, None
@@ -247,6 +250,7 @@ class DDPGRun(Callbacks):
         while self.cloned < self.rounds and not run_.stop.requested:
             self.cloning_set = cloning_round(
                 self.cfg,
+                self.hp,
                 self.agent,
                 self.encoder,
                 self.action_map,
@@ -343,11 +347,14 @@ class DDPGRun(Callbacks):
         return metrics
 
 
-def cloning_round(cfg, agent, encoder, action_map, cloning_set, held_out, round_: int, run_, writer, demo_info: dict):
+def cloning_round(
+    cfg, hp, agent, encoder, action_map, cloning_set, held_out, round_: int, run_, writer, demo_info: dict
+):
     """Cloning round ``round_`` (0: the planner's demonstrations; from 1, DAgger: its labels on the student's own
-    states join them first). Returns the examples the round fitted; ``demo_info`` gains the round's figures."""
+    states join them first) with the typed agent section ``hp``. Returns the examples the round fitted;
+    ``demo_info`` gains the round's figures."""
     inputs, targets = cloning_set
-    name, hp = run_.name, agent.cfg
+    name = run_.name
     if round_:
         x, y, outcome = dagger_labels(cfg, agent, encoder, action_map, round_)
         inputs, targets = np.concatenate([inputs, x]), np.concatenate([targets, y])

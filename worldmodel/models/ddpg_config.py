@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 from ..common import Checked, ConfigValueError, positive_fields
 
@@ -73,6 +73,11 @@ class DDPGConfig(Checked):
     """rays per LIDAR scan (``lidar_scans`` > 0)"""
 
     ADDED_OFF = {"lidar_scans": 0, "lidar_rays": 36}  # how recorded runs hashed it (``Checked``)
+
+    @classmethod
+    def of(cls, section) -> DDPGConfig:
+        """Only DDPG's keys, from a section that holds them among others (the ``agent`` section)."""
+        return cls(**{f.name: getattr(section, f.name) for f in fields(cls)})
 
     def problems(self):
         yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr", "bc_lr")

@@ -65,13 +65,15 @@ class LidarRun(Callbacks):
     def __init__(self, cfg, typed, run_, agent_id: AgentId):
         """``typed``: ``cfg`` validated."""
         from ...learners.ddpg import DDPGLearner
+        from ...models.ddpg import DDPGConfig
         from ...models.td3 import make_agent
 
         self.typed, self.run_, self.agent_id = typed, run_, agent_id
-        self.hp = hp = typed.agent  # the typed AgentConfig: a DDPGConfig with the training loop's keys (ddpg_config)
+        self.hp = hp = typed.agent  # the typed agent section: DDPG's keys and the training loop's
         self.see = see = observer(typed, agent_id.reward)
         self.env = family_env(cfg, agent_id.reward)
-        self.learner = DDPGLearner(make_agent(see.dim, 2, hp, seed=typed.seed, device=resolve_device(typed.device)), hp)
+        agent = make_agent(see.dim, 2, DDPGConfig.of(hp), seed=typed.seed, device=resolve_device(typed.device))
+        self.learner = DDPGLearner(agent, hp.reward_scale, hp.demo_share)
         episode, self.curve = 0, {"return": [], "crash": [], "end": []}
         if run_.state is not None:
             episode = self.resume(run_.state)
@@ -98,8 +100,6 @@ class LidarRun(Callbacks):
         return int(state["episode"])
 
     def snapshot(self) -> None:
-        from ...models.ddpg import DDPGConfig
-
         hp = self.hp
         self.run_.save(
             {
@@ -111,7 +111,7 @@ class LidarRun(Callbacks):
                 "lidar_speed": self.see.speed,
                 "learner": "ddpg",
                 "actor_hidden": list(hp.actor_hidden),
-                "ddpg_config": {f.name: getattr(hp, f.name) for f in dataclasses.fields(DDPGConfig)},
+                "ddpg_config": dataclasses.asdict(self.learner.agent.cfg),
                 "reward": self.agent_id.reward,
                 "demonstrations": self.demo_info,
             }
