@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import csv
 import dataclasses
+import io
 import json
 import logging
 import re
@@ -124,10 +125,11 @@ def write_rows(out: Path, rows: list[dict], columns, cfg=None, record: dict | No
             models = hashes.get(key, {})
             r.update({c: models.get(c.removesuffix("_sha"), "") for c in MODEL_HASH_COLUMNS})
         columns += [c for c in MODEL_HASH_COLUMNS if c not in columns]
-    with open(out / "results.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=columns)
-        w.writeheader()
-        w.writerows(rows)
+    text = io.StringIO(newline="")  # the csv module's own line ends, as a file opened with newline="" keeps them
+    w = csv.DictWriter(text, fieldnames=columns)
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(out / "results.csv", text.getvalue())  # a reader sees the old rows or all the new ones
 
 
 def drawn(typed, family: str):
