@@ -440,18 +440,19 @@ def heatmap_titles(fig) -> list[str]:
     return [ax.get_title() for ax in fig.axes if ax.get_title()]
 
 
-def test_write_report_files_and_tensorboard(tmp_path):
+def test_render_report_files_and_tensorboard(tmp_path):
+    """Tables, heatmaps and TensorBoard; ``summary.json`` is left to the evaluation, which writes it last."""
     from torch.utils.tensorboard import SummaryWriter
 
     rows = bank(policies=("braking", "agent_r1", "agent_r2", "oracle"))
     writer = SummaryWriter(log_dir=str(tmp_path / "tb"))
     try:
-        summary = report.write_report(rows, tmp_path / "out", tb_writer=writer, step=3)
+        summary = report.render_report(rows, tmp_path / "out", tb_writer=writer, step=3)
     finally:
         writer.close()
     out = tmp_path / "out"
-    assert sorted(os.listdir(out)) == ["heatmaps.png", "summary.json", "tables.md"]
-    assert no_nan((out / "summary.json").read_text()) == json.loads(json.dumps(summary))
+    assert sorted(os.listdir(out)) == ["heatmaps.png", "tables.md"]
+    assert no_nan(json.dumps(summary, allow_nan=False)) == json.loads(json.dumps(report.summarize(rows)))
     assert (out / "tables.md").read_text() == report.tables_markdown(rows)
     data = (out / "heatmaps.png").read_bytes()
     width, height = png_size(data)
@@ -492,7 +493,7 @@ def test_heatmap_layout_rows_columns_and_shared_symmetric_range():
 
 def test_baseline_only_and_no_baseline_never_crash(tmp_path):
     rows = bank(policies=("braking",))
-    summary = report.write_report(rows, tmp_path)
+    summary = report.render_report(rows, tmp_path)
     assert summary["improvement"] == {} and list(summary["policies"]) == ["braking"]
     fig = report.heatmaps_figure(rows)
     titles = heatmap_titles(fig)
@@ -508,7 +509,7 @@ def test_baseline_only_and_no_baseline_never_crash(tmp_path):
     fig = report.heatmaps_figure(agents)  # baseline missing: absolute values, no exception
     assert "missing" in fig._suptitle.get_text()
 
-    empty = report.write_report([], tmp_path / "empty")
+    empty = report.render_report([], tmp_path / "empty")
     assert empty["policies"] == {} and empty["grid"]["n_rows"] == 0
     png_size((tmp_path / "empty" / "heatmaps.png").read_bytes())
 

@@ -98,18 +98,8 @@ __all__ = [
     "summarize",
     "tables_markdown",
     "render_report",
-    "write_report",
     "write_results_csv",
 ]
-
-
-def write_report(
-    rows: Sequence[dict], out_dir: str | Path, tb_writer=None, step: int = 0, baseline: str = "braking"
-) -> dict:
-    """``render_report``, then ``summary.json`` (atomically, last); return the summary."""
-    summary = render_report(rows, out_dir, tb_writer, step, baseline)
-    atomic_write_text(Path(out_dir) / "summary.json", json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    return summary
 
 
 def render_report(
