@@ -499,10 +499,10 @@ def test_seed_ensembles_act_on_the_mean_q_of_their_members_and_are_evaluated(tmp
 
 
 def test_the_configs_scripted_names_are_the_ones_evaluation_builds():
-    from worldmodel.config import CHAE_SCRIPTED_POLICIES
     from worldmodel.families.chae import system as chae
+    from worldmodel.families.chae.config import SCRIPTED_POLICIES
 
-    assert tuple(chae.SCRIPTED) == CHAE_SCRIPTED_POLICIES
+    assert tuple(chae.SCRIPTED) == SCRIPTED_POLICIES
 
 
 def test_the_evaluation_steps_at_the_papers_0_1_s_without_the_agent_preset():

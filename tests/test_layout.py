@@ -105,6 +105,34 @@ def test_every_family_keeps_the_interface_and_imports_no_other_family():
         registry.family("ncap")
 
 
+
+def test_the_schema_holds_each_declared_familys_sections_from_its_own_package():
+    """``agent.<section>`` and ``evaluate.<section>`` are the dataclasses the family declares in its package's
+    config.py, composed at their defaults; a family registered at run time cannot add sections to a schema built
+    already, and is told where to declare it."""
+    import dataclasses
+
+    from worldmodel import registry
+    from worldmodel.config import AgentConfig, EvaluateConfig, compose
+
+    cfg = compose("train_agent")
+    for family in registry.families():
+        for schema, part, declared in (
+            (AgentConfig, "agent", family.agent_config),
+            (EvaluateConfig, "evaluate", family.eval_config),
+        ):
+            if declared is None:
+                continue
+            assert declared.__module__ == f"worldmodel.families.{family.name}.config"
+            types = {f.name: f.default_factory for f in dataclasses.fields(schema)}
+            assert types[family.section] is declared
+            assert dict(cfg[part][family.section]) == dataclasses.asdict(declared())
+    late = dataclasses.replace(registry.default(), name="late", section="late", eval_config=EvaluateConfig)
+    with pytest.raises(ValueError, match="DECLARED"):
+        registry.register(late)
+    assert "late" not in registry.names()
+
+
 # Shared code that reads the registry instead of naming families.
 SHARED = (
     "pipeline.py",
@@ -114,9 +142,7 @@ SHARED = (
     "artifacts.py",
     "banks.py",
     "registry.py",
-    "config/recorded.py",
-    "config/experiment.py",
-    "config/entry.py",
+    *(f"config/{p.name}" for p in sorted((ROOT / "worldmodel/config").glob("*.py"))),  # the schema included
 )
 
 

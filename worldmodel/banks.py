@@ -94,6 +94,16 @@ def sealed_seed_problem(seed: int) -> str | None:
     return None
 
 
+def seed_problems(section, key: str, prefix: str = ""):
+    """A config section's validation draw ``key`` may not be a sealed test seed; ``prefix`` names the section in the
+    error (``chae.``)."""
+    from .common import ConfigValueError
+
+    why = sealed_seed_problem(getattr(section, key))
+    if why:
+        yield ConfigValueError(prefix + key, getattr(section, key), why)
+
+
 def ledger_key(row: dict) -> str:
     """The key a ledger row names an evaluation row's policy by: a trained one (``agent_*``) with its seed."""
     policy = str(row["policy"])

@@ -36,8 +36,13 @@ class Family:
     sealed_seed: int  # its sealed test bank: for final numbers only, drawn at random once, never used to choose
     suite_test_seed: int  # what the test suite's "test bank" is drawn from instead (a seed that judged nothing)
     preset: str | None = None  # its paper's agent preset (conf/agent/), what ``peers=[name]`` trains; None: none
-    # the family's config sections ``agent.<section>`` and ``evaluate.<section>``; None: it has none
+    # the name of the family's config sections ``agent.<section>`` and ``evaluate.<section>``; None: it has none
     section: str | None = None
+    # their schemas: config dataclasses (``common.Checked``, in the family's ``config.py``), joined into the schema
+    # when the config is imported; None: that section is not there. An agent section may add ``agent_problems(agent)``,
+    # its checks against the agent's other keys
+    agent_config: type | None = None
+    eval_config: type | None = None
     eval_dir: str = ""  # the evaluation folder under runs/NAME/ (``eval_<name>`` when empty)
     # the config key that chooses its validation draw (``evaluate.<section>.seed`` when empty; a family without a
     # section always draws its first validation seed)
@@ -100,7 +105,13 @@ _REGISTRY: dict[str, Family] = {}
 
 
 def register(family: Family) -> Family:
-    """Add ``family`` after the declared ones (a name registered already is replaced)."""
+    """Add ``family`` after the declared ones (a name registered already is replaced). The schema was built from
+    the declared families, so a family with config sections is declared in ``DECLARED`` instead."""
+    if family.agent_config or family.eval_config:
+        raise ValueError(
+            f"family {family.name!r} declares config sections, which the schema takes from the families in "
+            "worldmodel/registry.py's DECLARED when the config is imported: add its package there instead"
+        )
     _load()[family.name] = family
     return family
 

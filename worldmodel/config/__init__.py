@@ -20,11 +20,11 @@ from .agent import (  # noqa: F401
     MASK_CAMERAS,
     OBSERVATIONS,
     AgentConfig,
+    AgentSettings,
     ChooserConfig,
     CounterfactualConfig,
     KimChooserConfig,
     RewardConfig,
-    SelectConfig,
 )
 from .data import (  # noqa: F401
     AutopilotConfig,
@@ -47,15 +47,11 @@ from .entry import (  # noqa: F401
     validate,
 )
 from .evaluation import (  # noqa: F401
-    CHAE_SCRIPTED_POLICIES,
     SCRIPTED_POLICIES,
-    ChaeEvalConfig,
     EvaluateConfig,
-    KimEvalConfig,
-    MerolaEvalConfig,
+    EvaluateSettings,
     NcapConfig,
     OracleConfig,
-    _draw_problems,
 )
 from .experiment import (  # noqa: F401
     ExperimentConfig,

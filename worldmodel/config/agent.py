@@ -1,15 +1,17 @@
 """The agent sections: every learner's keys (DDPG, the chooser, the counterfactual actor, the DQN) and the reward.
-Each peer family's own training keys (``agent.chae``, ``agent.kim``, ``agent.merola``) are in ``family_sections``."""
+Each family's own training keys (``agent.<section>``) are declared by the family (worldmodel/families/<name>/config.py)
+and joined from the registry (``family_sections``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from .. import registry
 from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
 from ..models.ddpg_config import DDPGConfig
 from ..models.dqn_config import DQNConfig
-from .family_sections import ChaeAgentConfig, KimAgentConfig, MerolaAgentConfig, SelectConfig  # noqa: F401
+from .family_sections import with_family_sections
 
 MASK_CAMERAS = ("wide", "tele")
 
@@ -332,8 +334,9 @@ OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "fram
 
 
 @dataclass
-class AgentConfig(DDPGConfig):
-    """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there) and the training loop's settings."""
+class AgentSettings(DDPGConfig):
+    """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there), the training loop's settings and each
+    learner's section. ``AgentConfig`` below adds each family's own section (``agent.<section>``)."""
 
     # names the run (runs/NAME/agent_r2_<variant>/seed0/): set by each preset in conf/agent/ to its file name
     variant: str = "ddpg"
@@ -371,10 +374,6 @@ class AgentConfig(DDPGConfig):
     kim_chooser: KimChooserConfig = field(default_factory=KimChooserConfig)
     # learner "dqn" (worldmodel/families/chae/): DQN / Double DQN with a trauma memory over discrete brake levels
     dqn: DQNConfig = field(default_factory=DQNConfig)
-    # each peer's own training keys: Chae's DQN, Kim's LIDAR agents, Merola's DDQN
-    chae: ChaeAgentConfig = field(default_factory=ChaeAgentConfig)
-    kim: KimAgentConfig = field(default_factory=KimAgentConfig)
-    merola: MerolaAgentConfig = field(default_factory=MerolaAgentConfig)
     # what the agent sees (OBSERVATIONS; choose with obs=NAME); paper_obs is what its preset's paper gives it: runs
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
@@ -384,18 +383,20 @@ class AgentConfig(DDPGConfig):
 
     def problems(self):
         from ..action_map import ANCHORS, STEERS
-        from ..registry import LEARNERS
+
+        LEARNERS = registry.LEARNERS
 
         if self.learner not in LEARNERS:
             yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
 
         yield from super().problems()
         yield from _positive(self, "checkpoint_every", "reward_scale")
-        clones = self.learner == "ddpg" and self.bc_pretrain_steps > 0  # 0 steps: the cloned actor alone
-        for key, section in (("total_steps", self), ("kim.total_steps", self.kim), ("merola.total_steps", self.merola)):
-            steps = section.total_steps
-            if (section is not self or self.learner == "ddpg") and (steps < 0 or (steps == 0 and not clones)):
-                yield ConfigValueError(key, steps, "it must be > 0 (or 0 with a ddpg learner's bc_pretrain_steps > 0)")
+        if self.learner == "ddpg":
+            yield from self.total_steps_problems("total_steps", self.total_steps)
+        for family in registry.families():  # a family's checks against the agent's other keys
+            section = getattr(self, family.section, None) if family.section else None
+            if hasattr(section, "agent_problems"):
+                yield from section.agent_problems(self)
         if not self.variant.replace("_", "").isalnum() or not self.variant.islower():
             yield ConfigValueError("variant", self.variant, "it must be a lower-case name of letters, digits and _")
         for key in ("obs", "paper_obs"):
@@ -417,12 +418,6 @@ class AgentConfig(DDPGConfig):
                 yield ConfigValueError(key, getattr(self, key), "it must be in [0, 1]")
         if self.dagger_rounds < 0 or self.dagger_episodes < 1:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "rounds must be >= 0, dagger_episodes >= 1")
-        if self.kim.bc_steer_weight != 1.0 and self.obs != "lidar":
-            yield ConfigValueError(
-                "kim.bc_steer_weight",
-                self.kim.bc_steer_weight,
-                "it must be 1 unless the agent sees the LIDAR (obs=lidar)",
-            )
         if self.dagger_rounds and not self.bc_pretrain_steps:
             yield ConfigValueError("dagger_rounds", self.dagger_rounds, "DAgger clones: set bc_pretrain_steps > 0")
         if self.bc_pretrain_steps < 0:
@@ -435,6 +430,16 @@ class AgentConfig(DDPGConfig):
             yield ConfigValueError("anchor", self.anchor, f"it must be one of {', '.join(ANCHORS)}")
         if self.steer not in STEERS:
             yield ConfigValueError("steer", self.steer, f"it must be one of {', '.join(STEERS)}")
+
+    def total_steps_problems(self, key: str, steps: int):
+        """A training length ``steps`` (at config key ``key``) must be > 0, or 0 for an actor cloned and not trained
+        further (a ddpg learner with ``bc_pretrain_steps`` > 0)."""
+        clones = self.learner == "ddpg" and self.bc_pretrain_steps > 0
+        if steps < 0 or (steps == 0 and not clones):
+            yield ConfigValueError(key, steps, "it must be > 0 (or 0 with a ddpg learner's bc_pretrain_steps > 0)")
+
+
+AgentConfig = with_family_sections(AgentSettings, "agent_config", "AgentConfig")
 
 
 @dataclass

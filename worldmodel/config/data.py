@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from .. import registry
 from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
 
@@ -181,7 +182,8 @@ class EnvConfig(Checked):
     mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
     step_s: float = 1.0 / 15.0  # seconds per step: the paper's 15 FPS (Chae, Kim and Merola step 0.1 s)
-    family: str = "porav"  # the scenarios reset() samples: porav (the paper's) or chae (envs/chae.py)
+    # the scenarios reset() samples: the paper's family (the registry's default), or another of envs/families.py
+    family: str = registry.default().name
     # metres from the street's centre line (|y|) beyond which an episode ends as left_scene, at no further cost.
     # 25 m lies past every static body of the street (buildings reach 20.5 m), so only an ego that already got
     # through (the side street's opening, a gap between buildings) leaves; a huge value lets such episodes go on

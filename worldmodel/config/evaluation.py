@@ -1,14 +1,16 @@
-"""The evaluation sections: the privileged planner, the scripted policies, the paper's bank, each peer family's
-evaluation and the Euro NCAP bank."""
+"""The evaluation sections: the privileged planner, the scripted policies, the paper's bank and the Euro NCAP bank.
+Each family's own evaluation keys (``evaluate.<section>``) are declared by the family
+(worldmodel/families/<name>/config.py) and joined from the registry (``family_sections``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from envs.kim import CAR_LENGTH as KIM_CAR_LENGTH
-
+from .. import registry
+from ..banks import seed_problems
 from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
+from .family_sections import with_family_sections
 
 
 @dataclass
@@ -49,106 +51,12 @@ class OracleConfig(Checked):
 # or 2 frames: the perception ceilings of a camera policy that needs that many frames to see the hazard; and the
 # planner braking straight until the hazard covers 1 or 3 pixels of the camera frame: the camera's cap
 SCRIPTED_POLICIES = ("braking", "oracle", "oracle_brake1", "oracle_brake2", "oracle_pixels1", "oracle_pixels3")
-# family chae's scripted policies, in the order their rows are written (worldmodel/families/chae/ SCRIPTED)
-CHAE_SCRIPTED_POLICIES = ("braking", "ttc_braking", "latest_safe_braking", "closing_braking")
-
-
-def _draw_problems(section, key: str, prefix: str = ""):
-    """A validation draw may not be a sealed test seed (worldmodel/banks.py); ``prefix`` names the section."""
-    from ..banks import sealed_seed_problem
-
-    why = sealed_seed_problem(getattr(section, key))
-    if why:
-        yield ConfigValueError(prefix + key, getattr(section, key), why)
 
 
 @dataclass
-class ChaeEvalConfig(Checked):
-    """Chae et al.'s evaluation on family chae (worldmodel/families/chae/): Table I's bump rate per TTC, Scenario 2's
-    unnecessary stops, stopping distances, and contact, impact speed and injury."""
-
-    trials: int = 200  # seeded Scenario-1 trials per TTC (the paper: 10,000), and Scenario-2 trials
-    ttcs: list[float] = field(default_factory=lambda: [round(0.9 + 0.2 * i, 1) for i in range(16)])  # 0.9 .. 3.9
-    seed: int = 2017  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
-    # k >= 2: also evaluate ensembles of k consecutive seeds, greedy on their mean Q, which damps the runs' swings
-    # (0: runs alone); 3: two ensembles in three inside both bars, single runs three in nine (docs/results/chae/)
-    ensemble: int = 3
-    # false: only the ensembles drive the trials (their members still load), for a large draw such as Table I's
-    # 1,000 trials per TTC, where each run alone would cost as much again per seed
-    singles: bool = True
-    # scripted policies beside every dqn agent (CHAE_SCRIPTED_POLICIES; built in families/chae/). Fewer for
-    # a large draw whose scripted rows are already known: they are deterministic, the same trials give the same rows
-    policies: list[str] = field(default_factory=lambda: list(CHAE_SCRIPTED_POLICIES))
-
-    def problems(self):
-        yield from _positive(self, "trials")
-        yield from _draw_problems(self, "seed", "chae.")
-        if not self.singles and not self.ensemble:
-            yield ConfigValueError(
-                "chae.singles", self.singles, "with no ensembles (chae.ensemble=0) no agent would drive"
-            )
-        if not self.ttcs or any(t <= 0 for t in self.ttcs):
-            yield ConfigValueError("ttcs", list(self.ttcs), "give positive TTCs in seconds")
-        if any(p not in CHAE_SCRIPTED_POLICIES for p in self.policies):
-            yield ConfigValueError(
-                "chae.policies", list(self.policies), f"use some of {', '.join(CHAE_SCRIPTED_POLICIES)}"
-            )
-        if self.ensemble == 1 or self.ensemble < 0:
-            yield ConfigValueError("chae.ensemble", self.ensemble, "give 0 (none) or the members per ensemble, >= 2")
-
-
-@dataclass
-class KimEvalConfig(Checked):
-    """Kim et al.'s evaluation on family kim (worldmodel/families/kim/): Table 2's avoidance and injury per
-    scenario, on the paper's 30 trials per scenario and on ``trials`` with 95 % intervals, and pairwise tests."""
-
-    trials: int = 200  # seeded trials per scenario; the first 30 are the paper-sized table
-    paper_trials: int = 30
-    # scripted policies beside every LIDAR agent: straight-line braking, Kim's AEB-3m, the planner (the ceiling)
-    policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
-    world_model_agents: bool = True  # also the paper's street-trained R1 / R2 agents and the chooser, as they are
-    seed: int = 2020  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
-    # m forward of the ego's centre where the runner's path crosses it (envs.kim.KimSpec.impact_offset): 0 the middle
-    # (training's), +2.25 the front bumper, -2.25 the rear; the paper does not say
-    impact_offset: float = 0.0
-    # > 0: each trial's crossing is drawn uniformly within impact_offset ± this (kept on the ego), from a stream of
-    # its own, so the trials are otherwise the same; 2.25 with offset 0 = anywhere along the ego
-    impact_offset_spread: float = 0.0
-
-    def problems(self):
-        yield from _positive(self, "trials", "paper_trials")
-        yield from _draw_problems(self, "seed", "kim.")
-        if not 0.0 <= self.impact_offset_spread <= 4.5:
-            yield ConfigValueError("kim.impact_offset_spread", self.impact_offset_spread, "it must be in [0, 4.5] m")
-        known = ("braking", "aeb3m", "oracle")
-        if any(p not in known for p in self.policies):
-            yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(known)}")
-        half = KIM_CAR_LENGTH / 2
-        if not abs(self.impact_offset) <= half:
-            yield ConfigValueError("kim.impact_offset", self.impact_offset, f"it must be within ±{half:g} m")
-
-
-@dataclass
-class MerolaEvalConfig(Checked):
-    """Merola et al.'s scenarios (worldmodel/families/merola/): collision rate, ego delta-v, injury risk and return
-    per scenario for braking, the planner, the paper's world-model agents and every ddqn_merola agent."""
-
-    trials: int = 100  # seeded trials per scenario, the same for every policy
-    # straight-line braking from the start, Kim's AEB-3m (brakes once a footprint is within 3 m ahead), the planner
-    policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
-    world_model_agents: bool = True  # also the paper's R1 / R2 agents and the chooser, at their own 1/15 s steps
-    seed: int = 2022  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
-
-    def problems(self):
-        yield from _positive(self, "trials")
-        yield from _draw_problems(self, "seed", "merola.")
-        if any(p not in ("braking", "aeb3m", "oracle") for p in self.policies):
-            yield ConfigValueError("policies", list(self.policies), "use some of braking, aeb3m, oracle")
-
-
-@dataclass
-class EvaluateConfig(Checked):
-    """The seeded scenario banks (docs/design.md §6) and the scripted policies evaluated beside the agents."""
+class EvaluateSettings(Checked):
+    """The seeded scenario banks (docs/design.md §6) and the scripted policies evaluated beside the agents;
+    ``EvaluateConfig`` below adds each family's own section (``evaluate.<section>``)."""
 
     per_cell: int = 5
     ttcs: list[float] = field(default_factory=lambda: [0.5, 0.75, 0.9, 1.0, 1.1, 1.3, 1.5])
@@ -167,11 +75,9 @@ class EvaluateConfig(Checked):
     # scripted policies; every agent under runs/${experiment}/agent_*/seed*/ is added
     policies: list[str] = field(default_factory=lambda: ["braking", "oracle"])
     oracle: OracleConfig = field(default_factory=OracleConfig)
-    # which scenario family to evaluate: porav (the bank above), chae, kim or merola (evaluate.<family>)
-    family: str = "porav"
-    chae: ChaeEvalConfig = field(default_factory=ChaeEvalConfig)
-    kim: KimEvalConfig = field(default_factory=KimEvalConfig)
-    merola: MerolaEvalConfig = field(default_factory=MerolaEvalConfig)
+    # which scenario family to evaluate: the paper's (the registry's default; the bank above) or another registered
+    # family, on its own section (evaluate.<section>)
+    family: str = registry.default().name
 
     UNHASHED = ("num_workers", "retest")  # rows are identical for any worker count (tested); a permission
 
@@ -179,8 +85,6 @@ class EvaluateConfig(Checked):
     def as_recorded(cls, values: dict, settings: dict) -> None:
         """Only the evaluated family's own section shapes an evaluation; the paper's bank hashes as before the
         families existed (no family, no sections)."""
-        from .. import registry
-
         family = registry.family(values.get("family") or registry.default().name)
         for section in registry.sections():
             if section != family.section or family is registry.default():
@@ -207,7 +111,7 @@ class EvaluateConfig(Checked):
         known = names()
         if self.family not in known:
             yield ConfigValueError("family", self.family, f"it must be one of {', '.join(known)}")
-        yield from _draw_problems(self, "validation_seed")
+        yield from seed_problems(self, "validation_seed")
         unknown = [h for h in self.hazards if h not in ("pedestrian", "car", "both")]
         if unknown:
             yield ConfigValueError("hazards", list(self.hazards), "hazards are pedestrian, car and both")
@@ -218,6 +122,9 @@ class EvaluateConfig(Checked):
                 "it must include 'braking' (the baseline) and may add "
                 f"{', '.join(repr(p) for p in SCRIPTED_POLICIES[1:])}; trained agents are found by themselves",
             )
+
+
+EvaluateConfig = with_family_sections(EvaluateSettings, "eval_config", "EvaluateConfig")
 
 
 @dataclass

@@ -2,6 +2,7 @@
 What it runs is ``system.py`` (the package's modules by job are listed there)."""
 
 from ...registry import Family
+from .config import ChaeAgentConfig, ChaeEvalConfig
 
 FAMILY = Family(
     name="chae",
@@ -13,6 +14,8 @@ FAMILY = Family(
     suite_test_seed=61002,
     preset="dqn_chae",
     section="chae",
+    agent_config=ChaeAgentConfig,
+    eval_config=ChaeEvalConfig,
     learners=("dqn",),
     ensemble_key="evaluate.chae.ensemble",
     selects_checkpoints=True,

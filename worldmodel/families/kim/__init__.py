@@ -2,6 +2,7 @@
 What it runs is ``system.py`` (the package's modules by job are listed there)."""
 
 from ...registry import Family
+from .config import KimAgentConfig, KimEvalConfig
 
 FAMILY = Family(
     name="kim",
@@ -12,6 +13,8 @@ FAMILY = Family(
     suite_test_seed=61003,
     preset="ddpg_kim",
     section="kim",
+    agent_config=KimAgentConfig,
+    eval_config=KimEvalConfig,
     observations=("lidar",),
     hashed_as={
         "impact_offset_spread": "kim_impact_offset_spread",

@@ -2,6 +2,7 @@
 What it runs is ``system.py``."""
 
 from ...registry import Family
+from .config import MerolaAgentConfig, MerolaEvalConfig
 
 FAMILY = Family(
     name="merola",
@@ -12,6 +13,8 @@ FAMILY = Family(
     suite_test_seed=61004,
     preset="ddqn_merola",
     section="merola",
+    agent_config=MerolaAgentConfig,
+    eval_config=MerolaEvalConfig,
     learners=("dqn",),
     observations=("frames_vae", "frames_resnet"),
     hashed_as={"resnet_weights": "resnet_weights", "total_steps": "peer_total_steps"},
