@@ -61,7 +61,7 @@ def vae_frames_per_s(cfg, device, steps: int, warmup: int) -> float:
     from worldmodel.models.vae import vae_loss
 
     torch.manual_seed(0)
-    model = loading.build_vae(cfg).to(device)
+    model = loading.build_vae(cfg.vae).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.vae.lr))
     batch = int(cfg.vae.batch_size)
     x = torch.randint(0, int(cfg.vae.num_classes), (batch, 64, 64), device=device)
@@ -83,7 +83,7 @@ def lstm_frames_per_s(cfg, device, steps: int, warmup: int) -> float:
     from worldmodel.train_rnn import masked_loss
 
     torch.manual_seed(0)
-    model = loading.build_rnn(cfg).to(device)
+    model = loading.build_rnn(cfg.vae, cfg.rnn).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=float(cfg.rnn.lr))
     batch, length, latent = int(cfg.rnn.batch_size), int(cfg.rnn.seq_len), int(cfg.vae.latent_dim)
     z = torch.randn(batch, length, latent, device=device)
@@ -143,7 +143,7 @@ def decisions_per_s(cfg, device, decisions: int, warmup: int) -> float:
     from worldmodel.models.ddpg import Actor
 
     torch.manual_seed(0)
-    vae, rnn = loading.build_vae(cfg).eval().to(device), loading.build_rnn(cfg).eval().to(device)
+    vae, rnn = loading.build_vae(cfg.vae).eval().to(device), loading.build_rnn(cfg.vae, cfg.rnn).eval().to(device)
     encoder = WorldModelEncoder(vae, rnn, use_speed=True)
     policy = LearnedPolicy("check", encoder, Actor(encoder.dim, 2).to(device))
     rng = np.random.default_rng(0)

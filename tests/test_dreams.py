@@ -75,7 +75,7 @@ def test_an_untrained_residual_lstm_dreams_decoded_persistence(smoke_builds):
     root = smoke_builds("rnn")
     cfg = compose("train_rnn", [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t"])
     vae, _ = loading.load_vae(cfg)
-    rnn = loading.build_rnn(cfg).eval()
+    rnn = loading.build_rnn(cfg.vae, cfg.rnn).eval()
     with torch.no_grad():
         rnn.fc.weight.zero_()
         rnn.fc.bias.zero_()

@@ -105,7 +105,6 @@ def test_every_family_keeps_the_interface_and_imports_no_other_family():
         registry.family("ncap")
 
 
-
 def test_the_schema_holds_each_declared_familys_sections_from_its_own_package():
     """``agent.<section>`` and ``evaluate.<section>`` are the dataclasses the family declares in its package's
     config.py, composed at their defaults; a family registered at run time cannot add sections to a schema built

@@ -75,10 +75,10 @@ def demos_dir(cfg) -> Path:
     return data_dir(cfg) / ("demos_" + teacher if teacher else "demos")
 
 
-def uses_demos(cfg) -> bool:
-    """Whether the agent ``cfg`` trains learns from the planner's demonstrations (or its DAgger labels)."""
-    a = cfg.agent
-    return a.demo_share > 0 or a.bc_pretrain_steps > 0
+def uses_demos(agent) -> bool:
+    """Whether an agent with the config section ``agent`` learns from the planner's demonstrations (or its DAgger
+    labels)."""
+    return agent.demo_share > 0 or agent.bc_pretrain_steps > 0
 
 
 def latents_path(cfg) -> Path:
@@ -270,7 +270,7 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
         uses_world_model = cfg.agent.get("obs", "worldmodel") == "worldmodel"
         inputs = {name: identity(cfg) for name, identity in world_model_inputs(cfg.agent.get("obs", "worldmodel"))}
         settings = {**_config(cfg, "agent", "env"), "reward": agent.reward, "seed": agent.seed}
-        if uses_demos(cfg) and not uses_world_model:
+        if uses_demos(cfg.agent) and not uses_world_model:
             # a LIDAR agent's demonstrations are made in-process by the planner (worldmodel/families/kim/): what
             # makes them is part of its settings, not an input on disk
             from .config import teacher_settings
@@ -280,10 +280,10 @@ def provenance(cfg, stage: str, agent: AgentId | None = None) -> dict:
             if demos.get("teacher_delays_s") is not None:  # absent = evaluate.oracle's, as before the option
                 settings["demos"]["teacher_delays_s"] = demos["teacher_delays_s"]
             settings["teacher"] = teacher_settings(cfg)
-        elif uses_demos(cfg):
+        elif uses_demos(cfg.agent):
             inputs["demos"] = dataset_sha256(demos_dir(cfg) / "manifest.json")
         street = uses_world_model or cfg.agent.get("obs") == "privileged"  # train_agent's own loop
-        if street and (uses_demos(cfg) or cfg.agent.focus_share > 0):
+        if street and (uses_demos(cfg.agent) or cfg.agent.focus_share > 0):
             settings["focus"] = _config(cfg, "demos")["demos"]["focus"]  # the focus mix's ranges shape the training
     elif stage == "eval":
         family = registry.family(cfg.evaluate.get("family") or registry.default().name)

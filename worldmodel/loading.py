@@ -92,40 +92,44 @@ def open_demos(cfg):
     return store
 
 
-def build_vae(cfg):
+def build_vae(vae):
+    """The VAE that the config section ``vae`` describes, freshly initialised."""
     from .models.vae import SegVAE
 
-    return SegVAE(num_classes=cfg.vae.num_classes, latent_dim=cfg.vae.latent_dim)
+    return SegVAE(num_classes=vae.num_classes, latent_dim=vae.latent_dim)
 
 
-def build_rnn(cfg):
+def build_rnn(vae, rnn):
+    """The LSTM that the config sections ``rnn`` and ``vae`` (its latent size) describe, freshly initialised."""
     from .models.rnn import WorldRNN
 
     return WorldRNN(
-        latent_dim=cfg.vae.latent_dim,
+        latent_dim=vae.latent_dim,
         action_dim=2,
-        hidden=cfg.rnn.hidden,
-        head=cfg.rnn.head,
-        gaussians=cfg.rnn.gaussians,
-        residual=cfg.rnn.residual,
+        hidden=rnn.hidden,
+        head=rnn.head,
+        gaussians=rnn.gaussians,
+        residual=rnn.residual,
     )
 
 
-def check_vae_architecture(state: dict, cfg, path: Path) -> None:
-    if state["latent_dim"] != cfg.vae.latent_dim:
+def check_vae_architecture(state: dict, vae, path: Path) -> None:
+    """Refuse a VAE checkpoint whose latent size differs from the config section ``vae``'s."""
+    if state["latent_dim"] != vae.latent_dim:
         raise StageError(
             f"{path} has latent size {state['latent_dim']} but config vae.latent_dim="
-            f"{cfg.vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE."
+            f"{vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE."
         )
 
 
-def check_rnn_architecture(state: dict, cfg, path: Path) -> None:
-    """Refuse an LSTM checkpoint whose shape settings differ from the config, naming the key."""
+def check_rnn_architecture(state: dict, vae, rnn, path: Path) -> None:
+    """Refuse an LSTM checkpoint whose shape settings differ from the config sections ``vae`` and ``rnn``, naming
+    the key."""
     for key, want in (
-        ("latent_dim", cfg.vae.latent_dim),
-        ("hidden", cfg.rnn.hidden),
-        ("head", cfg.rnn.head),
-        ("residual", cfg.rnn.residual),
+        ("latent_dim", vae.latent_dim),
+        ("hidden", rnn.hidden),
+        ("head", rnn.head),
+        ("residual", rnn.residual),
     ):
         have = state.get(key)
         if have != want:
@@ -140,9 +144,9 @@ def load_vae(cfg, which: str = "best"):
     path = vae_dir(cfg) / f"{which}.pt"
     check_output(cfg, path, "The VAE checkpoint", stage_command("train_vae", cfg))
     state = load_checkpoint(path, "VAE checkpoint", "train_vae", cfg)
-    check_vae_architecture(state, cfg, path)
+    check_vae_architecture(state, cfg.vae, path)
     check_inputs(cfg, "The VAE", path, state, {"rollouts": manifest_path(cfg)}, stage_command("train_vae", cfg))
-    model = build_vae(cfg)
+    model = build_vae(cfg.vae)
     model.load_state_dict(state["model"])
     return model.eval(), path
 
@@ -153,9 +157,9 @@ def load_rnn(cfg, which: str = "best"):
     path = rnn_dir(cfg) / f"{which}.pt"
     check_output(cfg, path, "The LSTM checkpoint", stage_command("train_rnn", cfg))
     state = load_checkpoint(path, "LSTM checkpoint", "train_rnn", cfg)
-    check_rnn_architecture(state, cfg, path)
+    check_rnn_architecture(state, cfg.vae, cfg.rnn, path)
     check_inputs(cfg, "The LSTM", path, state, {"vae": vae_dir(cfg) / "best.pt"}, stage_command("train_rnn", cfg))
-    model = build_rnn(cfg)
+    model = build_rnn(cfg.vae, cfg.rnn)
     model.load_state_dict(state["model"])
     return model.eval(), path
 

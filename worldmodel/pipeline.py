@@ -146,9 +146,9 @@ def steps(cfg) -> list[Step]:
             name = registry.family(family).folder + eval_suffix(bank)
             peer_steps.append(Step(name, "eval", evaluate.run, changes))
     paper_eval, banks = registry.default().folder, cfg.banks if paper else []
-    needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes)) for s in agent_steps)
+    needs_demos = any(artifacts.uses_demos(OmegaConf.merge(cfg, s.changes).agent) for s in agent_steps)
     if needs_demos and cfg.demos.episodes < 1:
-        users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes))]
+        users = [s.name for s in agent_steps if artifacts.uses_demos(OmegaConf.merge(cfg, s.changes).agent)]
         raise StageError(f"{', '.join(users)} learn from planner demonstrations: pass demos.episodes=N (e.g. 300)")
     return [
         Step("collect", "collect", collect.run),

@@ -273,7 +273,8 @@ def run(cfg) -> dict:
     store = loading.open_rollouts(cfg)
     seed_everything(seed)
     device = resolve_device(typed.device)
-    model = loading.build_rnn(cfg).to(device)  # built on the CPU first: the same initial weights on every device
+    # built on the CPU first: the same initial weights on every device
+    model = loading.build_rnn(cfg.vae, cfg.rnn).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=hp.lr)
     L, D, B = hp.seq_len, typed.vae.latent_dim, hp.batch_size
     sample_inputs = hp.sample_inputs
@@ -292,7 +293,7 @@ def run(cfg) -> dict:
                 f"{lat_path} has latent size {lat.f.attrs['latent_dim']} but vae.latent_dim={D}; delete it to re-encode"
             )
         if run_.state is not None:
-            loading.check_rnn_architecture(run_.state, cfg, run_.last)
+            loading.check_rnn_architecture(run_.state, cfg.vae, cfg.rnn, run_.last)
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
 
         # what a resume or a loader checks the architecture against

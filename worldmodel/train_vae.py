@@ -104,7 +104,7 @@ def run(cfg) -> dict:
     seed_everything(typed.seed)
     device = resolve_device(typed.device)
     loader_workers = resolve_loader_workers(typed.loader_workers, device)
-    model = loading.build_vae(cfg).to(device)  # built on the CPU first: the same initial weights on every device
+    model = loading.build_vae(cfg.vae).to(device)  # built on the CPU first: the same initial weights on every device
     opt = torch.optim.Adam(model.parameters(), lr=typed.vae.lr)
     epochs, batch_size = typed.vae.epochs, typed.vae.batch_size
     train_eps, val_eps = store.episodes("train"), store.episodes("validation") or store.episodes("train")
@@ -114,7 +114,7 @@ def run(cfg) -> dict:
         if run_.state is None:
             weights = class_weights(store, train_eps, typed.vae.class_balance)
         else:
-            loading.check_vae_architecture(run_.state, cfg, run_.last)
+            loading.check_vae_architecture(run_.state, cfg.vae, run_.last)
             weights = run_.state.get("class_weights")
         epoch, batch_in_epoch, step, best_val = run_.restore(model, opt)
         weights_here = None if weights is None else weights.to(device)
