@@ -384,10 +384,10 @@ class AgentSettings(DDPGConfig):
     def problems(self):
         from ..action_map import ANCHORS, STEERS
 
-        LEARNERS = registry.LEARNERS
+        learners = registry.LEARNERS
 
-        if self.learner not in LEARNERS:
-            yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(LEARNERS)}")
+        if self.learner not in learners:
+            yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(learners)}")
 
         yield from super().problems()
         yield from _positive(self, "checkpoint_every", "reward_scale")
@@ -402,7 +402,7 @@ class AgentSettings(DDPGConfig):
         for key in ("obs", "paper_obs"):
             if getattr(self, key) not in OBSERVATIONS:
                 yield ConfigValueError(key, getattr(self, key), f"it must be one of {', '.join(OBSERVATIONS)}")
-        seen_by = {name: learner.sees for name, learner in LEARNERS.items()}
+        seen_by = {name: learner.sees for name, learner in learners.items()}
         if self.learner in seen_by and self.obs not in seen_by[self.learner]:
             yield ConfigValueError(
                 "obs", self.obs, f"the {self.learner} learner sees one of: {', '.join(seen_by[self.learner])}"
