@@ -23,7 +23,6 @@ and the exact-cost chooser (the same rule with the true costs: this agent's ceil
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 import torch
@@ -53,6 +52,7 @@ from .chooser_labels import (  # noqa: F401
 )
 from .common import StageError, resolve_device, reuse_freed_memory, seed_everything, set_threads
 from .config import validate
+from .learners.loop import Curves, HeldOutChecks, fit
 from .models.chooser import Scorer, ScorerInputs
 
 log = logging.getLogger(__name__)
@@ -195,42 +195,68 @@ def fit_scorer(
     scorer.to(device)  # built on the CPU from the seed: the same initial weights on every device
     opt = torch.optim.AdamW(scorer.parameters(), lr=c.lr, weight_decay=c.weight_decay)
     rng = np.random.default_rng([int(seed), CHOOSER_MINIBATCHES])
+    learner = ScorerFit(scorer, opt, xt, yt, st, aux_weight, c.batch_size, rng, device)
 
-    def held_out() -> tuple[float, float]:
+    def held_out() -> dict:
         scorer.eval()
         pred = scorer.predict(xv)
         scorer.train()
-        return float(policy_cost(pred, yv, ev, c.margin).mean()), float(((pred - yv) ** 2).mean())
+        return {
+            "held_out_cost": float(policy_cost(pred, yv, ev, c.margin).mean()),
+            "held_out_mse": float(((pred - yv) ** 2).mean()),
+        }
 
-    best, best_state, history = math.inf, None, []
-    for k in tqdm(range(c.steps), desc="chooser scorer", unit="batch", disable=writer is None):
-        loss = 0.0
-        for m in range(members):  # each member its own minibatches
-            drawn = rng.integers(0, len(xt), size=c.batch_size)
-            idx, rows = torch.from_numpy(drawn).to(device), torch.from_numpy(xt[drawn]).to(device)
-            if aux_weight > 0:
-                out, guess = scorer.raw(rows, m, aux=True)
-                loss = loss + scorer.loss(out, yt[idx]) + aux_weight * ((guess - st[idx]) ** 2).mean()
-            else:
-                loss = loss + scorer.loss(scorer.raw(rows, m), yt[idx])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if writer is not None and k % 50 == 0:
-            writer.add_scalar("chooser/train_loss", loss.item() / members, k)
-        if (k + 1) % 250 == 0 or k + 1 == c.steps:
-            cost, mse = held_out()
-            if writer is not None:
-                writer.add_scalar("chooser/held_out_cost", cost, k)
-                writer.add_scalar("chooser/held_out_mse", mse, k)
-            history.append((k + 1, cost, mse))
-            if cost < best:
-                best, best_state = cost, {n: v.clone() for n, v in scorer.state_dict().items()}
-        if stop is not None and stop.requested:
-            break
-    if best_state is not None:
-        scorer.load_state_dict(best_state)
+    checks = HeldOutChecks(held_out, 250, c.steps, writer, "chooser/", keep=scorer, best_of="held_out_cost")
+    bar = tqdm(total=c.steps, desc="chooser scorer", unit="batch", disable=writer is None)
+    with bar:
+        fit(learner, c.steps, Curves(writer, "chooser/"), checks, stop=stop, bar=bar)
+    checks.restore()
+    history = [(k, f["held_out_cost"], f["held_out_mse"]) for k, f in checks.history]
     return scorer.eval(), history
+
+
+class ScorerFit:
+    """The scorer's fit as a ``Learner`` of the training loop (learners/loop.py): each update takes one minibatch
+    of the training split per ensemble member (each member its own) and one optimiser step on their summed
+    loss."""
+
+    def __init__(self, scorer: Scorer, opt, xt: ScorerInputs, yt, st, aux_weight: float, batch_size: int, rng, device):
+        self.scorer, self.opt, self.xt, self.yt, self.st = scorer, opt, xt, yt, st
+        self.aux_weight, self.batch_size, self.rng, self.device = aux_weight, batch_size, rng, device
+        self.members = len(scorer.nets)
+        self.steps = 0
+
+    def update(self) -> dict:
+        scorer, loss = self.scorer, 0.0
+        for m in range(self.members):
+            drawn = self.rng.integers(0, len(self.xt), size=self.batch_size)
+            idx, rows = torch.from_numpy(drawn).to(self.device), torch.from_numpy(self.xt[drawn]).to(self.device)
+            if self.aux_weight > 0:
+                out, guess = scorer.raw(rows, m, aux=True)
+                loss = loss + scorer.loss(out, self.yt[idx]) + self.aux_weight * ((guess - self.st[idx]) ** 2).mean()
+            else:
+                loss = loss + scorer.loss(scorer.raw(rows, m), self.yt[idx])
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.step()
+        self.steps += 1
+        return {"train_loss": loss.detach() / self.members}  # a tensor: read only where a curve is written
+
+    def state_dict(self) -> dict:
+        return {
+            "scorer": self.scorer.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),  # dropout's masks on the CPU
+            "steps": self.steps,
+        }
+
+    def load_state_dict(self, state) -> None:
+        self.scorer.load_state_dict(state["scorer"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        self.steps = int(state["steps"])
 
 
 # settings of the decision rule alone: the scorer is fitted and kept as without them, so a finished run resumed

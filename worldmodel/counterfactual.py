@@ -44,7 +44,6 @@ from . import loading
 from .action_map import ActionMap
 from .common import (
     StageError,
-    check_finite,
     seed_everything,
     set_threads,
 )
@@ -57,6 +56,7 @@ from .counterfactual_labels import (
     labels_dir,
     privileged_states,
 )
+from .learners.loop import Curves, HeldOutChecks, fit
 from .models.counterfactual import CostCritic, ShiftActor, actor_from_state
 from .stats import rank_agreement
 
@@ -102,30 +102,72 @@ def fit_critic(x, u, costs, state, held, c, seed: int, round_: int, run_=None, l
     critic = CostCritic(x.shape[1], c.critic_members, c.critic_hidden)
     xt, ut, yt, st = (torch.from_numpy(a[~held]) for a in (x, u, costs, state))
     critic.norm.fit(xt)
-    opt = torch.optim.AdamW(critic.parameters(), lr=c.critic_lr, weight_decay=c.weight_decay)
-    n_states, n_prop = yt.shape
-    for k in tqdm(range(c.critic_steps), desc=f"critic (round {round_})", unit="batch", leave=False, disable=not run_):
-        loss = 0.0
-        for m in range(c.critic_members):
-            i = torch.from_numpy(rng.integers(0, n_states, c.batch_size))
-            j = torch.from_numpy(rng.integers(0, n_prop, c.batch_size))
-            pred, guess = critic.member(m, xt[i], ut[i, j], aux=True)
-            loss = loss + ((pred - yt[i, j]) ** 2).mean() + c.aux_weight * ((guess - st[i]) ** 2).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if k % 50 == 0:
-            value = loss.item() / c.critic_members
-            check_finite(value, "critic loss", k, last)
-            if writer is not None:
-                writer.add_scalar("critic/train_mse", value, log_from + k)
-        if writer is not None and ((k + 1) % CHECK_EVERY == 0 or k + 1 == c.critic_steps):
-            figures = critic_figures(critic, x[held], u[held], costs[held])
-            for name, value in figures.items():
-                writer.add_scalar(f"critic/held_out_{name}", value, log_from + k)
-        if stop is not None and stop.requested:
+    learner = CriticFit(critic, xt, ut, yt, st, c, rng)
+    callbacks = [Curves(writer, "critic/", offset=log_from)]
+    if writer is not None:
+
+        def held_out() -> dict:
+            return {f"held_out_{k}": v for k, v in critic_figures(critic, x[held], u[held], costs[held]).items()}
+
+        callbacks.append(HeldOutChecks(held_out, CHECK_EVERY, c.critic_steps, writer, "critic/", log_from))
+    bar = tqdm(total=c.critic_steps, desc=f"critic (round {round_})", unit="batch", leave=False, disable=not run_)
+    with bar:
+        if not fit(learner, c.critic_steps, *callbacks, stop=stop, last=last, bar=bar):
             return None, None
     return critic.eval(), critic_figures(critic.eval(), x[held], u[held], costs[held])
+
+
+class CriticFit:
+    """The critic's fit as a ``Learner`` of the training loop (learners/loop.py): each update takes one minibatch
+    of (state, proposal) pairs per member (each its own) and one optimiser step on their summed squared errors,
+    plus the state heads' guess of the true state."""
+
+    def __init__(self, critic: CostCritic, xt, ut, yt, st, c, rng):
+        self.critic, self.xt, self.ut, self.yt, self.st, self.c, self.rng = critic, xt, ut, yt, st, c, rng
+        self.opt = torch.optim.AdamW(critic.parameters(), lr=c.critic_lr, weight_decay=c.weight_decay)
+        self.draws, self.steps = None, 0
+
+    def update(self) -> dict:
+        c, (n_states, n_prop) = self.c, self.yt.shape
+        loss = 0.0
+        for m in range(c.critic_members):
+            i = torch.from_numpy(self.rng.integers(0, n_states, c.batch_size))
+            j = torch.from_numpy(self.rng.integers(0, n_prop, c.batch_size))
+            pred, guess = self.critic.member(m, self.xt[i], self.ut[i, j], aux=True)
+            loss = loss + ((pred - self.yt[i, j]) ** 2).mean() + c.aux_weight * ((guess - self.st[i]) ** 2).mean()
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.step()
+        self.steps += 1
+        return {"train_mse": loss.detach() / c.critic_members}
+
+    def state_dict(self) -> dict:
+        return fit_state(self, critic=self.critic)
+
+    def load_state_dict(self, state) -> None:
+        load_fit_state(self, state, critic=self.critic)
+
+
+def fit_state(learner, **modules) -> dict:
+    """A fit's state (``CriticFit``, ``ActorFit``): its modules' weights, optimiser, generators and clock."""
+    generators = {} if learner.draws is None else {"draws": learner.draws.get_state()}
+    return {
+        **{name: module.state_dict() for name, module in modules.items()},
+        "optimizer": learner.opt.state_dict(),
+        "rng": learner.rng.bit_generator.state,
+        **generators,
+        "steps": learner.steps,
+    }
+
+
+def load_fit_state(learner, state, **modules) -> None:
+    for name, module in modules.items():
+        module.load_state_dict(state[name])
+    learner.opt.load_state_dict(state["optimizer"])
+    learner.rng.bit_generator.state = state["rng"]
+    if "draws" in state:
+        learner.draws.set_state(state["draws"])
+    learner.steps = int(state["steps"])
 
 
 def critic_figures(critic: CostCritic, x, u, costs) -> dict:
@@ -188,29 +230,49 @@ def fit_actor(
     xt, xct, st = (torch.from_numpy(a[~held]) for a in (x, xc, state))
     if round_ == 0:
         actor.norm.fit(xt)
-    opt = torch.optim.Adam(actor.parameters(), lr=c.actor_lr)
     draws = torch.Generator().manual_seed(phase_seed(seed, round_, 3))
-    for k in tqdm(range(c.actor_steps), desc=f"actor (round {round_})", unit="batch", leave=False, disable=not run_):
-        i = torch.from_numpy(rng.integers(0, len(xt), c.batch_size))
-        u, guess = actor(xt[i], aux=True)
-        loss = actor_loss(critic, u, xct[i], c) + c.aux_weight * ((guess - st[i]) ** 2).mean()
-        if c.search:
-            target = searched_shifts(critic, u.detach(), xct[i], c, draws)
-            loss = loss + c.search_weight * ((u - target) ** 2).sum(1).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if k % 50 == 0:
-            check_finite(loss.item(), "actor loss", k, last)
-            if writer is not None:
-                writer.add_scalar("actor/loss", loss.item(), log_from + k)
-        if stop is not None and stop.requested:
+    learner = ActorFit(actor, critic, xt, xct, st, c, rng, draws)
+    bar = tqdm(total=c.actor_steps, desc=f"actor (round {round_})", unit="batch", leave=False, disable=not run_)
+    with bar:
+        if not fit(learner, c.actor_steps, Curves(writer, "actor/", offset=log_from), stop=stop, last=last, bar=bar):
             return None
     figures = actor_figures(actor, critic, x[held], xc[held], c)
     for name, value in figures.items():
         if writer is not None:
             writer.add_scalar(f"actor/held_out_{name}", value, log_from + c.actor_steps - 1)
     return figures
+
+
+class ActorFit:
+    """The actor's fit against the frozen critic as a ``Learner`` of the training loop (learners/loop.py): each
+    update takes one minibatch of training states and one optimiser step on the critic's objective of the actor's
+    shifts (plus the regression towards the searched shifts, with ``c.search``)."""
+
+    def __init__(self, actor: ShiftActor, critic: CostCritic, xt, xct, st, c, rng, draws: torch.Generator):
+        self.actor, self.critic, self.xt, self.xct, self.st, self.c = actor, critic, xt, xct, st, c
+        self.rng, self.draws = rng, draws
+        self.opt = torch.optim.Adam(actor.parameters(), lr=c.actor_lr)
+        self.steps = 0
+
+    def update(self) -> dict:
+        c, critic = self.c, self.critic
+        i = torch.from_numpy(self.rng.integers(0, len(self.xt), c.batch_size))
+        u, guess = self.actor(self.xt[i], aux=True)
+        loss = actor_loss(critic, u, self.xct[i], c) + c.aux_weight * ((guess - self.st[i]) ** 2).mean()
+        if c.search:
+            target = searched_shifts(critic, u.detach(), self.xct[i], c, self.draws)
+            loss = loss + c.search_weight * ((u - target) ** 2).sum(1).mean()
+        self.opt.zero_grad()
+        loss.backward()
+        self.opt.step()
+        self.steps += 1
+        return {"loss": loss.detach()}
+
+    def state_dict(self) -> dict:
+        return fit_state(self, actor=self.actor)
+
+    def load_state_dict(self, state) -> None:
+        load_fit_state(self, state, actor=self.actor)
 
 
 def actor_figures(actor: ShiftActor, critic: CostCritic, x, xc, c) -> dict:

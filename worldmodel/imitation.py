@@ -8,9 +8,6 @@ planner labels the student's own states, and mixes demonstrations into DDPG's mi
 
 from __future__ import annotations
 
-import copy
-import math
-
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -24,6 +21,7 @@ from .action_map import ActionMap
 from .agent_obs import WorldModelView, encode_episode
 from .common import make_env
 from .config import teacher_settings, validate
+from .learners.loop import Curves, HeldOutChecks, fit
 from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
 
 
@@ -64,23 +62,51 @@ def clone(
     student overfits a few hundred episodes within a few thousand minibatches). ``weights``: one per sample, on its
     squared error (None: all alike). Curves go to ``writer`` at the minibatch's count over all rounds. Returns the
     last training loss."""
-    offset = round_ * hp.bc_pretrain_steps
-    loss, best, best_state = float("nan"), math.inf, None
-    weights = None if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
-    for k in range(hp.bc_pretrain_steps):
-        idx = agent.rng.integers(0, len(inputs), size=hp.batch_size)
-        w = None if weights is None else weights[idx]
-        loss = agent.clone(torch.from_numpy(inputs[idx]), torch.from_numpy(targets[idx]), w)
-        if k % 50 == 0:
-            writer.add_scalar(f"pretrain/bc_loss_round{round_}", loss, offset + k)
-        if (k + 1) % 250 == 0 or k + 1 == hp.bc_pretrain_steps:
-            fit = cloning_fit(agent, held_out)["actor"]
-            writer.add_scalar(f"pretrain/bc_held_out_round{round_}", fit, offset + k)
-            if fit < best:
-                best, best_state = fit, copy.deepcopy(agent.actor.state_dict())
-    if best_state is not None and len(held_out):
-        agent.actor.load_state_dict(best_state)
-    return loss
+    offset, r = round_ * hp.bc_pretrain_steps, round_
+    learner = CloningFit(agent, inputs, targets, hp.batch_size, weights, f"bc_loss_round{r}")
+
+    def held_out_fit() -> dict:
+        return {f"bc_held_out_round{r}": cloning_fit(agent, held_out)["actor"]}
+
+    checks = HeldOutChecks(
+        held_out_fit,
+        250,
+        hp.bc_pretrain_steps,
+        writer,
+        "pretrain/",
+        offset,
+        keep=agent.actor,
+        best_of=f"bc_held_out_round{r}",
+    )
+    fit(learner, hp.bc_pretrain_steps, Curves(writer, "pretrain/", offset=offset), checks)
+    if len(held_out):
+        checks.restore()
+    return learner.loss
+
+
+class CloningFit:
+    """Behaviour cloning as a ``Learner`` of the training loop (learners/loop.py): each update, one minibatch of
+    (inputs, targets) drawn with the agent's generator and one step of ``DDPG.clone``; ``weights``: one per sample,
+    on its squared error (None: all alike). Its losses are reported under ``name``."""
+
+    def __init__(self, agent: DDPG, inputs: np.ndarray, targets: np.ndarray, batch_size: int, weights, name: str):
+        self.agent, self.inputs, self.targets, self.batch_size, self.name = agent, inputs, targets, batch_size, name
+        self.weights = None if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
+        self.loss, self.steps = float("nan"), 0
+
+    def update(self) -> dict:
+        idx = self.agent.rng.integers(0, len(self.inputs), size=self.batch_size)
+        w = None if self.weights is None else self.weights[idx]
+        self.loss = self.agent.clone(torch.from_numpy(self.inputs[idx]), torch.from_numpy(self.targets[idx]), w)
+        self.steps += 1
+        return {self.name: self.loss}
+
+    def state_dict(self) -> dict:
+        return {"agent": self.agent.state_dict(), "steps": self.steps}  # the agent's holds its cloning optimiser
+
+    def load_state_dict(self, state) -> None:
+        self.agent.load_state_dict(state["agent"])
+        self.steps = int(state["steps"])
 
 
 def dagger_labels(cfg, agent: DDPG, encoder, action_map: ActionMap, round_: int):

@@ -33,7 +33,7 @@ from ..imitation import clone, cloning_fit, dagger_labels, demonstration_buffer,
 from ..models.ddpg import DDPGConfig, NStepWindow, ReplayBuffer
 from ..models.td3 import make_agent
 from ..training import EpisodeInProgress, TrainingRun
-from .loop import Callbacks, EpisodeLoop
+from .loop import Callbacks, TrainingLoop
 
 log = logging.getLogger(__name__)
 ROLLING = 100
@@ -306,7 +306,7 @@ class DDPGRun(Callbacks):
         with TrainingRun.for_agent(self.cfg, agent_id) as run_:
             self.run_ = run_
             episode = self.resume(run_) if run_.state is not None else 0
-            self.loop = EpisodeLoop(self.learner, self.episodes, run_, self, episode=episode, mid_episode=True)
+            self.loop = TrainingLoop(self.learner, self.episodes, run_, self, episode=episode, mid_episode=True)
             if self.cloned < self.rounds:
                 self.clone_rounds()
             self.start()

@@ -14,7 +14,7 @@ from envs.streams import CHAE_TRAINING_EPISODES
 from ...artifacts import AgentId
 from ...common import StageError, atomic_torch_save, atomic_write_bytes, percent, resolve_device
 from ...learners.dqn import DQNLearner
-from ...learners.loop import Callbacks, EpisodeLoop
+from ...learners.loop import Callbacks, TrainingLoop
 from ..common import DQNEpisodes, DQNPolicy, dqn_checkpoint, dqn_config, resume_dqn
 from .observe import HistoryObserver, family_env, observer
 from .report import ROLLING
@@ -85,7 +85,7 @@ class ChaeRun(Callbacks):
         self.recent.extend(e == "bump" for e in self.curve["end"][-ROLLING:])
         ttcs = a.chae.ttc_range
         episodes = DQNEpisodes(self.env, see, lambda k: episode_scenario(typed.seed, k, ttcs), brake_action)
-        self.loop = EpisodeLoop(self.learner, episodes, run_, self, episode=episode, bar_unit="episode")
+        self.loop = TrainingLoop(self.learner, episodes, run_, self, episode=episode, bar_unit="episode")
         # episode -> its rescoring, per rescoring draw: a checkpoint is scored once, by a resumed run too
         draw = f"seed {sel.rescore_seed}, {sel.rescore_trials} trials, TTCs {sel.rescore_ttcs or [sel.ttcs[0]]}"
         self.rescore_cache: dict = self.curve.setdefault("rescorings", {}).setdefault(draw, {})

@@ -37,6 +37,7 @@ from envs.streams import KIM_CHOOSER_LABELS
 
 from ... import artifacts
 from ...common import StageError, atomic_output
+from ...learners import loop
 from .observe import LidarObserver, family_env, observer, training_scenario
 
 log = logging.getLogger(__name__)
@@ -185,27 +186,55 @@ def fit(train: dict, decide_steps: int, seed: int, margin: float, epochs: int = 
     torch.manual_seed(seed)
     x, y, ep = features(train, decide_steps), train["cost"], train["episode"]
     held = held_out(ep)
-    xs, ys = torch.from_numpy(x[~held]), torch.from_numpy(y[~held])
     scorer = Scorer(x.shape[1], y.shape[1], hidden)
-    opt = torch.optim.Adam(scorer.parameters(), lr=LR)
-    rng = np.random.default_rng(seed)
-    best, best_state, best_epoch = -1.0, None, 0
-    for epoch in range(epochs):
-        for idx in np.array_split(rng.permutation(len(xs)), max(1, len(xs) // BATCH)):
-            loss = ((scorer(xs[idx]) - ys[idx]) ** 2).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
+    learner = EpochFit(scorer, torch.from_numpy(x[~held]), torch.from_numpy(y[~held]), np.random.default_rng(seed))
+
+    def avoided() -> dict:
         with torch.no_grad():
             pred = scorer(torch.from_numpy(x[held])).numpy()
-        avoided = float(np.mean(outcomes(y[held], pred, ep[held], margin) == 0))
-        if writer is not None:
-            writer.add_scalar("kim_chooser/train_loss", loss.item(), epoch + 1)
-            writer.add_scalar("kim_chooser/held_out_avoided", avoided, epoch + 1)
-        if avoided > best:
-            best, best_state, best_epoch = avoided, {k: v.clone() for k, v in scorer.state_dict().items()}, epoch + 1
-    scorer.load_state_dict(best_state)
-    return scorer.eval(), best_epoch, best
+        return {"held_out_avoided": float(np.mean(outcomes(y[held], pred, ep[held], margin) == 0))}
+
+    # curves at the epoch's count: a step of this fit is an epoch
+    checks = loop.HeldOutChecks(
+        avoided, 1, epochs, writer, "kim_chooser/", 1, keep=scorer, best_of="held_out_avoided", higher_is_better=True
+    )
+    loop.fit(learner, epochs, loop.Curves(writer, "kim_chooser/", every=1, offset=1), checks)
+    checks.restore()
+    return scorer.eval(), checks.best_step, checks.best_figure
+
+
+class EpochFit:
+    """The scorer's fit as a ``Learner`` of the training loop (worldmodel/learners/loop.py), one epoch an update:
+    the training rows in a fresh random order, in minibatches of about ``BATCH``, one Adam step each."""
+
+    def __init__(self, scorer: Scorer, xs: torch.Tensor, ys: torch.Tensor, rng):
+        self.scorer, self.xs, self.ys, self.rng = scorer, xs, ys, rng
+        self.opt = torch.optim.Adam(scorer.parameters(), lr=LR)
+        self.steps = 0
+
+    def update(self) -> dict:
+        xs, ys = self.xs, self.ys
+        for idx in np.array_split(self.rng.permutation(len(xs)), max(1, len(xs) // BATCH)):
+            loss = ((self.scorer(xs[idx]) - ys[idx]) ** 2).mean()
+            self.opt.zero_grad()
+            loss.backward()
+            self.opt.step()
+        self.steps += 1
+        return {"train_loss": loss.detach()}  # the epoch's last minibatch
+
+    def state_dict(self) -> dict:
+        return {
+            "scorer": self.scorer.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "steps": self.steps,
+        }
+
+    def load_state_dict(self, state) -> None:
+        self.scorer.load_state_dict(state["scorer"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.rng.bit_generator.state = state["rng"]
+        self.steps = int(state["steps"])
 
 
 def held_out_report(data: dict, scorer: Scorer, decide_steps: int, margin: float) -> dict:

@@ -13,7 +13,7 @@ from envs.streams import KIM_TRAINING_EPISODES
 from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, percent, resolve_device
-from ...learners.loop import Callbacks, EpisodeLoop
+from ...learners.loop import Callbacks, TrainingLoop
 from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
 from .teach import learn_from_planner
 
@@ -85,7 +85,7 @@ class LidarRun(Callbacks):
         if run_.state is not None:  # the cloning's figures, which only the run that cloned measured
             self.demo_info = {**self.demo_info, **run_.state.get("demonstrations", {})}
         self.recent: deque = deque((not c for c in self.curve["crash"][-ROLLING:]), maxlen=ROLLING)
-        self.loop = EpisodeLoop(self.learner, LidarEpisodes(self.env, see, typed), run_, self, episode=episode)
+        self.loop = TrainingLoop(self.learner, LidarEpisodes(self.env, see, typed), run_, self, episode=episode)
 
     def resume(self, state: dict) -> int:
         """Restore the learner and the curve; returns the checkpoint's episode count."""

@@ -45,7 +45,7 @@ from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, make_env, percent, resolve_device
 from ...learners.dqn import DQNLearner
-from ...learners.loop import Callbacks, EpisodeLoop
+from ...learners.loop import Callbacks, TrainingLoop
 from ...stats import wilson
 from ..common import (
     DQNEpisodes,
@@ -180,7 +180,7 @@ class MerolaRun(Callbacks):
         self.recent: deque = deque(self.curve["return"][-ROLLING:], maxlen=ROLLING)
         self.crashes: deque = deque(self.curve["collision"][-ROLLING:], maxlen=ROLLING)
         episodes = DQNEpisodes(self.env, see, lambda k: (episode_scenario(typed.seed, k), None), merola_action)
-        self.loop = EpisodeLoop(self.learner, episodes, run_, self, episode=episode)
+        self.loop = TrainingLoop(self.learner, episodes, run_, self, episode=episode)
 
     def snapshot(self) -> None:
         obs, dim, loop = self.typed.agent.obs, self.see.dim, self.loop
