@@ -110,7 +110,7 @@ def ddpg_rates(cfg, device, updates: int, decisions: int, warmup: int) -> dict:
 
     from worldmodel.models.ddpg import DDPG, DDPGConfig
 
-    hp = DDPGConfig(batch_size=int(cfg.agent.batch_size))
+    hp = DDPGConfig(batch_size=int(cfg.agent.ddpg.batch_size))
     obs_dim = 2 * int(cfg.vae.latent_dim) + 1
     agent = DDPG(obs_dim, 2, hp, seed=0, device=device)
     rng = np.random.default_rng(0)

@@ -29,11 +29,11 @@ log = logging.getLogger("ablation")
 
 # name -> (the row it extends, what it adds, its own overrides). Names are agent variants.
 LEARNER = [
-    "agent.twin_critics=true",
-    "agent.policy_delay=2",
-    "agent.target_noise=0.2",
-    "agent.n_step=3",
-    "agent.critic_action_layer=1",
+    "agent.ddpg.twin_critics=true",
+    "agent.ddpg.policy_delay=2",
+    "agent.ddpg.target_noise=0.2",
+    "agent.ddpg.n_step=3",
+    "agent.ddpg.critic_action_layer=1",
 ]
 CLONE = ["demos.episodes=500", "agent.bc_pretrain_steps=6000"]
 ROWS: dict[str, tuple[str | None, str, list[str]]] = {
@@ -42,7 +42,7 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
     "anchor": (
         "speed",
         "+ braking anchor (untrained actor = braking)",
-        ["agent.anchor=brake", "agent.actor_final_bound=0"],
+        ["agent.anchor=brake", "agent.ddpg.actor_final_bound=0"],
     ),
     "grip": ("anchor", "+ grip-scaled steering and noise", ["agent.steer=grip"]),
     "td": ("grip", "+ TD3 (twin critics, smoothing, delay), 3-step returns, action at 2nd critic layer", LEARNER),
@@ -56,7 +56,7 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
     "dagreg": (
         "dag",
         "+ cloning regularised: weight decay 0.01, stopped early on held-out demonstrations",
-        ["agent.bc_weight_decay=0.01"],
+        ["agent.ddpg.bc_weight_decay=0.01"],
     ),
     "view": (
         "dag",
@@ -84,7 +84,7 @@ ROWS: dict[str, tuple[str | None, str, list[str]]] = {
     "fd": (
         "focus",
         "+ cloning, then DDPG from demonstrations (25 % demo batches, Q-filtered cloning)",
-        [*CLONE, "agent.demo_share=0.25", "agent.bc_weight=1.0"],
+        [*CLONE, "agent.demo_share=0.25", "agent.ddpg.bc_weight=1.0"],
     ),
 }
 

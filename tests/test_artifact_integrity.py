@@ -151,13 +151,13 @@ def test_a_finished_agent_resumed_with_nothing_left_to_do_saves_the_same_bytes(s
     from worldmodel import train_agent
 
     root = experiment_copy("rnn")
-    cfg = stage_cfg("train_agent", "reward=r1", "agent.total_steps=120", "agent.warmup_steps=60", root=root)
+    cfg = stage_cfg("train_agent", "reward=r1", "agent.total_steps=120", "agent.ddpg.warmup_steps=60", root=root)
     train_agent.run(cfg)
     last = artifacts.AgentId.of(cfg).dir(cfg) / "last.pt"
     before = file_sha256(last)
     train_agent.run(
         stage_cfg(
-            "train_agent", "reward=r1", "agent.total_steps=120", "agent.warmup_steps=60", "resume=true", root=root
+            "train_agent", "reward=r1", "agent.total_steps=120", "agent.ddpg.warmup_steps=60", "resume=true", root=root
         )
     )
     assert file_sha256(last) == before

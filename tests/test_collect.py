@@ -169,9 +169,9 @@ def test_impossible_config_is_rejected_before_work(stage_cfg):
         ("seeds=[0,-2]", "seeds=[0, -2]"),
         ("vae.kl_weight=nan", "vae.kl_weight=nan"),
         ("vae.free_bits=nan", "vae.free_bits=nan"),
-        ("agent.exploration_noise=nan", "agent.exploration_noise=nan"),
-        ("agent.target_noise=nan", "agent.target_noise=nan"),
-        ("agent.bc_weight=nan", "agent.bc_weight=nan"),
+        ("agent.ddpg.exploration_noise=nan", "agent.ddpg.exploration_noise=nan"),
+        ("agent.ddpg.target_noise=nan", "agent.ddpg.target_noise=nan"),
+        ("agent.ddpg.bc_weight=nan", "agent.ddpg.bc_weight=nan"),
         ("vae.lr=inf", "vae.lr=inf"),
         ("agent.counterfactual.pessimism=nan", "agent.counterfactual.pessimism=nan"),
         ("experiment=''", "experiment=''"),
@@ -199,13 +199,13 @@ def test_a_config_validated_again_comes_back_as_its_own_copy_and_a_refused_one_i
 
     cfg = stage_cfg("train_agent")
     first = validate(cfg)
-    first.agent.tau = 0.5
+    first.agent.ddpg.tau = 0.5
     again = validate(cfg)
-    assert again.agent.tau != 0.5 and again == validate(cfg) and again is not validate(cfg)
-    assert validate(OmegaConf.merge(cfg, {"agent": {"tau": 0.25}})).agent.tau == 0.25
+    assert again.agent.ddpg.tau != 0.5 and again == validate(cfg) and again is not validate(cfg)
+    assert validate(OmegaConf.merge(cfg, {"agent": {"ddpg": {"tau": 0.25}}})).agent.ddpg.tau == 0.25
     for _ in range(2):
-        with pytest.raises(StageError, match="agent.tau=5.0"):
-            validate(OmegaConf.merge(cfg, {"agent": {"tau": 5.0}}))
+        with pytest.raises(StageError, match="agent.ddpg.tau=5.0"):
+            validate(OmegaConf.merge(cfg, {"agent": {"ddpg": {"tau": 5.0}}}))
 
 
 def test_a_branch_under_the_parents_own_action_replays_the_parent(stage_cfg):

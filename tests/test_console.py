@@ -73,6 +73,18 @@ def test_a_root_that_cannot_be_written_is_one_sentence_and_exit_2(tmp_path):
     assert not (tmp_path / "data").exists()
 
 
+def test_a_key_named_at_its_old_place_is_one_sentence_with_its_new_one_and_exit_2(tmp_path):
+    """DDPG's keys moved into ``agent.ddpg``: ``agent.n_step=3`` on the command line stops before Hydra reads it,
+    with the override to write instead."""
+    cmd = [sys.executable, "-m", "worldmodel.train_agent", f"paths.runs_root={tmp_path}/runs", "agent.n_step=3"]
+    result = subprocess.run(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=120)
+    lines = [line for line in result.stdout.splitlines() if line.strip()]
+    assert result.returncode == 2 and lines == [
+        "error: agent.n_step is now agent.ddpg.n_step: write agent.ddpg.n_step=3"
+    ]
+    assert not (tmp_path / "runs").exists()
+
+
 def test_a_full_or_read_only_disk_inside_a_stage_is_one_sentence():
     """What a stage says when the disk stops it: the file, why, and what to do (a full disk loses nothing finished)."""
     import errno

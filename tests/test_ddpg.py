@@ -323,26 +323,34 @@ def test_agent_state_dict_round_trip_resumes_exactly():
 
 
 # ----------------------------------------------------------------------------- config
-def test_agent_config_section_is_the_ddpg_schema():
-    """The `agent` section is built from DDPGConfig itself (no second copy of the defaults to drift), typed."""
+def test_agent_ddpg_section_is_the_ddpg_schema_and_its_old_keys_name_their_new_place():
+    """`agent.ddpg` is built from DDPGSettings itself (no second copy of the defaults to drift), typed; a DDPG is
+    built from it with the LIDAR observation's shape; an impossible value is named by its full key, and an
+    override of a key's old place (`agent.tau`) by its new one."""
     from omegaconf import OmegaConf
 
     from worldmodel.common import StageError
     from worldmodel.config import AgentConfig, compose, validate
+    from worldmodel.models.ddpg_config import DDPGSettings
 
     section = OmegaConf.to_object(compose("train_agent").agent)
-    assert isinstance(section, AgentConfig) and isinstance(section, DDPGConfig)
-    assert DDPGConfig(**{f: getattr(section, f) for f in DDPGConfig.__dataclass_fields__}) == DDPGConfig()
-    assert all(type(w) is int for w in section.actor_hidden) and type(section.actor_lr) is float
+    assert isinstance(section, AgentConfig) and type(section.ddpg) is DDPGSettings
+    assert DDPGConfig.of(section) == DDPGConfig()
+    assert all(type(w) is int for w in section.ddpg.actor_hidden) and type(section.ddpg.actor_lr) is float
     paper = OmegaConf.to_object(compose("train_agent", ["scale=paper"]).agent)
-    assert paper.total_steps == 40000 and paper.warmup_steps == 2000 and paper.tau == DDPGConfig().tau
+    assert paper.total_steps == 40000 and paper.ddpg.warmup_steps == 2000 and paper.ddpg.tau == DDPGConfig().tau
+    kim = OmegaConf.to_object(compose("train_agent", ["agent=ddpg_kim"]).agent)
+    assert (DDPGConfig.of(kim).lidar_scans, DDPGConfig.of(kim).n_step) == (4, 3)
     for override, key in (
-        ("agent.tau=0", "agent.tau"),
-        ("agent.actor_hidden=[0,3]", "agent.actor_hidden"),
+        ("agent.ddpg.tau=0", "agent.ddpg.tau=0.0"),
+        ("agent.ddpg.actor_hidden=[0,3]", "agent.ddpg.actor_hidden"),
         ("agent.total_steps=-5", "agent.total_steps"),
+        ("agent.lidar_rays=4", "agent.lidar_rays"),
     ):
         with pytest.raises(StageError, match=key):
-            validate(compose("train_agent", [override]))
+            validate(compose("train_agent", ["agent.lidar_scans=4", override]))
+    with pytest.raises(StageError, match=r"agent.tau is now agent.ddpg.tau: write \+agent.ddpg.tau=0.1"):
+        compose("train_agent", ["+agent.tau=0.1"])
     with pytest.raises(ValueError, match="gamma"):
         DDPGConfig(gamma=1.5)
 
@@ -451,7 +459,7 @@ def test_default_learner_is_unchanged_by_the_new_options():
 
 
 def test_ddpg_refuses_the_options_of_td3():
-    with pytest.raises(ValueError, match="agent.policy_delay, agent.target_noise: TD3's options"):
+    with pytest.raises(ValueError, match="agent.ddpg.policy_delay, agent.ddpg.target_noise: TD3's options"):
         DDPG(4, 2, DDPGConfig(**SMALL, policy_delay=2, target_noise=0.1), seed=3)
 
 

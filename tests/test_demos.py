@@ -22,7 +22,7 @@ LEARNER = [
     "agent.steer=grip",
     "agent.use_speed=true",
     "agent.frame_view=true",
-    "agent.actor_final_bound=0",
+    "agent.ddpg.actor_final_bound=0",
 ]
 
 
@@ -162,7 +162,7 @@ def test_pipeline_plans_demonstrations_and_preset_variants(stage_cfg):
     dag = next(s for s in steps if s.name == "agent_r2_dag")
     # the preset wins over the scale (smoke sets total_steps 300; the preset clones only)
     assert dag.changes["agent"].total_steps == 0 and dag.changes["agent"].dagger_rounds == 2
-    assert dag.changes["agent"].batch_size == 16  # a scale key the preset leaves alone
+    assert dag.changes["agent"].ddpg.batch_size == 16  # a scale key the preset leaves alone
     with pytest.raises(StageError, match="no preset"):
         pipeline.steps(stage_cfg("pipeline", "agents=[nosuch]"))
 

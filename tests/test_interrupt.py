@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parent.parent
 VAE_BAR = re.compile(r"vae epoch (\d+)/\d+:\s*\d+%\|[^|]*\|\s*(\d+)/")  # -> epoch (1-based), batches done
 AGENT_BAR = re.compile(r"agent r1:\s*\d+%\|[^|]*\|\s*(\d+)/")  # -> steps done
 VAE_ARGS = ("vae.batch_size=4",)  # ~19 batches per epoch at scale=smoke, so a signal can land inside one
-WARMUP = 100  # agent.warmup_steps at scale=smoke: the agent's optimisers step once per environment step after it
+WARMUP = 100  # agent.ddpg.warmup_steps at scale=smoke: the agent's optimisers step once per environment step after it
 
 
 def smoke(stage: str, data: Path, runs: Path, *overrides: str):

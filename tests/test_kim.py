@@ -393,7 +393,7 @@ def test_the_lidar_agent_learns_from_the_planner(tmp_path):
     assert artifacts.differences(recorded, artifacts.provenance(changed, "agent")) != []
 
     preset = cfg(*learn, agent="ddpg_kim_fd")
-    assert (preset.agent.demo_share, preset.agent.bc_weight) == (0.25, 1.0)
+    assert (preset.agent.demo_share, preset.agent.ddpg.bc_weight) == (0.25, 1.0)
     metrics = train_agent.run(preset)
     assert metrics["steps"] >= 300 and metrics["demonstrations"]["transitions"] == len(first)  # whole episodes
     assert {"after_cloning_round0", "after_cloning_round1"} <= metrics["demonstrations"].keys()

@@ -174,10 +174,10 @@ def test_ddpg_variant_sigterm_mid_episode_resumes_bit_for_bit(two_roots, stage_c
     a, b = two_roots()
     variant = (
         "reward=r2",
-        "agent.twin_critics=true",
-        "agent.policy_delay=2",
-        "agent.target_noise=0.2",
-        "agent.n_step=3",
+        "agent.ddpg.twin_critics=true",
+        "agent.ddpg.policy_delay=2",
+        "agent.ddpg.target_noise=0.2",
+        "agent.ddpg.n_step=3",
     )
     train_agent.run(stage_cfg("train_agent", *variant, root=a))
     # the warm-up ends at step 100; each step after it makes two optimiser steps (actor and critic) or one
@@ -214,7 +214,7 @@ def test_cloning_and_dagger_sigterm_mid_round_resume_bit_for_bit(two_roots, stag
     a, b = two_roots()
     demos = ("demos.episodes=3", "demos.episodes_per_shard=1", "demos.num_workers=1")
     student = (
-        *("agent.anchor=brake", "agent.steer=grip", "agent.use_speed=true", "agent.actor_final_bound=0"),
+        *("agent.anchor=brake", "agent.steer=grip", "agent.use_speed=true", "agent.ddpg.actor_final_bound=0"),
         *("agent.bc_pretrain_steps=30", "agent.dagger_rounds=1", "agent.dagger_episodes=1"),
         *("agent.demo_share=0.25", "agent.total_steps=150", "reward=r2", *demos),
     )

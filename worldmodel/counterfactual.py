@@ -12,7 +12,7 @@ pedal and duration, with a second decision ``interval`` later) and returns the R
    labelling continues where it stopped.
 2. **Critic**: an ensemble of ``critic_members`` MLPs regresses the labelled cost of (state, decision, u), the
    state being the world model's view exactly as a live run feeds it.
-3. **Actor**: the paper's actor network (``agent.actor_hidden``, tanh outputs u in [-1, 1]^3, its last layer at
+3. **Actor**: the paper's actor network (``agent.ddpg.actor_hidden``, tanh outputs u in [-1, 1]^3, its last layer at
    zero so it starts as braking) follows the critic's gradient (DDPG's actor update) to the shift it predicts
    cheapest, pessimistically (``pessimism`` x the members' spread), and anchored to braking where the members
    disagree (``anchor_weight``).
@@ -392,7 +392,7 @@ def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActo
     """The actor (seeded, braking at first) and the critic, with the weights of the checkpoint ``saved``."""
     c = typed.agent.counterfactual
     torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
-    actor = ShiftActor(in_dim, typed.agent.actor_hidden)
+    actor = ShiftActor(in_dim, typed.agent.ddpg.actor_hidden)
     critic = None
     if "actor" in saved:
         actor.load_state_dict(saved["actor"])
@@ -410,7 +410,7 @@ def checkpoint_settings(typed, reward: str, in_dim: int, critic_in: int, critic_
         "in_dim": in_dim,
         "critic_in_dim": critic_in,
         "critic_obs": critic_obs,
-        "actor_hidden": list(typed.agent.actor_hidden),
+        "actor_hidden": list(typed.agent.ddpg.actor_hidden),
         "decisions": c.decisions,
         "interval": c.interval(step_s),
         "hold_s": [float(h) for h in c.hold_s],

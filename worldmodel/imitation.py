@@ -2,8 +2,9 @@
 
 "Learning by cheating": the planner reads the true state; the student sees only what the camera gives, through the
 world model. This module turns the planner's recorded demonstrations (``worldmodel.demonstrate``) into agent
-transitions, clones the actor on them (stopped early on held-out demonstrations), runs DAgger rounds in which the
-planner labels the student's own states, and mixes demonstrations into DDPG's minibatches. ``train_agent`` uses it.
+transitions, measures how well an actor fits them, runs DAgger rounds in which the planner labels the student's own
+states, and mixes demonstrations into DDPG's minibatches; the cloning itself is a fit of the training loop
+(``learners/cloning.py``). ``train_agent`` uses it.
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ from .action_map import ActionMap
 from .agent_obs import WorldModelView, encode_episode
 from .common import make_env
 from .config import teacher_settings, validate
-from .learners.loop import Curves, HeldOutChecks, fit
 from .models.ddpg import DDPG, NStepWindow, ReplayBuffer
 
 
@@ -30,14 +30,14 @@ def demonstration_buffer(
 ) -> tuple[ReplayBuffer, dict]:
     """The planner's demonstrations (``worldmodel.demonstrate``) as agent transitions: every frame through the
     frozen world model as a live run would feed it, every action as the actor output that asks for it, rewards
-    scaled and folded into ``agent.n_step`` returns like the agent's own. ``hp``: ``cfg``'s agent section (typed,
+    scaled and folded into ``agent.ddpg.n_step`` returns like the agent's own. ``hp``: ``cfg``'s agent section (typed,
     or as composed). ``split``: the store's ``train`` or ``validation`` episodes, or all of them."""
     store = loading.open_demos(cfg)
     splits = ("train", "validation") if split is None else (split,)
     episodes = sorted(i for s in splits for i in store.episodes(s))
     total = sum(int(store.attrs(i)["n_steps"]) for i in episodes)
     buffer = ReplayBuffer(max(1, total), encoder.dim, 2)
-    window = NStepWindow(hp.n_step, hp.gamma)
+    window = NStepWindow(hp.ddpg.n_step, hp.ddpg.gamma)
     for i in tqdm(episodes, desc=f"encode demonstrations ({split or 'all'})", unit="episode"):
         seg, speed, action = store.read(i, "seg"), store.read(i, "speed"), store.read(i, "action")
         rewards = store.read(i, f"reward_{reward}") * hp.reward_scale
@@ -52,61 +52,6 @@ def demonstration_buffer(
             buffer.add(*tr)
     store.close()
     return buffer, {"episodes": len(episodes), "transitions": len(buffer)}
-
-
-def clone(
-    agent: DDPG, inputs: np.ndarray, targets: np.ndarray, hp, writer, round_: int, held_out, weights=None
-) -> float:
-    """Up to ``hp.bc_pretrain_steps`` minibatches of behaviour cloning on (inputs, targets), stopped early: the
-    actor kept is the one with the best fit on the held-out demonstrations, checked every 250 minibatches (the
-    student overfits a few hundred episodes within a few thousand minibatches). ``weights``: one per sample, on its
-    squared error (None: all alike). Curves go to ``writer`` at the minibatch's count over all rounds. Returns the
-    last training loss."""
-    offset, r = round_ * hp.bc_pretrain_steps, round_
-    learner = CloningFit(agent, inputs, targets, hp.batch_size, weights, f"bc_loss_round{r}")
-
-    def held_out_fit() -> dict:
-        return {f"bc_held_out_round{r}": cloning_fit(agent, held_out)["actor"]}
-
-    checks = HeldOutChecks(
-        held_out_fit,
-        250,
-        hp.bc_pretrain_steps,
-        writer,
-        "pretrain/",
-        offset,
-        keep=agent.actor,
-        best_of=f"bc_held_out_round{r}",
-    )
-    fit(learner, hp.bc_pretrain_steps, Curves(writer, "pretrain/", offset=offset), checks)
-    if len(held_out):
-        checks.restore()
-    return learner.loss
-
-
-class CloningFit:
-    """Behaviour cloning as a ``Learner`` of the training loop (learners/loop.py): each update, one minibatch of
-    (inputs, targets) drawn with the agent's generator and one step of ``DDPG.clone``; ``weights``: one per sample,
-    on its squared error (None: all alike). Its losses are reported under ``name``."""
-
-    def __init__(self, agent: DDPG, inputs: np.ndarray, targets: np.ndarray, batch_size: int, weights, name: str):
-        self.agent, self.inputs, self.targets, self.batch_size, self.name = agent, inputs, targets, batch_size, name
-        self.weights = None if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
-        self.loss, self.steps = float("nan"), 0
-
-    def update(self) -> dict:
-        idx = self.agent.rng.integers(0, len(self.inputs), size=self.batch_size)
-        w = None if self.weights is None else self.weights[idx]
-        self.loss = self.agent.clone(torch.from_numpy(self.inputs[idx]), torch.from_numpy(self.targets[idx]), w)
-        self.steps += 1
-        return {self.name: self.loss}
-
-    def state_dict(self) -> dict:
-        return {"agent": self.agent.state_dict(), "steps": self.steps}  # the agent's holds its cloning optimiser
-
-    def load_state_dict(self, state) -> None:
-        self.agent.load_state_dict(state["agent"])
-        self.steps = int(state["steps"])
 
 
 def dagger_labels(cfg, agent: DDPG, encoder, action_map: ActionMap, round_: int):

@@ -4,12 +4,12 @@ and joined from the registry (``family_sections``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 from .. import registry
 from ..common import Checked, ConfigValueError, worker_count_problems
 from ..common import positive_fields as _positive
-from ..models.ddpg_config import DDPGConfig
+from ..models.ddpg_config import DDPGSettings, lidar_problems
 from ..models.dqn_config import DQNConfig
 from .family_sections import with_family_sections
 
@@ -182,7 +182,7 @@ class CounterfactualConfig(Checked):
     critic_lr: float = 1.0e-3
     weight_decay: float = 1.0e-4
     batch_size: int = 256
-    # the actor: the paper's network (agent.actor_hidden), its last layer at zero so that it starts as braking;
+    # the actor: the paper's network (agent.ddpg.actor_hidden), its last layer at zero so that it starts as braking;
     # actor_steps minibatches per round, continuing from the previous round's actor
     actor_steps: int = 2000
     actor_lr: float = 1.0e-3
@@ -334,9 +334,10 @@ OBSERVATIONS = ("worldmodel", "pedestrian_history", "lidar", "frames_vae", "fram
 
 
 @dataclass
-class AgentSettings(DDPGConfig):
-    """Phase 3: DDPG's hyperparameters (``DDPGConfig``, documented there), the training loop's settings and each
-    learner's section. ``AgentConfig`` below adds each family's own section (``agent.<section>``)."""
+class AgentSettings(Checked):
+    """Phase 3: the training loop's settings, what the agent sees, and each learner's section (DDPG's
+    hyperparameters: ``agent.ddpg``, ``DDPGSettings``, documented there). ``AgentConfig`` below adds each family's
+    own section (``agent.<section>``)."""
 
     # names the run (runs/NAME/agent_r2_<variant>/seed0/): set by each preset in conf/agent/ to its file name
     variant: str = "ddpg"
@@ -364,9 +365,11 @@ class AgentSettings(DDPGConfig):
     # the rewards the pipeline trains this preset with (`agents:`); a student that only clones the R2 planner
     # lists r2 alone, since its R1 run would be the same network under another name
     rewards: list[str] = field(default_factory=lambda: ["r1", "r2"])
-    # "ddpg" (the paper's learner, with the options above) or "chooser" (agent.chooser: costs of manoeuvres learnt
-    # from the simulator's labels; R2 only, and none of the DDPG keys apply); "dqn" and "kim_chooser" below
+    # "ddpg" (the paper's learner, agent.ddpg) or "chooser" (agent.chooser: costs of manoeuvres learnt from the
+    # simulator's labels; R2 only); "counterfactual", "dqn" and "kim_chooser" below
     learner: str = "ddpg"
+    # learner "ddpg": DDPG's (and TD3's) hyperparameters, which Kim et al.'s LIDAR DDPG reads too
+    ddpg: DDPGSettings = field(default_factory=DDPGSettings)
     chooser: ChooserConfig = field(default_factory=ChooserConfig)
     # learner "counterfactual": a DDPG actor trained against the simulator's exact costs of its manoeuvres
     counterfactual: CounterfactualConfig = field(default_factory=CounterfactualConfig)
@@ -378,8 +381,20 @@ class AgentSettings(DDPGConfig):
     # with another observation get the suffix -NAME (agent_chae_dqn_chae-worldmodel/seed0)
     obs: str = "worldmodel"
     paper_obs: str = "worldmodel"
+    # obs=lidar: the observation holds this many LIDAR scans (oldest first) of lidar_rays rays each, as Kim et al.'s
+    # (4 x 36); a DDPG reads them through 1-D convolutions over the angle (models/ddpg_config.py:DDPGConfig), the
+    # LIDAR chooser as they are. 0: no LIDAR
+    lidar_scans: int = 0
+    lidar_rays: int = 36
 
-    ADDED_OFF = {**DDPGConfig.ADDED_OFF, "obs": "worldmodel", "paper_obs": "worldmodel"}
+    ADDED_OFF = {"lidar_scans": 0, "lidar_rays": 36, "obs": "worldmodel", "paper_obs": "worldmodel"}
+
+    @classmethod
+    def as_recorded(cls, values: dict, settings: dict) -> None:
+        """As ``Checked``'s, and DDPG's keys (``agent.ddpg``) at ``agent.*``, where every recorded run hashed them,
+        for every learner."""
+        super().as_recorded(values, settings)
+        values.update(values.pop("ddpg", None) or {})
 
     def problems(self):
         from ..action_map import ANCHORS, STEERS
@@ -389,7 +404,7 @@ class AgentSettings(DDPGConfig):
         if self.learner not in learners:
             yield ConfigValueError("learner", self.learner, f"it must be one of {', '.join(learners)}")
 
-        yield from super().problems()
+        yield from lidar_problems(self)
         yield from _positive(self, "checkpoint_every", "reward_scale")
         if self.learner == "ddpg":
             yield from self.total_steps_problems("total_steps", self.total_steps)
@@ -440,6 +455,10 @@ class AgentSettings(DDPGConfig):
 
 
 AgentConfig = with_family_sections(AgentSettings, "agent_config", "AgentConfig")
+
+# an override of one of DDPG's keys at agent.* (agent.n_step=3) stops naming its place in agent.ddpg
+# (``config.entry.moved_keys``), rather than with Hydra's "not in struct"
+MOVED_KEYS = {f"agent.{f.name}": f"agent.ddpg.{f.name}" for f in fields(DDPGSettings)}
 
 
 @dataclass

@@ -132,7 +132,7 @@ _validated: OrderedDict[str, ExperimentConfig] = OrderedDict()
 
 def validate(cfg) -> ExperimentConfig:
     """The config as typed dataclasses, after every range check; the first impossible value is a StageError
-    naming its key (``agent.tau``, ``evaluate.oracle.replan_every_s``).
+    naming its key (``agent.ddpg.tau``, ``evaluate.oracle.replan_every_s``).
 
     A config validated before (the same values, schema and registered families and learners) is not checked again:
     a copy of its typed form comes back, about ten times faster, so that code far from a stage's entry may ask for
@@ -156,13 +156,7 @@ def _checked(cfg, resolved: dict) -> ExperimentConfig:
     for key, value in non_finite_settings(resolved):
         raise StageError(f"config {key}={value!r} is impossible: it must be a finite number")
     for f in fields(ExperimentConfig):
-        node = OmegaConf.select(cfg, f.name, throw_on_missing=False)
-        if node is None or not OmegaConf.is_config(node) or not is_dataclass(OmegaConf.get_type(node)):
-            continue
-        try:
-            OmegaConf.to_object(node)
-        except ConfigValueError as err:
-            raise StageError(f"config {f.name}.{err}") from None
+        _check_section(OmegaConf.select(cfg, f.name, throw_on_missing=False), f.name)
     try:
         typed = OmegaConf.to_object(cfg)
     except ConfigValueError as err:
@@ -178,18 +172,51 @@ def _checked(cfg, resolved: dict) -> ExperimentConfig:
     return typed
 
 
+def _check_section(node, path: str) -> None:
+    """Build the section ``node`` at ``path`` (``agent``) and the sections inside it, innermost first, so that an
+    impossible value is named by its full key (``agent.ddpg.tau``, not ``agent.tau``)."""
+    if node is None or not OmegaConf.is_config(node) or not is_dataclass(OmegaConf.get_type(node)):
+        return
+    for key in node:
+        _check_section(node._get_node(key), f"{path}.{key}")
+    try:
+        OmegaConf.to_object(node)
+    except ConfigValueError as err:
+        raise StageError(f"config {_full_key(path, err.key)}={err.value!r} is impossible: {err.requirement}") from None
+
+
+def _full_key(path: str, key: str) -> str:
+    """A section's key under its path: ``agent.ddpg`` + ``tau``; a section that names its keys from its own name on
+    (``chooser.margin`` under ``agent.chooser``) is not named twice."""
+    outer, inner = path.split("."), key.split(".")
+    overlap = max((n for n in range(1, min(len(outer), len(inner)) + 1) if outer[-n:] == inner[:n]), default=0)
+    return ".".join(outer + inner[overlap:])
+
+
 def section(cfg, name: str) -> dict:
     """A config section as a plain dict (resolved), e.g. for recording what an artifact was built with."""
     return OmegaConf.to_container(cfg[name], resolve=True)
 
 
 # ----------------------------------------------------------------------------- composition and entry points
+def moved_keys(overrides) -> None:
+    """A StageError naming the new key of the first override (``agent.n_step=3``, ``+agent.n_step=3``,
+    ``~agent.n_step``) that names a key since moved (``agent.MOVED_KEYS``)."""
+    from .agent import MOVED_KEYS
+
+    for override in overrides:
+        key = str(override).lstrip("+~").split("=", 1)[0]
+        if key in MOVED_KEYS:
+            raise StageError(f"{key} is now {MOVED_KEYS[key]}: write {str(override).replace(key, MOVED_KEYS[key], 1)}")
+
+
 def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
     """Compose the real Hydra config of ``stage`` (for tests and notebooks)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    moved_keys(overrides)
     if GlobalHydra.instance().is_initialized():  # inside a stage's hydra.main: its search path is CONF_DIR already
         return hydra_compose(config_name=stage, overrides=list(overrides))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -287,6 +314,15 @@ def hydra_main(stage: str) -> Callable[[Callable], Callable]:
                 logging.getLogger(f"worldmodel.{stage}").error("error: %s", sentence)
                 sys.exit(2)
 
-        return main
+        @functools.wraps(main)
+        def entry():
+            try:  # before Hydra reads the command line, whose error would not name the key's new place
+                moved_keys(sys.argv[1:])
+            except StageError as err:
+                print(f"error: {err}", file=sys.stderr)
+                sys.exit(2)
+            return main()
+
+        return entry
 
     return decorate

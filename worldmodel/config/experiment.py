@@ -114,10 +114,14 @@ class ExperimentConfig(Checked):
                 "loader_workers", self.loader_workers, "use auto or a number >= 0 (0: read in the training process)"
             )
         a = self.agent
-        for key in ("demo_share", "bc_pretrain_steps", "bc_weight"):
-            if getattr(a, key) > 0 and self.demos.episodes < 1:
+        for key, value in (
+            ("demo_share", a.demo_share),
+            ("bc_pretrain_steps", a.bc_pretrain_steps),
+            ("ddpg.bc_weight", a.ddpg.bc_weight),
+        ):
+            if value > 0 and self.demos.episodes < 1:
                 yield ConfigValueError(
-                    f"agent.{key}", getattr(a, key), "it learns from planner demonstrations: set demos.episodes > 0"
+                    f"agent.{key}", value, "it learns from planner demonstrations: set demos.episodes > 0"
                 )
         for name in self.agents:
             if name not in agent_presets():
@@ -128,9 +132,11 @@ class ExperimentConfig(Checked):
         if not self.banks or any(b not in BANKS for b in self.banks):
             yield ConfigValueError("banks", list(self.banks), f"give some of {', '.join(BANKS)}")
         # whether each `peers` entry names a peer's preset needs the presets composed: config.validate checks it
-        if a.bc_weight > 0 and a.demo_share == 0:
+        if a.ddpg.bc_weight > 0 and a.demo_share == 0:
             yield ConfigValueError(
-                "agent.bc_weight", a.bc_weight, "cloning needs demonstrations in the batch: set agent.demo_share > 0"
+                "agent.ddpg.bc_weight",
+                a.ddpg.bc_weight,
+                "cloning needs demonstrations in the batch: set agent.demo_share > 0",
             )
 
 

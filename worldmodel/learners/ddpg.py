@@ -29,10 +29,11 @@ from .. import loading, registry
 from ..action_map import ActionMap
 from ..common import StageError, make_env, resolve_device, seed_everything
 from ..config import validate
-from ..imitation import clone, cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
+from ..imitation import cloning_fit, dagger_labels, demonstration_buffer, mixed_batch
 from ..models.ddpg import DDPGConfig, NStepWindow, ReplayBuffer
 from ..models.td3 import make_agent
 from ..training import EpisodeInProgress, TrainingRun
+from .cloning import clone
 from .loop import Callbacks, TrainingLoop
 
 log = logging.getLogger(__name__)
@@ -221,7 +222,7 @@ class DDPGRun(Callbacks):
                 "history": list(self.history),
                 "obs": hp.obs,
                 "obs_dim": self.obs_dim,
-                "actor_hidden": list(hp.actor_hidden),
+                "actor_hidden": list(hp.ddpg.actor_hidden),
                 "action_map": self.action_map.to_dict(),
                 "use_speed": hp.use_speed,
                 "frame_view": hp.frame_view,
@@ -282,7 +283,8 @@ class DDPGRun(Callbacks):
         self.history.append({k: outcome[k] for k in OUTCOME_KEYS} | {"return": ret, "hazard": outcome["hazard"]})
         rolling = log_episode(self.run_.writer, self.history, outcome, ret, length, loop.step)
         # the next episode has started (a mid-episode loop): a checkpoint here holds no finished one
-        if loop.step > self.hp.warmup_steps and len(self.history) >= min(ROLLING, 20) and rolling > self.best_return:
+        warm = loop.step > self.hp.ddpg.warmup_steps
+        if warm and len(self.history) >= min(ROLLING, 20) and rolling > self.best_return:
             self.best_return = rolling
             self.snapshot(best=True)
 

@@ -197,7 +197,7 @@ class ReplayBuffer(CircularStore):
 
     FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated", "steps")
     KIND = "replay buffer"
-    RESUME_HINT = "resume with the same agent.buffer_size"
+    RESUME_HINT = "resume with the same agent.ddpg.buffer_size"
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int):
         n = int(capacity)

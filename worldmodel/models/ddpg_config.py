@@ -1,4 +1,6 @@
-"""DDPG's hyperparameters (``DDPGConfig``), apart from the learner so that reading a config never imports torch."""
+"""DDPG's hyperparameters, apart from the learner so that reading a config never imports torch: ``DDPGSettings``
+(the config section ``agent.ddpg``) and ``DDPGConfig`` (those with the LIDAR observation's shape: what a DDPG is
+built with, and what its checkpoint records)."""
 
 from __future__ import annotations
 
@@ -8,9 +10,9 @@ from ..common import Checked, ConfigValueError, positive_fields
 
 
 @dataclass
-class DDPGConfig(Checked):
-    """DDPG's hyperparameters, and the schema of the ``agent`` config section (``worldmodel.config.AgentConfig``
-    adds the training loop's keys). Defaults are Lillicrap's where the paper is silent."""
+class DDPGSettings(Checked):
+    """DDPG's hyperparameters: the schema of the config section ``agent.ddpg``, which the paper's DDPG (and TD3)
+    and Kim et al.'s LIDAR DDPG read. Defaults are Lillicrap's where the paper is silent."""
 
     actor_hidden: list[int] = field(default_factory=lambda: [400, 300])
     """widths of the actor's hidden layers (Lillicrap: 400, 300)"""
@@ -65,19 +67,6 @@ class DDPGConfig(Checked):
     q_filter: bool = True
     """apply the cloning term only where the critic rates the demonstrated action above the actor's own (Nair et
     al.'s Q-filter), so that a demonstrator that swerves left here and right there does not teach a half-swerve"""
-    lidar_scans: int = 0
-    """0: the observation goes straight into the networks. k > 0: its first k x ``lidar_rays`` numbers are k LIDAR
-    scans (oldest first), which actor and critic each read through Kim et al.'s 1-D convolutions over the angle
-    (``LidarEncoder``); the rest (previous action, goal) joins the convolutions' output"""
-    lidar_rays: int = 36
-    """rays per LIDAR scan (``lidar_scans`` > 0)"""
-
-    ADDED_OFF = {"lidar_scans": 0, "lidar_rays": 36}  # how recorded runs hashed it (``Checked``)
-
-    @classmethod
-    def of(cls, section) -> DDPGConfig:
-        """Only DDPG's keys, from a section that holds them among others (the ``agent`` section)."""
-        return cls(**{f.name: getattr(section, f.name) for f in fields(cls)})
 
     def problems(self):
         yield from positive_fields(self, "batch_size", "buffer_size", "actor_lr", "critic_lr", "bc_lr")
@@ -94,13 +83,41 @@ class DDPGConfig(Checked):
         for key in ("actor_hidden", "critic_hidden"):
             if not all(isinstance(w, int) and w > 0 for w in getattr(self, key)):
                 yield ConfigValueError(key, list(getattr(self, key)), "layer widths must be positive integers")
-        if self.lidar_scans < 0:
-            yield ConfigValueError("lidar_scans", self.lidar_scans, "it must be >= 0 (0: no LIDAR encoder)")
-        if self.lidar_scans and self.lidar_rays < 8:
-            yield ConfigValueError("lidar_rays", self.lidar_rays, "a scan needs at least 8 rays for the convolutions")
+
+
+@dataclass
+class DDPGConfig(DDPGSettings):
+    """What a DDPG is built with: its hyperparameters (``DDPGSettings``, ``agent.ddpg``) and the shape of the LIDAR
+    observation it reads, which are the agent section's (``agent.lidar_scans``, ``agent.lidar_rays``) because
+    the LIDAR chooser reads them too."""
+
+    lidar_scans: int = 0
+    """0: the observation goes straight into the networks. k > 0: its first k x ``lidar_rays`` numbers are k LIDAR
+    scans (oldest first), which actor and critic each read through Kim et al.'s 1-D convolutions over the angle
+    (``LidarEncoder``); the rest (previous action, goal) joins the convolutions' output"""
+    lidar_rays: int = 36
+    """rays per LIDAR scan (``lidar_scans`` > 0)"""
+
+    @classmethod
+    def of(cls, agent) -> DDPGConfig:
+        """A DDPG's config from the (typed) agent section: ``agent.ddpg`` and the LIDAR observation's shape."""
+        keys = {f.name: getattr(agent.ddpg, f.name) for f in fields(DDPGSettings)}
+        return cls(**keys, lidar_scans=agent.lidar_scans, lidar_rays=agent.lidar_rays)
+
+    def problems(self):
+        yield from super().problems()
+        yield from lidar_problems(self)
+
+
+def lidar_problems(section):
+    """The LIDAR observation's shape (``lidar_scans``, ``lidar_rays`` of ``section``) must fit the convolutions."""
+    if section.lidar_scans < 0:
+        yield ConfigValueError("lidar_scans", section.lidar_scans, "it must be >= 0 (0: no LIDAR encoder)")
+    if section.lidar_scans and section.lidar_rays < 8:
+        yield ConfigValueError("lidar_rays", section.lidar_rays, "a scan needs at least 8 rays for the convolutions")
 
 
 def td3_options(cfg: DDPGConfig) -> list[str]:
     """The TD3 options ``cfg`` turns on (``worldmodel.models.td3.TD3``): none for Lillicrap's DDPG."""
     on = {"twin_critics": cfg.twin_critics, "policy_delay": cfg.policy_delay > 1, "target_noise": cfg.target_noise > 0}
-    return [f"agent.{key}" for key, set_ in on.items() if set_]
+    return [f"agent.ddpg.{key}" for key, set_ in on.items() if set_]

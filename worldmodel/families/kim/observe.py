@@ -79,7 +79,8 @@ def training_scenario(cfg, *stream: int, seed: int | None = None) -> KimSpec:
 
 
 def ddpg_config(cfg):
-    """The agent section as the typed ``AgentConfig`` (a ``DDPGConfig`` with the training loop's keys)."""
+    """The DDPG config a LIDAR agent of ``cfg`` is built with (``DDPGConfig.of`` its typed agent section)."""
     from ...config import validate
+    from ...models.ddpg_config import DDPGConfig
 
-    return validate(cfg).agent
+    return DDPGConfig.of(validate(cfg).agent)

@@ -31,7 +31,7 @@ def teacher(cfg):
 def planner_demonstrations(cfg, env, see: LidarObserver, hp, split: str):
     """``demos.episodes`` episodes of the planner on the training distribution, recorded as the LIDAR agent would
     live them: its observation, the planner's controls as the Kim action that asks for them (``kim_action_for``),
-    the scaled rewards folded into ``agent.n_step`` returns. Episode i depends only on (seed, i), so the
+    the scaled rewards folded into ``agent.ddpg.n_step`` returns. Episode i depends only on (seed, i), so the
     demonstrations are the same in a resumed run. ``split``: ``train`` or ``validation`` (the last tenth).
     Returns (replay buffer of the transitions, planner's avoidance % over the split's episodes)."""
     from tqdm import tqdm
@@ -47,7 +47,7 @@ def planner_demonstrations(cfg, env, see: LidarObserver, hp, split: str):
     first_held_out = n - max(1, round(HELD_OUT_SHARE * n))
     episodes = list(range(first_held_out, n) if split == "validation" else range(first_held_out))
     buffer = ReplayBuffer(max(1, len(episodes) * 60), see.dim, 2)  # 5 s of 0.1 s steps, and room to spare
-    window, scale, avoided = NStepWindow(hp.n_step, hp.gamma), hp.reward_scale, 0
+    window, scale, avoided = NStepWindow(hp.ddpg.n_step, hp.ddpg.gamma), hp.reward_scale, 0
     for i in tqdm(episodes, desc=f"planner demonstrations ({split})", unit="episode"):
         env.reset(options={"scenario": training_scenario(typed, KIM_DEMO_SCENARIOS, i)})
         planner.reset()
@@ -101,12 +101,13 @@ def dagger_labels(cfg, env, see: LidarObserver, agent, round_: int):
 
 
 def learn_from_planner(cfg, env, see: LidarObserver, agent, hp, writer, cloned: bool) -> tuple:
-    """The planner's demonstrations for DDPG from demonstrations (``agent.demo_share``, ``agent.bc_weight``) and,
+    """The planner's demonstrations for DDPG from demonstrations (``agent.demo_share``, ``agent.ddpg.bc_weight``) and,
     unless ``cloned`` (a resumed run), the actor's cloning on them (``agent.bc_pretrain_steps``) with
     ``agent.dagger_rounds`` DAgger rounds. ``hp``: the typed agent section. Returns (demonstration buffer, what was
     measured on the way)."""
     from ...config import validate
-    from ...imitation import clone, cloning_fit
+    from ...imitation import cloning_fit
+    from ...learners.cloning import clone
 
     demos, planner_avoided = planner_demonstrations(cfg, env, see, hp, "train")
     episodes = validate(cfg).demos.episodes

@@ -69,7 +69,7 @@ class LidarRun(Callbacks):
         from ...models.td3 import make_agent
 
         self.typed, self.run_, self.agent_id = typed, run_, agent_id
-        self.hp = hp = typed.agent  # the typed agent section: DDPG's keys and the training loop's
+        self.hp = hp = typed.agent  # the typed agent section: DDPG's keys (hp.ddpg) and the training loop's
         self.see = see = observer(typed, agent_id.reward)
         self.env = family_env(cfg, agent_id.reward)
         agent = make_agent(see.dim, 2, DDPGConfig.of(hp), seed=typed.seed, device=resolve_device(typed.device))
@@ -110,7 +110,7 @@ class LidarRun(Callbacks):
                 "obs_dim": self.see.dim,
                 "lidar_speed": self.see.speed,
                 "learner": "ddpg",
-                "actor_hidden": list(hp.actor_hidden),
+                "actor_hidden": list(hp.ddpg.actor_hidden),
                 "ddpg_config": dataclasses.asdict(self.learner.agent.cfg),
                 "reward": self.agent_id.reward,
                 "demonstrations": self.demo_info,
