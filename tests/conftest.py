@@ -34,6 +34,12 @@ SLOWEST_FIRST = (
 )
 
 
+def pytest_configure(config):
+    # pytest-xdist reorders the files by their number of tests unless told not to, which undoes SLOWEST_FIRST
+    if getattr(config.option, "loadscopereorder", None):
+        config.option.loadscopereorder = False
+
+
 def pytest_collection_modifyitems(config, items):
     rank = {name: k for k, name in enumerate(SLOWEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file keeps its own order
