@@ -346,6 +346,7 @@ def test_agent_ddpg_section_is_the_ddpg_schema_and_its_old_keys_name_their_new_p
         ("agent.ddpg.actor_hidden=[0,3]", "agent.ddpg.actor_hidden"),
         ("agent.total_steps=-5", "agent.total_steps"),
         ("agent.lidar_rays=4", "agent.lidar_rays"),
+        ("agent.dqn.gamma=2", "agent.dqn.gamma=2.0"),  # any nested section, named by its full key
     ):
         with pytest.raises(StageError, match=key):
             validate(compose("train_agent", ["agent.lidar_scans=4", override]))

@@ -178,7 +178,7 @@ def _check_section(node, path: str) -> None:
     if node is None or not OmegaConf.is_config(node) or not is_dataclass(OmegaConf.get_type(node)):
         return
     for key in node:
-        _check_section(node._get_node(key), f"{path}.{key}")
+        _check_section(OmegaConf.select(node, str(key), throw_on_missing=False), f"{path}.{key}")
     try:
         OmegaConf.to_object(node)
     except ConfigValueError as err:
