@@ -7,19 +7,20 @@ of its best held-out check."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from envs.chae import BRAKE_LEVELS, brake_action
 from envs.privileged import PRIVILEGED_DIM
 from worldmodel.artifacts import AgentId
 from worldmodel.config import CounterfactualConfig
-from worldmodel.counterfactual import CriticFit
+from worldmodel.counterfactual import ActorFit, CriticFit
 from worldmodel.families.chae.observe import family_env, observer
 from worldmodel.families.chae.train import bumped, episode_scenario
 from worldmodel.families.common import DQNEpisodes, dqn_config
 from worldmodel.learners.dqn import DQNLearner
 from worldmodel.learners.loop import Callbacks, HeldOutChecks, TrainingLoop, fit
-from worldmodel.models.counterfactual import CostCritic
+from worldmodel.models.counterfactual import CostCritic, ShiftActor
 from worldmodel.models.dqn import DQN
 from worldmodel.training import GracefulStop, TrainingRun
 
@@ -89,6 +90,19 @@ def critic_fit(seed: int = 0) -> CriticFit:
     return CriticFit(critic, xt, ut, yt, st, c, np.random.default_rng(seed))
 
 
+def actor_fit(seed: int = 0) -> ActorFit:
+    """A fresh actor's fit against a critic fitted for 20 minibatches, searching 4 random shifts a state (so that
+    its torch generator is part of its state)."""
+    critic = critic_fit()
+    fit(critic, 20)
+    c = CounterfactualConfig(critic_members=2, critic_hidden=(16,), batch_size=8, search=4)
+    torch.manual_seed(seed)
+    actor = ShiftActor(6, (16,))
+    actor.norm.fit(critic.xt)
+    draws = torch.Generator().manual_seed(seed)
+    return ActorFit(actor, critic.critic, critic.xt, critic.xt, critic.st, c, np.random.default_rng(seed), draws)
+
+
 class StopAt(Callbacks):
     def __init__(self, step: int):
         self.step, self.stop = step, GracefulStop()
@@ -97,18 +111,20 @@ class StopAt(Callbacks):
         self.stop.requested = loop.step >= self.step
 
 
-def test_a_fit_stops_when_asked_and_goes_on_from_its_state_as_if_it_had_never_stopped():
-    straight = critic_fit()
+@pytest.mark.parametrize("make, module", [(critic_fit, "critic"), (actor_fit, "actor")])
+def test_a_fit_stops_when_asked_and_goes_on_from_its_state_as_if_it_had_never_stopped(make, module):
+    straight = make()
     assert fit(straight, 30)
     stopping = StopAt(12)
-    first = critic_fit()
+    first = make()
     assert not fit(first, 30, stopping, stop=stopping.stop) and first.steps == 12
     saved = first.state_dict()
-    second = critic_fit(seed=1)  # other weights and draws, until the state is loaded
+    second = make(seed=1)  # other weights and draws, until the state is loaded
     second.load_state_dict(saved)
     assert fit(second, 30) and second.steps == 30
-    for name, value in straight.critic.state_dict().items():
-        assert torch.equal(value, second.critic.state_dict()[name]), f"{name} differs after stopping at step 12"
+    whole, parts = getattr(straight, module).state_dict(), getattr(second, module).state_dict()
+    for name, value in whole.items():
+        assert torch.equal(value, parts[name]), f"{module} {name} differs after stopping at step 12"
 
 
 def test_held_out_checks_keep_the_weights_of_the_best_check():

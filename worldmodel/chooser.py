@@ -52,7 +52,7 @@ from .chooser_labels import (  # noqa: F401
 )
 from .common import StageError, resolve_device, reuse_freed_memory, seed_everything, set_threads
 from .config import validate
-from .learners.loop import Curves, HeldOutChecks, fit
+from .learners.loop import Curves, HeldOutChecks, fit, fit_state, load_fit_state
 from .models.chooser import Scorer, ScorerInputs
 
 log = logging.getLogger(__name__)
@@ -243,20 +243,11 @@ class ScorerFit:
         return {"train_loss": loss.detach() / self.members}  # a tensor: read only where a curve is written
 
     def state_dict(self) -> dict:
-        return {
-            "scorer": self.scorer.state_dict(),
-            "optimizer": self.opt.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),  # dropout's masks on the CPU
-            "steps": self.steps,
-        }
+        return {**fit_state(self, {"scorer": self.scorer}), "torch_rng": torch.get_rng_state()}  # dropout's, on the CPU
 
     def load_state_dict(self, state) -> None:
-        self.scorer.load_state_dict(state["scorer"])
-        self.opt.load_state_dict(state["optimizer"])
-        self.rng.bit_generator.state = state["rng"]
+        load_fit_state(self, state, {"scorer": self.scorer})
         torch.set_rng_state(state["torch_rng"])
-        self.steps = int(state["steps"])
 
 
 # settings of the decision rule alone: the scorer is fitted and kept as without them, so a finished run resumed

@@ -56,7 +56,7 @@ from .counterfactual_labels import (
     labels_dir,
     privileged_states,
 )
-from .learners.loop import Curves, HeldOutChecks, fit
+from .learners.loop import Curves, HeldOutChecks, fit, fit_state, load_fit_state
 from .models.counterfactual import CostCritic, ShiftActor, actor_from_state
 from .stats import rank_agreement
 
@@ -125,7 +125,7 @@ class CriticFit:
     def __init__(self, critic: CostCritic, xt, ut, yt, st, c, rng):
         self.critic, self.xt, self.ut, self.yt, self.st, self.c, self.rng = critic, xt, ut, yt, st, c, rng
         self.opt = torch.optim.AdamW(critic.parameters(), lr=c.critic_lr, weight_decay=c.weight_decay)
-        self.draws, self.steps = None, 0
+        self.steps = 0
 
     def update(self) -> dict:
         c, (n_states, n_prop) = self.c, self.yt.shape
@@ -142,32 +142,10 @@ class CriticFit:
         return {"train_mse": loss.detach() / c.critic_members}
 
     def state_dict(self) -> dict:
-        return fit_state(self, critic=self.critic)
+        return fit_state(self, {"critic": self.critic})
 
     def load_state_dict(self, state) -> None:
-        load_fit_state(self, state, critic=self.critic)
-
-
-def fit_state(learner, **modules) -> dict:
-    """A fit's state (``CriticFit``, ``ActorFit``): its modules' weights, optimiser, generators and clock."""
-    generators = {} if learner.draws is None else {"draws": learner.draws.get_state()}
-    return {
-        **{name: module.state_dict() for name, module in modules.items()},
-        "optimizer": learner.opt.state_dict(),
-        "rng": learner.rng.bit_generator.state,
-        **generators,
-        "steps": learner.steps,
-    }
-
-
-def load_fit_state(learner, state, **modules) -> None:
-    for name, module in modules.items():
-        module.load_state_dict(state[name])
-    learner.opt.load_state_dict(state["optimizer"])
-    learner.rng.bit_generator.state = state["rng"]
-    if "draws" in state:
-        learner.draws.set_state(state["draws"])
-    learner.steps = int(state["steps"])
+        load_fit_state(self, state, {"critic": self.critic})
 
 
 def critic_figures(critic: CostCritic, x, u, costs) -> dict:
@@ -269,10 +247,10 @@ class ActorFit:
         return {"loss": loss.detach()}
 
     def state_dict(self) -> dict:
-        return fit_state(self, actor=self.actor)
+        return fit_state(self, {"actor": self.actor}, self.draws)
 
     def load_state_dict(self, state) -> None:
-        load_fit_state(self, state, actor=self.actor)
+        load_fit_state(self, state, {"actor": self.actor}, self.draws)
 
 
 def actor_figures(actor: ShiftActor, critic: CostCritic, x, xc, c) -> dict:

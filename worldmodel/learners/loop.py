@@ -178,6 +178,27 @@ def fit(learner: Learner, total: int, *callbacks: Callbacks, stop=None, last=Non
     return learner.steps >= total
 
 
+def fit_state(learner, modules: dict, draws=None) -> dict:
+    """The state of a fit on labelled rows: its ``modules``' weights, its optimiser (``learner.opt``), its numpy
+    generator (``learner.rng``), a torch generator ``draws`` where it has one, and its clock."""
+    state = {name: module.state_dict() for name, module in modules.items()}
+    state.update(optimizer=learner.opt.state_dict(), rng=learner.rng.bit_generator.state, steps=learner.steps)
+    if draws is not None:
+        state["draws"] = draws.get_state()
+    return state
+
+
+def load_fit_state(learner, state, modules: dict, draws=None) -> None:
+    """``fit_state``'s inverse."""
+    for name, module in modules.items():
+        module.load_state_dict(state[name])
+    learner.opt.load_state_dict(state["optimizer"])
+    learner.rng.bit_generator.state = state["rng"]
+    if draws is not None:
+        draws.set_state(state["draws"])
+    learner.steps = int(state["steps"])
+
+
 class Together(Callbacks):
     """Several callbacks, in turn."""
 

@@ -223,18 +223,10 @@ class EpochFit:
         return {"train_loss": loss.detach()}  # the epoch's last minibatch
 
     def state_dict(self) -> dict:
-        return {
-            "scorer": self.scorer.state_dict(),
-            "optimizer": self.opt.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "steps": self.steps,
-        }
+        return loop.fit_state(self, {"scorer": self.scorer})
 
     def load_state_dict(self, state) -> None:
-        self.scorer.load_state_dict(state["scorer"])
-        self.opt.load_state_dict(state["optimizer"])
-        self.rng.bit_generator.state = state["rng"]
-        self.steps = int(state["steps"])
+        loop.load_fit_state(self, state, {"scorer": self.scorer})
 
 
 def held_out_report(data: dict, scorer: Scorer, decide_steps: int, margin: float) -> dict:
