@@ -76,6 +76,7 @@ class BodyPool:
         rgba: list[list[float]] = []
         radius: list[float] = []
         height: list[float] = []
+        halves: list[list[float]] = []
 
         def make(cls: int, shape: str, size: tuple, pos=(0.0, 0.0, PARK_Z)) -> int:
             colour = list(PALETTE[cls] / 255.0) + [1.0]
@@ -88,6 +89,7 @@ class BodyPool:
             rgba.append(colour)
             radius.append(float(np.hypot(half[0], half[1])))
             height.append(float(half[2]))
+            halves.append(half)
             return uid
 
         fixed = [make(cls, "box", half, centre) for cls, half, centre in FIXED_BOXES]
@@ -134,6 +136,11 @@ class BodyPool:
             self.z[uid] = (centre_z - height[uid], centre_z + height[uid])
             self.in_use[uid] = True
         self._half_height = np.array(height)
+        # Per body: box half extents and heading (radians; only cars turn), for the camera's coverage of road users.
+        self.half_extents = np.array(halves, dtype=np.float64)
+        self.heading = np.zeros(n)
+        self.road_users = np.flatnonzero(np.isin(self.lut[1:], (PEDESTRIANS, VEHICLES)))
+        self.road_users = self.road_users[self.road_users != self.ego]
         self._cullable = np.ones(n, dtype=bool)
         self._cullable[self.ground_uids] = False
         self._cullable[self.ego] = False
@@ -199,6 +206,7 @@ class BodyPool:
         self.in_use[self._peds] = ped_active
         self.centre[self._cars] = car_xy
         self.centre[self._peds] = ped_xy
+        self.heading[self._cars] = car_heading
 
     def place_ego(self, x: float, y: float, heading: float, visible: bool) -> None:
         h = 0.5 * heading

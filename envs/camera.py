@@ -43,6 +43,7 @@ from .scene import (
     NONE,
     NUM_CLASSES,
     PALETTE,
+    PEDESTRIANS,
     ROAD_HALF_WIDTH,
     ROAD_TOP_Z,
     ROADLINES,
@@ -52,6 +53,7 @@ from .scene import (
     SIDEWALK_WIDTH,
     SIDEWALKS,
     TEMPLATES,
+    VEHICLES,
     StaticLayout,
 )
 
@@ -245,7 +247,28 @@ class CrossroadsGround:
 
 
 class SegmentationCamera:
-    def __init__(self, client: int, pool, size: int = 64, fov_deg: float = 90.0):
+    """One camera at the ego's fixed eye pose; ``render`` gives its (size, size) class map.
+
+    Two ways of drawing road users (pedestrians and vehicles) more faithfully than TinyRenderer's one sample per pixel,
+    for views that must not lose a pedestrian narrower than a pixel (docs/design.md §3, "Views"):
+
+    * ``road_user_cover``: a pixel shows a road user wherever the road user's box covers any part of it and nothing
+      drawn at the pixel's sample point is nearer (conservative rasterisation). It is the limit of rendering at k×
+      and pooling as below, for k -> infinity, at the cost of projecting the boxes in view (~0.1 ms per frame).
+    * ``supersample=k``: render at k× the size and pool each k×k block: a pedestrian in any sub-pixel wins, then a
+      vehicle; otherwise the sub-pixel at the coarse pixel's own sample point (so the rest of the frame is the
+      plain render's). The reference for the cover; it costs the k²-larger render.
+    """
+
+    def __init__(
+        self,
+        client: int,
+        pool,
+        size: int = 64,
+        fov_deg: float = 90.0,
+        road_user_cover: bool = False,
+        supersample: int = 1,
+    ):
         import pybullet as p
 
         self._p = p
@@ -261,6 +284,15 @@ class SegmentationCamera:
         self.far = proj[2, 3] / (proj[2, 2] + 1.0)
         self.cull = True
         self.analytic_ground = True
+        self.road_user_cover = bool(road_user_cover)
+        if int(supersample) < 1:
+            raise ValueError(f"supersample={supersample!r} must be a positive integer")
+        self.supersample = int(supersample)
+        self._fine = (
+            SegmentationCamera(client, pool, size * self.supersample, fov_deg, road_user_cover=False)
+            if self.supersample > 1
+            else None
+        )
         self.last_uids = np.full((size, size), -1, dtype=np.int32)
         self.ground = FlatGround(0.5 * (SCENE_X[0] + SCENE_X[1]), [])
         self._prepare_ground_rays()
@@ -272,6 +304,8 @@ class SegmentationCamera:
             self.ground = CrossroadsGround(layout.junction_x, layout.crossroads_half_width)
         else:
             self.ground = FlatGround(layout.junction_x, [s[0] for s in layout.placements.get("dash", [])])
+        if self._fine is not None:
+            self._fine.set_layout(layout)
 
     def _view(self, x: float, y: float, heading: float) -> list:
         c, s = math.cos(heading), math.sin(heading)
@@ -368,14 +402,64 @@ class SegmentationCamera:
 
     def render_uids(self, x: float, y: float, heading: float) -> np.ndarray:
         """Body-uid frame (size, size) int32 seen from the ego pose; -1 is background."""
+        if self._fine is not None:
+            return self._pool_blocks(self._fine.render_uids(x, y, heading))
         want = self._visible(x, y, heading)
         if not self.analytic_ground:
             want[self.pool.ground_uids] = True
         self.pool.show(want)
-        uids, depth = self._image(self._view(x, y, heading), self.size, self.projection)
+        view = self._view(x, y, heading)
+        uids, depth = self._image(view, self.size, self.projection)
         if self.analytic_ground:
             self._composite_ground(uids, depth, x, y, heading)
+        if self.road_user_cover:
+            self._cover_road_users(uids, depth, view, want)
         return uids
+
+    # ------------------------------------------------------------------ road users, pixel-conservative
+    def _pool_blocks(self, fine: np.ndarray) -> np.ndarray:
+        """(k n, k n) uids -> (n, n): per k×k block a pedestrian, else a vehicle, else the coarse sample's sub-pixel
+        (row k - 1, column 0 of the block: TinyRenderer samples pixel (col, row) at screen (col, n - 1 - row))."""
+        n, k = self.size, self.supersample
+        blocks = fine.reshape(n, k, n, k)
+        out = blocks[:, k - 1, :, 0].copy()
+        cls = self.lut[blocks + 1]
+        for c in (VEHICLES, PEDESTRIANS):  # pedestrians last: they win a block that holds both
+            hit = np.where(cls == c, blocks, -1).max(axis=(1, 3))
+            np.copyto(out, hit, where=hit >= 0)
+        return out
+
+    def _cover_road_users(self, uids: np.ndarray, depth: np.ndarray, view, drawn: np.ndarray) -> None:
+        """Mark every pixel that a drawn road user's box covers in part, unless something drawn at the pixel's
+        sample point is nearer than the box's nearest corner (the ground never hides a road user)."""
+        pool, n = self.pool, self.size
+        bodies = pool.road_users[drawn[pool.road_users]]
+        if bodies.size == 0:
+            return
+        corners = _box_corners(pool.centre[bodies], pool.z[bodies], pool.half_extents[bodies], pool.heading[bodies])
+        v = np.array(view, dtype=np.float64).reshape(4, 4).T
+        eye = corners @ v[:3, :3].T + v[:3, 3]  # (bodies, 8, 3); the camera looks down -z
+        dist = -eye[..., 2]
+        in_front = (dist > self.near).all(axis=1)  # a box reaching behind the near plane fills the frame anyway
+        # Screen units: u = column (pixel col spans [col, col + 1)), w = row (pixel row spans [row, row + 1)).
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (self._px * eye[..., 0] / dist + 1.0) * (0.5 * n)
+            w = n - (self._py * eye[..., 1] / dist + 1.0) * (0.5 * n)
+        flat_uids, flat_depth = uids.reshape(-1), depth.reshape(-1)
+        order = np.argsort(self.lut[bodies + 1] == PEDESTRIANS, kind="stable")  # pedestrians last: they win
+        for b in order[in_front[order]]:
+            c0, c1 = max(int(math.floor(u[b].min())), 0), min(int(math.floor(u[b].max())), n - 1)
+            r0, r1 = max(int(math.floor(w[b].min())), 0), min(int(math.floor(w[b].max())), n - 1)
+            if c0 > c1 or r0 > r1:
+                continue
+            cols, rows = np.meshgrid(np.arange(c0, c1 + 1), np.arange(r0, r1 + 1))
+            cols, rows = cols.reshape(-1), rows.reshape(-1)
+            inside = _squares_meet_hull(cols, rows, _hull(np.stack([u[b], w[b]], 1)))
+            pix = (rows * n + cols)[inside]
+            near = self._depth_value(np.array([dist[b].min()]))[0]
+            uid = bodies[b]
+            seen = (flat_depth.take(pix) >= near) | (flat_uids.take(pix) == uid)
+            flat_uids[pix[seen]] = uid
 
     def render(self, x: float, y: float, heading: float) -> np.ndarray:
         """Class-id frame (size, size) uint8 seen from the ego pose."""
@@ -404,6 +488,55 @@ class SegmentationCamera:
         empty = uids < 0
         uids[empty] = self.pool.ground_uid.take(self.ground.at_points(gx[empty], gy[empty]))
         return uids
+
+
+def _box_corners(centre: np.ndarray, z: np.ndarray, half: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """(B, 8, 3) world corners of boxes: footprint centre (B, 2), z range (B, 2), half extents (B, 3), heading (B,)."""
+    sx = np.array([1, 1, -1, -1, 1, 1, -1, -1], dtype=np.float64)
+    sy = np.array([1, -1, 1, -1, 1, -1, 1, -1], dtype=np.float64)
+    top = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    dx, dy = sx * half[:, :1], sy * half[:, 1:2]
+    out = np.empty((len(centre), 8, 3))
+    out[..., 0] = centre[:, :1] + dx * c - dy * s
+    out[..., 1] = centre[:, 1:2] + dx * s + dy * c
+    out[..., 2] = z[:, top]
+    return out
+
+
+def _hull(points: np.ndarray) -> np.ndarray:
+    """Convex hull of (k, 2) points, counter-clockwise in (x, y), as (m, 2) (Andrew's monotone chain)."""
+    pts = sorted(map(tuple, points.tolist()))
+
+    def half(seq):
+        out: list = []
+        for p in seq:
+            while (
+                len(out) >= 2
+                and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1]) - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0]))
+                <= 0
+            ):
+                out.pop()
+            out.append(p)
+        return out[:-1]
+
+    return np.array(half(pts) + half(pts[::-1]), dtype=np.float64).reshape(-1, 2)
+
+
+def _squares_meet_hull(cols: np.ndarray, rows: np.ndarray, hull: np.ndarray) -> np.ndarray:
+    """Whether each unit square [col, col + 1] x [row, row + 1] meets the convex polygon ``hull`` (counter-clockwise).
+    Separating axes: the squares' own axes are settled by the caller's bounding box; here, each hull edge's
+    outward normal."""
+    meet = np.ones(cols.shape, dtype=bool)
+    m = len(hull)
+    if m < 3:
+        return meet  # degenerate (a point or a segment): its bounding box is the answer
+    for i in range(m):
+        a, b = hull[i], hull[(i + 1) % m]
+        nx, ny = b[1] - a[1], a[0] - b[0]  # outward for a counter-clockwise polygon
+        lowest = nx * cols + ny * rows + min(nx, 0.0) + min(ny, 0.0)
+        meet &= lowest <= nx * a[0] + ny * a[1] + 1e-9
+    return meet
 
 
 def colorize(classes: np.ndarray) -> np.ndarray:

@@ -77,8 +77,10 @@ class UrbanCollisionEnv(gym.Env):
     """See the module docstring. Keyword arguments are the env config (``conf/env/urban.yaml``).
 
     camera: render the segmentation frame (False: zeros, for scripted evaluation and planners).
-    image_size, fov_deg: the camera. tele_fov_deg: a second, narrow camera at the same pose (obs ``seg_tele``; None:
-    none), so that a pedestrian 20-35 m ahead covers tens of pixels instead of a few. reward: 'r1' or 'r2'.
+    image_size, fov_deg: the camera. road_user_cover, supersample: how the camera draws road users narrower than a
+    pixel (``camera.SegmentationCamera``; the views of docs/design.md §3). tele_fov_deg: a second, narrow camera at
+    the same pose (obs ``seg_tele``; None: none), so that a pedestrian 20-35 m ahead covers tens of pixels instead
+    of a few. reward: 'r1' or 'r2'.
     horizon_after_ttc_s: agent-episode length after the TTC (None: ``max_episode_s``). mu: tyre-road friction.
     occupants_per_car: people per car.
     lateral_exit_m: metres from the street's centre line (|y|) beyond which the episode ends as ``left_scene``; the
@@ -98,6 +100,8 @@ class UrbanCollisionEnv(gym.Env):
         image_size: int = 64,
         fov_deg: float = 90.0,
         tele_fov_deg: float | None = None,
+        road_user_cover: bool = False,
+        supersample: int = 1,
         reward: str = "r2",
         horizon_after_ttc_s: float | None = HORIZON_AFTER_TTC_S,
         max_episode_s: float = MAX_EPISODE_S,
@@ -116,6 +120,7 @@ class UrbanCollisionEnv(gym.Env):
             "image_size": image_size >= 8,
             "fov_deg": 10.0 <= fov_deg <= 170.0,
             "tele_fov_deg": tele_fov_deg is None or 10.0 <= tele_fov_deg <= 170.0,
+            "supersample": int(supersample) == supersample and 1 <= supersample <= 8,
             "mu": mu > 0.0,
             "max_episode_s": max_episode_s > 0.0,
             "occupants_per_car": occupants_per_car >= 1,
@@ -136,6 +141,8 @@ class UrbanCollisionEnv(gym.Env):
         self.image_size = int(image_size)
         self.fov_deg = float(fov_deg)
         self.tele_fov_deg = None if tele_fov_deg is None else float(tele_fov_deg)
+        self.road_user_cover = bool(road_user_cover)
+        self.supersample = int(supersample)
         self.reward_name = reward
         self.horizon_after_ttc_s = horizon_after_ttc_s
         self.max_episode_s = float(max_episode_s)
@@ -184,7 +191,9 @@ class UrbanCollisionEnv(gym.Env):
             self._client = p.connect(p.DIRECT)
         vehicle_size = (self.params.length, self.params.width, self.params.height)
         self._pool = BodyPool(self._client, CAR_POOL, PEDESTRIAN_POOL, vehicle_size, PEDESTRIAN_HALF_SIZE)
-        self._camera = SegmentationCamera(self._client, self._pool, self.image_size, self.fov_deg)
+        self._camera = SegmentationCamera(
+            self._client, self._pool, self.image_size, self.fov_deg, self.road_user_cover, self.supersample
+        )
         if self.tele_fov_deg is not None:
             self._tele = SegmentationCamera(self._client, self._pool, self.image_size, self.tele_fov_deg)
 
@@ -419,6 +428,8 @@ class UrbanCollisionEnv(gym.Env):
             image_size=self.image_size,
             fov_deg=self.fov_deg,
             tele_fov_deg=self.tele_fov_deg,
+            road_user_cover=self.road_user_cover,
+            supersample=self.supersample,
             reward=self.reward_name,
             horizon_after_ttc_s=self.horizon_after_ttc_s,
             max_episode_s=self.max_episode_s,

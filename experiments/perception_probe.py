@@ -21,6 +21,7 @@ Writes ``runs/NAME/perception_probe/probe.md``. The test bank is never touched. 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import time
@@ -128,6 +129,9 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=4000, help="perception minibatches")
     parser.add_argument("--seeds", default="0,1", help="scorer seeds")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument(
+        "--perception-only", action="store_true", help="stop after the R² table (no scorers, no planner's rows needed)"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(args.threads)
@@ -152,6 +156,18 @@ def main(argv=None) -> int:
         "| " + " | ".join("n/a" if truth[:, k].var() < 1e-9 else f"{r2[k]:.2f}" for k in range(len(r2))) + " |",
         "",
     ]
+    out = artifacts.runs_root(cfg) / "perception_probe"
+    out.mkdir(parents=True, exist_ok=True)
+    fields = {
+        k: None if truth[:, i].var() < 1e-9 else round(float(r2[i]), 4) for i, k in enumerate(chooser.HAZARD_STATE)
+    }
+    (out / "r2.json").write_text(
+        json.dumps({"frames": len(train["speed"]), "steps": args.steps, "r2": fields}, indent=1)
+    )
+    if args.perception_only:
+        (out / "probe.md").write_text("\n".join(lines))
+        print("\n".join(lines))
+        return 0
     ev, y_val = val["episode"], val["costs"]
     braking = float(np.mean(y_val[np.r_[True, ev[1:] != ev[:-1]], 0]))
     oracle = _mean(read_results_csv(artifacts.runs_root(cfg) / "ablation" / "rows_oracle.csv"), "total_injury")
@@ -184,8 +200,6 @@ def main(argv=None) -> int:
             ]
             lines.append(f"| {name} | {seed} | " + " | ".join(f"{s:.0f}" for s in shares) + " |")
             log.info(lines[-1])
-    out = artifacts.runs_root(cfg) / "perception_probe"
-    out.mkdir(parents=True, exist_ok=True)
     (out / "probe.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -24,6 +24,7 @@ from envs.streams import CHOOSER_LABEL_EPISODES
 
 from . import artifacts
 from .common import atomic_output, make_env, read_shards, resolve_workers, worker_pool
+from .recording import view_settings
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -39,6 +40,7 @@ def labels_dir(cfg, source: str = "train") -> Path:
     settings = cfg_chooser(cfg).label_settings()
     if cfg.env.get("tele_fov_deg") is not None:  # the labels also hold the second camera's frames
         settings["tele_fov_deg"] = cfg.env.tele_fov_deg
+    settings.update(view_settings(cfg.env))  # the frames' view, where it is not the paper's
     if source == "validation":
         e = cfg.evaluate
         settings = {**settings, "bank": [list(e.ttcs), list(e.speeds), list(e.hazards), e.per_cell]}

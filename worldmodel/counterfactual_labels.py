@@ -22,6 +22,7 @@ from envs.streams import COUNTERFACTUAL_LABEL_EPISODES
 from . import artifacts, loading
 from .common import StageError, atomic_output, make_env, read_shards, resolve_workers, set_threads, worker_pool
 from .models.counterfactual import ShiftActor, actor_from_state, features
+from .recording import view_settings
 
 log = logging.getLogger(__name__)
 SHARD = 25  # labelled episodes per file
@@ -48,7 +49,7 @@ def labels_dir(cfg, round_: int, run_dir: Path | None = None) -> Path:
     by every run with those settings). Later rounds: ``<run>/labels/round<r>/``, since the actor drives them."""
     if round_ > 0:
         return Path(run_dir) / "labels" / f"round{round_}"
-    settings = cfg_counterfactual(cfg).label_settings(cfg.env.step_s)
+    settings = {**cfg_counterfactual(cfg).label_settings(cfg.env.step_s), **view_settings(cfg.env)}
     return (
         artifacts.data_dir(cfg)
         / "counterfactual_labels"

@@ -28,13 +28,22 @@ log = logging.getLogger(__name__)
 
 # The env settings that shape the recorded frames; the rest of the env section (horizons, camera) is the dataset's.
 ENV_KEYS = ("image_size", "fov_deg", "mu", "occupants_per_car")
+# The view's keys (conf/view/): they shape the frames too, and join a store's settings only when on, so that the
+# paper's view keeps the names of the stores recorded before views existed.
+VIEW_OFF = {"road_user_cover": False, "supersample": 1}
 _ENV = None
 _ENV_KWARGS: dict | None = None
 
 
 def env_settings(typed) -> dict:
-    """The ``ENV_KEYS`` of the typed config's ``env`` (``validate(cfg)``)."""
-    return {key: getattr(typed.env, key) for key in ENV_KEYS}
+    """The ``ENV_KEYS`` of the typed config's ``env`` (``validate(cfg)``), and its view's keys where they are on."""
+    return {**{key: getattr(typed.env, key) for key in ENV_KEYS}, **view_settings(typed.env)}
+
+
+def view_settings(env) -> dict:
+    """The view keys of an ``env`` config section (typed or not) that differ from the paper's view."""
+    values = {key: getattr(env, key, off) for key, off in VIEW_OFF.items()}
+    return {key: value for key, value in values.items() if value != VIEW_OFF[key]}
 
 
 def _worker_env(settings: dict):

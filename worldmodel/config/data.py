@@ -178,6 +178,13 @@ class EnvConfig(Checked):
     # degrees: a second camera at the same pose (obs "seg_tele") for agent.chooser.mask_camera=tele, where a
     # pedestrian 30 m ahead covers 10-20 px, against ~1 px at 90 degrees. null = none
     tele_fov_deg: float | None = None
+    # How the camera draws road users narrower than a pixel (the views of conf/view/; docs/design.md §3). false: one
+    # sample per pixel, as TinyRenderer draws (the paper's frame, where a pedestrian 30 m ahead is ~0.6 px wide and
+    # missing from half the frames); true: every pixel a road user's box covers in part shows it (~0.3 ms a frame)
+    road_user_cover: bool = False
+    # render at this many times the size and pool each block, a road user in any sub-pixel winning (the cover's
+    # reference: 1 = off; 4 costs ~10x the step time, so no view uses it for training)
+    supersample: int = 1
     horizon_after_ttc_s: float | None = 3.0  # agent episodes: truncated this long after the sampled TTC
     mu: float = 1.0  # tyre-road friction coefficient (friction circle radius mu*g)
     occupants_per_car: int = 1
@@ -189,7 +196,13 @@ class EnvConfig(Checked):
     # through (the side street's opening, a gap between buildings) leaves; a huge value lets such episodes go on
     lateral_exit_m: float = 25.0
 
-    ADDED_OFF = {"step_s": 1.0 / 15.0, "tele_fov_deg": None, "lateral_exit_m": 25.0}
+    ADDED_OFF = {
+        "step_s": 1.0 / 15.0,
+        "tele_fov_deg": None,
+        "lateral_exit_m": 25.0,
+        "road_user_cover": False,
+        "supersample": 1,
+    }
 
     @classmethod
     def as_recorded(cls, values: dict, settings: dict) -> None:
@@ -203,6 +216,8 @@ class EnvConfig(Checked):
         if self.image_size != 64:
             yield ConfigValueError("image_size", self.image_size, "the VAE's encoder takes 64x64 frames")
         yield from _positive(self, "mu", "occupants_per_car", "lateral_exit_m")
+        if not 1 <= self.supersample <= 8:
+            yield ConfigValueError("supersample", self.supersample, "use 1 (off) to 8 sub-pixels a side")
         if not 10.0 <= self.fov_deg <= 170.0:
             yield ConfigValueError("fov_deg", self.fov_deg, "the camera's field of view must be in [10, 170] degrees")
         if self.tele_fov_deg is not None and not 10.0 <= self.tele_fov_deg <= 170.0:
