@@ -52,14 +52,15 @@ from .common import rss_mb, write
 
 
 def steps_per_second(
-    camera: bool, steps: int, family: str = "porav", tele_fov_deg: float | None = None
+    camera: bool, steps: int, family: str = "porav", tele_fov_deg: float | None = None, seed: int = 0, **view
 ) -> tuple[float, float]:
     """(wall-clock, CPU-time) steps per second, resets included; ``family="kim"``: Kim's junction (drawn by
     ``camera.CrossroadsGround``), 0.1 s steps, scenarios from its own sampler; ``tele_fov_deg``: with the
-    narrow second camera (the chooser_tele agent's), a second render per step."""
-    rng = np.random.default_rng(0)
+    narrow second camera (the chooser_tele agent's), a second render per step; ``view``: a view's env keywords
+    (``recording.view_env``)."""
+    rng = np.random.default_rng(seed)
     if family == "porav":
-        env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None, tele_fov_deg=tele_fov_deg)
+        env = UrbanCollisionEnv(camera=camera, horizon_after_ttc_s=None, tele_fov_deg=tele_fov_deg, **view)
 
         def reset():
             env.reset(options={"scenario": sample_scenario(rng)})
@@ -166,13 +167,47 @@ def visibility(per_cell: int) -> dict:
     return {"fov_deg": env.fov_deg, "per_cell": per_cell, "overall": overall, "cells": table}
 
 
+def views_side_by_side(names: list[str], steps: int, rounds: int = 5) -> dict:
+    """Camera-on steps/s of each view (conf/view/), measured in interleaved rounds of ``steps`` steps (view A, B, C,
+    A, B, C, ...), each round on its own scenarios, so that a busy spell of the machine falls on every view alike;
+    per view the median round, and its ratio to the first view's median."""
+    from worldmodel.recording import view_env
+
+    kwargs = {name: view_env(name) for name in names}
+    walls: dict[str, list[float]] = {name: [] for name in names}
+    cpus: dict[str, list[float]] = {name: [] for name in names}
+    for r in range(rounds):
+        for name in names:
+            wall, cpu = steps_per_second(True, steps, seed=r, **kwargs[name])
+            walls[name].append(wall)
+            cpus[name].append(cpu)
+    base = float(np.median(cpus[names[0]]))
+    return {
+        name: {
+            "env": kwargs[name],
+            "steps_per_s": float(np.median(walls[name])),
+            "steps_per_s_cpu": float(np.median(cpus[name])),
+            "cpu_ratio_to_" + names[0]: float(np.median(cpus[name])) / base,
+            "rounds": rounds,
+            "steps_per_round": steps,
+        }
+        for name in names
+    }
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--views", default="", help="only the views' steps/s side by side, e.g. paper64,cover64,pool64")
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--resets", type=int, default=10000)
     ap.add_argument("--per-cell", type=int, default=20)
     ap.add_argument("--profile-only", action="store_true", help="print the per-part profile; write nothing")
     args = ap.parse_args(argv)
+    if args.views:
+        result = {"load_average_before": list(os.getloadavg())}
+        result["views"] = views_side_by_side(args.views.split(","), max(args.steps // 5, 100))
+        print(write("env_views", result))
+        return result
     if args.profile_only:
         result = profile(args.steps)
         print(json.dumps(result, indent=2))

@@ -508,6 +508,39 @@ def section_decision(d: dict, summary: list) -> str:
     return "\n".join(out)
 
 
+def section_env_views(d: dict, summary: list) -> str:
+    views = d.get("views", {})
+    names = list(views)
+    out = ["## The camera's views side by side (`env_views.json`)", "", *provenance(d), ""]
+    if not names:
+        return "\n".join(out + ["No views measured.", ""])
+    base = names[0]
+    out += [
+        f"`python -m benchmarks.bench_env --views {','.join(names)}`: camera-on steps/s, interleaved rounds of "
+        f"{views[base].get('steps_per_round', '?')} steps, the median of {views[base].get('rounds', '?')} "
+        "(conf/view/).",
+        "",
+        table(
+            ["view", "env keys", "steps/s (wall)", "steps/s per CPU-second", f"CPU ratio to {base}"],
+            [
+                [
+                    n,
+                    ", ".join(f"{k}={v}" for k, v in v_["env"].items()) or "–",
+                    fmt(v_["steps_per_s"]),
+                    fmt(v_["steps_per_s_cpu"]),
+                    fmt(v_[f"cpu_ratio_to_{base}"], 2),
+                ]
+                for n, v_ in views.items()
+            ],
+        ),
+        "",
+    ]
+    for n in names[1:]:
+        ratio = views[n][f"cpu_ratio_to_{base}"]
+        summary.append([f"env steps/s, view {n}, against {base}", f"{ratio:.2f}x", ">= 0.5x", at_least(ratio, 0.5)])
+    return "\n".join(out)
+
+
 def section_other(name: str, d: dict) -> str:
     scalars = {k: v for k, v in d.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
     out = [f"## {name} (`{name}.json`)", "", *provenance(d), ""]
@@ -517,7 +550,7 @@ def section_other(name: str, d: dict) -> str:
     return "\n".join(out)
 
 
-SECTIONS = {"env": section_env, "stages": section_stages, "decision": section_decision}
+SECTIONS = {"env": section_env, "stages": section_stages, "decision": section_decision, "env_views": section_env_views}
 
 
 def hand_written_sections(text: str) -> list[str]:

@@ -252,8 +252,9 @@ class SegmentationCamera:
     Two ways of drawing road users (pedestrians and vehicles) more faithfully than TinyRenderer's one sample per pixel,
     for views that must not lose a pedestrian narrower than a pixel (docs/design.md §3, "Views"):
 
-    * ``road_user_cover``: a pixel shows a road user wherever the road user's box covers any part of it and nothing
-      drawn at the pixel's sample point is nearer (conservative rasterisation). It is the limit of rendering at k×
+    * ``road_user_cover``: a pixel shows a road user wherever the road user's box covers any part of it, unless
+      something nearer is drawn at all four of the pixel's corners (conservative rasterisation; a pedestrian that
+      steps out from behind a parked car by a fraction of a pixel shows). It is the limit of rendering at k×
       and pooling as below, for k -> infinity, at the cost of projecting the boxes in view (~0.1 ms per frame).
     * ``supersample=k``: render at k× the size and pool each k×k block: a pedestrian in any sub-pixel wins, then a
       vehicle; otherwise the sub-pixel at the coarse pixel's own sample point (so the rest of the frame is the
@@ -430,8 +431,8 @@ class SegmentationCamera:
         return out
 
     def _cover_road_users(self, uids: np.ndarray, depth: np.ndarray, view, drawn: np.ndarray) -> None:
-        """Mark every pixel that a drawn road user's box covers in part, unless something drawn at the pixel's
-        sample point is nearer than the box's nearest corner (the ground never hides a road user)."""
+        """Mark every pixel that a drawn road user's box covers in part, unless something drawn at each of the pixel's
+        four corners is nearer than the box's nearest corner (the ground never hides a road user)."""
         pool, n = self.pool, self.size
         bodies = pool.road_users[drawn[pool.road_users]]
         if bodies.size == 0:
@@ -445,8 +446,16 @@ class SegmentationCamera:
         with np.errstate(divide="ignore", invalid="ignore"):
             u = (self._px * eye[..., 0] / dist + 1.0) * (0.5 * n)
             w = n - (self._py * eye[..., 1] / dist + 1.0) * (0.5 * n)
-        flat_uids, flat_depth = uids.reshape(-1), depth.reshape(-1)
-        order = np.argsort(self.lut[bodies + 1] == PEDESTRIANS, kind="stable")  # pedestrians last: they win
+        # A pixel's sample point is its bottom-left corner, so the samples of the pixel and of its right, upper and
+        # upper-right neighbours are its four corners: the nearest depth drawn at the farthest of them.
+        padded = np.pad(depth, ((1, 0), (0, 1)), mode="edge")
+        corners_depth = np.maximum(
+            np.maximum(padded[1:, :-1], padded[1:, 1:]), np.maximum(padded[:-1, :-1], padded[:-1, 1:])
+        ).reshape(-1)
+        flat_uids = uids.reshape(-1)
+        # Vehicles, then pedestrians (who win a pixel both cover), each from the farthest to the nearest, so that of
+        # two road users covering one pixel the nearer shows.
+        order = np.lexsort((-dist.min(axis=1), self.lut[bodies + 1] == PEDESTRIANS))
         for b in order[in_front[order]]:
             c0, c1 = max(int(math.floor(u[b].min())), 0), min(int(math.floor(u[b].max())), n - 1)
             r0, r1 = max(int(math.floor(w[b].min())), 0), min(int(math.floor(w[b].max())), n - 1)
@@ -458,7 +467,7 @@ class SegmentationCamera:
             pix = (rows * n + cols)[inside]
             near = self._depth_value(np.array([dist[b].min()]))[0]
             uid = bodies[b]
-            seen = (flat_depth.take(pix) >= near) | (flat_uids.take(pix) == uid)
+            seen = (corners_depth.take(pix) >= near) | (flat_uids.take(pix) == uid)
             flat_uids[pix[seen]] = uid
 
     def render(self, x: float, y: float, heading: float) -> np.ndarray:

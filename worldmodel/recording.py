@@ -40,6 +40,14 @@ def env_settings(typed) -> dict:
     return {**{key: getattr(typed.env, key) for key in ENV_KEYS}, **view_settings(typed.env)}
 
 
+def view_env(name: str) -> dict:
+    """The env keywords of the view ``conf/view/NAME.yaml`` that differ from the paper's view (for the benchmarks
+    and experiments that build envs directly)."""
+    from .config import compose
+
+    return view_settings(compose("collect", ["experiment=views", f"view={name}"]).env)
+
+
 def view_settings(env) -> dict:
     """The view keys of an ``env`` config section (typed or not) that differ from the paper's view."""
     values = {key: getattr(env, key, off) for key, off in VIEW_OFF.items()}
