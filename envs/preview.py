@@ -29,8 +29,10 @@ class _Hold:
 POLICIES = {"braking": StraightLineBraking, "autopilot": NoisyAutopilot, "hold": _Hold}
 
 
-def record(spec: ScenarioSpec, policy_name: str = "braking", max_steps: int | None = None) -> tuple[list, dict]:
-    env = UrbanCollisionEnv(camera=True, render_mode="rgb_array")
+def record(
+    spec: ScenarioSpec, policy_name: str = "braking", max_steps: int | None = None, road_user_cover: bool = False
+) -> tuple[list, dict]:
+    env = UrbanCollisionEnv(camera=True, render_mode="rgb_array", road_user_cover=road_user_cover)
     frames = []
     episode = rollout(
         env,
@@ -66,6 +68,9 @@ def main(argv=None) -> None:
     ap.add_argument("--cars", type=int, default=6)
     ap.add_argument("--pedestrians", type=int, default=6)
     ap.add_argument("--policy", choices=sorted(POLICIES), default="braking")
+    ap.add_argument(
+        "--view", choices=["paper64", "cover64"], default="paper64", help="how the frame draws road users (conf/view/)"
+    )
     args = ap.parse_args(argv)
     spec = ScenarioSpec(
         seed=args.seed,
@@ -76,7 +81,7 @@ def main(argv=None) -> None:
         p_pedestrian=1.0 if args.hazard in ("pedestrian", "both") else 0.0,
         p_car=1.0 if args.hazard in ("car", "both") else 0.0,
     )
-    frames, outcome = record(spec, args.policy)
+    frames, outcome = record(spec, args.policy, road_user_cover=args.view == "cover64")
     save(frames, args.out)
     print(f"wrote {args.out} ({len(frames)} frames); outcome: {outcome}")
 
