@@ -310,11 +310,9 @@ def headline(directory: Path) -> tuple[str, dict]:
 POOLED = "pooled.md"  # the validation banks of a directory pooled: where settings are chosen on several banks
 
 
-def pooled(directory: Path) -> str:
-    """``pooled.md`` of a directory holding two or more validation evaluations of the paper's family: each policy's
-    share of the achievable improvement on each bank and on all of them pooled (a bank's scenarios are its own: the
-    paired bootstrap resamples the pooled scenarios), each seed's pooled share, and its static collisions and lane
-    departures, pooled."""
+def pooled_validation(directory: Path) -> tuple[list[str], dict, list[dict]]:
+    """The validation evaluations of the paper's family published in ``directory`` (two or more): their stems by
+    bank seed, stem -> (rows, meta), and their rows pooled, each bank's scenario ids made its own."""
     evaluations = {
         stem: (rows, meta)
         for stem, (rows, meta) in published(directory).items()
@@ -328,6 +326,15 @@ def pooled(directory: Path) -> str:
         rows, meta = evaluations[stem]
         offset = int(meta["bank_seed"]) * 1_000_000  # scenario ids are per bank
         pool += [{**r, "scenario_id": offset + int(r["scenario_id"])} for r in rows]
+    return stems, evaluations, pool
+
+
+def pooled(directory: Path) -> str:
+    """``pooled.md`` of a directory holding two or more validation evaluations of the paper's family: each policy's
+    share of the achievable improvement on each bank and on all of them pooled (a bank's scenarios are its own: the
+    paired bootstrap resamples the pooled scenarios), each seed's pooled share, and its static collisions and lane
+    departures, pooled."""
+    stems, evaluations, pool = pooled_validation(directory)
     every = [set(r["policy"] for r in evaluations[s][0]) for s in stems]
     policies = [p for p in report.policy_order(pool) if all(p in names for names in every)]
     seeds = ", ".join(str(evaluations[s][1]["bank_seed"]) for s in stems)
