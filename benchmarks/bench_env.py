@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 
 import numpy as np
@@ -170,10 +171,14 @@ def visibility(per_cell: int) -> dict:
 def views_side_by_side(names: list[str], steps: int, rounds: int = 5) -> dict:
     """Camera-on steps/s of each view (conf/view/), measured in interleaved rounds of ``steps`` steps (view A, B, C,
     A, B, C, ...), each round on its own scenarios, so that a busy spell of the machine falls on every view alike;
-    per view the median round, and its ratio to the first view's median."""
+    per view the median round, and its ratio to the first view's median. ``NAME@SIZE``: the view at SIZE px."""
     from worldmodel.recording import view_env
 
-    kwargs = {name: view_env(name) for name in names}
+    def env_of(name: str) -> dict:
+        view, _, size = name.partition("@")  # "paper64@128": the view's keys at another frame size
+        return {**view_env(view), **({"image_size": int(size)} if size else {})}
+
+    kwargs = {name: env_of(name) for name in names}
     walls: dict[str, list[float]] = {name: [] for name in names}
     cpus: dict[str, list[float]] = {name: [] for name in names}
     for r in range(rounds):
@@ -197,14 +202,20 @@ def views_side_by_side(names: list[str], steps: int, rounds: int = 5) -> dict:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--views", default="", help="only the views' steps/s side by side, e.g. paper64,cover64,pool64")
+    ap.add_argument(
+        "--views",
+        default="",
+        help="only the views' steps/s side by side, e.g. paper64,cover64,pool64; NAME@SIZE renders a view at SIZE px "
+        "(the env only: no world model takes other sizes)",
+    )
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--resets", type=int, default=10000)
     ap.add_argument("--per-cell", type=int, default=20)
     ap.add_argument("--profile-only", action="store_true", help="print the per-part profile; write nothing")
     args = ap.parse_args(argv)
     if args.views:
-        result = {"load_average_before": list(os.getloadavg())}
+        given = " ".join(argv if argv is not None else sys.argv[1:])
+        result = {"command": f"python -m benchmarks.bench_env {given}", "loadavg_at_start": list(os.getloadavg())}
         result["views"] = views_side_by_side(args.views.split(","), max(args.steps // 5, 100))
         print(write("env_views", result))
         return result

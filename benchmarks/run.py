@@ -516,9 +516,10 @@ def section_env_views(d: dict, summary: list) -> str:
         return "\n".join(out + ["No views measured.", ""])
     base = names[0]
     out += [
-        f"`python -m benchmarks.bench_env --views {','.join(names)}`: camera-on steps/s, interleaved rounds of "
+        "Camera-on steps/s, interleaved rounds of "
         f"{views[base].get('steps_per_round', '?')} steps, the median of {views[base].get('rounds', '?')} "
-        "(conf/view/).",
+        "(conf/view/; NAME@SIZE: that view at SIZE px, the env only, since no world model takes other sizes). The "
+        "ratio is of CPU time, which other work on the machine disturbs least.",
         "",
         table(
             ["view", "env keys", "steps/s (wall)", "steps/s per CPU-second", f"CPU ratio to {base}"],
