@@ -165,3 +165,17 @@ def test_the_views_are_config_groups_and_the_paper_view_is_the_default():
     assert compose("collect", ["experiment=x", "view=pool64"]).env.supersample == 4
     with pytest.raises(ValueError, match="supersample"):
         UrbanCollisionEnv(camera=False, supersample=0)
+
+
+def test_the_committed_view_sweep_is_what_its_command_computes():
+    """docs/results/views/: the pixels per view from the simulator, and the sweep's table from the committed rows
+    and probe results, as ``python -m experiments.view_sweep pixels|figure`` write them."""
+    import json
+
+    from experiments import view_sweep
+
+    committed = json.loads((view_sweep.OUT / "pixels.json").read_text())
+    assert view_sweep.measure_pixels(committed["per_cell"]) == committed
+    assert committed["views"]["paper64"]["none_share"] > 0.3 and committed["views"]["cover64"]["none_share"] == 0.0
+    if (view_sweep.OUT / "sweep.md").exists():
+        assert (view_sweep.OUT / "sweep.md").read_text() == view_sweep.HEADER + view_sweep.figure(plot=False)
