@@ -461,9 +461,9 @@ class SegmentationCamera:
             r0, r1 = max(int(math.floor(w[b].min())), 0), min(int(math.floor(w[b].max())), n - 1)
             if c0 > c1 or r0 > r1:
                 continue
-            cols, rows = np.meshgrid(np.arange(c0, c1 + 1), np.arange(r0, r1 + 1))
-            cols, rows = cols.reshape(-1), rows.reshape(-1)
-            inside = _squares_meet_hull(cols, rows, _hull(np.stack([u[b], w[b]], 1)))
+            cols = np.tile(np.arange(c0, c1 + 1), r1 - r0 + 1)
+            rows = np.repeat(np.arange(r0, r1 + 1), c1 - c0 + 1)
+            inside = _squares_meet_box(cols, rows, np.stack([u[b], w[b]], 1))
             pix = (rows * n + cols)[inside]
             near = self._depth_value(np.array([dist[b].min()]))[0]
             uid = bodies[b]
@@ -513,39 +513,23 @@ def _box_corners(centre: np.ndarray, z: np.ndarray, half: np.ndarray, heading: n
     return out
 
 
-def _hull(points: np.ndarray) -> np.ndarray:
-    """Convex hull of (k, 2) points, counter-clockwise in (x, y), as (m, 2) (Andrew's monotone chain)."""
-    pts = sorted(map(tuple, points.tolist()))
-
-    def half(seq):
-        out: list = []
-        for p in seq:
-            while (
-                len(out) >= 2
-                and ((out[-1][0] - out[-2][0]) * (p[1] - out[-2][1]) - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0]))
-                <= 0
-            ):
-                out.pop()
-            out.append(p)
-        return out[:-1]
-
-    return np.array(half(pts) + half(pts[::-1]), dtype=np.float64).reshape(-1, 2)
+# The 12 edges of a box, as pairs of ``_box_corners`` indices: the outline of its projection is made of some of them.
+_BOX_EDGES = np.array([(0, 1), (1, 3), (3, 2), (2, 0), (4, 5), (5, 7), (7, 6), (6, 4), (0, 4), (1, 5), (2, 6), (3, 7)])
 
 
-def _squares_meet_hull(cols: np.ndarray, rows: np.ndarray, hull: np.ndarray) -> np.ndarray:
-    """Whether each unit square [col, col + 1] x [row, row + 1] meets the convex polygon ``hull`` (counter-clockwise).
-    Separating axes: the squares' own axes are settled by the caller's bounding box; here, each hull edge's
-    outward normal."""
-    meet = np.ones(cols.shape, dtype=bool)
-    m = len(hull)
-    if m < 3:
-        return meet  # degenerate (a point or a segment): its bounding box is the answer
-    for i in range(m):
-        a, b = hull[i], hull[(i + 1) % m]
-        nx, ny = b[1] - a[1], a[0] - b[0]  # outward for a counter-clockwise polygon
-        lowest = nx * cols + ny * rows + min(nx, 0.0) + min(ny, 0.0)
-        meet &= lowest <= nx * a[0] + ny * a[1] + 1e-9
-    return meet
+def _squares_meet_box(cols: np.ndarray, rows: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Whether each unit square [col, col + 1] x [row, row + 1] meets the convex outline of a box's eight projected
+    ``corners`` (8, 2). Separating axes: the squares' own axes are settled by the caller's bounding box; the outline's
+    edges are projected box edges, so the normals of all twelve hold every axis that can separate (an extra axis
+    separates only what is apart)."""
+    edge = corners[_BOX_EDGES[:, 1]] - corners[_BOX_EDGES[:, 0]]
+    nx, ny = edge[:, 1], -edge[:, 0]
+    along = corners @ np.stack([nx, ny])  # (8, 12): each corner along each normal
+    low, high = along.min(axis=0)[:, None], along.max(axis=0)[:, None]
+    base = np.multiply.outer(nx, cols) + np.multiply.outer(ny, rows)
+    square_low = base + (np.minimum(nx, 0.0) + np.minimum(ny, 0.0))[:, None]
+    square_high = base + (np.maximum(nx, 0.0) + np.maximum(ny, 0.0))[:, None]
+    return ((square_high >= low - 1e-9) & (square_low <= high + 1e-9)).all(axis=0)
 
 
 def colorize(classes: np.ndarray) -> np.ndarray:
