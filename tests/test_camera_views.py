@@ -191,7 +191,6 @@ def test_the_paper_view_draws_the_frames_it_drew_before_views_existed():
     import hashlib
 
     from envs import scenario_bank
-
     from worldmodel.common import make_env
 
     env = make_env(compose("collect", ["experiment=x"]))  # the default view, as every stage builds it
