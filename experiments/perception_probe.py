@@ -31,6 +31,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
+from envs.chooser import HAZARD_STATE
 from envs.views import CLASS_NAMES
 from worldmodel import artifacts, chooser
 from worldmodel.config import compose
@@ -95,7 +96,8 @@ def predict(net: Perception, masks: np.ndarray, speed: np.ndarray, step: np.ndar
 
 
 def fit_perception(train: dict, steps_window: int, n_steps: int, seed: int) -> Perception:
-    """The CNN with the lowest held-out mean squared error (scaled state) of the checks every 500 minibatches."""
+    """The CNN with the lowest held-out mean squared error (scaled state) of the checks every 500 minibatches (every
+    ``n_steps`` when fewer)."""
     torch.manual_seed(seed)
     masks, (speed, step) = frames(train), extras(train, steps_window)
     target = (train["state"] / chooser.STATE_SCALE).astype(np.float32)
@@ -112,7 +114,7 @@ def fit_perception(train: dict, steps_window: int, n_steps: int, seed: int) -> P
         opt.zero_grad()
         loss.backward()
         opt.step()
-        if (k + 1) % 500 == 0:
+        if (k + 1) % min(500, n_steps) == 0:
             mse = float(
                 ((predict(net, masks[held_rows], speed[held_rows], step[held_rows]) - target[held_rows]) ** 2).mean()
             )
@@ -151,15 +153,15 @@ def main(argv=None) -> int:
         "minibatches; R² of each hazard-state field on the validation bank's frames (1 = exact, 0 = no better "
         "than the mean; a field with no variance is n/a):",
         "",
-        "| " + " | ".join(chooser.HAZARD_STATE) + " |",
-        "|" + "---:|" * len(chooser.HAZARD_STATE),
+        "| " + " | ".join(HAZARD_STATE) + " |",
+        "|" + "---:|" * len(HAZARD_STATE),
         "| " + " | ".join("n/a" if truth[:, k].var() < 1e-9 else f"{r2[k]:.2f}" for k in range(len(r2))) + " |",
         "",
     ]
     out = artifacts.runs_root(cfg) / "perception_probe"
     out.mkdir(parents=True, exist_ok=True)
     fields = {
-        k: None if truth[:, i].var() < 1e-9 else round(float(r2[i]), 4) for i, k in enumerate(chooser.HAZARD_STATE)
+        k: None if truth[:, i].var() < 1e-9 else round(float(r2[i]), 4) for i, k in enumerate(HAZARD_STATE)
     }
     (out / "r2.json").write_text(
         json.dumps({"frames": len(train["speed"]), "steps": args.steps, "r2": fields}, indent=1)

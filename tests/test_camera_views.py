@@ -205,3 +205,22 @@ def test_the_paper_view_draws_the_frames_it_drew_before_views_existed():
     finally:
         env.close()
     assert h.hexdigest() == PAPER_FRAMES_HASH
+
+
+def test_the_perception_probe_reads_the_frames_of_the_view_it_is_given(tmp_path):
+    """``experiments.perception_probe view=cover64 --perception-only`` at smoke size: labels of that view in a store
+    of their own, the R² of every hazard-state field written, no planner's rows needed."""
+    import json
+
+    from envs.chooser import HAZARD_STATE
+    from experiments import perception_probe
+    from worldmodel import chooser_labels
+
+    base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=t", "scale=smoke"]
+    args = [*base, "view=cover64", "agent.chooser.episodes=6", "--steps", "3", "--threads", "1", "--perception-only"]
+    assert perception_probe.main(args) == 0
+    written = json.loads((tmp_path / "runs/t/perception_probe/r2.json").read_text())
+    assert set(written["r2"]) == set(HAZARD_STATE) and written["steps"] == 3
+    cover = chooser_labels.labels_dir(compose("train_agent", [*base, "view=cover64", "agent=chooser"]))
+    paper = chooser_labels.labels_dir(compose("train_agent", [*base, "agent=chooser"]))
+    assert cover.exists() and cover != paper
