@@ -611,26 +611,28 @@ def test_a_learner_defined_in_the_tests_joins_by_one_line_per_registry_and_is_tr
     assert not [p for p in sources if "tiny_constant" in p.read_text()]
 
 
-def test_a_view_flows_through_every_stage(experiment, tmp_path):
-    """``view=cover64`` from an empty experiment: the recorded frames are the paper's frames with road users drawn
-    pixel-conservatively (the same episodes, so every other pixel equal), the labels live in a store of their own,
-    and the world model, the chooser, the counterfactual actor and the evaluation run on them."""
+@pytest.mark.parametrize(("view", "key", "value"), [("cover64", "road_user_cover", True), ("pool64", "supersample", 4)])
+def test_a_view_flows_through_every_stage(experiment, tmp_path, view, key, value):
+    """A view other than the paper's from an empty experiment: the recorded frames are the paper's frames with road
+    users drawn more fully (the same episodes, so every other pixel is equal), the labels live in a store of their
+    own, and the world model, the chooser, the counterfactual actor and the evaluation run on them."""
     from envs.scene import PEDESTRIANS, VEHICLES
     from worldmodel.data import RolloutStore
 
-    root = tmp_path / "cover"
-    pipeline.run(smoke_cfg(root, "pipeline", "view=cover64", "agents=[chooser,counterfactual]", "banks=[validation]"))
+    root = tmp_path / view
+    pipeline.run(smoke_cfg(root, "pipeline", f"view={view}", "agents=[chooser,counterfactual]", "banks=[validation]"))
     settings = json.loads((root / "data/t/rollouts/collect_config.json").read_text())
-    assert settings["env"]["road_user_cover"] is True
+    assert settings["env"][key] == value
     paper_settings = json.loads((experiment / "data/t/rollouts/collect_config.json").read_text())
-    assert "road_user_cover" not in paper_settings["env"]
-    cover_store, paper_store = RolloutStore(root / "data/t/rollouts"), RolloutStore(experiment / "data/t/rollouts")
+    assert key not in paper_settings["env"]
+    view_store, paper_store = RolloutStore(root / "data/t/rollouts"), RolloutStore(experiment / "data/t/rollouts")
     more = 0
     for i in sorted(paper_store.lengths):
-        cover, paper = cover_store.read(i, "seg"), paper_store.read(i, "seg")
-        others = ~np.isin(cover, (PEDESTRIANS, VEHICLES))
-        np.testing.assert_array_equal(cover[others], paper[others])
-        more += int((~others).sum() - np.isin(paper, (PEDESTRIANS, VEHICLES)).sum())
+        frames, paper = view_store.read(i, "seg"), paper_store.read(i, "seg")
+        others = ~np.isin(frames, (PEDESTRIANS, VEHICLES)) & ~np.isin(paper, (PEDESTRIANS, VEHICLES))
+        agree = (frames[others] == paper[others]).mean()
+        assert agree == 1.0 if view == "cover64" else agree > 0.999  # a 4x render may differ on a rare edge pixel
+        more += int(np.isin(frames, (PEDESTRIANS, VEHICLES)).sum() - np.isin(paper, (PEDESTRIANS, VEHICLES)).sum())
     assert more > 0
     labels = {p.name for p in (root / "data/t/chooser_labels").iterdir()}
     assert labels.isdisjoint(p.name for p in (experiment / "data/t/chooser_labels").iterdir())
