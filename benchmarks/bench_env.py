@@ -200,6 +200,32 @@ def views_side_by_side(names: list[str], steps: int, rounds: int = 5) -> dict:
     }
 
 
+def band_render_ms(frames: int = 300) -> dict:
+    """CPU ms of one TinyRenderer frame: the 64×64 frame, and horizon bands of the same 90° width at 4× the pixels per
+    degree (256 px wide; rows 22-34 and 20-44 of the 64-px frame, 48 and 96 px tall, by an off-axis frustum), with the
+    same bodies drawn. A band view's render alone, before anything reads it."""
+    import pybullet as p
+
+    env = UrbanCollisionEnv(camera=True, horizon_after_ttc_s=None)
+    env.reset(options={"scenario": sample_scenario(np.random.default_rng(0))})
+    cam, ego = env._camera, env.ego
+    cam.pool.show(cam._visible(ego.x, ego.y, ego.psi))
+    view, n = cam._view(ego.x, ego.y, ego.psi), cam.near
+    shapes = {"frame 64x64": (64, 64, cam.projection)}
+    for r0, r1 in ((22, 34), (20, 44)):
+        top, bottom = (1 - 2 * r0 / 64) * n, (1 - 2 * r1 / 64) * n
+        proj = p.computeProjectionMatrix(-n, n, bottom, top, n, cam.far, physicsClientId=cam.client)
+        shapes[f"band 256x{4 * (r1 - r0)} (rows {r0}-{r1})"] = (256, 4 * (r1 - r0), proj)
+    out = {}
+    for name, (w, h, proj) in shapes.items():
+        t0 = time.thread_time()
+        for _ in range(frames):
+            p.getCameraImage(w, h, view, proj, renderer=p.ER_TINY_RENDERER, physicsClientId=cam.client)
+        out[name] = 1e3 * (time.thread_time() - t0) / frames
+    env.close()
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser()
     ap.add_argument(
@@ -217,6 +243,7 @@ def main(argv=None) -> dict:
         given = " ".join(argv if argv is not None else sys.argv[1:])
         result = {"command": f"python -m benchmarks.bench_env {given}", "loadavg_at_start": list(os.getloadavg())}
         result["views"] = views_side_by_side(args.views.split(","), max(args.steps // 5, 100))
+        result["render_cpu_ms"] = band_render_ms()
         print(write("env_views", result))
         return result
     if args.profile_only:

@@ -536,6 +536,14 @@ def section_env_views(d: dict, summary: list) -> str:
         ),
         "",
     ]
+    if d.get("render_cpu_ms"):
+        out += [
+            "TinyRenderer alone, CPU ms per frame, the same bodies drawn: a horizon band of the 90° width at 4× the "
+            "pixels per degree against the 64×64 frame (`bench_env.band_render_ms`).",
+            "",
+            table(["render", "CPU ms"], [[k, fmt(v, 2)] for k, v in d["render_cpu_ms"].items()]),
+            "",
+        ]
     for n in names[1:]:
         ratio = views[n][f"cpu_ratio_to_{base}"]
         summary.append([f"env steps/s, view {n}, against {base}", f"{ratio:.2f}x", ">= 0.5x", at_least(ratio, 0.5)])
