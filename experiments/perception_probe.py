@@ -38,14 +38,17 @@ from worldmodel.config import compose
 from worldmodel.report import _mean, read_results_csv
 
 log = logging.getLogger("perception_probe")
-ROWS = (20, 44)
+ROWS = {"wide": (20, 44), "tele": (8, 48)}  # the band each camera's hazards appear in (the chooser's mask rows)
+CAMERA_KEY = {"wide": "seg", "tele": "seg_tele"}  # which frames of the labels: the 90° camera's, or the 30° one's
 CLASSES = ("Pedestrians", "Vehicles")
 MARGINS = (0.0, 0.01, 0.02, 0.05)
 
 
-def frames(data: dict) -> np.ndarray:
-    """(N, 4, 24, 64) uint8: the hazard classes' masks in the band, this frame then the last (zeros at a start)."""
-    band = data["seg"][:, ROWS[0] : ROWS[1]]
+def frames(data: dict, camera: str = "wide") -> np.ndarray:
+    """(N, 4, rows, 64) uint8: the hazard classes' masks in the camera's band, this frame then the last (zeros at a
+    start)."""
+    r0, r1 = ROWS[camera]
+    band = data[CAMERA_KEY[camera]][:, r0:r1]
     cur = np.stack([band == CLASS_NAMES.index(c) for c in CLASSES], 1).astype(np.uint8)
     prev = np.zeros_like(cur)
     same = np.r_[False, data["episode"][1:] == data["episode"][:-1]]
@@ -56,9 +59,9 @@ def frames(data: dict) -> np.ndarray:
 class Perception(nn.Module):
     """Masks + coordinate channels -> 3 strided convolutions -> with speed and step -> 256 -> the hazard state."""
 
-    def __init__(self, n_out: int):
+    def __init__(self, n_out: int, rows: tuple[int, int] = ROWS["wide"]):
         super().__init__()
-        h, w = ROWS[1] - ROWS[0], 64
+        h, w = rows[1] - rows[0], 64
         yy, xx = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1, 1, w), indexing="ij")
         self.register_buffer("coords", torch.stack([yy, xx])[None])
         self.conv = nn.Sequential(
@@ -95,15 +98,15 @@ def predict(net: Perception, masks: np.ndarray, speed: np.ndarray, step: np.ndar
     return torch.cat(out).numpy()
 
 
-def fit_perception(train: dict, steps_window: int, n_steps: int, seed: int) -> Perception:
+def fit_perception(train: dict, steps_window: int, n_steps: int, seed: int, camera: str = "wide") -> Perception:
     """The CNN with the lowest held-out mean squared error (scaled state) of the checks every 500 minibatches (every
     ``n_steps`` when fewer)."""
     torch.manual_seed(seed)
-    masks, (speed, step) = frames(train), extras(train, steps_window)
+    masks, (speed, step) = frames(train, camera), extras(train, steps_window)
     target = (train["state"] / chooser.STATE_SCALE).astype(np.float32)
     held = chooser.held_out_split(train["episode"])
     fit_rows, held_rows = np.flatnonzero(~held), np.flatnonzero(held)
-    net = Perception(target.shape[1])
+    net = Perception(target.shape[1], ROWS[camera])
     opt = torch.optim.AdamW(net.parameters(), 1e-3, weight_decay=1e-4)
     rng = np.random.default_rng(seed)
     best, best_state, t0 = math.inf, None, time.perf_counter()
@@ -132,6 +135,12 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", default="0,1", help="scorer seeds")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument(
+        "--camera",
+        choices=sorted(ROWS),
+        default="wide",
+        help="tele: the 30° second camera's frames (labels made with env.tele_fov_deg=30)",
+    )
+    parser.add_argument(
         "--perception-only", action="store_true", help="stop after the R² table (no scorers, no planner's rows needed)"
     )
     args = parser.parse_args(argv)
@@ -141,9 +150,11 @@ def main(argv=None) -> int:
     c = OmegaConf.to_object(OmegaConf.merge(chooser.cfg_chooser(cfg), {"target": "advantage"}))
     window = chooser.decide_steps_for(c.decide_s)
     train, val = chooser.labels(cfg), chooser.labels(cfg, "validation")
-    net = fit_perception(train, window, args.steps, int(cfg.seed))
+    if CAMERA_KEY[args.camera] not in train:
+        raise SystemExit(f"these labels hold no {CAMERA_KEY[args.camera]!r} frames: add env.tele_fov_deg=30")
+    net = fit_perception(train, window, args.steps, int(cfg.seed), args.camera)
     perceived = {
-        name: predict(net, frames(d), *extras(d, window)) * chooser.STATE_SCALE
+        name: predict(net, frames(d, args.camera), *extras(d, window)) * chooser.STATE_SCALE
         for name, d in (("tr", train), ("va", val))
     }
     truth = val["state"]
@@ -160,12 +171,9 @@ def main(argv=None) -> int:
     ]
     out = artifacts.runs_root(cfg) / "perception_probe"
     out.mkdir(parents=True, exist_ok=True)
-    fields = {
-        k: None if truth[:, i].var() < 1e-9 else round(float(r2[i]), 4) for i, k in enumerate(HAZARD_STATE)
-    }
-    (out / "r2.json").write_text(
-        json.dumps({"frames": len(train["speed"]), "steps": args.steps, "r2": fields}, indent=1)
-    )
+    fields = {k: None if truth[:, i].var() < 1e-9 else round(float(r2[i]), 4) for i, k in enumerate(HAZARD_STATE)}
+    summary = {"frames": len(train["speed"]), "steps": args.steps, "camera": args.camera, "rows": ROWS[args.camera]}
+    (out / "r2.json").write_text(json.dumps({**summary, "r2": fields}, indent=1))
     if args.perception_only:
         (out / "probe.md").write_text("\n".join(lines))
         print("\n".join(lines))

@@ -220,7 +220,31 @@ def test_the_perception_probe_reads_the_frames_of_the_view_it_is_given(tmp_path)
     args = [*base, "view=cover64", "agent.chooser.episodes=6", "--steps", "3", "--threads", "1", "--perception-only"]
     assert perception_probe.main(args) == 0
     written = json.loads((tmp_path / "runs/t/perception_probe/r2.json").read_text())
-    assert set(written["r2"]) == set(HAZARD_STATE) and written["steps"] == 3
+    assert set(written["r2"]) == set(HAZARD_STATE) and written["steps"] == 3 and written["camera"] == "wide"
     cover = chooser_labels.labels_dir(compose("train_agent", [*base, "view=cover64", "agent=chooser"]))
     paper = chooser_labels.labels_dir(compose("train_agent", [*base, "agent=chooser"]))
     assert cover.exists() and cover != paper
+
+
+def test_the_perception_probe_reads_the_second_cameras_frames_when_asked(tmp_path):
+    import json
+
+    from experiments import perception_probe
+
+    base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=t", "scale=smoke"]
+    args = [
+        *base,
+        "agent.chooser.episodes=6",
+        "--steps",
+        "3",
+        "--threads",
+        "1",
+        "--perception-only",
+        "--camera",
+        "tele",
+    ]
+    with pytest.raises(SystemExit, match="tele_fov_deg"):
+        perception_probe.main(args)
+    assert perception_probe.main(["env.tele_fov_deg=30", *args]) == 0
+    written = json.loads((tmp_path / "runs/t/perception_probe/r2.json").read_text())
+    assert written["camera"] == "tele" and written["rows"] == [8, 48]
