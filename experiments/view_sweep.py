@@ -9,7 +9,7 @@ For each view, on the validation banks only:
   pedestrian scenarios at 30 m/s and TTC 1.0 s (bank 4711, 20 per cell, straight-line braking's first frame), and
   the share where it covers none; the narrow 30° second camera's frame beside them;
 * **perception**: ``experiments/perception_probe``'s R² (a CNN on the raw frame band; its ``r2.json`` copied to
-  ``docs/results/views/<view>/probe.json``);
+  ``docs/results/views/<view>/probe.json``; ``tele30/``: the 30° second camera's band, ``--camera tele``);
 * **decisions**: the chooser's and the counterfactual-cost actor's share of the achievable improvement on the
   validation banks 4711 and 4712 pooled, from the rows published in ``docs/results/views/<view>/`` (the paper's
   view: ``docs/results/phase3/``, the same quick-scale settings).
@@ -79,7 +79,7 @@ def two_camera_reference() -> dict:
 def figure(plot: bool = True) -> str:
     """The sweep's table (markdown); ``plot``: also draw ``sweep.png``."""
     pixels = json.loads((OUT / "pixels.json").read_text())["views"]
-    probes = {v: json.loads(p.read_text()) for v in VIEWS if (p := OUT / v / "probe.json").exists()}
+    probes = {v: json.loads(p.read_text()) for v in (*VIEWS, "tele30") if (p := OUT / v / "probe.json").exists()}
     decided = {v: shares(rows_dir(v)) for v in VIEWS}
     tele = two_camera_reference()
 
@@ -107,10 +107,10 @@ def figure(plot: bool = True) -> str:
             )
             + " |"
         )
-    t = pixels["tele30"]
+    t, r2 = pixels["tele30"], probes.get("tele30", {}).get("r2", {})
     lines.append(
         f"| 30° second camera (reference) | {t['px_mean']:.1f} | {100 * t['none_share']:.0f} | "
-        + " | ".join("–" for _ in PROBE_FIELDS)
+        + " | ".join("–" if r2.get(f) is None else f"{r2[f]:.2f}" for f in PROBE_FIELDS)
         + f" | two-camera chooser, paper scale, bank 4711: {cell(tele)} | – |"
     )
     if plot:
@@ -126,9 +126,9 @@ def _plot(pixels: dict, probes: dict, decided: dict, tele: dict) -> None:
 
     fig, (ax_share, ax_r2) = plt.subplots(1, 2, figsize=(10, 4))
     markers = {"chooser": "o", "counterfactual actor": "s"}
-    for v in VIEWS:
+    for v in (*VIEWS, "tele30"):
         x = pixels[v]["px_mean"]
-        for name, s in decided[v].items():
+        for name, s in decided.get(v, {}).items():
             lo, hi = s["ci95"]
             ax_share.errorbar(
                 x,
