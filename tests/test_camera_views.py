@@ -221,6 +221,9 @@ def test_the_perception_probe_reads_the_frames_of_the_view_it_is_given(tmp_path)
     assert perception_probe.main(args) == 0
     written = json.loads((tmp_path / "runs/t/perception_probe/r2.json").read_text())
     assert set(written["r2"]) == set(HAZARD_STATE) and written["steps"] == 3 and written["camera"] == "wide"
+    assert sum(band["frames"] for band in written["r2_by_speed"].values()) == len(
+        np.load(tmp_path / "runs/t/perception_probe/validation.npz")["speed"]
+    )
     cover = chooser_labels.labels_dir(compose("train_agent", [*base, "view=cover64", "agent=chooser"]))
     paper = chooser_labels.labels_dir(compose("train_agent", [*base, "agent=chooser"]))
     assert cover.exists() and cover != paper
