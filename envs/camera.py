@@ -260,7 +260,7 @@ class SegmentationCamera:
     * ``road_user_cover``: a pixel shows a road user wherever the road user's box covers any part of it, unless
       something nearer is drawn at all four of the pixel's corners (conservative rasterisation; a pedestrian that
       steps out from behind a parked car by a fraction of a pixel shows). It is the limit of rendering at k×
-      and pooling as below, for k -> infinity, at the cost of projecting the boxes in view (~0.1 ms per frame).
+      and pooling as below, for k -> infinity, at the cost of projecting the boxes in view (~0.2 ms per frame).
     * ``supersample=k``: render at k× the size and pool each k×k block: a pedestrian in any sub-pixel wins, then a
       vehicle; otherwise the sub-pixel at the coarse pixel's own sample point (so the rest of the frame is the
       plain render's). The reference for the cover; it costs the k²-larger render.
