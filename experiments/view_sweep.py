@@ -119,52 +119,59 @@ def _plot(pixels: dict, probes: dict, decided: dict, tele: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax_share, ax_r2) = plt.subplots(1, 2, figsize=(10, 4))
-    markers = {"chooser": "o", "counterfactual actor": "s"}
+    fig, (ax_share, ax_r2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    colour = {"paper64": "tab:blue", "cover64": "tab:green", "pool64": "tab:olive", "tele30": "tab:grey"}
+    learner_marker = {"chooser": ("o", 0.93), "counterfactual actor": ("s", 1.07)}  # marker, x offset (factor)
     for v in (*VIEWS, "tele30"):
         x = pixels[v]["px_mean"]
         for name, s in decided.get(v, {}).items():
+            marker, dx = learner_marker[name]
             lo, hi = s["ci95"]
             ax_share.errorbar(
-                x,
+                x * dx,
                 s["share"],
                 yerr=[[s["share"] - lo], [hi - s["share"]]],
-                fmt=markers[name],
+                fmt=marker,
+                color=colour[v],
                 capsize=3,
                 label=f"{name}, {v}",
             )
         r2 = probes.get(v, {}).get("r2", {})
-        for field, marker in (("pedestrian", "o"), ("ped_dx", "^")):
+        for field, marker, dx in (("pedestrian", "o", 0.95), ("ped_dx", "^", 1.05)):
             if r2.get(field) is not None:
-                ax_r2.plot(x, r2[field], marker, label=f"{field}, {v}")
+                ax_r2.plot(x * dx, r2[field], marker, color=colour[v], label=f"{field}, {v}")
     lo, hi = tele["ci95"]
+    x = pixels["tele30"]["px_mean"]
     ax_share.errorbar(
-        pixels["tele30"]["px_mean"],
+        x,
         tele["share"],
         yerr=[[tele["share"] - lo], [hi - tele["share"]]],
         fmt="D",
         capsize=3,
-        color="grey",
-        label="two-camera chooser (paper scale)",
+        color=colour["tele30"],
+        label="two-camera chooser (paper scale, bank 4711)",
     )
     ax_share.axhline(0, color="k", lw=0.5)
+    ax_r2.axhline(0.8, color="grey", ls=":", lw=0.8, label="bar (a): present")
+    ax_r2.axhline(0.7, color="grey", ls="--", lw=0.8, label="bar (a): distance")
+    label = f"px on the hazard pedestrian at {CELL[0]:g} m/s, TTC {CELL[1]:g} s (onset)"
     ax_share.set(
-        xscale="symlog",
-        xlabel=f"px on the pedestrian at {CELL[0]:g} m/s, TTC {CELL[1]:g} s (onset)",
+        xscale="log",
+        xlim=(0.4, 25),
+        xlabel=label,
         ylabel="share of the achievable improvement, %",
-        title="Decisions (validation 4711+4712)",
+        title="Decisions, validation banks 4711 + 4712 pooled",
     )
-    ax_r2.axhline(0.8, color="grey", ls=":", lw=0.8)
-    ax_r2.axhline(0.7, color="grey", ls="--", lw=0.8)
     ax_r2.set(
-        xscale="symlog",
+        xscale="log",
+        xlim=(0.4, 25),
         ylim=(0, 1),
-        xlabel=f"px on the pedestrian at {CELL[0]:g} m/s, TTC {CELL[1]:g} s",
-        ylabel="R² on validation frames",
-        title="Perception of the hazard pedestrian",
+        xlabel=label,
+        ylabel="R² on the validation frames",
+        title="Perception of the hazard pedestrian (probe)",
     )
     for ax in (ax_share, ax_r2):
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(OUT / "sweep.png", dpi=120)
     plt.close(fig)
