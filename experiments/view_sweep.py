@@ -1,6 +1,7 @@
 """The camera's views compared (conf/view/; docs/results/views/): pixels on the pedestrian, perception, decisions.
 
     python -m experiments.view_sweep pixels     # the simulator: px on the hazard pedestrian per view (~10 s)
+    python -m experiments.view_sweep visibility # the simulator: the hazard unseen, other pedestrians seen (~15 s)
     python -m experiments.view_sweep figure     # from committed files only: the table and the figure
 
 For each view, on the validation banks only:
@@ -22,6 +23,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+import numpy as np
 
 from worldmodel.report import published
 
@@ -49,6 +52,44 @@ def measure_pixels(per_cell: int = 20) -> dict:
         onset = pixels(kwargs[0], entries, **kwargs[1])[CELL][:, 0]
         out[name] = {"px_mean": float(onset.mean()), "none_share": float((onset == 0).mean()), "scenarios": len(onset)}
     return {"cell": {"speed_mps": CELL[0], "ttc_s": CELL[1]}, "bank_seed": 4711, "per_cell": per_cell, "views": out}
+
+
+def measure_visibility(per_cell: int = 5, frames: int = 3) -> dict:
+    """Per view, over the decision frames of validation bank 4711 (its first ``frames`` frames under straight-line
+    braking): the share of the hazard pedestrian's frames where it covers no pixel, and the share of all frames where
+    another pedestrian covers one. The first bounds how well a frame can say that the hazard is there; the second,
+    how often a pedestrian in the frame is not the hazard."""
+    from envs import UrbanCollisionEnv, scenario_bank
+    from envs.chooser import BRAKE
+    from worldmodel.recording import view_env
+
+    out = {}
+    for name in ("paper64", "cover64"):
+        env = UrbanCollisionEnv(**view_env(name))
+        hazard_px, others = [], []
+        try:
+            for entry in scenario_bank(per_cell=per_cell, seed=4711):
+                env.reset(options={"scenario": entry.spec})
+                for _ in range(frames):
+                    a, pool = env.actors, env._pool
+                    on = [u for u, active in zip(pool.pedestrians, a.ped_active) if active]
+                    hazard = [u for u, hz, active in zip(pool.pedestrians, a.ped_hazard, a.ped_active) if hz and active]
+                    if hazard:
+                        hazard_px.append(env.hazard_pixels())
+                    rest = [u for u in on if u not in hazard]
+                    others.append(bool(rest) and bool(np.isin(env._camera.last_uids, rest).any()))
+                    _, _, terminated, truncated, _ = env.step(BRAKE)
+                    if terminated or truncated:
+                        break
+        finally:
+            env.close()
+        out[name] = {
+            "hazard_frames": len(hazard_px),
+            "hazard_unseen_share": float(np.mean(np.asarray(hazard_px) == 0)),
+            "frames": len(others),
+            "other_pedestrian_seen_share": float(np.mean(others)),
+        }
+    return {"bank_seed": 4711, "per_cell": per_cell, "frames_per_scenario": frames, "views": out}
 
 
 def shares(directory: Path) -> dict[str, dict]:
@@ -179,12 +220,12 @@ def _plot(pixels: dict, probes: dict, decided: dict, tele: dict) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["pixels", "figure"])
+    parser.add_argument("what", choices=["pixels", "visibility", "figure"])
     args = parser.parse_args(argv)
     OUT.mkdir(parents=True, exist_ok=True)
-    if args.what == "pixels":
-        result = measure_pixels()
-        (OUT / "pixels.json").write_text(json.dumps(result, indent=1) + "\n")
+    if args.what in ("pixels", "visibility"):
+        result = measure_pixels() if args.what == "pixels" else measure_visibility()
+        (OUT / f"{args.what}.json").write_text(json.dumps(result, indent=1) + "\n")
         print(json.dumps(result, indent=1))
     else:
         table = figure()

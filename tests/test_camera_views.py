@@ -177,8 +177,9 @@ def test_the_committed_view_sweep_is_what_its_command_computes():
     committed = json.loads((view_sweep.OUT / "pixels.json").read_text())
     assert view_sweep.measure_pixels(committed["per_cell"]) == committed
     assert committed["views"]["paper64"]["none_share"] > 0.3 and committed["views"]["cover64"]["none_share"] == 0.0
-    if (view_sweep.OUT / "sweep.md").exists():
-        assert (view_sweep.OUT / "sweep.md").read_text() == view_sweep.HEADER + view_sweep.figure(plot=False)
+    seen = json.loads((view_sweep.OUT / "visibility.json").read_text())
+    assert view_sweep.measure_visibility(seen["per_cell"], seen["frames_per_scenario"]) == seen
+    assert (view_sweep.OUT / "sweep.md").read_text() == view_sweep.HEADER + view_sweep.figure(plot=False)
 
 
 # The paper view's frames of nine scenarios of bank 2018 (onset and five steps of braking while steering), hashed as the
