@@ -149,6 +149,19 @@ def figure(plot: bool = True) -> str:
         + " | ".join("–" if r2.get(f) is None else f"{r2[f]:.2f}" for f in PROBE_FIELDS)
         + f" | two-camera chooser, paper scale, bank 4711: {cell(tele)} | – |"
     )
+    banded = {v: p["r2_by_speed"] for v, p in probes.items() if p.get("r2_by_speed")}
+    if banded:
+        bands = list(next(iter(banded.values())))
+        lines += [
+            "",
+            "The pedestrian's R² by the ego's speed at the decision (the faster, the farther the hazard at a TTC):",
+            "",
+            "| view | " + " | ".join(f"{b}: present / distance" for b in bands) + " |",
+            "|---|" + "---:|" * len(bands),
+        ]
+        for v, by in banded.items():
+            cells = [f"{by[b]['pedestrian']:.2f} / {by[b]['ped_dx']:.2f}" if b in by else "–" for b in bands]
+            lines.append(f"| {v} | " + " | ".join(cells) + " |")
     if plot:
         _plot(pixels, probes, decided, tele)
     return "\n".join(lines) + "\n"
