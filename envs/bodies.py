@@ -136,11 +136,7 @@ class BodyPool:
             self.z[uid] = (centre_z - height[uid], centre_z + height[uid])
             self.in_use[uid] = True
         self._half_height = np.array(height)
-        # Per body: box half extents and heading (radians; only cars turn), for the camera's coverage of road users.
-        self.half_extents = np.array(halves, dtype=np.float64)
-        self.heading = np.zeros(n)
-        self.road_users = np.flatnonzero(np.isin(self.lut[1:], (PEDESTRIANS, VEHICLES)))
-        self.road_users = self.road_users[self.road_users != self.ego]
+        self._index_road_users(halves)
         self._cullable = np.ones(n, dtype=bool)
         self._cullable[self.ground_uids] = False
         self._cullable[self.ego] = False
@@ -149,6 +145,15 @@ class BodyPool:
         self.z[self._cars] = (0.0, 2.0 * self._car_half_height)  # where actors stand when active
         self.z[self._peds] = (SIDEWALK_HEIGHT, SIDEWALK_HEIGHT + 2.0 * self._ped_half_height)
         self.show(np.zeros(n, dtype=bool))
+
+    def _index_road_users(self, halves: list) -> None:
+        """Per body its box's half extents and heading (radians; only cars turn), and which bodies are road users
+        (pedestrians and vehicles, the ego's own body left out): what the camera's cover of road users projects."""
+        self.half_extents = np.array(halves, dtype=np.float64)
+        self.heading = np.zeros(len(halves))
+        road = np.isin(self.lut[1:], (PEDESTRIANS, VEHICLES))
+        road[self.ego] = False
+        self.road_users = np.flatnonzero(road)
 
     # ------------------------------------------------------------------ placing
     def _move(self, uid: int, pos) -> None:

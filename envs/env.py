@@ -137,15 +137,11 @@ class UrbanCollisionEnv(gym.Env):
         for key, ok in checks.items():
             if not ok:
                 raise ValueError(f"env config {key}={locals()[key]!r} is invalid")
-        self.camera = bool(camera)
-        self.image_size = int(image_size)
-        self.fov_deg = float(fov_deg)
+        self.camera, self.image_size, self.fov_deg = bool(camera), int(image_size), float(fov_deg)
         self.tele_fov_deg = None if tele_fov_deg is None else float(tele_fov_deg)
-        self.road_user_cover = bool(road_user_cover)
-        self.supersample = int(supersample)
+        self.road_user_cover, self.supersample = bool(road_user_cover), int(supersample)
         self.reward_name = reward
-        self.horizon_after_ttc_s = horizon_after_ttc_s
-        self.max_episode_s = float(max_episode_s)
+        self.horizon_after_ttc_s, self.max_episode_s = horizon_after_ttc_s, float(max_episode_s)
         self.occupants_per_car = int(occupants_per_car)
         self.ego_mass, self.car_mass = float(ego_mass), float(car_mass)
         self.substeps = int(substeps)
