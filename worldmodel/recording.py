@@ -22,6 +22,7 @@ import numpy as np
 from envs.streams import DATASET_SPLIT, RECORDING_BRANCHES
 
 from .common import StageError, atomic_write_text, clean_temporaries, file_sha256, worker_pool, writer_lock
+from .config.data import EnvConfig
 from .data import SCHEMA_VERSION, shard_name, write_shard
 
 log = logging.getLogger(__name__)
@@ -30,7 +31,7 @@ log = logging.getLogger(__name__)
 ENV_KEYS = ("image_size", "fov_deg", "mu", "occupants_per_car")
 # The view's keys (conf/view/): they shape the frames too, and join a store's settings only when on, so that the
 # paper's view keeps the names of the stores recorded before views existed.
-VIEW_OFF = {"road_user_cover": False, "supersample": 1}
+VIEW_OFF = {key: EnvConfig.ADDED_OFF[key] for key in ("road_user_cover", "supersample")}
 _ENV = None
 _ENV_KWARGS: dict | None = None
 

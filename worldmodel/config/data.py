@@ -180,7 +180,7 @@ class EnvConfig(Checked):
     tele_fov_deg: float | None = None
     # How the camera draws road users narrower than a pixel (the views of conf/view/; docs/design.md §3). false: one
     # sample per pixel, as TinyRenderer draws (the paper's frame, where a pedestrian 30 m ahead is ~0.6 px wide and
-    # missing from half the frames); true: every pixel a road user's box covers in part shows it (~0.3 ms a frame)
+    # missing from half the frames); true: every pixel a road user's box covers in part shows it (~0.2 ms a frame)
     road_user_cover: bool = False
     # render at this many times the size and pool each block, a road user in any sub-pixel winning (the cover's
     # reference: 1 = off; 4 costs ~10x the step time, so no view uses it for training)
