@@ -31,6 +31,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from worldmodel.banks import validation_draw
+from worldmodel.checkpoints import read_checkpoint
 
 
 def main(argv=None) -> None:
@@ -75,7 +76,7 @@ def main(argv=None) -> None:
     for seed in args.seeds:
         agent = agents[seed]
         src = agent.dir(cfg)
-        last = torch.load(src / "last.pt", map_location="cpu", weights_only=False)
+        last = read_checkpoint(src / "last.pt")
         trained = chae.selected(last["curve"]["validation"], chae.BAR_BUMP)
         record = chae.rescore_kept(cfg, agent, src, last["curve"]["validation"], sel)
         chosen = record["chosen"]

@@ -138,3 +138,30 @@ def test_slurm_launcher_writes_the_documented_sbatch_script(tmp_path):
     assert not [k for k in sbatch if "gpu" in k or k == "gres"], "a CPU-only job must not ask for a GPU"
     assert sbatch["output"].startswith(str(the_sweep_dir(tmp_path) / ".submitit") + "/")
     assert f"{sys.executable} -u -m submitit.core._submit" in lines[-1]
+
+
+def test_pipeline_launcher_slurm_without_slurm_says_what_works_here_before_any_step(tmp_path):
+    """launcher=slurm on a machine without SLURM's commands stops at once with one sentence naming the setting, the
+    launchers that work here and how to check for SLURM, rather than submitit's traceback after the lock is taken."""
+    path = os.pathsep.join(
+        d for d in os.environ["PATH"].split(os.pathsep) if not any((Path(d) / c).exists() for c in ("sbatch", "srun"))
+    )
+    cmd = [
+        sys.executable,
+        "-m",
+        "worldmodel.pipeline",
+        "experiment=smk",
+        "scale=smoke",
+        "launcher=slurm",
+        f"paths.data_root={tmp_path}/data",
+        f"paths.runs_root={tmp_path}/runs",
+        f"paths.ledger={tmp_path}/ledger.csv",
+    ]
+    env = {**os.environ, "PATH": path, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    said = result.stdout + result.stderr
+    assert result.returncode == 2, said[-3000:]
+    assert "Traceback" not in said and "launcher=slurm" in said and "launcher=local" in said, said[-3000:]
+    assert "sbatch --version" in said, said[-3000:]
+    assert not (tmp_path / "data").exists(), "a step ran before the launcher was checked"
+    assert not (tmp_path / "runs/smk/pipeline.json").exists()

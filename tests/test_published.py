@@ -292,6 +292,24 @@ def test_publish_names_the_malformed_file_and_line(results, tmp_path, capsys, da
     assert not (tmp_path / "out").exists()
 
 
+def test_publish_refuses_a_folder_not_named_as_an_evaluation(tmp_path):
+    """A folder whose name no evaluation folder starts with stops ``report publish`` with exit 2 and one sentence
+    naming the folder and the names it takes, not a bare StopIteration; nothing is written."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "runs/x/notaneval"
+    folder.mkdir(parents=True)
+    (folder / "summary.json").write_text("{}")  # finished, so only its name is wrong
+    stem = tmp_path / "out" / "validation"
+    cmd = [sys.executable, "-m", "worldmodel.report", "publish", str(folder), str(stem), "--command", "x"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    said = result.stdout + result.stderr
+    assert result.returncode == 2, said[-3000:]
+    assert "Traceback" not in said and str(folder) in said and "runs/NAME/eval_test" in said, said[-3000:]
+    assert not (tmp_path / "out").exists()
+
+
 def test_recheck_lists_the_tables_it_cannot_hold_to_rows(results, capsys):
     """A table with no rows beside it (an investigation's, kept as rendered) is named as not rechecked, and the
     closing line counts both kinds."""

@@ -432,12 +432,15 @@ def file_sha256(path: Path) -> str:
 
 
 def load_checkpoint(path: Path, what: str, stage: str, cfg) -> dict:
-    """Load a checkpoint written by ``atomic_torch_save``; a missing or unreadable one is a StageError."""
-    import torch
+    """Load a checkpoint written by ``atomic_torch_save``, building nothing but tensors, plain data and numpy arrays
+    (``checkpoints.read_checkpoint``); a missing, unreadable or unsafe one is a StageError."""
+    from .checkpoints import read_checkpoint
 
     require(path, what, stage, cfg)
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        return read_checkpoint(path)
+    except StageError:
+        raise
     except Exception as err:  # truncated or not a torch file
         raise StageError(
             f"{what} at {path} cannot be read ({type(err).__name__}: {err}). Delete {Path(path).parent} (the "

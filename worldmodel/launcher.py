@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 import resource
+import shutil
 import time
 from pathlib import Path
 
@@ -54,10 +55,30 @@ def run_step(run, cfg, cpus: list[int] | None) -> dict:
     }
 
 
+SLURM_COMMANDS = ("sbatch", "srun")  # submitit looks for srun when it starts and submits each job with sbatch
+
+
+def check_reachable(cfg) -> None:
+    """A StageError when ``launcher=slurm`` but SLURM's commands are not on PATH: said before any step runs, rather
+    than as submitit's traceback once the run has begun."""
+    if cfg.launcher != "slurm":
+        return
+    missing = [c for c in SLURM_COMMANDS if shutil.which(c) is None]
+    if not missing:
+        return
+    raise StageError(
+        f"launcher=slurm submits each step as a SLURM job, but {' and '.join(missing)} "
+        f"{'is' if len(missing) == 1 else 'are'} not on PATH here: run on a machine of the SLURM cluster (where "
+        "`sbatch --version` and `sinfo` answer), or run on this machine with launcher=local (the steps as processes "
+        "here, launcher_jobs at once) or without a launcher setting (launcher=inline, one step after another)"
+    )
+
+
 def executor(cfg, folder: Path):
     """The submitit executor of ``cfg.launcher``."""
     import submitit
 
+    check_reachable(cfg)
     if cfg.launcher == "local":
         ex = submitit.LocalExecutor(folder=folder)
         ex.update_parameters(timeout_min=NEVER_S)

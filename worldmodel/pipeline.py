@@ -262,6 +262,7 @@ def run(cfg) -> dict:
         rows = plan(cfg)
         log.info("[pipeline] plan=true: what a run would do now; nothing runs\n%s", plan_text(rows))
         return {"plan": rows}
+    launcher.check_reachable(cfg)  # after the plan, which needs no SLURM; refused before the lock is taken
     with writer_lock(artifacts.runs_root(cfg), "one experiment's pipeline"):
         return _run_steps(cfg)
 

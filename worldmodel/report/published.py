@@ -91,7 +91,15 @@ def family_of(eval_dir: Path) -> str:
     """The family whose evaluation folder (``artifacts.eval_dir``) ``eval_dir`` is, by its name."""
     named = {f.folder: f.name for f in registry.families()} | {f"eval_{NCAP}": NCAP}
     longest = sorted(named, key=len, reverse=True)  # eval_chae before eval: every folder name starts with "eval"
-    return next(named[folder] for folder in longest if eval_dir.name.startswith(folder))
+    family = next((named[folder] for folder in longest if eval_dir.name.startswith(folder)), None)
+    if family is None:
+        raise RecheckError(
+            f"{eval_dir} is not an evaluation folder: publish takes a folder an evaluation wrote, whose name "
+            f"starts with one of {', '.join(sorted(named))} (e.g. runs/NAME/eval, runs/NAME/eval_test, "
+            "runs/NAME/eval_seed4712, runs/NAME/eval_chae), or an LSTM stage's folder runs/NAME/rnn that holds "
+            f"action_effect.rows.csv.gz; it got {eval_dir.name!r}: pass one of those folders"
+        )
+    return family
 
 
 def bank_of(eval_dir: Path, family: str) -> tuple[str, int | None]:
@@ -142,9 +150,9 @@ def publish(eval_dir: Path, stem: Path, command: str) -> Path:
     eval_dir, stem = Path(eval_dir), Path(stem)
     if (eval_dir / "action_effect.rows.csv.gz").exists():
         return publish_action_effect(eval_dir, stem, command)
+    family = family_of(eval_dir)  # a wrong folder is named as such, before asking whether it finished
     if not (eval_dir / "summary.json").exists():
         raise RecheckError(f"{eval_dir} holds no finished evaluation (no summary.json): run it first")
-    family = family_of(eval_dir)
     bank, seed = bank_of(eval_dir, family)
     summary = json.loads((eval_dir / "summary.json").read_text())
     meta = {

@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 from ...artifacts import AgentId
+from ...checkpoints import read_checkpoint
 from ...common import StageError
 from .evaluate import bank, run_policy
 from .observe import family_env
@@ -84,7 +85,6 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
     Returns the draw, every shortlisted checkpoint's bumps per TTC, their highest and the needless stops, and the
     chosen one (None: no candidate). ``cache`` (str(episode) -> entry) holds checkpoints already rescored on this
     draw, and takes the new ones."""
-    import torch
 
     from ...config import validate
 
@@ -101,7 +101,7 @@ def rescore_kept(cfg, agent_id: AgentId, run_dir, scores: list[dict], sel=None, 
         path = validated_path(run_dir, score["episode"])
         if not path.exists():
             raise StageError(f"{path} is missing: rescoring reads the checkpoints agent.chae.select.keep=true keeps")
-        policy = policy_from_state(cfg, agent_id, torch.load(path, map_location="cpu", weights_only=False))
+        policy = policy_from_state(cfg, agent_id, read_checkpoint(path))
         env = env or family_env(cfg, camera=policy.see.camera, end_on_bump=False)
         s = summarise(run_policy(env, policy, entries, leave=False), ttcs)["policies"][policy.name]
         cache[str(score["episode"])] = {
