@@ -502,21 +502,24 @@ def test_peers_merola_and_kim_train_and_the_ncap_bank_runs_every_policy(experime
 
 def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what_inline_writes(experiment, tmp_path):
     """launcher=local runs each level's steps as submitit jobs on their own cores. Killed outright while its agent
-    jobs run, then rerun, it waits for the jobs the first one left and finishes; the rows and the models' hashes are
-    those of the inline pipeline (the module's experiment) for the same policies."""
+    jobs run, then rerun, it waits for the jobs the first one left and finishes; its checkpoints and rows, the
+    models' hashes included, are the bytes the inline pipeline writes. Both run on two threads, the default: a job
+    on one core of the two keeps them (a job that trained on one thread would round the chooser's scorer
+    otherwise)."""
     import os
     import signal
     import subprocess
     import sys
     import time
 
-    root = tmp_path / "launched"
-    shutil.copytree(experiment / "data", root / "data")  # the same world model: the agents and the evaluation run
-    for stage in ("vae", "rnn"):
-        shutil.copytree(experiment / "runs/t" / stage, root / "runs/t" / stage)
+    root, inline = tmp_path / "launched", tmp_path / "inline"
+    for r in (root, inline):  # the same world model: the agents and the evaluation run
+        shutil.copytree(experiment / "data", r / "data")
+        for stage in ("vae", "rnn"):
+            shutil.copytree(experiment / "runs/t" / stage, r / "runs/t" / stage)
     # two agents that train in a second or two, as two jobs on their own cores
-    args = ["launcher=local", "agents=[chooser,counterfactual]", "evaluate.policies=[braking]"]
-    command = [sys.executable, "-m", "worldmodel.pipeline", *smoke_cfg_overrides(root), *args]
+    args = ["agents=[chooser,counterfactual]", "evaluate.policies=[braking]", "threads=2"]
+    command = [sys.executable, "-m", "worldmodel.pipeline", *smoke_cfg_overrides(root), "launcher=local", *args]
     log = tmp_path / "first.log"
     with open(log, "w") as out:
         first = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
@@ -526,21 +529,20 @@ def test_the_local_launcher_finishes_what_a_killed_launcher_left_and_writes_what
         assert "agent_r2_counterfactual: job" in log.read_text(), log.read_text()[-2000:]
         os.kill(first.pid, signal.SIGKILL)  # the launcher alone: its jobs go on
         first.wait()
-    pipeline.run(smoke_cfg(root, "pipeline", *args))
+    pipeline.run(smoke_cfg(root, "pipeline", "launcher=local", *args))
+    pipeline.run(smoke_cfg(inline, "pipeline", *args))
 
-    launched = read_results_csv(root / "runs/t/eval/results.csv")
-    inline = [
-        r
-        for r in read_results_csv(experiment / "runs/t/eval/results.csv")
-        if r["policy"] in ("braking", "agent_r2_chooser", "agent_r2_counterfactual")
-    ]
+    for agent in ("agent_r2_chooser", "agent_r2_counterfactual"):
+        a, b = (r / "runs/t" / agent / "seed0/last.pt" for r in (root, inline))
+        assert a.read_bytes() == b.read_bytes(), f"{agent}: the launched job's checkpoint is not the inline one's"
+    launched, inlined = (read_results_csv(r / "runs/t/eval/results.csv") for r in (root, inline))
     differences = [
         (k, key, a.get(key), b.get(key))
-        for k, (a, b) in enumerate(zip(launched, inline))
+        for k, (a, b) in enumerate(zip(launched, inlined))
         for key in sorted(set(a) | set(b))
         if repr(a.get(key)) != repr(b.get(key))
     ]
-    assert len(launched) == len(inline) and not differences, differences[:10]
+    assert len(launched) == len(inlined) > 0 and not differences, differences[:10]
     # a step the first launcher's job finished is complete on disk; it recorded no time, having been killed
     timings = json.loads((root / "runs/t/pipeline.json").read_text())
     assert "collect" not in timings and timings["eval"]["complete"]  # the world model was complete: skipped

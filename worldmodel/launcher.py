@@ -39,7 +39,10 @@ def levels(steps: list) -> list[list]:
 
 def run_step(run, cfg, cpus: list[int] | None) -> dict:
     """A job's body: the stage's ``run(cfg)`` on ``cpus`` (its share of the machine, so that worker counts left at
-    auto follow it), with its wall time and the peak memory of its process and workers."""
+    auto follow it), with its wall time and the peak memory of its process and workers. The stage keeps its
+    configured ``threads`` on a smaller share: torch splits a sum or a product by thread, so the count decides the
+    last bits of a trained model, and a job then writes the bytes the inline pipeline writes (docs/design.md §9);
+    two threads taking turns on one core cost nothing measurable (benchmarks/RESULTS.md)."""
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
     if cpus:
         os.sched_setaffinity(0, cpus)
@@ -132,9 +135,8 @@ def launch(cfg, planned: list, prepare, record) -> bool:
                 if stage_cfg is None:
                     continue
                 cpus = None
-                if local:  # a share no running job holds
+                if local:  # a share no running job holds; its threads stay as configured (``run_step``)
                     cpus = next(share for share in shares if all(share is not c for _, _, c in running))
-                    stage_cfg = OmegaConf.merge(stage_cfg, {"threads": len(cpus)})
                 job = ex.submit(run_step, step.run, stage_cfg, cpus)
                 log.info("[launcher] %s: job %s%s", step.name, job.job_id, f" on cores {cpus}" if cpus else "")
                 running.append((step, job, cpus))
