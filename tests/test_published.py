@@ -242,6 +242,13 @@ def test_a_learner_judged_later_on_its_own_world_model_joins_the_readme_table(tm
     assert "| A later learner † | 3 | -178.0 [-215.3, -145.4] | -159.3 [-194.9, -131.6] |" in table
     assert table.count("Privileged planner") == 1 and "(docs/results/porav/later/)" in table
 
+    # one judged on another view of the camera (views/VIEW/NAME/) is marked apart, with the view in its label
+    (tmp_path / "views/cover64/sealed").mkdir(parents=True)
+    (tmp_path / "views/cover64/sealed/headline.json").write_text(json.dumps(later))
+    table = published.readme_table(tmp_path)
+    assert "| A later learner, view cover64 ‡ | 3 | -178.0 [-215.3, -145.4] | -159.3 [-194.9, -131.6] |" in table
+    assert table.count("Privileged planner") == 1 and "(docs/results/views/cover64/sealed/)" in table
+
 
 def test_the_readme_result_table_is_the_generated_one():
     text = published.README.read_text()

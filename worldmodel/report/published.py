@@ -480,12 +480,14 @@ def readme_table(results: Path = RESULTS) -> str:
         lines.append(
             report._md_row([entry["label"], seeds, _share_text(entry["validation"]), _share_text(entry["test"])])
         )
-    # a learner judged later, on a world model of its own, with braking and the planner evaluated again beside it
+    # a learner judged later, on a world model of its own, with braking and the planner evaluated again beside it:
+    # of the same settings (porav/*/, †), or of another view of the camera (views/VIEW/*/, ‡)
     later = sorted(path.parent for path in (Path(results) / "porav").glob("*/headline.json"))
-    for folder in later:
+    viewed = sorted(path.parent for path in (Path(results) / "views").glob("*/*/headline.json"))
+    for folder in later + viewed:
         for p, entry in json.loads((folder / "headline.json").read_text())["policies"].items():
             if p not in SCRIPTED:
-                label = f"{entry['label']} †"
+                label = f"{entry['label']} †" if folder in later else f"{entry['label']}, view {folder.parent.name} ‡"
                 seeds = str(len(entry["test"]["seeds"]))
                 lines.append(
                     report._md_row([label, seeds, _share_text(entry["validation"]), _share_text(entry["test"])])
@@ -499,6 +501,9 @@ def readme_table(results: Path = RESULTS) -> str:
     if later:
         where = ", ".join(f"docs/results/porav/{folder.name}/" for folder in later)
         lines[-1] += f" † Judged later on a second world model of the same settings ({where})."
+    if viewed:
+        where = ", ".join(f"docs/results/views/{folder.parent.name}/{folder.name}/" for folder in viewed)
+        lines[-1] += f" ‡ Judged later on the camera's view named, with a world model of its own ({where})."
     return "\n".join(lines)
 
 
