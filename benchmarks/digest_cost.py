@@ -1,6 +1,6 @@
 """What checking a checkpoint's digest adds to loading it, in a fresh process (benchmarks/RESULTS.md).
 
-    python -m benchmarks.digest_cost load  [CHECKPOINT]   # torch.load alone, as a stage loaded a model before
+    python -m benchmarks.digest_cost load  [CHECKPOINT]   # reading it alone, as a stage loaded a model before
     python -m benchmarks.digest_cost check [CHECKPOINT]   # the file's SHA-256 first, as artifacts.check_output does
 
 The default checkpoint is the paper-scale VAE's (runs/headline/vae/best.pt, 56 MB), the largest model a stage loads
@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import sys
 
-import torch
-
+from worldmodel.checkpoints import read_checkpoint
 from worldmodel.common import file_sha256
 
 
@@ -22,7 +21,7 @@ def main(argv: list[str]) -> None:
         file_sha256(path)
     elif mode != "load":
         raise SystemExit("usage: python -m benchmarks.digest_cost load|check [CHECKPOINT]")
-    torch.load(path, map_location="cpu", weights_only=False)
+    read_checkpoint(path)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ Times, in one process and in alternating pairs, the full unpickler a checkpoint 
 (``torch.load(weights_only=False)``) against the project's reader (``worldmodel.checkpoints.read_checkpoint``,
 torch's weights-only unpickler with numpy's arrays allowed), on two files: a VAE's checkpoint (the paper's VAE,
 56 MB, the largest model a stage loads whole) and an agent's checkpoint holding a full replay memory of ``--replay``
-transitions of the paper's DDPG observation (2 x 128 + 1 floats), written the way a stage writes it.
+transitions of the paper's DDPG observation (2 x 128 + 1 floats), written the way a stage writes it. The full
+unpickler runs whatever a file names: point ``--vae`` at a checkpoint you wrote.
 """
 
 from __future__ import annotations
