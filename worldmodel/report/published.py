@@ -487,7 +487,8 @@ def readme_table(results: Path = RESULTS) -> str:
     for folder in later + viewed:
         for p, entry in json.loads((folder / "headline.json").read_text())["policies"].items():
             if p not in SCRIPTED:
-                label = f"{entry['label']} †" if folder in later else f"{entry['label']}, view {folder.parent.name} ‡"
+                seen = "" if "true state" in entry["label"] else f", view {folder.parent.name}"  # no camera to name
+                label = f"{entry['label']} †" if folder in later else f"{entry['label']}{seen} ‡"
                 seeds = str(len(entry["test"]["seeds"]))
                 lines.append(
                     report._md_row([label, seeds, _share_text(entry["validation"]), _share_text(entry["test"])])

@@ -76,6 +76,7 @@ POLICY_LABELS = {
     "agent_r2_chooser_tele": "Chooser, frame band from a 30° second camera, reward 2",
     "agent_r2_counterfactual": "DDPG actor against counterfactual costs, reward 2",
     "agent_r2_counterfactual-privileged": "DDPG actor against counterfactual costs, on the true state, reward 2",
+    "agent_r2_counterfactual_true_state": "DDPG actor against counterfactual costs, on the true state, reward 2",
     # settings of the counterfactual actor tried on the validation banks (docs/results/phase3/)
     "agent_r2_cfcons": "Counterfactual actor tried: pessimism 2, anchor 0.2",
     "agent_r2_cfbold": "Counterfactual actor tried: no pessimism, no anchor",
