@@ -210,3 +210,49 @@ def layout(spec: MerolaSpec, state: MerolaState, rng: np.random.Generator) -> St
 
 
 assert JUNCTION_HALF_WIDTH > SIDE_LANE_M + CAR_WIDTH / 2  # the crossing car fits on its half of the side street
+
+
+# ----------------------------------------------------------------------------- scripted policies, against the reward
+class Hold:
+    """Drives on: no pedal, the wheel straight. What Merola's reward pays for metres covered and a crash's clipped
+    penalty, with no stop to pay for."""
+
+    name = "hold"
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def act(self, obs, info) -> np.ndarray:
+        return np.array([0.0, 0.0], dtype=np.float32)
+
+
+class BrakeThenRelease:
+    """Straight-line braking that lets go of the brake below Merola's v_min (``envs.rewards.MEROLA_V_MIN``, 2 m/s),
+    where the reward charges every step of braking: never charged, it rolls on at just under v_min."""
+
+    name = "brake_release"
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def bind(self, env) -> None:
+        self.env = env
+
+    def release_below(self) -> float:
+        from .rewards import MEROLA_V_MIN
+
+        return MEROLA_V_MIN
+
+    def act(self, obs, info) -> np.ndarray:
+        braking = self.env.ego.v >= self.release_below() and self.env.ego.v > 0.0
+        return np.array([0.0, -1.0 if braking else 0.0], dtype=np.float32)
+
+
+class BrakeToStandstill(BrakeThenRelease):
+    """Straight-line braking to a standstill, then no pedal: charged for the few steps of braking below v_min, it
+    then stands still for nothing."""
+
+    name = "brake_stop"
+
+    def release_below(self) -> float:
+        return 0.0

@@ -12,9 +12,9 @@ import torch
 
 from envs import UrbanCollisionEnv, rollout
 from envs.families import spec_from_dict
-from envs.merola import DRIFT_AFTER_S, SCENARIOS, MerolaSpec, sample
+from envs.merola import DRIFT_AFTER_S, SCENARIOS, BrakeThenRelease, Hold, MerolaSpec, sample
 from envs.policies import ConstantAction
-from envs.rewards import MEROLA_IMPACT_FULL_MS, StepContext, merola
+from envs.rewards import MEROLA_IMPACT_FULL_MS, MEROLA_V_MIN, StepContext, merola
 from envs.scene import EGO_LANE_Y, ONCOMING_LANE_Y
 from worldmodel.common import StageError
 from worldmodel.families.merola.system import ACTIONS, merola_action
@@ -172,3 +172,37 @@ def test_resnet_observation_refuses_without_weights_and_loads_a_state_dict(tmp_p
     torch.save({"conv1.weight": torch.zeros(3)}, tmp_path / "other.pth")
     with pytest.raises(StageError, match="not a ResNet-18"):
         load_resnet18(str(tmp_path / "other.pth"))
+
+
+def test_braking_that_lets_go_below_v_min_never_pays_for_braking_and_holding_never_brakes(env):
+    """The policies the reward is read against (docs/results/merola/reward/): on a lead car braking to a stop with
+    room to spare, brake_release brakes exactly while the ego is at or above the reward's v_min, so it stops clear
+    of the lead car as braking does, but is never charged the -5 that braking pays for every step of braking once
+    slow; hold never touches the pedal."""
+    from envs.policies import StraightLineBraking
+
+    spec = spec_of("lead_brake", ttc=2.0, lead_decel=7.0, other_speed=12.0)
+
+    def drive(policy, stops: bool = True) -> list[tuple[float, float, float]]:
+        """(speed before, pedal, reward) of every step; a policy that ``stops`` is to end clear of the lead car."""
+        steps, speed = [], []
+        rollout(
+            env,
+            policy,
+            spec,
+            on_reset=lambda obs, info: speed.append(env.ego.v),
+            on_step=lambda obs, action, reward, info: (
+                steps.append((speed[-1], float(action[1]), float(reward))),
+                speed.append(env.ego.v),
+            ),
+        )
+        assert not (stops and env.collisions), f"{policy.name} should stop clear of the lead car"
+        return steps
+
+    released, braked = drive(BrakeThenRelease()), drive(StraightLineBraking())
+    assert all((pedal < 0) == (v >= MEROLA_V_MIN) for v, pedal, _ in released)
+    assert any(pedal == 0 for _, pedal, _ in released)
+    charged = sum(1 for v, pedal, r in braked if pedal < 0 and r <= -5 + 1e-9)
+    assert charged > 10  # braking, once slow, pays on every step left
+    assert sum(r for *_, r in released) > sum(r for *_, r in braked) + 5 * (charged - 1)
+    assert all(pedal == 0 for _, pedal, _ in drive(Hold(), stops=False))

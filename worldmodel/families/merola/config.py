@@ -26,13 +26,25 @@ class MerolaAgentConfig(Checked):
         yield from agent.total_steps_problems("merola.total_steps", self.total_steps)
 
 
+SCRIPTED = (
+    "braking",
+    "aeb3m",
+    "oracle",
+    "hold",
+    "brake_release",
+    "brake_stop",
+)  # the scripted policies its evaluation runs
+
+
 @dataclass
 class MerolaEvalConfig(Checked):
     """Merola et al.'s scenarios (worldmodel/families/merola/): collision rate, ego delta-v, injury risk and return
     per scenario for braking, the planner, the paper's world-model agents and every ddqn_merola agent."""
 
     trials: int = 100  # seeded trials per scenario, the same for every policy
-    # straight-line braking from the start, Kim's AEB-3m (brakes once a footprint is within 3 m ahead), the planner
+    # straight-line braking from the start, Kim's AEB-3m (brakes once a footprint is within 3 m ahead), the planner;
+    # also hold (drives on), brake_release and brake_stop (brake, let go below the reward's v_min or at a
+    # standstill), to read the reward against
     policies: list[str] = field(default_factory=lambda: ["braking", "aeb3m", "oracle"])
     world_model_agents: bool = True  # also the paper's R1 / R2 agents and the chooser, at their own 1/15 s steps
     seed: int = 2022  # the validation draw (evaluate.bank=validation); the test draw is worldmodel/banks.py's
@@ -40,5 +52,5 @@ class MerolaEvalConfig(Checked):
     def problems(self):
         yield from _positive(self, "trials")
         yield from seed_problems(self, "seed", "merola.")
-        if any(p not in ("braking", "aeb3m", "oracle") for p in self.policies):
-            yield ConfigValueError("policies", list(self.policies), "use some of braking, aeb3m, oracle")
+        if any(p not in SCRIPTED for p in self.policies):
+            yield ConfigValueError("policies", list(self.policies), f"use some of {', '.join(SCRIPTED)}")

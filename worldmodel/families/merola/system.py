@@ -431,9 +431,12 @@ def ncap_policies(cfg) -> list[tuple]:
 
 
 def scripted(cfg) -> list:
-    """Straight-line braking from the start, AEB-3m and the privileged planner (minimising R2's injury cost)."""
+    """Straight-line braking from the start, AEB-3m and the privileged planner (minimising R2's injury cost); and,
+    to read the reward against, driving on (``hold``) and braking that lets go below v_min (``brake_release``) or
+    at a standstill (``brake_stop``)."""
     from envs import StraightLineBraking
     from envs.kim import Aeb3m
+    from envs.merola import BrakeThenRelease, BrakeToStandstill, Hold
     from envs.planner import PrivilegedPlanner
 
     from ...config import oracle_settings
@@ -441,6 +444,9 @@ def scripted(cfg) -> list:
     make = {
         "braking": StraightLineBraking,
         "aeb3m": Aeb3m,
+        "hold": Hold,
+        "brake_release": BrakeThenRelease,
+        "brake_stop": BrakeToStandstill,
         "oracle": lambda: PrivilegedPlanner.from_settings(**{**oracle_settings(cfg), "step_s": 0.1}),
     }
     return [make[name]() for name in cfg.evaluate.merola.policies]
