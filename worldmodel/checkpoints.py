@@ -119,13 +119,17 @@ def trust(path: Path, allow: list[str]) -> str:
     from . import artifacts
     from .common import atomic_torch_save, file_sha256
 
-    foreign = foreign_names(path)
-    unlisted = [name for name in foreign if name not in allow]
+    try:
+        read_checkpoint(path)
+        return f"{path} already reads safely; left as it is"
+    except StageError:
+        pass  # refused: what it names decides whether trust can help
+    except Exception as err:  # damaged, not unsafe
+        raise StageError(f"{path} cannot be read ({type(err).__name__}); trusting it would not help") from None
+    unlisted = [name for name in foreign_names(path) if name not in allow]
     if unlisted:
         raise StageError(f"{path} also names {', '.join(unlisted)}; trust it by name with --allow too, or not at all")
-    if not foreign:
-        return f"{path} already reads safely; left as it is"
-    state = read_checkpoint(path, tuple(allow))
+    state = read_checkpoint(path, tuple(allow))  # still refused when what it holds is no name: a date, an object
     record = artifacts.read_provenance(path.parent) or {}
     before = file_sha256(path)
     tmp = path.with_name(path.name + ".trusted")
