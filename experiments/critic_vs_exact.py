@@ -91,9 +91,9 @@ def per_state(scores: np.ndarray, costs: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
-def matters(costs: np.ndarray) -> np.ndarray:
-    """States where some candidate is cheaper than braking (candidate 0) by more than ``MATTERS``."""
-    return (costs[:, :1] - costs[:, 1:]).max(axis=1) > MATTERS
+def matters(costs: np.ndarray, by: float = MATTERS) -> np.ndarray:
+    """States where some candidate is cheaper than braking (candidate 0) by more than ``by`` (the cost's unit)."""
+    return (costs[:, :1] - costs[:, 1:]).max(axis=1) > by
 
 
 def _ratio_ci(num: np.ndarray, den: np.ndarray, episode: np.ndarray, boot: int, seed: int) -> tuple[float, float]:
@@ -289,21 +289,32 @@ def _fmt(x: float, ci: tuple[float, float] | None = None, digits: int = 2) -> st
     return text
 
 
-HEADER = [
-    "| agent | critic | t | states | scenarios | Spearman (95 % CI) | pairwise (95 % CI) | argmax Q lowest % | "
-    "braking lowest % | argmax Q brakes % | pick - braking, pts |",
-    "|---|---|---|---:|---:|---|---|---:|---:|---:|---:|",
-]
+def header(unit: str = "pts") -> list[str]:
+    return [
+        "| agent | critic | t | states | scenarios | Spearman (95 % CI) | pairwise (95 % CI) | argmax Q lowest % | "
+        f"braking lowest % | argmax Q brakes % | pick - braking, {unit} |",
+        "|---|---|---|---:|---:|---|---|---:|---:|---:|---:|",
+    ]
 
 
-def table(scored: list[Scored], val: dict, steps: int, subset: str, boot: int) -> list[str]:
+def table(
+    scored: list[Scored],
+    val: dict,
+    steps: int,
+    subset: str,
+    boot: int,
+    matters_by: float = MATTERS,
+    points: float = 100.0,
+    unit: str = "pts",
+) -> list[str]:
     """One markdown table: every agent's rows on ``subset`` ("matters" or "all") of its states, t = 0 .. steps-1
-    pooled and t = 0 alone."""
+    pooled and t = 0 alone. ``matters_by``: ``matters``'s margin; ``points`` and ``unit``: the last column's scale
+    and name (100, "pts": R2's probabilities as points)."""
     costs, episode, t = val["costs"].astype(np.float64), val["episode"], val["t"]
-    lines = list(HEADER)
+    lines = header(unit)
     windows = [(f"0-{steps - 1}", np.ones(len(t), bool))] if steps > 1 else []
     for label, in_window in [*windows, ("0", t == 0)]:  # what a uniformly random choice of candidate gets
-        keep = in_window & (matters(costs) if subset == "matters" else True)
+        keep = in_window & (matters(costs, matters_by) if subset == "matters" else True)
         y, lowest = costs[keep], costs[keep].min(axis=1, keepdims=True) + TIE
         nan = not len(y)
         share, brake = (np.nan, np.nan) if nan else ((y <= lowest).mean(), (y[:, 0] <= lowest[:, 0]).mean())
@@ -311,26 +322,26 @@ def table(scored: list[Scored], val: dict, steps: int, subset: str, boot: int) -
         lines.append(
             f"| uniform random candidate | (expected) | {label} | {len(y)} | {len(np.unique(episode[keep]))} | "
             f"0 | 0.5 | {_fmt(100 * share, digits=1)} | {_fmt(100 * brake, digits=1)} | "
-            f"{_fmt(100 / costs.shape[1], digits=1)} | {_fmt(100 * gain)} |"
+            f"{_fmt(100 / costs.shape[1], digits=1)} | {_fmt(points * gain)} |"
         )
     for s in scored:
         windows = [("0", t[s.rows] == 0)]
         if steps > 1 and not (t[s.rows] == 0).all():
             windows.insert(0, (f"0-{steps - 1}", np.ones(len(s.rows), bool)))
         for label, in_window in windows:
-            keep = in_window & (matters(costs[s.rows]) if subset == "matters" else True)
+            keep = in_window & (matters(costs[s.rows], matters_by) if subset == "matters" else True)
             r = s.rows[keep]
             f = summarize(s.scores[keep], costs[r], episode[r], boot)
             lines.append(
                 f"| {s.key} | {s.kind} | {label} | {f['states']} | {f['scenarios']} | "
                 f"{_fmt(f['spearman'], f['spearman_ci'])} | {_fmt(f['pairwise'], f['pairwise_ci'])} | "
                 f"{_fmt(100 * f['pick_lowest'], digits=1)} | {_fmt(100 * f['brake_lowest'], digits=1)} | "
-                f"{_fmt(100 * f['pick_brakes'], digits=1)} | {_fmt(100 * f['pick_minus_brake'])} |"
+                f"{_fmt(100 * f['pick_brakes'], digits=1)} | {_fmt(points * f['pick_minus_brake'])} |"
             )
     return lines
 
 
-def write_csv(path, scored: list[Scored], val: dict) -> None:
+def write_csv(path, scored: list[Scored], val: dict, matters_by: float = MATTERS) -> None:
     costs = val["costs"].astype(np.float64)
     k = costs.shape[1]
     with path.open("w", newline="") as f:
@@ -353,7 +364,7 @@ def write_csv(path, scored: list[Scored], val: dict) -> None:
         )
         for s in scored:
             y = costs[s.rows]
-            rows, m = per_state(s.scores, y), matters(y)
+            rows, m = per_state(s.scores, y), matters(y, matters_by)
             for i, r in enumerate(s.rows):
                 w.writerow(
                     [

@@ -98,3 +98,45 @@ def test_on_a_smoke_ddpg(smoke_builds, tmp_path, capsys):
     flat = cve.ddpg_scores(state, x, val["speed"], candidates)
     assert np.ptp(flat, axis=1).max() == 0.0
     assert cve.summarize(flat, val["costs"], val["episode"], boot=0)["pairwise"] == 0.5
+
+
+def test_kims_critic_on_a_smoke_lidar_ddpg(tmp_path):
+    """experiments/kim_critic_vs_exact.py: the labels on a validation draw of family kim, and a smoke LIDAR DDPG's
+    critic scoring each candidate's first control as Kim's action; the score is -Q of the agent the evaluation
+    loads, and Kim's action asks the speed controller for the candidate's own control."""
+    import torch
+
+    from envs.kim import kim_action
+    from experiments import kim_critic_vs_exact as kim_cve
+    from worldmodel import train_agent
+    from worldmodel.artifacts import AgentId
+    from worldmodel.config import compose
+    from worldmodel.families.kim import chooser as kim_chooser
+    from worldmodel.families.kim.trainer import load_policy
+
+    base = [f"paths.data_root={tmp_path}/data", f"paths.runs_root={tmp_path}/runs", "experiment=t", "scale=smoke"]
+    base += ["threads=1", f"paths.ledger={tmp_path}/ledger.csv"]
+    train_agent.run(compose("train_agent", [*base, "agent=ddpg_kim"]))
+    assert kim_cve.main([*base, "--trials", "1", "--boot", "50"]) == 0
+    out = tmp_path / "runs" / "t" / "critic_vs_exact"
+    assert "| agent_kim_unaware_ddpg_kim/seed0 | DDPG -Q | 0-" in (out / "kim_critic_vs_exact_draw2020.md").read_text()
+    with (out / "kim_critic_vs_exact_draw2020.csv").open() as f:
+        rows = list(csv.DictReader(f))
+
+    cfg = compose("train_agent", [*base, "agent=kim_chooser"])
+    val = kim_cve.labels(cfg, 2020, 1)  # read back, not made again
+    assert len(rows) == len(val["t"]) == len(val["speed"]) and val["costs"].shape[1] == 39
+    candidates = kim_chooser.candidates(cfg.env.step_s)
+    for v in (0.5, 8.0, 13.9):
+        for m in candidates:
+            steer, pedal = m.action(0)
+            got = kim_action(kim_cve.kim_action_for(m.action(0), v), v)
+            reachable = got[1] == pytest.approx(pedal, abs=1e-6) or (pedal < 0 and v < 2.0)  # full braking when slow
+            assert got[0] == pytest.approx(steer) and reachable
+    agent = AgentId("kim_unaware", 0, "ddpg_kim")
+    policy, _ = load_policy(compose("train_agent", [*base, "agent=ddpg_kim"]), agent)
+    i, k = 1, 5
+    action = torch.from_numpy(kim_cve.kim_action_for(candidates[k].action(0), float(val["speed"][i]))[None])
+    with torch.inference_mode():
+        q = policy.agent.critic(torch.from_numpy(val["view"][i : i + 1]), action)
+    assert float(rows[i][f"score_{k}"]) == pytest.approx(-float(q), rel=1e-4)

@@ -63,13 +63,14 @@ def candidates(step_s: float = 0.1) -> list[Manoeuvre]:
 
 def label_episodes(cfg, specs: list, decide_steps: int, stop=None) -> dict | None:
     """Braking through each scenario of ``specs``: per decision step, the LIDAR view (``view``), every candidate's
-    exact cost from there (``cost``), the scenario's index (``episode``) and the step (``step``). None if ``stop``
-    was requested first."""
+    exact cost from there (``cost``), the scenario's index (``episode``), the step (``step``) and the ego's speed
+    (``speed``, m/s: what a candidate's pedal asks of Kim's speed controller). None if ``stop`` was requested
+    first."""
     env = family_env(cfg, REWARD)
     twin = env.planning_twin()
     see = observer(cfg, REWARD)
     moves = candidates(env.step_s)
-    view, cost, episode, step = [], [], [], []
+    view, cost, episode, step, speed = [], [], [], [], []
     for e, spec in enumerate(tqdm(specs, desc="braking, every candidate costed", unit="episode")):
         if stop is not None and stop.requested:
             env.close()
@@ -82,6 +83,7 @@ def label_episodes(cfg, specs: list, decide_steps: int, stop=None) -> dict | Non
             cost.append([plan_cost(twin, snap, _Plan(m, t), reward=REWARD) for m in moves])
             episode.append(e)
             step.append(t)
+            speed.append(env.ego.v)
             see.note_action(kim_action_for(BRAKE, env.ego.v))
             _, _, terminated, truncated, _ = env.step(BRAKE)
             if terminated or truncated:
@@ -92,6 +94,7 @@ def label_episodes(cfg, specs: list, decide_steps: int, stop=None) -> dict | Non
         "cost": np.asarray(cost, np.float32),
         "episode": np.asarray(episode),
         "step": np.asarray(step),
+        "speed": np.asarray(speed, np.float32),
     }
 
 
