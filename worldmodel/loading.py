@@ -214,8 +214,11 @@ def load_agent_state(cfg, agent: AgentId, which: str = "last") -> dict:
 
 def models_of(cfg, agent: AgentId) -> dict[str, str]:
     """Short hashes of the VAE, LSTM and actor behind an agent's decisions (for evaluation rows); empty for a part
-    its observation does not read (none of the world model for ``obs=privileged``)."""
-    reads = {name for name, _ in world_model_inputs(agent.obs or "worldmodel")}
+    its observation does not read (none of the world model for ``obs=privileged``, whether set on the command line
+    or as a preset's own input), as the ledger names them (``families.common.models_of``)."""
+    from .config import agent_preset
+
+    reads = {name for name, _ in world_model_inputs(agent.obs or agent_preset(cfg, agent.variant).obs)}
     return {
         "vae_sha": short(vae_id(cfg)) if "vae" in reads else "",
         "rnn_sha": short(rnn_id(cfg)) if "rnn" in reads else "",

@@ -504,7 +504,10 @@ def readme_table(results: Path = RESULTS) -> str:
         lines[-1] += f" † Judged later on a second world model of the same settings ({where})."
     if viewed:
         where = ", ".join(f"docs/results/views/{folder.parent.name}/{folder.name}/" for folder in viewed)
-        lines[-1] += f" ‡ Judged later on the camera's view named, with a world model of its own ({where})."
+        lines[-1] += (
+            f" ‡ Judged later in a run on the camera's view named, with a world model of its own; a row on the true "
+            f"state reads no camera ({where})."
+        )
     return "\n".join(lines)
 
 
