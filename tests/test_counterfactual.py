@@ -213,3 +213,19 @@ def test_the_label_curves_figures_by_hand():
     reverse = clc.summarise(-costs, u, costs, episode, 0.0, boot=0)  # picks 0.3 (braking), 0.2 (braking), 0.4
     assert reverse["captured"] == pytest.approx(100 * (0.2 - 0.3) / (0.2 - 0.2 / 3))
     assert clc.summarise(costs, u, costs, episode, 0.25, boot=0)["captured"] == 0.0
+
+
+def test_the_true_state_preset_is_named_by_its_preset_and_its_rows_name_no_world_model(stage_cfg, experiment_copy):
+    """agent=counterfactual_true_state reads the true state as its own input: its run has no -privileged suffix, and
+    the models behind its evaluation rows are its actor alone, though the experiment has a world model."""
+    from worldmodel import train_agent
+    from worldmodel.artifacts import AgentId
+
+    root = experiment_copy("rnn")
+    cfg = stage_cfg("train_agent", "agent=counterfactual_true_state", "reward=r2", root=root)
+    train_agent.run(cfg)
+    agent = AgentId.of(cfg)
+    assert agent == AgentId("r2", 0, "counterfactual_true_state") and agent.dir(cfg).name == "seed0"
+    assert agent.dir(cfg).parent.name == "agent_r2_counterfactual_true_state"
+    models = loading.models_of(cfg, agent)
+    assert models["vae_sha"] == models["rnn_sha"] == "" and len(models["actor_sha"]) == 12

@@ -348,3 +348,30 @@ def test_recheck_counts_every_policys_rows_so_a_removed_row_is_found(results):
         path.write_bytes(whole)
     assert any("validation: oracle (seed 0) has" in p and "a row was removed or added" in p for p in problems)
     assert recheck.recheck(out.parent) == []
+
+
+def test_rows_are_held_to_the_models_their_ledger_row_names():
+    """A row's model hashes must be those its ledger row names. The one exception: a row that names the experiment's
+    world model (a hash the ledger names for another agent of that evaluation) for an agent the ledger records as
+    reading none, as rows of the true-state actor preset did before the rows followed a preset's own input."""
+    from worldmodel.report.recheck import _ledger_mismatch
+
+    entry = {
+        "policies": "braking; agent_r2/seed0 (vae=aaa, rnn=bbb, actor=ccc); agent_r2_t/seed0 (actor=ddd)",
+        "scenarios": "1",
+    }
+    rows = [
+        {"policy": "braking", "policy_seed": "", "vae_sha": "", "rnn_sha": "", "actor_sha": ""},
+        {"policy": "agent_r2", "policy_seed": 0, "vae_sha": "aaa", "rnn_sha": "bbb", "actor_sha": "ccc"},
+        {"policy": "agent_r2_t", "policy_seed": 0, "vae_sha": "", "rnn_sha": "", "actor_sha": "ddd"},
+    ]
+    assert _ledger_mismatch(rows, entry) is None
+    rows[2].update(vae_sha="aaa", rnn_sha="bbb")  # the experiment's world model, which it does not read
+    assert _ledger_mismatch(rows, entry) is None
+    rows[2].update(vae_sha="eee")  # a world model the evaluation never had
+    assert "agent_r2_t/seed0's vae is eee" in _ledger_mismatch(rows, entry)
+    rows[2].update(vae_sha="aaa", actor_sha="fff")  # the actor is always held to the ledger
+    assert "agent_r2_t/seed0's actor is fff" in _ledger_mismatch(rows, entry)
+    rows[2].update(actor_sha="ddd")
+    rows[1].update(vae_sha="zzz")  # an agent the ledger names a world model for is held to it
+    assert "agent_r2/seed0's vae is zzz" in _ledger_mismatch(rows, entry)
