@@ -384,6 +384,44 @@ def write_csv(path, scored: list[Scored], val: dict, matters_by: float = MATTERS
                 )
 
 
+def write_report(
+    cfg,
+    stem: str,
+    head: list[str],
+    scored: list[Scored],
+    skipped: list[str],
+    val: dict,
+    steps: int,
+    boot: int,
+    matters_by: float = MATTERS,
+    points: float = 100.0,
+    unit: str = "pts",
+    margin_unit: str = "",
+) -> str:
+    """``head``, the agents left out, the tables on the states that matter and on all states, written as
+    ``runs/NAME/critic_vs_exact/<stem>.md`` with the per-state ``<stem>.csv``; returns the text."""
+    units = {"matters_by": matters_by, "points": points, "unit": unit}
+    lines = [
+        *head,
+        *(["Left out: " + "; ".join(skipped) + ".", ""] if skipped else []),
+        f"States where the decision matters (some candidate cheaper than braking by > {matters_by:g}{margin_unit}):",
+        "",
+        *table(scored, val, steps, "matters", boot, **units),
+        "",
+        "All states:",
+        "",
+        *table(scored, val, steps, "all", boot, **units),
+    ]
+    if not scored:
+        lines += ["", "No trained agent with a critic over these actions was found."]
+    out = artifacts.runs_root(cfg) / "critic_vs_exact"
+    out.mkdir(parents=True, exist_ok=True)
+    text = "\n".join(lines) + "\n"
+    (out / f"{stem}.md").write_text(text)
+    write_csv(out / f"{stem}.csv", scored, val, matters_by)
+    return text
+
+
 def first_action_note(candidates) -> str:
     """Whether the candidates' first actions are distinct (a critic of one action cannot tell apart two that start
     alike, e.g. a held swerve and a lane change of the same steer)."""
@@ -441,23 +479,9 @@ def main(argv=None) -> int:
         "Scores: DDPG -Q(s, a_k) for each candidate's first action; the counterfactual critic's predicted cost of the "
         "equivalent shift. Intervals: bootstrap 95 % over scenarios.",
         "",
-        *(["Left out: " + "; ".join(skipped) + ".", ""] if skipped else []),
-        f"States where the decision matters (some candidate cheaper than braking by > {MATTERS:g}):",
-        "",
-        *table(scored, val, steps, "matters", args.boot),
-        "",
-        "All states:",
-        "",
-        *table(scored, val, steps, "all", args.boot),
     ]
-    if not scored:
-        lines += ["", "No trained agent with a critic over these actions was found."]
-    out = artifacts.runs_root(cfg) / "critic_vs_exact"
-    out.mkdir(parents=True, exist_ok=True)
     suffix = dir_suffix("validation", "porav", cfg.evaluate.validation_seed)
-    text = "\n".join(lines) + "\n"
-    (out / f"critic_vs_exact{suffix}.md").write_text(text)
-    write_csv(out / f"critic_vs_exact{suffix}.csv", scored, val)
+    text = write_report(cfg, f"critic_vs_exact{suffix}", lines, scored, skipped, val, steps, args.boot)
     print(text)
     return 0
 

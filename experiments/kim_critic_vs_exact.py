@@ -29,7 +29,7 @@ import torch
 
 from envs.chooser import decide_steps_for
 from envs.kim import kim_action_for
-from experiments.critic_vs_exact import Scored, first_action_note, table, write_csv
+from experiments.critic_vs_exact import Scored, first_action_note, matters, write_report
 from worldmodel import artifacts, loading
 from worldmodel.banks import sealed_seed_problem, validation_draw
 from worldmodel.common import atomic_output
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
     steps = decide_steps_for(cfg.agent.kim_chooser.decide_s, cfg.env.step_s)
     val = labels(cfg, draw, trials)
     scored, skipped = score_agents(cfg, val, candidates)
-    n_matter = int(((val["costs"][:, :1] - val["costs"][:, 1:]).max(axis=1) > MATTERS_ISS).sum())
+    n_matter = int(matters(val["costs"], MATTERS_ISS).sum())
     lines = [
         f"Experiment {cfg.experiment}, family kim, validation draw {draw}: {len(np.unique(val['episode']))} "
         f"scenarios, {len(val['costs'])} labelled decision states of braking (t = 0-{steps - 1}), {n_matter} of them "
@@ -138,22 +138,9 @@ def main(argv=None) -> int:
         "Scores: DDPG -Q(s, a_k) for each candidate's first control as Kim's action. Costs and 'pick - braking': ISS "
         "(kim_unaware). Intervals: bootstrap 95 % over scenarios.",
         "",
-        *(["Left out: " + "; ".join(skipped) + ".", ""] if skipped else []),
-        f"States where the decision matters (some candidate cheaper than braking by > {MATTERS_ISS:g} ISS):",
-        "",
-        *table(scored, val, steps, "matters", args.boot, matters_by=MATTERS_ISS, points=1.0, unit="ISS"),
-        "",
-        "All states:",
-        "",
-        *table(scored, val, steps, "all", args.boot, matters_by=MATTERS_ISS, points=1.0, unit="ISS"),
     ]
-    if not scored:
-        lines += ["", "No trained goal-unaware LIDAR DDPG was found."]
-    out = artifacts.runs_root(cfg) / "critic_vs_exact"
-    out.mkdir(parents=True, exist_ok=True)
-    text = "\n".join(lines) + "\n"
-    (out / f"kim_critic_vs_exact_draw{draw}.md").write_text(text)
-    write_csv(out / f"kim_critic_vs_exact_draw{draw}.csv", scored, val, matters_by=MATTERS_ISS)
+    units = {"matters_by": MATTERS_ISS, "points": 1.0, "unit": "ISS", "margin_unit": " ISS"}
+    text = write_report(cfg, f"kim_critic_vs_exact_draw{draw}", lines, scored, skipped, val, steps, args.boot, **units)
     print(text)
     return 0
 
