@@ -93,40 +93,47 @@ class _Run:
         return self.shift.action(t_step - self.start)
 
 
-def _run_to_end(twin: UrbanCollisionEnv, run: _Run, bound: float = math.inf) -> float:
-    """The cost of the rest of the episode from the twin's present state under ``run``; stops at ``bound``."""
-    cost = 0.0
+def _run_to_end(twin: UrbanCollisionEnv, run: _Run, bound: float = math.inf, reward: str = "r2") -> float:
+    """The cost (minus ``reward``) of the rest of the episode from the twin's present state under ``run``; stops at
+    ``bound``."""
+    cost, key = 0.0, f"reward_{reward}"
     while True:
         _, _, terminated, truncated, info = twin.step(run.action(twin.t_step))
-        cost -= info["reward_r2"]
+        cost -= info[key]
         if cost >= bound or terminated or truncated:
             return cost
 
 
 def shift_cost(
-    twin: UrbanCollisionEnv, snap: dict, shift: Shift, interval: int | None, continuations: Sequence[Shift] = ()
+    twin: UrbanCollisionEnv,
+    snap: dict,
+    shift: Shift,
+    interval: int | None,
+    continuations: Sequence[Shift] = (),
+    reward: str = "r2",
 ) -> tuple[float, bool]:
-    """The label of ``shift`` started at the state ``snap``: (R2 cost, whether the path that gives it hits a static
-    object). ``interval`` None: the shift runs to its end. Else it runs ``interval`` steps, and the cheapest of
-    running on and each of ``continuations`` started there is the label."""
+    """The label of ``shift`` started at the state ``snap``: (cost, minus the registered ``reward``: R2's is the sum
+    of injury probabilities, a peer family's its own; whether the path that gives it hits a static object).
+    ``interval`` None: the shift runs to its end. Else it runs ``interval`` steps, and the cheapest of running on
+    and each of ``continuations`` started there is the label."""
     twin.restore(snap)
     start = twin.t_step
     run = _Run(shift, start)
     if interval is None:
-        cost = _run_to_end(twin, run)
+        cost = _run_to_end(twin, run, reward=reward)
         return cost, _static(twin)
     head = 0.0
     for _ in range(int(interval)):
         _, _, terminated, truncated, info = twin.step(run.action(twin.t_step))
-        head -= info["reward_r2"]
+        head -= info[f"reward_{reward}"]
         if terminated or truncated:
             return head, _static(twin)
     middle = twin.snapshot()
-    best = head + _run_to_end(twin, run)
+    best = head + _run_to_end(twin, run, reward=reward)
     best_static = _static(twin)
     for other in continuations:
         twin.restore(middle)
-        cost = head + _run_to_end(twin, _Run(other, start + int(interval)), bound=best - head)
+        cost = head + _run_to_end(twin, _Run(other, start + int(interval)), best - head, reward)
         if cost < best:
             best, best_static = cost, _static(twin)
     return best, best_static
@@ -143,23 +150,29 @@ def label_episode(
     proposals: Callable[[int, np.ndarray], np.ndarray],
     continuations: Sequence[Shift],
     twin: UrbanCollisionEnv,
+    reward: str = "r2",
+    frames: bool = True,
+    true_state: Callable[[UrbanCollisionEnv], np.ndarray] | None = privileged_state,
 ) -> dict:
     """Drive scenario ``spec`` with ``policy`` (a ``ShiftPolicy``; straight-line braking decides ``u = 0``), and
     at each of its decisions label the shifts ``proposals(d, u_chosen) -> (N, 3)`` by re-simulation
-    (``shift_cost``). Returns the frames and what the policy did up to its last decision: ``seg`` (T, H, W) uint8,
-    ``speed`` (T,) and ``action`` (T, 2), the simulator's actions taken after each frame, so that the world model
-    can be fed as a live run feeds it; and per decision ``t`` (D,), ``u`` (D, N, 3), ``costs`` (D, N), ``static``
-    (D, N) int8, ``chosen`` (D, 3) and ``state`` (D, PRIVILEGED_DIM), the true state (``envs.privileged``: the
-    hazards, the ego, what blocks each escape path; training targets only). An episode that ends before the last
-    decision has fewer."""
+    (``shift_cost`` of ``reward``). Returns per decision ``t`` (D,), ``u`` (D, N, 3), ``costs`` (D, N), ``static``
+    (D, N) int8, ``chosen`` (D, 3), ``view`` (D, ...) when the policy encodes what it sees (its ``x`` there), and
+    ``state`` (D, ...), ``true_state(env)`` (by default the camera family's ``envs.privileged``: the hazards, the
+    ego, what blocks each escape path; training targets only). With ``frames``, also what the policy did up to its
+    last decision: ``seg`` (T, H, W) uint8, ``speed`` (T,) and ``action`` (T, 2), the simulator's actions taken
+    after each frame, so that the world model can be fed as a live run feeds it. An episode that ends before the
+    last decision has fewer."""
     steps, space = policy.steps, policy.space
     obs, _ = env.reset(options={"scenario": spec})
     policy.reset()
+    policy.bind(env)
     segs, speeds, actions = [], [], []
-    out = {k: [] for k in ("t", "u", "costs", "static", "chosen", "state")}
+    out = {k: [] for k in ("t", "u", "costs", "static", "chosen", "view", "state")}
     for t in range(steps[-1] + 1):
-        segs.append(np.asarray(obs["seg"], np.uint8))
-        speeds.append(float(np.asarray(obs["speed"]).reshape(-1)[0]))
+        if frames:
+            segs.append(np.asarray(obs["seg"], np.uint8))
+            speeds.append(float(np.asarray(obs["speed"]).reshape(-1)[0]))
         snap = env.snapshot() if t in steps else None
         action = policy.act(obs, None)
         if snap is not None:
@@ -167,28 +180,35 @@ def label_episode(
             chosen = policy.chosen[-1]
             us = np.asarray(proposals(d, chosen), np.float32).reshape(-1, 3)
             interval = None if d == len(steps) - 1 else steps[1] - steps[0]
-            labels = [shift_cost(twin, snap, space.shift(u), interval, continuations) for u in us]
+            labels = [shift_cost(twin, snap, space.shift(u), interval, continuations, reward) for u in us]
             out["t"].append(t)
             out["u"].append(us)
             out["costs"].append([c for c, _ in labels])
             out["static"].append([s for _, s in labels])
             out["chosen"].append(chosen)
-            out["state"].append(privileged_state(env))
+            if policy.encode is not None:
+                out["view"].append(np.asarray(policy.x, np.float32))
+            if true_state is not None:
+                out["state"].append(true_state(env))
         actions.append(action)
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             break
-    return {
-        "seg": np.stack(segs),
-        "speed": np.asarray(speeds, np.float32),
-        "action": np.stack(actions).astype(np.float32),
+    labelled = {
         "t": np.asarray(out["t"], np.int16),
         "u": np.stack(out["u"]).astype(np.float32),
         "costs": np.asarray(out["costs"], np.float32),
         "static": np.asarray(out["static"], np.int8),
         "chosen": np.stack(out["chosen"]).astype(np.float32),
-        "state": np.stack(out["state"]).astype(np.float32),
     }
+    for key in ("view", "state"):
+        if out[key]:
+            labelled[key] = np.stack(out[key]).astype(np.float32)
+    if frames:
+        labelled.update(
+            seg=np.stack(segs), speed=np.asarray(speeds, np.float32), action=np.stack(actions).astype(np.float32)
+        )
+    return labelled
 
 
 def brake_decision(x, d: int) -> np.ndarray:
@@ -219,7 +239,7 @@ class ShiftPolicy:
         self.bind_view = bind_view
         self.steps = decision_steps(decisions, interval)
         self.encode, self.note_action, self.reset_view = encode, note_action, reset_view
-        self.t, self.run = 0, None
+        self.t, self.run, self.x = 0, None, None
         self.chosen: list[np.ndarray] = []
 
     def reset(self, seed: int | None = None) -> None:
@@ -237,6 +257,7 @@ class ShiftPolicy:
         self.t += 1
         watching = t <= self.steps[-1]
         x = self.encode(obs) if watching and self.encode is not None else obs
+        self.x = x  # what it saw last: the labeller keeps it at each decision
         if t in self.steps:
             u = np.asarray(self.decide(x, self.steps.index(t)), np.float32).reshape(3)
             self.chosen.append(u)

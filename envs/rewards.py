@@ -135,6 +135,18 @@ def merola(ctx: StepContext) -> float:
     return r
 
 
+MEROLA_MOST_PROGRESS = 100.0  # m: the most an episode pays for progress (6 s at the 60 km/h top of the range)
+
+
+@register(
+    "merola_safe",
+    "Merola's reward, each crash costing a further 100 (the most progress an episode pays): a deviation, so that no "
+    "crash outranks a stop (docs/results/merola/reward/)",
+)
+def merola_safe(ctx: StepContext) -> float:
+    return merola(ctx) - MEROLA_MOST_PROGRESS * len(ctx.hits)
+
+
 def step_rewards(ctx: StepContext) -> dict[str, float]:
     """Every registered reward of one step, by name."""
     return {name: float(r.fn(ctx)) for name, r in REGISTRY.items()}

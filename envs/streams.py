@@ -6,7 +6,7 @@ round, an epoch and batch). The tag keeps one purpose's draws apart from another
 stream takes a new tag from here, never a value already listed. Every value is the one the code has always used:
 changing one changes every result drawn from it.
 
-Shared values. Three values serve more than one stream; that is safe only because another component of their seeds
+Shared values. Four values serve more than one stream; that is safe only because another component of their seeds
 differs. Note that numpy's ``SeedSequence`` pads a list shorter than four words with zeros, so ``[s, t]``, ``[s, t,
 0]`` and ``[s, t, 0, 0]`` are the same stream: a shorter list alone does not keep two streams apart.
 
@@ -17,6 +17,8 @@ differs. Note that numpy's ``SeedSequence`` pads a list shorter than four words 
   only for a scenario whose seed equals the run seed), ``MEROLA_TRAINING_EPISODES`` and ``KIM_DAGGER_SCENARIOS`` by
   the run's; those two (``[seed, 2022, episode]`` and ``[seed, 2022, round, e]``) belong to different families'
   runs, which never draw each other's scenarios.
+* 1: ``KIM_BANK_CROSSING`` is ``[bank seed, k, 1]`` with k < 3, ``KIM_COUNTERFACTUAL_PROPOSALS`` the fifth word of
+  ``[label seed, 7779, r, e, 1]``: their second words (k and 7779) always differ.
 * 77: ``CHOOSER_MINIBATCHES`` is ``[seed, 77]``, ``RNN_OPEN_LOOP_START`` is ``[seed, epoch, batch, 77]``: their
   fourth words (0 and 77) always differ.
 
@@ -50,6 +52,10 @@ KIM_DEMO_SCENARIOS = 2021  # the planner's demonstration episode i's scenario
 KIM_DAGGER_SCENARIOS = 2022  # DAgger round r's episode e's scenario, [run seed, TAG, r, e]
 KIM_STUDENT_SCENARIOS = 7777  # experiments/kim_student.py: the students' episodes
 KIM_CHOOSER_LABELS = 7778  # agent=kim_chooser (worldmodel/families/kim/chooser.py): its labelled episodes
+# agent=counterfactual_kim (worldmodel/families/kim/counterfactual.py): round r's labelled episode e's scenario
+# [label seed, TAG, r, e], and its proposed shifts [label seed, TAG, r, e, KIM_COUNTERFACTUAL_PROPOSALS]
+KIM_COUNTERFACTUAL_LABELS = 7779
+KIM_COUNTERFACTUAL_PROPOSALS = 1  # the fifth word of the proposals' stream, under KIM_COUNTERFACTUAL_LABELS
 
 # ----------------------------------------------------------------------------- datasets and training draws
 RECORDING_BRANCHES = 3571  # recording: whether episode i branches, at which step, and the branch's actions, [s, i, TAG]

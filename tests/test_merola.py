@@ -206,3 +206,48 @@ def test_braking_that_lets_go_below_v_min_never_pays_for_braking_and_holding_nev
     assert charged > 10  # braking, once slow, pays on every step left
     assert sum(r for *_, r in released) > sum(r for *_, r in braked) + 5 * (charged - 1)
     assert all(pedal == 0 for _, pedal, _ in drive(Hold(), stops=False))
+
+
+def test_merola_safe_costs_a_crash_100_more_and_nothing_else():
+    """The deviation (reward=merola_safe) changes the crash term only: a crash outweighs any episode's progress."""
+    from envs.rewards import MEROLA_MOST_PROGRESS, merola_safe
+
+    hit = {"kind": "vehicle", "delta_v_ego": 3.0}
+    for hits in ([], [hit], [hit, hit]):
+        ctx = StepContext(hits, 10.0, 9.0, np.array([0.2, -1.0]), 0.1, heading=0.3)
+        assert merola_safe(ctx) == pytest.approx(merola(ctx) - MEROLA_MOST_PROGRESS * len(hits))
+    assert MEROLA_MOST_PROGRESS >= 6.0 * 60.0 / 3.6  # the 6 s horizon at the top of the ego's speed range
+
+
+def test_privileged_ddqn_trains_and_its_re_simulated_values_match_the_episode(stage_cfg):
+    """agent=ddqn_merola obs=privileged reward=merola_safe trains without the camera; for the action it takes,
+    experiments/merola_q_vs_exact's re-simulated Q^pi is the discounted return of the rest of its own episode."""
+    from experiments import merola_q_vs_exact as q_vs_exact
+    from worldmodel import artifacts, train_agent
+    from worldmodel.families.merola import system
+
+    overrides = ("agent=ddqn_merola", "obs=privileged", "reward=merola_safe", "agent.dqn.warmup_steps=40")
+    cfg = stage_cfg("train_agent", *overrides)
+    train_agent.run(cfg)
+    (agent,) = artifacts.trained_agents(cfg, family="merola")
+    assert agent.key == "agent_merola_safe_ddqn_merola-privileged/seed0"
+    policy = system.load_policy(cfg, agent)
+    gamma = float(policy.agent.cfg.gamma)
+    env = system.family_env(cfg, step_s=0.1, camera=False, reward="merola_safe")
+    spec = sample(np.random.default_rng(3), "drift")
+    q, exact, steps = q_vs_exact.episode_values(env, env.planning_twin(), policy, spec, 4, gamma)
+    assert steps[:2] == [0, 4] and np.shape(exact) == (len(steps), 9)
+    # the greedy episode itself, its discounted return from each valued step on
+    obs, _ = env.reset(options={"scenario": spec})
+    policy.reset()
+    policy.bind(env)
+    rewards, done = [], False
+    while not done:
+        obs, r, terminated, truncated, _ = env.step(policy.act(obs, None))
+        rewards.append(r)
+        done = terminated or truncated
+    env.close()
+    for row, t in enumerate(steps):
+        taken = q_vs_exact.ORDER.index(int(np.argmax(q[row][np.argsort(q_vs_exact.ORDER)])))
+        rest = sum(r * gamma**k for k, r in enumerate(rewards[t:]))
+        assert exact[row][taken] == pytest.approx(rest, abs=1e-6), (t, exact[row], rest)

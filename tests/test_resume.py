@@ -252,6 +252,13 @@ def test_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(two_roots,
     agent_resumes_bit_for_bit(stage_cfg, a, b, ("reward=r2", "agent=counterfactual"), stop_at_update=130)
 
 
+def test_kim_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(stage_cfg, tmp_path):
+    """The same rounds on family kim's LIDAR view (agent=counterfactual_kim), no world model: stopped in round 1's
+    critic, after the first actor has driven and its states are labelled."""
+    a, b = tmp_path / "straight", tmp_path / "stopped"
+    agent_resumes_bit_for_bit(stage_cfg, a, b, ("agent=counterfactual_kim",), stop_at_update=130)
+
+
 # ----------------------------------------------------------------------------- the peers' learners
 # Each peer's loop checks for a stop between episodes, so a SIGTERM mid-episode ends the episode first; the
 # checkpoint then holds whole episodes, and the resumed run starts the next one where the uninterrupted run does.

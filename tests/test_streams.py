@@ -37,6 +37,8 @@ SHARED = {
     2022: {"MEROLA_JUNCTION_DISTANCE", "MEROLA_TRAINING_EPISODES", "KIM_DAGGER_SCENARIOS"},
     # [run seed, 77] (padded to [run seed, 77, 0, 0]) vs [run seed, epoch, batch, 77]: the fourth words differ
     77: {"CHOOSER_MINIBATCHES", "RNN_OPEN_LOOP_START"},
+    # [bank seed, k, 1] with k < 3 vs [label seed, 7779, r, e, 1]: the second words differ
+    1: {"KIM_BANK_CROSSING", "KIM_COUNTERFACTUAL_PROPOSALS"},
 }
 
 

@@ -290,28 +290,58 @@ def run(cfg, agent_id) -> dict:
 
 
 def train(cfg, run_, agent_id) -> dict:
-    """Every round's labels, critic and actor, resuming after the last finished phase; saves through ``run_``."""
+    """Every round's labels, critic and actor on the camera family, resuming after the last finished phase."""
     typed = validate(cfg)
-    c = typed.agent.counterfactual
     set_threads(typed.threads)
     # the training draws from its own seeded generators only; the process-wide ones are seeded too, because the
     # checkpoint saves their state, which would otherwise be whatever ran in this process before
     seed_everything(typed.seed)
-    privileged = typed.agent.obs == "privileged"  # the true state instead of the world model's view
-    encoder = None if privileged else loading.load_world_model(cfg)
-    in_dim = (PRIVILEGED_DIM if privileged else encoder.dim) + 1
-    # the critic only trains the actor, so it may read the true state while the actor reads the world model's view
-    critic_true_state = privileged or c.critic_obs == "privileged"
-    critic_in = PRIVILEGED_DIM + 1 if critic_true_state else in_dim
+    return train_rounds(typed, run_, agent_id.reward, CameraLabels(cfg, typed, run_.dir))
+
+
+class CameraLabels:
+    """The camera family's labelled rounds (``counterfactual_labels``) as the states the actor and the critic read:
+    the world model's view, or the true state with ``obs=privileged`` (and for the critic with
+    ``critic_obs=privileged``)."""
+
+    def __init__(self, cfg, typed, run_dir):
+        self.cfg, self.run_dir, self.c = cfg, run_dir, typed.agent.counterfactual
+        self.privileged = typed.agent.obs == "privileged"  # the true state instead of the world model's view
+        self.encoder = None if self.privileged else loading.load_world_model(cfg)
+        self.in_dim = (PRIVILEGED_DIM if self.privileged else self.encoder.dim) + 1
+        # the critic only trains the actor, so it may read the true state while the actor reads the world model's
+        self.critic_true_state = self.privileged or self.c.critic_obs == "privileged"
+        self.critic_in = PRIVILEGED_DIM + 1 if self.critic_true_state else self.in_dim
+        self.settings = checkpoint_settings(
+            typed, self.in_dim, self.critic_in, "privileged" if self.critic_true_state else typed.agent.obs
+        )
+
+    def round_data(self, round_: int, n: int, driver: dict | None, stop) -> dict | None:
+        """Round ``round_``'s ``n`` labelled episodes (driven by the actor of ``driver`` after round 0), with their
+        states ``x`` (the actor's view), ``xc`` (the critic's) and ``held`` (held out); None if stopped."""
+        c = self.c
+        data = labels(self.cfg, round_, n, labels_dir(self.cfg, round_, self.run_dir), driver, stop)
+        if data is None:
+            return None
+        true_state = privileged_states(data, c.decisions)
+        data["x"] = true_state if self.privileged else encode_states(self.encoder, data, c.decisions)
+        data["xc"] = true_state if self.critic_true_state else data["x"]
+        data["held"] = held_out_rows(data["episode"])
+        return data
+
+
+def train_rounds(typed, run_, reward: str, source) -> dict:
+    """Every round's labels (``source.round_data``: the family's labelled states), critic and actor, resuming after
+    the last finished phase; saves through ``run_``. Shared by every family's counterfactual-cost learner."""
+    c = typed.agent.counterfactual
     saved = run_.state or {}
     done = list(saved.get("done", []))
-    actor, critic = networks(typed, saved, in_dim, critic_in)
+    actor, critic = networks(typed, saved, source.in_dim, source.critic_in)
     history = dict(saved.get("history", {}))
     if done:
         run_.resumed(f"after {done[-1]}")
     per_round = c.critic_steps + c.actor_steps
-    critic_obs = "privileged" if critic_true_state else typed.agent.obs
-    base = checkpoint_settings(typed, agent_id.reward, in_dim, critic_in, critic_obs)
+    base = {**source.settings, "reward": reward}
 
     def save(log_step: int) -> None:
         run_.save(
@@ -332,15 +362,9 @@ def train(cfg, run_, agent_id) -> dict:
     for r in range(first, rounds):
         for past in range(len(data_rounds), r + 1):  # every round's labels so far; this round's driven by the actor
             driver = {**base, "actor": actor.state_dict()} if past == r and past > 0 else None
-            n = c.episodes if past == 0 else c.dagger_episodes
-            data = labels(cfg, past, n, labels_dir(cfg, past, run_.dir), driver, run_.stop)
+            data = source.round_data(past, c.episodes if past == 0 else c.dagger_episodes, driver, run_.stop)
             if data is None:
                 return {"stopped": True}
-            data["x"] = (
-                privileged_states(data, c.decisions) if privileged else encode_states(encoder, data, c.decisions)
-            )
-            data["xc"] = privileged_states(data, c.decisions) if critic_true_state else data["x"]
-            data["held"] = held_out_rows(data["episode"])
             data_rounds.append(data)
         x, xc, u, costs, state, held = (
             np.concatenate([d[k] for d in data_rounds]) for k in ("x", "xc", "u", "costs", "state", "held")
@@ -363,7 +387,7 @@ def train(cfg, run_, agent_id) -> dict:
         done.append(f"actor{r}")
         save((r + 1) * per_round - 1)
         log.info("[counterfactual] round %d actor, held out: %s", r, history[f"actor{r}"])
-    return finished_metrics(run_, agent_id.reward, data_rounds, history)
+    return finished_metrics(run_, reward, data_rounds, history)
 
 
 def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActor, CostCritic | None]:
@@ -380,7 +404,7 @@ def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActo
     return actor, critic
 
 
-def checkpoint_settings(typed, reward: str, in_dim: int, critic_in: int, critic_obs: str) -> dict:
+def checkpoint_settings(typed, in_dim: int, critic_in: int, critic_obs: str) -> dict:
     """What a checkpoint records beside the weights: what the actor and the critic read, and how it drives."""
     c, step_s = typed.agent.counterfactual, typed.env.step_s
     return {
@@ -398,7 +422,6 @@ def checkpoint_settings(typed, reward: str, in_dim: int, critic_in: int, critic_
         "use_speed": typed.agent.use_speed,
         "frame_view": typed.agent.frame_view,
         "action_map": ActionMap().to_dict(),
-        "reward": reward,
     }
 
 

@@ -200,10 +200,15 @@ LEARNERS: dict[str, Learner] = {
         Learner("chooser", ("worldmodel",), "worldmodel.chooser"),
         # a family's: Chae's and Merola's DQN (worldmodel/families/chae/, merola/), on their own views
         Learner(
-            "dqn", ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet"), own_keys=("dqn", "episodes")
+            "dqn",
+            ("worldmodel", "pedestrian_history", "frames_vae", "frames_resnet", "privileged"),
+            own_keys=("dqn", "episodes"),
         ),
         Learner("kim_chooser", ("lidar",), own_keys=("kim_chooser",)),  # family kim's (worldmodel/families/kim/)
-        Learner("counterfactual", ("worldmodel", "privileged"), "worldmodel.counterfactual", ("counterfactual",)),
+        # on family kim also the LIDAR (agent=counterfactual_kim), which the family trains (families/kim/)
+        Learner(
+            "counterfactual", ("worldmodel", "privileged", "lidar"), "worldmodel.counterfactual", ("counterfactual",)
+        ),
     )
 }
 

@@ -33,6 +33,32 @@ def dqn_config(cfg):
     return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(DQNConfig), cfg.agent.dqn))
 
 
+class TrueStateView:
+    """A peer learner's view of the true state instead of its own sensor (``agent.obs=privileged``; the diagnosis
+    that separates the learner from its perception): ``envs.privileged.privileged_state``, the hazard car and
+    pedestrian relative to the ego, the ego's motion and what blocks each escape corridor, read from the simulator.
+    The observer interface of the families' views; no camera."""
+
+    camera = False
+    speed = False  # the ego's speed is in the vector already
+
+    def __init__(self):
+        from envs.privileged import PRIVILEGED_DIM
+
+        self.dim = PRIVILEGED_DIM
+
+    def reset(self, seed=None) -> None:
+        pass
+
+    def __call__(self, env, obs=None) -> np.ndarray:
+        from envs.privileged import privileged_state
+
+        return privileged_state(env)
+
+    def note_action(self, action) -> None:
+        pass
+
+
 class DQNPolicy:
     """A trained DQN, greedy, behind the scripted-policy interface; its actions are Chae's brake levels unless
     ``action_of`` maps them (Merola's steer and pedal grid)."""

@@ -15,7 +15,7 @@ FAMILY = Family(
     section="kim",
     agent_config=KimAgentConfig,
     eval_config=KimEvalConfig,
-    observations=("lidar",),
+    observations=("lidar", "privileged"),
     hashed_as={
         "impact_offset_spread": "kim_impact_offset_spread",
         "bc_steer_weight": "bc_steer_weight",

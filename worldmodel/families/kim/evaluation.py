@@ -108,9 +108,10 @@ def run_policy(env, policy, specs, policy_seed: int = 0) -> list[dict]:
 def ncap_policies(cfg) -> list[tuple]:
     """AEB-3m and every goal-unaware LIDAR DDPG on the NCAP bank. A camera agent of the family (agent=ddpg_wm_kim)
     acts at the world model's 1/15 s steps, not at this group's 0.1 s, and is left out (logged); so is the LIDAR
-    chooser (agent=kim_chooser): it brakes from its first step, and this group acts from the start of each test, so
-    it would only show braking from there."""
+    chooser (agent=kim_chooser) and the counterfactual-cost DDPG (agent=counterfactual_kim): they decide in their
+    first steps, and this group acts from the start of each test, so they would only show braking from there."""
     from envs.chooser import ManoeuvreChooser
+    from envs.counterfactual import ShiftPolicy
     from envs.kim import Aeb3m
 
     out = [(Aeb3m(), 0, False, True)]
@@ -120,7 +121,7 @@ def ncap_policies(cfg) -> list[tuple]:
             if camera:
                 log.info("[ncap] %s: a camera agent of family kim; not run in the 0.1 s kim group", agent.key)
                 continue
-            if isinstance(policy, ManoeuvreChooser):
+            if isinstance(policy, (ManoeuvreChooser, ShiftPolicy)):
                 log.info("[ncap] %s: a takeover policy, not run from the start of the tests", agent.key)
                 continue
             out.append((policy, agent.seed, False, True))

@@ -52,9 +52,14 @@ class LidarObserver:
 
 
 def observer(cfg, reward: str):
-    """The LIDAR observer of the agent section of ``cfg``: the typed config (``validate(cfg)``) or the composed one,
+    """The LIDAR observer of the agent section of ``cfg`` (or, with ``agent.obs=privileged``, the true state,
+    ``TrueStateView``): the typed config (``validate(cfg)``) or the composed one,
     whose schema gives the same typed values."""
     a = cfg.agent
+    if a.obs == "privileged":  # the diagnosis: the same learner on the true state
+        from ..common import TrueStateView
+
+        return TrueStateView()
     if a.obs != "lidar":
         raise StageError(
             f"Kim et al.'s agent (agent=ddpg_kim) sees the LIDAR (obs=lidar), not obs={a.obs}; the camera "

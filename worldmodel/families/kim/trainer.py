@@ -14,6 +14,7 @@ from ... import artifacts, loading
 from ...artifacts import AgentId
 from ...common import StageError, decision_device, percent, resolve_device
 from ...learners.loop import Callbacks, TrainingLoop
+from ..common import TrueStateView
 from .observe import GOAL_REWARDS, LidarObserver, family_env, observer, training_scenario
 from .teach import learn_from_planner
 
@@ -23,7 +24,8 @@ CHECKPOINT_EPISODES = 200
 
 def train(cfg, run_, agent_id: AgentId) -> dict:
     """``train_agent`` with ``agent.obs=lidar``: DDPG on family kim for ``agent.kim.total_steps`` steps, or the
-    LIDAR chooser (``agent.learner=kim_chooser``, ``chooser.train``)."""
+    LIDAR chooser (``agent.learner=kim_chooser``, ``chooser.train``), or the counterfactual-cost DDPG
+    (``agent.learner=counterfactual``, ``counterfactual.train``)."""
     from ...config import validate
 
     if agent_id.family != "kim":
@@ -35,7 +37,11 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
         from . import chooser
 
         return chooser.train(cfg, run_, agent_id)
-    if not typed.agent.lidar_scans:
+    if typed.agent.learner == "counterfactual":
+        from . import counterfactual
+
+        return counterfactual.train(cfg, run_, agent_id)
+    if not typed.agent.lidar_scans and typed.agent.obs == "lidar":
         raise StageError("obs=lidar needs the LIDAR front end: agent.lidar_scans=4 (agent=ddpg_kim sets it)")
     return LidarRun(cfg, typed, run_, agent_id).train()
 
@@ -72,7 +78,10 @@ class LidarRun(Callbacks):
         self.hp = hp = typed.agent  # the typed agent section: DDPG's keys (hp.ddpg) and the training loop's
         self.see = see = observer(typed, agent_id.reward)
         self.env = family_env(cfg, agent_id.reward)
-        agent = make_agent(see.dim, 2, DDPGConfig.of(hp), seed=typed.seed, device=resolve_device(typed.device))
+        ddpg = DDPGConfig.of(hp)
+        if hp.obs != "lidar":  # the true state: the same layers without the LIDAR's convolutions
+            ddpg = dataclasses.replace(ddpg, lidar_scans=0)
+        agent = make_agent(see.dim, 2, ddpg, seed=typed.seed, device=resolve_device(typed.device))
         self.learner = DDPGLearner(agent, hp.reward_scale, hp.demo_share)
         episode, self.curve = 0, {"return": [], "crash": [], "end": []}
         if run_.state is not None:
@@ -106,7 +115,7 @@ class LidarRun(Callbacks):
                 **self.learner.state_dict(),
                 "episode": self.loop.episode,
                 "curve": self.curve,
-                "obs": "lidar",
+                "obs": self.hp.obs,
                 "obs_dim": self.see.dim,
                 "lidar_speed": self.see.speed,
                 "learner": "ddpg",
@@ -145,7 +154,7 @@ class LidarRun(Callbacks):
         last = self.curve["crash"][-ROLLING:]
         return {
             "reward": self.agent_id.reward,
-            "obs": "lidar",
+            "obs": self.hp.obs,
             "steps": loop.step,
             "episodes": loop.episode,
             "recent_avoidance": float(1.0 - np.mean(last)) if last else None,
@@ -160,6 +169,12 @@ def summary(metrics: dict) -> str:
         from .chooser import summary as chooser_summary
 
         return chooser_summary(metrics)
+    if metrics.get("learner") == "counterfactual":
+        last = metrics["history"][max(k for k in metrics["history"] if k.startswith("actor"))]
+        return (
+            f"{metrics.get('labelled_states', 0)} labelled decision states; held out, the actor's predicted cost "
+            f"{last['predicted_cost']:.2f} against braking's {last['predicted_braking_cost']:.2f}"
+        )
     steps, episodes, avoided = metrics["steps"], metrics["episodes"], metrics["recent_avoidance"]
     return f"{steps} steps, {episodes} episodes; avoidance in the last 100: {percent(avoided)}"
 
@@ -184,9 +199,9 @@ class LidarPolicy:
 
 
 def load_policy(cfg, agent_id: AgentId) -> tuple:
-    """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim), the LIDAR chooser
-    (agent=kim_chooser), or a world-model agent (agent=ddpg_wm_kim) that acts from camera frames at the world
-    model's step length."""
+    """(policy, sees the camera) for a trained kim agent: a LIDAR DDPG (agent=ddpg_kim; with obs=privileged, on the
+    true state), the LIDAR chooser (agent=kim_chooser), the counterfactual-cost DDPG (agent=counterfactual_kim), or
+    a world-model agent (agent=ddpg_wm_kim) that acts from camera frames at the world model's step length."""
     from ...models.ddpg import DDPGConfig
     from ...models.td3 import make_agent
     from ...policies import learned_policy
@@ -196,20 +211,27 @@ def load_policy(cfg, agent_id: AgentId) -> tuple:
         from .chooser import policy
 
         return policy(state, agent_id.policy), False
+    if state.get("learner") == "counterfactual":
+        from .counterfactual import policy as shift_policy
+
+        return shift_policy(state, agent_id.policy), False
     if state.get("obs", "worldmodel") == "worldmodel":
         return learned_policy(cfg, agent_id, state)[0], True
-    if state.get("obs") != "lidar":
+    if state.get("obs") not in ("lidar", "privileged"):
         raise StageError(
             f"{agent_id.dir(cfg)} is neither a LIDAR nor a world-model agent; delete it or move it out of "
             f"{artifacts.runs_root(cfg)}"
         )
     trained = state["ddpg_config"]  # the scans it was trained on
-    see = LidarObserver(
-        agent_id.reward in GOAL_REWARDS,
-        int(trained["lidar_scans"]),
-        int(trained["lidar_rays"]),
-        bool(state.get("lidar_speed", False)),  # checkpoints before the option saw no speed
-    )
+    if state["obs"] == "privileged":
+        see = TrueStateView()
+    else:
+        see = LidarObserver(
+            agent_id.reward in GOAL_REWARDS,
+            int(trained["lidar_scans"]),
+            int(trained["lidar_rays"]),
+            bool(state.get("lidar_speed", False)),  # checkpoints before the option saw no speed
+        )
     if see.dim != state["obs_dim"]:
         raise StageError(
             f"{agent_id.dir(cfg)} was trained on inputs of size {state['obs_dim']}, the LIDAR view gives "

@@ -7,7 +7,7 @@ from .config import MerolaAgentConfig, MerolaEvalConfig
 FAMILY = Family(
     name="merola",
     system="worldmodel.families.merola.system",
-    rewards=("merola",),
+    rewards=("merola", "merola_safe"),  # the paper's, and the deviation the diagnosis names
     validation_seeds=(2022, 77),
     sealed_seed=17734,
     suite_test_seed=61004,
@@ -16,7 +16,7 @@ FAMILY = Family(
     agent_config=MerolaAgentConfig,
     eval_config=MerolaEvalConfig,
     learners=("dqn",),
-    observations=("frames_vae", "frames_resnet"),
+    observations=("frames_vae", "frames_resnet", "privileged"),
     hashed_as={"resnet_weights": "resnet_weights", "total_steps": "peer_total_steps"},
     hashed_defaults={"resnet_weights": None},
 )

@@ -13,7 +13,9 @@ DQN from ``worldmodel/models/dqn.py`` with one update per step. The observation 
 * ``frames_vae`` (default): the frozen VAE's means of the last 4 frames (4 × 128), the first frame repeated at the
   start of an episode;
 * ``frames_resnet``: the last 4 frames, coloured, through a frozen ResNet-18 (``worldmodel/models/resnet.py``)
-  whose weights the user supplies (``agent.merola.resnet_weights``); the 2×2×512 maps of the 4 frames are concatenated.
+  whose weights the user supplies (``agent.merola.resnet_weights``); the 2×2×512 maps of the 4 frames are concatenated;
+* ``privileged``: the true state (``TrueStateView``), no camera: the diagnosis that separates the learner from
+  what the frames show.
 
 Runs: ``runs/NAME/agent_merola_ddqn_merola[-OBS]/seedK/`` with ``last.pt`` (network, optimiser, replay, RNG,
 episode) every ``CHECKPOINT_EPISODES``, TensorBoard and ``metrics.json`` with the learning curve.
@@ -51,6 +53,7 @@ from ..common import (
     DQNEpisodes,
     DQNPolicy,
     Driven,
+    TrueStateView,
     dqn_checkpoint,
     dqn_config,
     evaluation,
@@ -68,7 +71,7 @@ FRAMES = 4
 ROLLING = 100
 CHECKPOINT_EPISODES = 100
 PAPER_PLATEAU = -10.0  # Merola et al. Fig. 4: the rolling-100 return stays near -10 after ~6,000 episodes
-OBSERVATIONS = ("frames_vae", "frames_resnet")
+OBSERVATIONS = ("frames_vae", "frames_resnet", "privileged")
 
 
 def merola_action(index: int) -> np.ndarray:
@@ -126,9 +129,11 @@ def resnet_features(net):
     return features
 
 
-def observer(cfg, obs: str) -> FrameStack:
+def observer(cfg, obs: str) -> FrameStack | TrueStateView:
     if obs not in OBSERVATIONS:
         raise StageError(f"agent.obs={obs}: ddqn_merola sees one of {', '.join(OBSERVATIONS)}")
+    if obs == "privileged":
+        return TrueStateView()
     if obs == "frames_resnet":
         from ...models.resnet import load_resnet18
 
@@ -140,9 +145,9 @@ def observer(cfg, obs: str) -> FrameStack:
     return FrameStack(vae_features(vae), int(vae.latent_dim))
 
 
-def family_env(cfg, step_s: float | None = None, camera: bool = True):
+def family_env(cfg, step_s: float | None = None, camera: bool = True, reward: str = "merola"):
     options = {} if step_s is None else {"step_s": step_s}
-    return make_env(cfg, camera=camera, family="merola", reward="merola", **options)
+    return make_env(cfg, camera=camera, family="merola", reward=reward, **options)
 
 
 # ----------------------------------------------------------------------------- training
@@ -157,8 +162,11 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
     steps have been taken; the learning rate decays over exactly that many updates."""
     from ...config import validate
 
-    if agent_id.reward != "merola":
-        raise StageError(f"ddqn_merola learns with reward merola, not {agent_id.reward}: use agent=ddqn_merola")
+    if agent_id.reward not in DECLARED.rewards:
+        raise StageError(
+            f"ddqn_merola learns with reward {' or '.join(DECLARED.rewards)}, not {agent_id.reward}: use "
+            "agent=ddqn_merola"
+        )
     return MerolaRun(cfg, validate(cfg), run_, agent_id).train()
 
 
@@ -172,7 +180,7 @@ class MerolaRun(Callbacks):
         self.typed, self.run_, self.agent_id = typed, run_, agent_id
         self.total = total = typed.agent.merola.total_steps
         self.see = see = observer(cfg, typed.agent.obs)
-        self.env = family_env(cfg)
+        self.env = family_env(cfg, camera=see.camera, reward=agent_id.reward)
         self.hp = dataclasses.replace(dqn_config(cfg), total_steps=total)
         agent = DQN(see.dim, len(ACTIONS), self.hp, typed.seed, device=resolve_device(typed.device))
         self.learner = DQNLearner(agent)
