@@ -15,7 +15,9 @@ The tables and columns are ``experiments/critic_vs_exact.py``'s (Spearman and pa
 intervals over scenarios, against a uniformly random choice), with the cost in ISS: "pick - braking" is in ISS
 units, and a state "matters" where some candidate is cheaper than braking by more than ``MATTERS_ISS``. Sealed
 draws are refused. Writes ``runs/NAME/critic_vs_exact/kim_critic_vs_exact_draw<seed>.md`` and ``.csv``; the labels
-are kept beside them (``kim_labels_draw<seed>_trials<N>.npz``) and read again by a later run.
+are kept beside them (``kim_labels_draw<seed>_trials<N>.npz``) and read again by a later run. A counterfactual-cost
+agent (``agent=counterfactual_kim``) is scored by its cost critic on the candidates its shifts drive exactly (braking
+and the lane changes), in ``kim_critic_vs_exact_draw<seed>_shifts.md``.
 """
 
 from __future__ import annotations
@@ -77,11 +79,60 @@ def critic_scores(state: dict, agent_seed: int, view: np.ndarray, speed: np.ndar
     return -q.reshape(s, k).numpy().astype(np.float64)
 
 
+def shift_columns(candidates, state: dict) -> list[int]:
+    """The candidates (braking first) that a counterfactual actor's shift drives exactly as the chooser does
+    (``critic_vs_exact.shift_inputs``): its critic is scored on those columns only."""
+    from experiments.critic_vs_exact import shift_inputs
+
+    keep = []
+    for j, m in enumerate(candidates):
+        try:
+            shift_inputs([m], state["hold_s"], float(state["step_s"]))
+        except ValueError:
+            continue
+        keep.append(j)
+    return keep
+
+
+def cost_critic_scores(state: dict, view: np.ndarray, step: np.ndarray, candidates) -> np.ndarray:
+    """The counterfactual-cost critic's predicted cost (members' mean) of every candidate, at each state's own
+    decision index (the labels' step: decisions are one step apart, as the preset's)."""
+    from experiments.critic_vs_exact import cost_critic, shift_inputs
+    from worldmodel.models.counterfactual import features
+
+    u = shift_inputs(candidates, state["hold_s"], float(state["step_s"]))
+    x = features(view, np.minimum(step, int(state["decisions"]) - 1), int(state["decisions"]))
+    critic = cost_critic(state)
+    with torch.inference_mode():
+        xt = torch.from_numpy(np.repeat(x, len(u), axis=0))
+        ut = torch.from_numpy(np.tile(u, (len(x), 1)))
+        return critic(xt, ut).mean(0).reshape(len(x), len(u)).numpy().astype(np.float64)
+
+
+def score_cost_critics(cfg, val: dict, candidates) -> tuple[list[Scored], list[int]]:
+    """Every counterfactual-cost LIDAR agent (agent=counterfactual_kim), on the columns its shifts drive."""
+    scored, columns = [], []
+    for agent in artifacts.trained_agents(cfg, "kim"):
+        state = loading.load_agent_state(cfg, agent, "last")
+        if state.get("learner") != "counterfactual" or state.get("obs") != "lidar":
+            continue
+        if int(state["interval"]) != 1 or int(state["obs_dim"]) != val["view"].shape[1]:
+            continue  # decisions not one step apart, or another view: the labels' states are not its own
+        columns = shift_columns(candidates, state)
+        moves = [candidates[j] for j in columns]
+        scores = cost_critic_scores(state, val["view"], val["step"], moves)
+        scored.append(Scored(agent.key, "cost critic", scores, np.arange(len(val["view"]))))
+    return scored, columns
+
+
 def score_agents(cfg, val: dict, candidates) -> tuple[list[Scored], list[str]]:
     """Every trained kim agent with a DDPG critic that reads the view the labels hold; a line for each left out."""
     scored, skipped = [], []
     for agent in artifacts.trained_agents(cfg, "kim"):
         state = loading.load_agent_state(cfg, agent, "last")
+        if state.get("learner") == "counterfactual":
+            skipped.append(f"{agent.key}: a cost critic over shifts, scored in the shifts' table")
+            continue
         if state.get("obs") != "lidar" or "critic" not in state.get("agent", {}):
             skipped.append(
                 f"{agent.key}: no LIDAR DDPG critic ({state.get('learner', 'ddpg')}, obs={state.get('obs')})"
@@ -142,6 +193,19 @@ def main(argv=None) -> int:
     units = {"matters_by": MATTERS_ISS, "points": 1.0, "unit": "ISS", "margin_unit": " ISS"}
     text = write_report(cfg, f"kim_critic_vs_exact_draw{draw}", lines, scored, skipped, val, steps, args.boot, **units)
     print(text)
+    shifts, columns = score_cost_critics(cfg, val, candidates)
+    if shifts:  # the same states, on the candidates a shift drives exactly
+        sub = {**val, "costs": val["costs"][:, columns]}
+        head = [
+            f"Experiment {cfg.experiment}, family kim, validation draw {draw}: the states above, on the {len(columns)} "
+            "candidates that a counterfactual actor's shift drives exactly as the chooser does (braking and the "
+            f"braking lane changes), {int(matters(sub['costs'], MATTERS_ISS).sum())} states where one beats braking "
+            f"by more than {MATTERS_ISS:g} ISS. Scores: the cost critic's predicted ISS (members' mean), at the "
+            "state's decision.",
+            "",
+        ]
+        stem = f"kim_critic_vs_exact_draw{draw}_shifts"
+        print(write_report(cfg, stem, head, shifts, [], sub, steps, args.boot, **units))
     return 0
 
 
