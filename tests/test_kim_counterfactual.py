@@ -16,7 +16,12 @@ from worldmodel.families.kim import counterfactual as kim_counterfactual
 from worldmodel.families.kim import system as kim
 from worldmodel.models.counterfactual import ShiftActor
 
-AGENT = ("agent=counterfactual_kim",)
+# the preset keeps its labelled episodes and minibatches at every scale; the smoke scale's, passed as a user would
+AGENT = (
+    "agent=counterfactual_kim",
+    *("agent.counterfactual.episodes=4", "agent.counterfactual.dagger_episodes=2"),
+    *("agent.counterfactual.critic_steps=60", "agent.counterfactual.actor_steps=40"),
+)
 
 
 @pytest.fixture(scope="module")

@@ -256,7 +256,9 @@ def test_kim_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(stage_
     """The same rounds on family kim's LIDAR view (agent=counterfactual_kim), no world model: stopped in round 1's
     critic, after the first actor has driven and its states are labelled."""
     a, b = tmp_path / "straight", tmp_path / "stopped"
-    agent_resumes_bit_for_bit(stage_cfg, a, b, ("agent=counterfactual_kim",), stop_at_update=130)
+    smoke = ("agent.counterfactual.episodes=4", "agent.counterfactual.dagger_episodes=2")
+    smoke += ("agent.counterfactual.critic_steps=60", "agent.counterfactual.actor_steps=40")
+    agent_resumes_bit_for_bit(stage_cfg, a, b, ("agent=counterfactual_kim", *smoke), stop_at_update=130)
 
 
 # ----------------------------------------------------------------------------- the peers' learners
