@@ -215,8 +215,8 @@ def test_merola_safe_costs_a_crash_100_more_and_nothing_else():
     hit = {"kind": "vehicle", "delta_v_ego": 3.0}
     for hits in ([], [hit], [hit, hit]):
         ctx = StepContext(hits, 10.0, 9.0, np.array([0.2, -1.0]), 0.1, heading=0.3)
-        assert merola_safe(ctx) == pytest.approx(merola(ctx) - MEROLA_MOST_PROGRESS * len(hits))
-    assert MEROLA_MOST_PROGRESS >= 6.0 * 60.0 / 3.6  # the 6 s horizon at the top of the ego's speed range
+        assert merola_safe(ctx) == pytest.approx(merola(ctx) - 100.0 * len(hits))
+    assert MEROLA_MOST_PROGRESS == pytest.approx(6.0 * 60.0 / 3.6)  # the 6 s horizon at the ego's top speed
 
 
 def test_privileged_ddqn_trains_and_its_re_simulated_values_match_the_episode(stage_cfg):
