@@ -35,18 +35,23 @@ BRAKE = np.array([0.0, -1.0], dtype=np.float32)
 
 @dataclass(frozen=True)
 class Shift:
-    """Steer ``steer`` for ``hold`` steps, counter-steer as long, then brake straight; pedal ``pedal`` until then."""
+    """Steer ``steer`` for ``hold`` steps, counter-steer as long, then brake straight; pedal ``pedal`` until then.
+    With ``release``, the final braking lets go of the pedal once the car stands (a reward that charges braking at
+    low speed, as Merola's does, would otherwise charge every step of standing on the brake)."""
 
     steer: float
     pedal: float
     hold: int
+    release: bool = False
 
-    def action(self, k: int) -> np.ndarray:
-        """The action ``k`` steps after the shift started."""
+    def action(self, k: int, speed: float | None = None) -> np.ndarray:
+        """The action ``k`` steps after the shift started, the ego at ``speed`` (m/s; read only with ``release``)."""
         if k < self.hold:
             return np.array([self.steer, self.pedal], dtype=np.float32)
         if k < 2 * self.hold:
             return np.array([-self.steer, self.pedal], dtype=np.float32)
+        if self.release and speed is not None and speed <= 0.0:
+            return np.zeros(2, dtype=np.float32)
         return BRAKE.copy()
 
     @property
@@ -62,6 +67,7 @@ class ShiftSpace:
 
     hold_s: tuple[float, float] = (0.15, 0.6)
     step_s: float = DT
+    release: bool = False  # every shift's final braking lets go once the car stands (``Shift.release``)
 
     def __post_init__(self):
         lo, hi = (float(x) for x in self.hold_s)
@@ -73,7 +79,7 @@ class ShiftSpace:
         lo, hi = (float(x) for x in self.hold_s)
         hold_s = lo + (hi - lo) * (u[2] + 1.0) / 2.0
         pedal = min(1.0, max(-1.0, -1.0 + 2.0 * float(u[1])))
-        return Shift(float(u[0]), pedal, max(1, int(round(hold_s / self.step_s))))
+        return Shift(float(u[0]), pedal, max(1, int(round(hold_s / self.step_s))), self.release)
 
 
 def decision_steps(decisions: int, interval: int) -> list[int]:
@@ -89,8 +95,8 @@ class _Run:
     def __init__(self, shift: Shift, start: int):
         self.shift, self.start = shift, int(start)
 
-    def action(self, t_step: int) -> np.ndarray:
-        return self.shift.action(t_step - self.start)
+    def action(self, t_step: int, speed: float | None = None) -> np.ndarray:
+        return self.shift.action(t_step - self.start, speed)
 
 
 def _run_to_end(twin: UrbanCollisionEnv, run: _Run, bound: float = math.inf, reward: str = "r2") -> float:
@@ -98,7 +104,7 @@ def _run_to_end(twin: UrbanCollisionEnv, run: _Run, bound: float = math.inf, rew
     ``bound``."""
     cost, key = 0.0, f"reward_{reward}"
     while True:
-        _, _, terminated, truncated, info = twin.step(run.action(twin.t_step))
+        _, _, terminated, truncated, info = twin.step(run.action(twin.t_step, twin.ego.v))
         cost -= info[key]
         if cost >= bound or terminated or truncated:
             return cost
@@ -124,7 +130,7 @@ def shift_cost(
         return cost, _static(twin)
     head = 0.0
     for _ in range(int(interval)):
-        _, _, terminated, truncated, info = twin.step(run.action(twin.t_step))
+        _, _, terminated, truncated, info = twin.step(run.action(twin.t_step, twin.ego.v))
         head -= info[f"reward_{reward}"]
         if terminated or truncated:
             return head, _static(twin)
@@ -239,7 +245,7 @@ class ShiftPolicy:
         self.bind_view = bind_view
         self.steps = decision_steps(decisions, interval)
         self.encode, self.note_action, self.reset_view = encode, note_action, reset_view
-        self.t, self.run, self.x = 0, None, None
+        self.t, self.run, self.x, self.env = 0, None, None, None
         self.chosen: list[np.ndarray] = []
 
     def reset(self, seed: int | None = None) -> None:
@@ -248,7 +254,9 @@ class ShiftPolicy:
             self.reset_view()
 
     def bind(self, env: UrbanCollisionEnv) -> None:
-        """Hand a view that reads the simulator (the true state) the episode's env; nothing otherwise."""
+        """Hand a view that reads the simulator (the true state) the episode's env; keep it for the ego's speed,
+        which a shift that lets go of the brake at a standstill reads."""
+        self.env = env
         if self.bind_view is not None:
             self.bind_view(env)
 
@@ -262,7 +270,8 @@ class ShiftPolicy:
             u = np.asarray(self.decide(x, self.steps.index(t)), np.float32).reshape(3)
             self.chosen.append(u)
             self.run = _Run(self.space.shift(u), t)
-        action = self.run.action(t) if self.run is not None else BRAKE.copy()
+        speed = self.env.ego.v if self.env is not None else None
+        action = self.run.action(t, speed) if self.run is not None else BRAKE.copy()
         if watching and self.note_action is not None:
             self.note_action(action)
         return action

@@ -56,6 +56,9 @@ KIM_CHOOSER_LABELS = 7778  # agent=kim_chooser (worldmodel/families/kim/chooser.
 # [label seed, TAG, r, e], and its proposed shifts [label seed, TAG, r, e, KIM_COUNTERFACTUAL_PROPOSALS]
 KIM_COUNTERFACTUAL_LABELS = 7779
 KIM_COUNTERFACTUAL_PROPOSALS = 1  # the fifth word of the proposals' stream, under KIM_COUNTERFACTUAL_LABELS
+# agent=counterfactual_merola (worldmodel/families/merola/counterfactual.py): round r's labelled episode e's scenario,
+# [label seed, TAG, r, e]
+MEROLA_COUNTERFACTUAL_LABELS = 7780
 
 # ----------------------------------------------------------------------------- datasets and training draws
 RECORDING_BRANCHES = 3571  # recording: whether episode i branches, at which step, and the branch's actions, [s, i, TAG]

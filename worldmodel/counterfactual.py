@@ -57,7 +57,7 @@ from .counterfactual_labels import (
     privileged_states,
 )
 from .learners.loop import Curves, HeldOutChecks, fit, fit_state, load_fit_state
-from .models.counterfactual import CostCritic, ShiftActor, actor_from_state
+from .models.counterfactual import CostCritic, ShiftActor, actor_from_state, features
 from .stats import rank_agreement
 
 log = logging.getLogger(__name__)
@@ -332,36 +332,38 @@ class CameraLabels:
 
 def train_rounds(typed, run_, reward: str, source) -> dict:
     """Every round's labels (``source.round_data``: the family's labelled states), critic and actor, resuming after
-    the last finished phase; saves through ``run_``. Shared by every family's counterfactual-cost learner."""
+    the last finished phase; saves through ``run_``. Shared by every family's counterfactual-cost learner. A source
+    with ``choices`` (K, 3), a fixed set of shifts labelled at every decision, has no actor: its policy is the
+    critic's pessimistic choice among them (``choose``), as a DQN's is the best of its Q-values."""
     c = typed.agent.counterfactual
+    choices = getattr(source, "choices", None)
     saved = run_.state or {}
     done = list(saved.get("done", []))
     actor, critic = networks(typed, saved, source.in_dim, source.critic_in)
+    if choices is not None:
+        actor = None
     history = dict(saved.get("history", {}))
     if done:
         run_.resumed(f"after {done[-1]}")
-    per_round = c.critic_steps + c.actor_steps
+    per_round = c.critic_steps + (0 if actor is None else c.actor_steps)
     base = {**source.settings, "reward": reward}
+
+    def policy_state() -> dict:
+        if actor is None:
+            return {"actor": None, "critic": None if critic is None else critic.state_dict()}
+        return {"actor": actor.state_dict(), "critic": None if critic is None else critic.state_dict()}
 
     def save(log_step: int) -> None:
         run_.save(
-            {
-                **base,
-                "actor": actor.state_dict(),
-                "critic": None if critic is None else critic.state_dict(),
-                "done": list(done),
-                "history": history,
-                "step": log_step,
-                "log_step": log_step,
-            }
+            {**base, **policy_state(), "done": list(done), "history": history, "step": log_step, "log_step": log_step}
         )
 
     data_rounds: list[dict] = []
     rounds = c.dagger_rounds + 1
     first = sum(f"actor{r}" in done for r in range(rounds))
     for r in range(first, rounds):
-        for past in range(len(data_rounds), r + 1):  # every round's labels so far; this round's driven by the actor
-            driver = {**base, "actor": actor.state_dict()} if past == r and past > 0 else None
+        for past in range(len(data_rounds), r + 1):  # every round's labels so far; this round's driven by the policy
+            driver = {**base, **policy_state()} if past == r and past > 0 else None
             data = source.round_data(past, c.episodes if past == 0 else c.dagger_episodes, driver, run_.stop)
             if data is None:
                 return {"stopped": True}
@@ -378,7 +380,12 @@ def train_rounds(typed, run_, reward: str, source) -> dict:
             done.append(f"critic{r}")
             save(r * per_round + c.critic_steps - 1)
             log.info("[counterfactual] round %d critic, held out: %s", r, history[f"critic{r}"])
-        figures = fit_actor(actor, critic, x, xc, state, held, c, typed.seed, r, run_, r * per_round + c.critic_steps)
+        if actor is None:
+            figures = choice_figures(critic, xc[held], u[held], costs[held], choices, c)
+            log_choice_figures(run_, figures, (r + 1) * per_round - 1)
+        else:
+            step = r * per_round + c.critic_steps
+            figures = fit_actor(actor, critic, x, xc, state, held, c, typed.seed, r, run_, step)
         if figures is None:
             return {"stopped": True}
         history[f"actor{r}"] = {k: round(v, 6) for k, v in figures.items()}
@@ -386,8 +393,69 @@ def train_rounds(typed, run_, reward: str, source) -> dict:
             history[f"actor{r}"]["driver"] = driver_figures(data_rounds[r])
         done.append(f"actor{r}")
         save((r + 1) * per_round - 1)
-        log.info("[counterfactual] round %d actor, held out: %s", r, history[f"actor{r}"])
+        log.info(
+            "[counterfactual] round %d %s, held out: %s",
+            r,
+            "choice" if actor is None else "actor",
+            history[f"actor{r}"],
+        )
     return finished_metrics(run_, reward, data_rounds, history)
+
+
+# ----------------------------------------------------------------------------- choosing among fixed shifts
+def choose(critic: CostCritic, x: np.ndarray, choices: np.ndarray, c) -> np.ndarray:
+    """Per state of ``x`` (S, F), the index among ``choices`` (K, 3) of the shift of lowest ``objective``: the
+    members' mean predicted cost, pessimistic by their spread and anchored to braking where they disagree (the
+    spread's scale: the state's mean over its choices). A fixed set's greedy policy, as a DQN's argmax is."""
+    with torch.no_grad():
+        xt = torch.from_numpy(np.asarray(x, np.float32))
+        u = torch.from_numpy(np.asarray(choices, np.float32))[None].expand(len(xt), -1, -1)
+        q = critic.grid(xt, u)
+        spread = q.std(0) if q.shape[0] > 1 else torch.zeros_like(q[0])
+        scale = spread.mean(1, keepdim=True).clamp_min(1e-6)
+        return objective_of(q, u, c, scale)[0].argmin(1).numpy()
+
+
+def choice_figures(critic: CostCritic, x, u, costs, choices: np.ndarray, c) -> dict:
+    """On held-out states whose labels are the ``choices`` in their order: the exact labelled cost of the critic's
+    choice, of braking (the choice ``u = 0``), of the best choice, and how often it chooses other than braking."""
+    if not len(x):
+        return {}
+    if not np.allclose(u, np.broadcast_to(choices, u.shape)):
+        raise StageError("the labels hold other shifts than the learner's choices: label them again")
+    pick = choose(critic, x, choices, c)
+    brake = int(np.flatnonzero(~choices[:, :2].any(1))[0])
+    rows = np.arange(len(x))
+    return {
+        "exact_cost_chosen": float(costs[rows, pick].mean()),
+        "exact_cost_braking": float(costs[:, brake].mean()),
+        "exact_cost_best": float(costs.min(1).mean()),
+        "switch_share": float((pick != brake).mean()),
+    }
+
+
+def log_choice_figures(run_, figures: dict, step: int) -> None:
+    writer = run_.writer if run_ is not None else None
+    for name, value in figures.items():
+        if writer is not None:
+            writer.add_scalar(f"choice/held_out_{name}", value, step)
+
+
+def critic_decision(critic: CostCritic, choices: np.ndarray, decisions: int, c):
+    """``decide(x, d)`` of a learner that chooses among ``choices`` by its critic (``choose``)."""
+
+    def decide(x: np.ndarray, d: int) -> np.ndarray:
+        inp = features(np.asarray(x, np.float32)[None], np.array([d]), decisions)
+        return np.asarray(choices[int(choose(critic, inp, choices, c)[0])], np.float32)
+
+    return decide
+
+
+def critic_from_state(state: dict) -> CostCritic:
+    """The critic of a checkpoint (or a DAgger round's driver) whose settings name its shape."""
+    critic = CostCritic(int(state["critic_in_dim"]), int(state["critic_members"]), state["critic_hidden"])
+    critic.load_state_dict(state["critic"])
+    return critic.eval()
 
 
 def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActor, CostCritic | None]:

@@ -205,9 +205,13 @@ LEARNERS: dict[str, Learner] = {
             own_keys=("dqn", "episodes"),
         ),
         Learner("kim_chooser", ("lidar",), own_keys=("kim_chooser",)),  # family kim's (worldmodel/families/kim/)
-        # on family kim also the LIDAR (agent=counterfactual_kim), which the family trains (families/kim/)
+        # on family kim also the LIDAR (agent=counterfactual_kim), on family merola Merola's frames
+        # (agent=counterfactual_merola): those the families train (families/kim/, merola/)
         Learner(
-            "counterfactual", ("worldmodel", "privileged", "lidar"), "worldmodel.counterfactual", ("counterfactual",)
+            "counterfactual",
+            ("worldmodel", "privileged", "lidar", "frames_vae"),
+            "worldmodel.counterfactual",
+            ("counterfactual",),
         ),
     )
 }

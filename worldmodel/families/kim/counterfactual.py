@@ -21,13 +21,10 @@ and the checkpoints are that module's) on this family's states:
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from envs.counterfactual import ShiftPolicy, brake_decision, label_episode
 from envs.kim import kim_action_for
@@ -35,15 +32,15 @@ from envs.privileged import PRIVILEGED_DIM
 from envs.streams import KIM_COUNTERFACTUAL_LABELS, KIM_COUNTERFACTUAL_PROPOSALS
 
 from ... import artifacts
-from ...common import StageError, atomic_output, seed_everything, set_threads
+from ...common import StageError, seed_everything, set_threads
 from ...counterfactual import train_rounds
 from ...counterfactual_labels import actor_decision, held_out_rows, proposer
+from ...counterfactual_shards import label_parts, shard_labels
 from ...models.counterfactual import actor_from_state, features
 from .observe import LidarObserver, family_env, observer, training_scenario
 
 log = logging.getLogger(__name__)
 REWARD = "kim_unaware"  # the cost whose zero is an avoided runner, as the LIDAR chooser's
-SHARD = 25  # labelled episodes per file
 KEYS = ("t", "u", "costs", "static", "chosen", "view")
 
 
@@ -131,46 +128,16 @@ def label_shard(cfg, typed, round_: int, first: int, stop: int, decide) -> dict:
             label_episode(env, spec, policy, proposer(rng, c), c.continuations(env.step_s), twin, REWARD, False, None)
         )
     env.close()
-    out = {k: np.concatenate([p[k] for p in parts]) for k in KEYS}
-    out["episode"] = np.concatenate([np.full(len(p["t"]), e, np.int32) for e, p in zip(range(first, stop), parts)])
-    out["episodes"] = np.array([first, stop])
-    return out
-
-
-def _shard_holds(path: Path, first: int, stop: int) -> bool:
-    try:
-        with np.load(path) as f:
-            return f["episodes"].tolist() == [first, stop]
-    except (OSError, KeyError, ValueError):
-        return False  # unreadable or unfinished: labelled again
+    return label_parts(parts, first, KEYS)
 
 
 def labels(cfg, typed, round_: int, n: int, directory: Path, decide, stop=None) -> dict | None:
     """Round ``round_``'s ``n`` labelled episodes in ``directory``, labelling the shards missing; None when
     ``stop`` was requested before they were all labelled."""
-    directory.mkdir(parents=True, exist_ok=True)
-    meta = directory / "settings.json"
-    if not meta.exists() and round_ == 0:
-        meta.write_text(json.dumps(label_settings(cfg, typed), default=str))
-    bounds = [(k * SHARD, min((k + 1) * SHARD, n)) for k in range(math.ceil(n / SHARD))]
-    paths = [directory / f"shard_{k:04d}.npz" for k in range(len(bounds))]
-    todo = [k for k, p in enumerate(paths) if not _shard_holds(p, *bounds[k])]
-    if todo and decide is None:
-        raise StageError(
-            f"{directory} misses {len(todo)} shards of labels that an earlier actor of this run drove: delete "
-            f"{directory.parent.parent} to train the run again"
-        )
-    with tqdm(total=n, initial=n - sum(b - a for a, b in (bounds[k] for k in todo)), unit="episode") as bar:
-        bar.set_description(f"kim counterfactual labels (round {round_})")
-        for k in todo:
-            if stop is not None and stop.requested:
-                return None
-            data = label_shard(cfg, typed, round_, *bounds[k], decide)
-            with atomic_output(paths[k]) as tmp, open(tmp, "wb") as fh:  # np.savez would add .npz to a name
-                np.savez(fh, **data)
-            bar.update(bounds[k][1] - bounds[k][0])
-    parts = [dict(np.load(p)) for p in paths]
-    return {k: np.concatenate([p[k] for p in parts]) for k in (*KEYS, "episode")}
+    shard = None if decide is None else (lambda first, last: label_shard(cfg, typed, round_, first, last, decide))
+    settings = label_settings(cfg, typed) if round_ == 0 else None
+    what = f"kim counterfactual labels (round {round_})"
+    return shard_labels(directory, n, shard, KEYS, what, settings, stop)
 
 
 class LidarLabels:

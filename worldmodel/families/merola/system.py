@@ -167,7 +167,12 @@ def train(cfg, run_, agent_id: AgentId) -> dict:
             f"ddqn_merola learns with reward {' or '.join(DECLARED.rewards)}, not {agent_id.reward}: use "
             "agent=ddqn_merola"
         )
-    return MerolaRun(cfg, validate(cfg), run_, agent_id).train()
+    typed = validate(cfg)
+    if typed.agent.learner == "counterfactual":  # agent=counterfactual_merola
+        from . import counterfactual
+
+        return counterfactual.train(cfg, run_, agent_id, typed)
+    return MerolaRun(cfg, typed, run_, agent_id).train()
 
 
 class MerolaRun(Callbacks):
@@ -237,6 +242,9 @@ class MerolaRun(Callbacks):
 
 
 def summary(metrics: dict) -> str:
+    if metrics.get("learner") == "counterfactual":
+        last = metrics["history"].get(f"actor{len(metrics.get('labelled_episodes', {})) - 1}", {})
+        return f"{metrics.get('labelled_states', 0)} labelled states; held out: {last}"
     ret = metrics["recent_return"]
     return (
         f"{metrics['episodes']} episodes; last 100: return {'n/a' if ret is None else f'{ret:.1f}'}, "
@@ -244,13 +252,20 @@ def summary(metrics: dict) -> str:
     )
 
 
-def load_policy(cfg, agent_id: AgentId) -> DQNPolicy:
-    """A trained ddqn_merola agent, greedy, with the hyperparameters and observation it was trained with."""
+def load_policy(cfg, agent_id: AgentId):
+    """A trained agent of the family, greedy, with the hyperparameters and observation it was trained with: a
+    ``DQNPolicy`` (agent=ddqn_merola), or a ``ShiftPolicy`` (agent=counterfactual_merola)."""
     from ...models.dqn import DQN, DQNConfig
 
     state = loading.load_agent_state(cfg, agent_id, "last")
     if state.get("family") != "merola":
-        raise StageError(f"{agent_id.dir(cfg)} is not a ddqn_merola agent; move it out of {artifacts.runs_root(cfg)}")
+        raise StageError(f"{agent_id.dir(cfg)} is not a merola agent; move it out of {artifacts.runs_root(cfg)}")
+    if state.get("learner") == "counterfactual":
+        from .counterfactual import policy
+
+        out = policy(cfg, state, agent_id.policy)
+        out.policy_seed = agent_id.seed
+        return out
     see = observer(cfg, state["obs"])
     if see.dim != state["obs_dim"]:
         raise StageError(
@@ -415,7 +430,10 @@ def learning_curves(cfg, agents: list[AgentId], path) -> None:
 
     fig, ax = plt.subplots(figsize=(6.4, 3.4))
     for agent in agents:
-        curve = loading.load_agent_state(cfg, agent, "last")["curve"]["return"]
+        state = loading.load_agent_state(cfg, agent, "last")
+        if "curve" not in state:
+            continue  # agent=counterfactual_merola: no episodes of its own to plot
+        curve = state["curve"]["return"]
         if len(curve) >= ROLLING:
             rolling = np.convolve(curve, np.ones(ROLLING) / ROLLING, mode="valid")
             ax.plot(np.arange(ROLLING, len(curve) + 1), rolling, label=agent.key, lw=1)
@@ -434,8 +452,19 @@ def render_tables(rows: list[dict], settings: dict) -> str:
 
 
 def ncap_policies(cfg) -> list[tuple]:
-    """Every ddqn_merola agent on the NCAP bank (camera frames: the car-to-car tests too)."""
-    return [(load_policy(cfg, a), a.seed, True, True) for a in artifacts.trained_agents(cfg, family=FAMILY)]
+    """Every ddqn_merola agent on the NCAP bank (camera frames: the car-to-car tests too). The counterfactual-cost
+    learner (agent=counterfactual_merola) is left out (logged): it decides in its first steps, and this group acts
+    from the start of each test, so it would only show braking from there."""
+    from envs.counterfactual import ShiftPolicy
+
+    out = []
+    for agent in artifacts.trained_agents(cfg, family=FAMILY):
+        policy = load_policy(cfg, agent)
+        if isinstance(policy, ShiftPolicy):
+            log.info("[ncap] %s: a takeover policy, not run from the start of the tests", agent.key)
+            continue
+        out.append((policy, agent.seed, True, True))
+    return out
 
 
 def scripted(cfg) -> list:
@@ -483,7 +512,8 @@ def drive(cfg, c) -> Driven:
     env.close()
     env = family_env(cfg, step_s=0.1)
     for policy in learned:
-        rows += run_policy(env, policy, specs, "ddqn_merola", policy.policy_seed)
+        group = "counterfactual" if hasattr(policy, "steps") else "ddqn_merola"  # a ShiftPolicy decides at steps
+        rows += run_policy(env, policy, specs, group, policy.policy_seed)
     env.close()
     if world_model:  # the paper's agents act at the step length they were trained with
         env = family_env(cfg, step_s=world_model_step_s(typed))
