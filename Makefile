@@ -37,7 +37,7 @@ headline: setup
 # seeds. Each family on its validation bank, then once on its sealed test bank. agents=[] leaves the paper's family
 # out, so this never touches the Porav test bank. About 9 hours on 2 cores (the counterfactual-cost DDPG: about
 # 15 min of it); resumable: run it again to continue where it stopped.
-PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,kim,ddpg_kim_fd,kim_chooser,counterfactual_kim,ddpg_wm_kim,chae] \
+PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,counterfactual_merola,kim,ddpg_kim_fd,kim_chooser,counterfactual_kim,ddpg_wm_kim,chae] \
 	seeds=[0,1,2] banks=[validation,test] evaluate.chae.trials=1000 evaluate.chae.singles=false
 
 peers: setup

@@ -31,3 +31,23 @@ def test_a_failed_job_names_its_log_and_a_rerun_finishes(stage_cfg, tmp_path):
     assert launch() is True
     assert artifacts.manifest_path(cfg).exists() and len(recorded) == 1 and not recorded[0]["stopped"]
     assert recorded[0]["wall_s"] > 0 and recorded[0]["peak_rss_mb"] > 0
+
+
+def test_a_job_that_starts_after_its_step_was_finished_elsewhere_leaves_it_alone(tmp_path):
+    """A job a killed launcher submitted can start after the next launcher's job for the same step has finished
+    it: it finds the step's completion marker under the step's lock, and skips the stage instead of resuming a
+    finished run over the bytes the other job wrote."""
+    output = tmp_path / "runs/t/agent_r2_chooser/seed0"
+    output.mkdir(parents=True)
+    (output / "metrics.json").write_text("{}")
+    (output / "last.pt").write_bytes(b"the finished run's checkpoint")
+
+    def stage(cfg):
+        raise AssertionError("the stage ran on a finished step")
+
+    outcome = launcher.run_step(stage, None, None, output, output / "metrics.json")
+    assert outcome["skipped"] and not outcome["stopped"]
+    assert (output / "last.pt").read_bytes() == b"the finished run's checkpoint"
+    (output / "metrics.json").unlink()  # unfinished: the job runs its stage
+    with pytest.raises(AssertionError, match="the stage ran"):
+        launcher.run_step(stage, None, None, output, output / "metrics.json")

@@ -261,6 +261,16 @@ def test_kim_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(stage_
     agent_resumes_bit_for_bit(stage_cfg, a, b, ("agent=counterfactual_kim", *smoke), stop_at_update=130)
 
 
+def test_merola_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(two_roots, stage_cfg):
+    """The same rounds on family merola's nine actions (agent=counterfactual_merola), on the smoke VAE's view of the
+    camera's frames: stopped in round 1's critic (no actor: 60 critic minibatches a round), after the first
+    critic's choices have driven and their states are labelled."""
+    a, b = two_roots("vae")
+    smoke = ("agent.counterfactual.episodes=4", "agent.counterfactual.dagger_episodes=2")
+    smoke += ("agent.counterfactual.critic_steps=60",)
+    agent_resumes_bit_for_bit(stage_cfg, a, b, ("agent=counterfactual_merola", *smoke), stop_at_update=90)
+
+
 # ----------------------------------------------------------------------------- the peers' learners
 # Each peer's loop checks for a stop between episodes, so a SIGTERM mid-episode ends the episode first; the
 # checkpoint then holds whole episodes, and the resumed run starts the next one where the uninterrupted run does.

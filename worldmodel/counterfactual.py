@@ -464,7 +464,7 @@ def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActo
     torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
     actor = ShiftActor(in_dim, typed.agent.ddpg.actor_hidden)
     critic = None
-    if "actor" in saved:
+    if saved.get("actor") is not None:  # None: a learner choosing among fixed shifts has no actor
         actor.load_state_dict(saved["actor"])
     if saved.get("critic") is not None:
         critic = CostCritic(critic_in, c.critic_members, c.critic_hidden)

@@ -37,17 +37,28 @@ def levels(steps: list) -> list[list]:
     return [[s for s in steps if s.kind == kind] for kind in LEVELS if any(s.kind == kind for s in steps)]
 
 
-def run_step(run, cfg, cpus: list[int] | None) -> dict:
+def run_step(run, cfg, cpus: list[int] | None, output: Path | None = None, marker: Path | None = None) -> dict:
     """A job's body: the stage's ``run(cfg)`` on ``cpus`` (its share of the machine, so that worker counts left at
     auto follow it), with its wall time and the peak memory of its process and workers. The stage keeps its
     configured ``threads`` on a smaller share: torch splits a sum or a product by thread, so the count decides the
     last bits of a trained model, and a job then writes the bytes the inline pipeline writes (docs/design.md §9);
-    two threads taking turns on one core cost nothing measurable (benchmarks/RESULTS.md)."""
+    two threads taking turns on one core cost nothing measurable (benchmarks/RESULTS.md).
+
+    The job holds ``output``'s writer lock from before it looks at ``marker`` until the stage ends, and skips the
+    stage when the marker is there: a job that a killed launcher submitted can start after the next launcher's job
+    for the same step has finished it, and must then leave its files as they are (``skipped``)."""
+    from contextlib import nullcontext
+
+    from .common import writer_lock
+
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
     if cpus:
         os.sched_setaffinity(0, cpus)
     t0 = time.perf_counter()
-    result = run(cfg)
+    with writer_lock(output, "the launcher's step") if output is not None else nullcontext():
+        if marker is not None and Path(marker).exists():
+            return {"stopped": False, "skipped": True, "wall_s": 0.0, "peak_rss_mb": 0.0}
+        result = run(cfg)
     own, workers = (
         resource.getrusage(who).ru_maxrss / 1024 for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
     )
@@ -137,7 +148,9 @@ def launch(cfg, planned: list, prepare, record) -> bool:
                 cpus = None
                 if local:  # a share no running job holds; its threads stay as configured (``run_step``)
                     cpus = next(share for share in shares if all(share is not c for _, _, c in running))
-                job = ex.submit(run_step, step.run, stage_cfg, cpus)
+                output = artifacts.output_dir(stage_cfg, step.kind, step.agent)
+                marker = artifacts.marker(stage_cfg, step.kind, step.agent)
+                job = ex.submit(run_step, step.run, stage_cfg, cpus, output, marker)
                 log.info("[launcher] %s: job %s%s", step.name, job.job_id, f" on cores {cpus}" if cpus else "")
                 running.append((step, job, cpus))
             for entry in [r for r in running if r[1].done()]:
@@ -151,7 +164,8 @@ def launch(cfg, planned: list, prepare, record) -> bool:
                     else:
                         failed.append(f"{step.name} (log: {job.paths.stderr})")
                     continue
-                record(step, outcome)
+                if not outcome.get("skipped"):  # skipped: another launcher's job had finished it
+                    record(step, outcome)
                 stopped |= outcome["stopped"]
             time.sleep(0.2)
         if failed:
