@@ -509,14 +509,17 @@ def finished_metrics(run_, reward: str, data_rounds: list[dict], history: dict) 
 
 
 def driver_figures(data: dict) -> dict:
-    """On a DAgger round's labels (the previous actor driving): the labelled cost of the shifts it chose (the first
-    proposal at every decision) and of braking at the same states, and how often it chose something else."""
+    """On a DAgger round's labels (the previous policy driving): the labelled cost of the shifts it chose (the
+    proposal equal to its choice at every decision: the first for an actor, one of the fixed choices otherwise) and
+    of braking at the same states, and how often it chose something else."""
     is_brake = ~data["u"].any(axis=2)
-    has_brake = is_brake.any(1)
+    is_chosen = (np.abs(data["u"] - data["chosen"][:, None]) < 1e-6).all(axis=2)
+    has = is_brake.any(1) & is_chosen.any(1)
     brake = np.where(is_brake, data["costs"], np.inf).min(1)
+    chosen = data["costs"][np.arange(len(is_chosen)), is_chosen.argmax(1)]
     return {
-        "label_cost_chosen": round(float(data["costs"][has_brake, 0].mean()), 6),
-        "label_cost_braking": round(float(brake[has_brake].mean()), 6),
+        "label_cost_chosen": round(float(chosen[has].mean()), 6),
+        "label_cost_braking": round(float(brake[has].mean()), 6),
         "chose_other_than_braking": round(float(data["chosen"].any(axis=1).mean()), 6),
     }
 
