@@ -19,9 +19,11 @@ from worldmodel.families.merola import counterfactual as merola_counterfactual
 from worldmodel.families.merola import system as merola
 
 # the preset keeps its labelled episodes and minibatches at every scale; the smoke scale's, passed as a user would.
+# Two decisions and a DAgger round (the preset decides once), so that the policy's own states are labelled too.
 # The true state as the view: no world model to build (the frames' view is the resume test's, test_resume.py)
 AGENT = (
     *("agent=counterfactual_merola", "obs=privileged"),
+    *("agent.counterfactual.decisions=2", "agent.counterfactual.dagger_rounds=1"),
     *("agent.counterfactual.episodes=6", "agent.counterfactual.dagger_episodes=2"),
     "agent.counterfactual.critic_steps=60",
 )
@@ -51,13 +53,13 @@ def test_a_shift_that_releases_lets_go_of_the_brake_only_at_a_standstill_and_is_
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory):
-    """Round 0's labels of 12 braking episodes, the nine actions at every decision."""
+    """Round 0's labels of 16 braking episodes, the nine actions at each of 3 decisions."""
     from worldmodel.config import compose
 
     root = tmp_path_factory.mktemp("merola_counterfactual")
     overrides = [
         *(f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke"),
-        *("threads=1", *AGENT, "agent.counterfactual.episodes=12"),
+        *("threads=1", *AGENT, "agent.counterfactual.episodes=16", "agent.counterfactual.decisions=3"),
     ]
     cfg = compose("train_agent", overrides)
     typed = validate(cfg)
@@ -68,7 +70,7 @@ def labelled(tmp_path_factory):
 def test_labels_are_the_return_of_each_of_the_nine_actions_from_braking_states(labelled):
     cfg, typed, data = labelled
     c = typed.agent.counterfactual
-    assert sorted(set(data["episode"])) == list(range(12))
+    assert sorted(set(data["episode"])) == list(range(16))
     assert np.array_equal(data["u"], np.broadcast_to(merola_counterfactual.CHOICES, data["u"].shape))
     assert not data["chosen"].any(), "braking drove round 0"
     assert (data["costs"] > 100).any() and (data["costs"] < 0).any(), "no crash or no clear run labelled"

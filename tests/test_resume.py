@@ -267,7 +267,8 @@ def test_merola_counterfactual_sigterm_in_a_dagger_round_resumes_bit_for_bit(two
     critic's choices have driven and their states are labelled."""
     a, b = two_roots("vae")
     smoke = ("agent.counterfactual.episodes=4", "agent.counterfactual.dagger_episodes=2")
-    smoke += ("agent.counterfactual.critic_steps=60",)
+    smoke += ("agent.counterfactual.critic_steps=60", "agent.counterfactual.decisions=2")
+    smoke += ("agent.counterfactual.dagger_rounds=1",)  # the preset's one decision has no DAgger round
     agent_resumes_bit_for_bit(stage_cfg, a, b, ("agent=counterfactual_merola", *smoke), stop_at_update=90)
 
 
