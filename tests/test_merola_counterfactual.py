@@ -71,7 +71,7 @@ def test_labels_are_the_return_of_each_of_the_nine_actions_from_braking_states(l
     cfg, typed, data = labelled
     c = typed.agent.counterfactual
     assert sorted(set(data["episode"])) == list(range(16))
-    assert np.array_equal(data["u"], np.broadcast_to(merola_counterfactual.CHOICES, data["u"].shape))
+    assert np.array_equal(data["u"], np.broadcast_to(merola_counterfactual.CODES, data["u"].shape))
     assert not data["chosen"].any(), "braking drove round 0"
     assert (data["costs"] > 100).any() and (data["costs"] < 0).any(), "no crash or no clear run labelled"
     # re-simulating one label from the scenario's start gives the same float: braking, then the action at t
@@ -102,7 +102,7 @@ def test_the_fitted_critic_orders_held_out_actions_better_than_a_constant(labell
         data["x"], data["u"], data["costs"], data["state"], held, fit, seed=0, round_=0
     )
     assert figures["pairwise_order"] > 0.6, figures
-    choices = merola_counterfactual.CHOICES
+    choices = merola_counterfactual.CODES
     chosen = counterfactual.choice_figures(critic, data["x"][held], data["u"][held], data["costs"][held], choices, fit)
     assert chosen["exact_cost_best"] <= chosen["exact_cost_chosen"], chosen
 

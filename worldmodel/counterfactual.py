@@ -84,7 +84,7 @@ def critic_predict(critic: CostCritic, x: np.ndarray, u: np.ndarray) -> np.ndarr
     s, n = u.shape[:2]
     with torch.no_grad():
         xt = torch.from_numpy(np.repeat(x, n, axis=0))
-        return critic(xt, torch.from_numpy(u.reshape(-1, 3))).mean(0).reshape(s, n).numpy()
+        return critic(xt, torch.from_numpy(u.reshape(-1, u.shape[-1]))).mean(0).reshape(s, n).numpy()
 
 
 def phase_seed(seed: int, round_: int, phase: int) -> int:
@@ -99,7 +99,7 @@ def fit_critic(x, u, costs, state, held, c, seed: int, round_: int, run_=None, l
     writer, stop, last = (run_.writer, run_.stop, run_.last) if run_ is not None else (None, None, None)
     torch.manual_seed(phase_seed(seed, round_, 0))
     rng = np.random.default_rng(phase_seed(seed, round_, 0))
-    critic = CostCritic(x.shape[1], c.critic_members, c.critic_hidden)
+    critic = CostCritic(x.shape[1], c.critic_members, c.critic_hidden, u_dim=u.shape[-1])
     xt, ut, yt, st = (torch.from_numpy(a[~held]) for a in (x, u, costs, state))
     critic.norm.fit(xt)
     learner = CriticFit(critic, xt, ut, yt, st, c, rng)
@@ -166,10 +166,11 @@ def objective(critic: CostCritic, u: torch.Tensor, x: torch.Tensor, c, scale: to
     return objective_of(critic(x, u), u, c, scale)
 
 
-def objective_of(q: torch.Tensor, u: torch.Tensor, c, scale: torch.Tensor | None = None):
-    """``objective`` from the members' predictions ``q`` (members, ...) of the shifts ``u`` (..., 3)."""
+def objective_of(q: torch.Tensor, u: torch.Tensor, c, scale: torch.Tensor | None = None, anchor=None):
+    """``objective`` from the members' predictions ``q`` (members, ...) of the shifts ``u`` (..., 3). ``anchor``: how
+    far each is from braking (a shift's squared steer and pedal by default)."""
     mean, spread = q.mean(0), q.std(0) if q.shape[0] > 1 else torch.zeros_like(q[0])
-    anchor = (u[..., :2] ** 2).sum(-1)
+    anchor = (u[..., :2] ** 2).sum(-1) if anchor is None else anchor
     scale = spread.mean().clamp_min(1e-6).detach() if scale is None else scale
     return mean + c.pessimism * spread + c.anchor_weight * (spread / scale).detach() * anchor, scale
 
@@ -339,7 +340,7 @@ def train_rounds(typed, run_, reward: str, source) -> dict:
     choices = getattr(source, "choices", None)
     saved = run_.state or {}
     done = list(saved.get("done", []))
-    actor, critic = networks(typed, saved, source.in_dim, source.critic_in)
+    actor, critic = networks(typed, saved, source.in_dim, source.critic_in, getattr(source, "u_dim", 3))
     if choices is not None:
         actor = None
     history = dict(saved.get("history", {}))
@@ -404,16 +405,17 @@ def train_rounds(typed, run_, reward: str, source) -> dict:
 
 # ----------------------------------------------------------------------------- choosing among fixed shifts
 def choose(critic: CostCritic, x: np.ndarray, choices: np.ndarray, c) -> np.ndarray:
-    """Per state of ``x`` (S, F), the index among ``choices`` (K, 3) of the shift of lowest ``objective``: the
-    members' mean predicted cost, pessimistic by their spread and anchored to braking where they disagree (the
-    spread's scale: the state's mean over its choices). A fixed set's greedy policy, as a DQN's argmax is."""
+    """Per state of ``x`` (S, F), the index among ``choices`` (K, U: the codes the critic reads, braking's all
+    zero) of the one of lowest ``objective``: the members' mean predicted cost, pessimistic by their spread and
+    anchored to braking (by the code's squared length) where they disagree (the spread's scale: the state's mean
+    over its choices). A fixed set's greedy policy, as a DQN's argmax is."""
     with torch.no_grad():
         xt = torch.from_numpy(np.asarray(x, np.float32))
         u = torch.from_numpy(np.asarray(choices, np.float32))[None].expand(len(xt), -1, -1)
         q = critic.grid(xt, u)
         spread = q.std(0) if q.shape[0] > 1 else torch.zeros_like(q[0])
         scale = spread.mean(1, keepdim=True).clamp_min(1e-6)
-        return objective_of(q, u, c, scale)[0].argmin(1).numpy()
+        return objective_of(q, u, c, scale, anchor=(u**2).sum(-1))[0].argmin(1).numpy()
 
 
 def choice_figures(critic: CostCritic, x, u, costs, choices: np.ndarray, c) -> dict:
@@ -424,7 +426,7 @@ def choice_figures(critic: CostCritic, x, u, costs, choices: np.ndarray, c) -> d
     if not np.allclose(u, np.broadcast_to(choices, u.shape)):
         raise StageError("the labels hold other shifts than the learner's choices: label them again")
     pick = choose(critic, x, choices, c)
-    brake = int(np.flatnonzero(~choices[:, :2].any(1))[0])
+    brake = int(np.flatnonzero(~choices.any(1))[0])
     rows = np.arange(len(x))
     return {
         "exact_cost_chosen": float(costs[rows, pick].mean()),
@@ -441,24 +443,27 @@ def log_choice_figures(run_, figures: dict, step: int) -> None:
             writer.add_scalar(f"choice/held_out_{name}", value, step)
 
 
-def critic_decision(critic: CostCritic, choices: np.ndarray, decisions: int, c):
-    """``decide(x, d)`` of a learner that chooses among ``choices`` by its critic (``choose``)."""
+def critic_decision(critic: CostCritic, choices: np.ndarray, decisions: int, c, shifts: np.ndarray | None = None):
+    """``decide(x, d)`` of a learner that chooses among ``choices`` by its critic (``choose``): the chosen row of
+    ``shifts`` (the shift parameters u of each choice; by default the choices themselves)."""
+    shifts = choices if shifts is None else shifts
 
     def decide(x: np.ndarray, d: int) -> np.ndarray:
         inp = features(np.asarray(x, np.float32)[None], np.array([d]), decisions)
-        return np.asarray(choices[int(choose(critic, inp, choices, c)[0])], np.float32)
+        return np.asarray(shifts[int(choose(critic, inp, choices, c)[0])], np.float32)
 
     return decide
 
 
 def critic_from_state(state: dict) -> CostCritic:
     """The critic of a checkpoint (or a DAgger round's driver) whose settings name its shape."""
-    critic = CostCritic(int(state["critic_in_dim"]), int(state["critic_members"]), state["critic_hidden"])
+    u_dim = int(state.get("critic_u_dim", 3))
+    critic = CostCritic(int(state["critic_in_dim"]), int(state["critic_members"]), state["critic_hidden"], u_dim=u_dim)
     critic.load_state_dict(state["critic"])
     return critic.eval()
 
 
-def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActor, CostCritic | None]:
+def networks(typed, saved: dict, in_dim: int, critic_in: int, u_dim: int = 3) -> tuple[ShiftActor, CostCritic | None]:
     """The actor (seeded, braking at first) and the critic, with the weights of the checkpoint ``saved``."""
     c = typed.agent.counterfactual
     torch.manual_seed(phase_seed(typed.seed, 0, 2))  # the actor's initial weights (its last layer is zero)
@@ -467,7 +472,7 @@ def networks(typed, saved: dict, in_dim: int, critic_in: int) -> tuple[ShiftActo
     if saved.get("actor") is not None:  # None: a learner choosing among fixed shifts has no actor
         actor.load_state_dict(saved["actor"])
     if saved.get("critic") is not None:
-        critic = CostCritic(critic_in, c.critic_members, c.critic_hidden)
+        critic = CostCritic(critic_in, c.critic_members, c.critic_hidden, u_dim=u_dim)
         critic.load_state_dict(saved["critic"])
     return actor, critic
 

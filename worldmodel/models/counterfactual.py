@@ -33,12 +33,14 @@ class CostCritic(nn.Module):
     through a first layer of its own, and u joins after it; a linear head on that layer guesses the true state
     (``envs.privileged``), a training target only (``aux``)."""
 
-    def __init__(self, in_dim: int, members: int, hidden, aux_dim: int = PRIVILEGED_DIM):
+    def __init__(self, in_dim: int, members: int, hidden, aux_dim: int = PRIVILEGED_DIM, u_dim: int = 3):
+        """``u_dim``: the width of what joins after the first layer: a shift's 3 parameters, or a fixed set's codes
+        (``train_rounds``' ``choices``)."""
         super().__init__()
         hidden = [int(h) for h in hidden]
         self.norm = Normalised(in_dim)
         self.trunks = nn.ModuleList(nn.Sequential(nn.Linear(in_dim, hidden[0]), nn.ReLU()) for _ in range(members))
-        self.heads = nn.ModuleList(mlp(hidden[0] + 3, hidden[1:], 1) for _ in range(int(members)))
+        self.heads = nn.ModuleList(mlp(hidden[0] + int(u_dim), hidden[1:], 1) for _ in range(int(members)))
         self.aux = nn.ModuleList(nn.Linear(hidden[0], aux_dim) for _ in range(int(members)))
 
     def member(self, m: int, x: torch.Tensor, u: torch.Tensor, aux: bool = False):

@@ -21,6 +21,8 @@ and Kim's learners.
   by the seeds, in ``data/NAME/merola_counterfactual_labels/``; a DAgger round's by the learner, in the run folder.
 * **States**: what ``ddqn_merola`` sees (``obs``: the frozen VAE's means of the last 4 frames by default, or the true
   state), and the decision's index.
+* **Critic**: each action joins the state as a code of its own (``CODES``: one unit per action, braking none), not
+  as its shift parameters.
 * **Policy**: at each decision, the action of lowest pessimistic predicted cost (``counterfactual.choose``).
 """
 
@@ -50,6 +52,11 @@ KEYS = ("t", "u", "costs", "static", "chosen", "view")
 # the nine actions as shift parameters u (ShiftSpace): the steer, the pedal as a residual on full braking
 # (p = -1 + 2 u[1]); the hold is the preset's one length, so u[2] is unused. (0, 0, 0) is straight-line braking
 CHOICES = np.array([(steer, (pedal + 1.0) / 2.0, 0.0) for steer, pedal in ACTIONS], dtype=np.float32)
+# what the critic reads of an action: a unit of its own for each of the eight that are not braking (all zero, as
+# braking's u is), as a DQN's output per action. Read as the shift parameters instead, the critic's smooth fit over
+# the 3 x 3 grid misplaces its corners (docs/results/merola/counterfactual/)
+BRAKING = int(np.flatnonzero(~CHOICES.any(1))[0])
+CODES = np.delete(np.eye(len(CHOICES), dtype=np.float32), BRAKING, axis=1)
 
 
 class FrameView:
@@ -168,11 +175,13 @@ class NineActionLabels:
         if c.aux_weight:
             raise StageError("the nine-action learner has no true-state heads: set agent.counterfactual.aux_weight=0")
         if c.critic_obs != "actor":
-            raise StageError("the nine-action critic reads the policy's view: set agent.counterfactual.critic_obs=actor")
+            raise StageError(
+                "the nine-action critic reads the policy's view: set agent.counterfactual.critic_obs=actor"
+            )
         hold_problem(c)
         see = observer(cfg, typed.agent.obs)
         self.in_dim = self.critic_in = see.dim + 1
-        self.choices = CHOICES
+        self.choices, self.u_dim = CODES, CODES.shape[1]
         self.settings = {
             "learner": "counterfactual",
             "family": "merola",
@@ -183,7 +192,9 @@ class NineActionLabels:
             "critic_obs": typed.agent.obs,
             "pessimism": float(c.pessimism),
             "anchor_weight": float(c.anchor_weight),
-            "choices": CHOICES.tolist(),
+            "choices": CODES.tolist(),
+            "shifts": CHOICES.tolist(),
+            "critic_u_dim": int(CODES.shape[1]),
             "decisions": c.decisions,
             "interval": c.interval(typed.env.step_s),
             "hold_s": float(c.hold_s[0]),
@@ -211,16 +222,25 @@ class NineActionLabels:
             return None
         d = np.concatenate([np.arange(k) for k in np.unique(data["episode"], return_counts=True)[1]])
         data["x"] = data["xc"] = features(data["view"], d, decisions)
+        data["u"], data["chosen"] = codes(data["u"]), codes(data["chosen"])
         data["state"] = np.zeros((len(d), PRIVILEGED_DIM), np.float32)
         data["held"] = held_out_rows(data["episode"])
         return data
 
 
+def codes(u: np.ndarray) -> np.ndarray:
+    """The critic's code (``CODES``) of each of the nine actions' shift parameters in ``u`` (..., 3)."""
+    match = (np.abs(np.asarray(u)[..., None, :] - CHOICES) < 1e-6).all(-1)
+    if not match.any(-1).all():
+        raise StageError("the labels hold other shifts than the nine actions': label them again")
+    return CODES[match.argmax(-1)]
+
+
 def decision(state: dict):
     """``decide(x, d)``: the choice of the critic in ``state`` (a checkpoint, or a DAgger round's driver)."""
     objective = SimpleNamespace(pessimism=float(state["pessimism"]), anchor_weight=float(state["anchor_weight"]))
-    choices = np.asarray(state["choices"], np.float32)
-    return critic_decision(critic_from_state(state), choices, int(state["decisions"]), objective)
+    choices, shifts = (np.asarray(state[k], np.float32) for k in ("choices", "shifts"))
+    return critic_decision(critic_from_state(state), choices, int(state["decisions"]), objective, shifts)
 
 
 def train(cfg, run_, agent_id, typed) -> dict:
