@@ -32,11 +32,11 @@ headline: setup
 	$(PY) -m worldmodel.pipeline $(HEADLINE) $(ARGS)
 
 # The peer systems as their reports validated them (docs/results/chae/, kim/, merola/), at quick scale with their own
-# world model for the camera agents: Merola's DDQN; Kim's LIDAR agents (goal-unaware, goal-aware, planner-taught),
+# world model for the camera agents: Merola's DDQN and its nine-action exact-return learner; Kim's LIDAR agents (goal-unaware, goal-aware, planner-taught),
 # the LIDAR chooser, the counterfactual-cost DDPG and the world-model agent; Chae's DQN as three ensembles of three
 # seeds. Each family on its validation bank, then once on its sealed test bank. agents=[] leaves the paper's family
 # out, so this never touches the Porav test bank. About 9 hours on 2 cores (the counterfactual-cost DDPG: about
-# 15 min of it); resumable: run it again to continue where it stopped.
+# 15 min of it; Merola's exact-return learner about 10 min); resumable: run it again to continue where it stopped.
 PEERS_RUN := experiment=peers scale=quick agents=[] peers=[merola,counterfactual_merola,kim,ddpg_kim_fd,kim_chooser,counterfactual_kim,ddpg_wm_kim,chae] \
 	seeds=[0,1,2] banks=[validation,test] evaluate.chae.trials=1000 evaluate.chae.singles=false
 
