@@ -826,3 +826,24 @@ def test_wilson_intervals_and_paired_permutation_p_by_hand():
     p = paired_permutation_p(x, y)
     assert p == paired_permutation_p(x, y, flips=10_000, seed=0) and 0.0 < p < 1.0
     assert p != paired_permutation_p(x, y, flips=10_001) and p != paired_permutation_p(x, y, seed=1)
+
+
+def test_rank_agreement_counts_the_pairs_a_scorer_orders_as_the_exact_costs_do_by_hand():
+    """stats.rank_agreement, which the critics' pairwise order and Spearman rest on (counterfactual.pairwise_order,
+    experiments/critic_vs_exact.py), on rows worked out by hand."""
+    from worldmodel.stats import rank_agreement
+
+    costs = np.array([[0.0, 1.0, 2.0], [0.0, 1.0, 2.0], [0.0, 1.0, 2.0], [5.0, 5.0, 5.0], [0.0, 0.0, 3.0]])
+    scores = np.array([[1.0, 2.0, 3.0], [3.0, 2.0, 1.0], [7.0, 7.0, 7.0], [1.0, 2.0, 3.0], [2.0, 1.0, 0.0]])
+    a = rank_agreement(scores, costs)
+    # row 0 orders all 3 pairs alike; row 1 none; a constant agrees on half of each; equal costs give no pair;
+    # in row 4 the costs tie on the first pair (not counted) and the scores order the other two wrongly
+    assert a["pairs"].tolist() == [3, 3, 3, 0, 2]
+    assert a["agree"].tolist() == [3.0, 0.0, 1.5, 0.0, 0.0]
+    assert a["spearman"][:3].tolist() == pytest.approx([1.0, -1.0, 0.0])
+    assert math.isnan(a["spearman"][3])
+    assert a["spearman"][4] == pytest.approx(-0.8660254)
+    # costs closer than the tie share a rank and make no pair
+    close = rank_agreement(np.array([[0.0, 1.0]]), np.array([[0.0, 5e-7]]))
+    assert close["pairs"].tolist() == [0] and math.isnan(close["spearman"][0])
+    assert rank_agreement(np.array([[0.0, 1.0]]), np.array([[0.0, 0.1]]), tie=0.2)["pairs"].tolist() == [0]
