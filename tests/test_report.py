@@ -847,3 +847,10 @@ def test_rank_agreement_counts_the_pairs_a_scorer_orders_as_the_exact_costs_do_b
     close = rank_agreement(np.array([[0.0, 1.0]]), np.array([[0.0, 5e-7]]))
     assert close["pairs"].tolist() == [0] and math.isnan(close["spearman"][0])
     assert rank_agreement(np.array([[0.0, 1.0]]), np.array([[0.0, 0.1]]), tie=0.2)["pairs"].tolist() == [0]
+    assert rank_agreement(np.array([[0.0, 1.0]]), np.array([[0.0, 0.5]]), tie=0.5)["pairs"].tolist() == [0]
+    assert a["pairs"].dtype.kind == "i"  # counts
+    # unsigned inputs are read as floats: 0 - 2 is -2, not 254
+    small = rank_agreement(np.array([[0, 1]], np.uint8), np.array([[0, 2]], np.uint8))
+    assert small["agree"].tolist() == [1.0] and small["spearman"][0] == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        rank_agreement(scores[:2], costs)  # a row without its scores
