@@ -248,6 +248,24 @@ class ShiftPolicy:
         self.t, self.run, self.x, self.env = 0, None, None, None
         self.chosen: list[np.ndarray] = []
 
+    @classmethod
+    def on_view(cls, space: ShiftSpace, decide, decisions: int, interval: int, view, name: str) -> ShiftPolicy:
+        """A policy that sees through ``view``: an object with ``encode(obs)``, ``note_action(action)``, ``reset()``,
+        ``bind(env)`` and ``needs_camera`` (a peer family's sensor on the episode's env)."""
+        policy = cls(
+            space,
+            decide,
+            decisions,
+            interval,
+            name=name,
+            encode=view.encode,
+            note_action=view.note_action,
+            reset_view=view.reset,
+            bind_view=view.bind,
+        )
+        policy.needs_camera = bool(view.needs_camera)
+        return policy
+
     def reset(self, seed: int | None = None) -> None:
         self.t, self.run, self.chosen = 0, None, []
         if self.reset_view is not None:

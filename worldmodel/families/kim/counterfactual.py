@@ -70,20 +70,7 @@ class LidarView:
 def shift_policy(space, decide, decisions: int, interval: int, see: LidarObserver, name: str) -> ShiftPolicy:
     """A shift at each of ``decisions`` decisions, ``interval`` steps apart, chosen by ``decide(x, d)`` on the
     LIDAR view ``see`` (braking's ``brake_decision``, or an actor's)."""
-    view = LidarView(see)
-    policy = ShiftPolicy(
-        space,
-        decide,
-        decisions,
-        interval,
-        name=name,
-        encode=view.encode,
-        note_action=view.note_action,
-        reset_view=view.reset,
-        bind_view=view.bind,
-    )
-    policy.needs_camera = False
-    return policy
+    return ShiftPolicy.on_view(space, decide, decisions, interval, LidarView(see), name)
 
 
 def label_settings(cfg, typed) -> dict:

@@ -87,20 +87,7 @@ def space(hold_s: float, step_s: float) -> ShiftSpace:
 
 
 def shift_policy(shifts: ShiftSpace, decide, decisions: int, interval: int, see, name: str) -> ShiftPolicy:
-    view = FrameView(see)
-    policy = ShiftPolicy(
-        shifts,
-        decide,
-        decisions,
-        interval,
-        name=name,
-        encode=view.encode,
-        note_action=view.note_action,
-        reset_view=view.reset,
-        bind_view=view.bind,
-    )
-    policy.needs_camera = view.needs_camera
-    return policy
+    return ShiftPolicy.on_view(shifts, decide, decisions, interval, FrameView(see), name)
 
 
 def hold_problem(c) -> None:
