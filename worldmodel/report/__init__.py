@@ -120,7 +120,7 @@ def render_report(
     tables = tables_markdown(rows)
     fig = heatmaps_figure(rows, baseline=baseline)
     atomic_write_text(out_dir / "tables.md", tables)
-    rgb = _render_rgb(fig)  # drawn once (constrained layout is the slow part), reused for the PNG and TensorBoard
+    rgb = _render_rgb(fig)  # drawn once (the slow part), reused for the PNG and TensorBoard
     atomic_write_bytes(out_dir / "heatmaps.png", _png_bytes(rgb, fig.dpi))
     if tb_writer is not None:
         # Exactly what SummaryWriter.add_figure logs (canvas pixels, RGB, as an image), minus a second draw.
