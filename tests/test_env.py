@@ -513,9 +513,28 @@ def test_every_registered_reward_is_reported_in_info_and_outcome():
         assert total == pytest.approx(12.0 - info["outcome"]["final_speed"])
         assert info["outcome"]["return_r2"] == 0.0  # nothing hit on an empty street
     finally:
-        del rewards.REGISTRY["speed_lost"]
+        rewards.unregister("speed_lost")
     with pytest.raises(ValueError, match="reward"):
         UrbanCollisionEnv(camera=False, reward="speed_lost")
+
+
+def test_a_pedestrian_standing_beyond_its_stop_keeps_it_until_it_walks():
+    """Chae's and Euro NCAP's far-side pedestrians wait at rest on the side beyond their stop line until a trigger
+    sets them walking: at rest they have no direction to be past it in, so the stop stays; walking, they stop once
+    past it (y = 4 at rest; then 1, -2 and -5 at 3 m/s, past -4 on the third step)."""
+    from envs.actors import Actors
+
+    actors = Actors.empty()
+    actors.ped_xy[0], actors.ped_stop_y[0] = (0.0, 4.0), -4.0
+    actors.advance(1.0)
+    assert actors.ped_xy[0].tolist() == [0.0, 4.0] and actors.ped_stop_y[0] == -4.0
+    actors.ped_vel[0] = (0.0, -3.0)
+    actors.advance(1.0)
+    actors.advance(1.0)
+    assert actors.ped_xy[0].tolist() == [0.0, -2.0] and actors.ped_stop_y[0] == -4.0
+    actors.advance(1.0)
+    assert actors.ped_xy[0].tolist() == [0.0, -5.0] and actors.ped_vel[0].tolist() == [0.0, 0.0]
+    assert np.isnan(actors.ped_stop_y[0])
 
 
 def test_the_narrow_second_camera_sees_the_far_pedestrian_larger():

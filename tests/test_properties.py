@@ -300,6 +300,26 @@ def test_collision_rewards_and_the_registry():
         register("r1", "again")(lambda ctx: 0.0)
 
 
+def test_a_reward_registered_while_running_is_listed_and_removed_again():
+    """The rewards above are registered when the module is imported; one a test (or a family) adds later gets the
+    same entry, joins ``REWARDS`` after them, and ``unregister`` takes it out of both (a second time: nothing)."""
+    from envs import rewards
+
+    def nothing(ctx):
+        return 0.0
+
+    before = rewards.REWARDS
+    assert rewards.register("test_only", "a test's own reward")(nothing) is nothing
+    try:
+        assert rewards.REGISTRY["test_only"] == rewards.Reward("test_only", nothing, "a test's own reward")
+        assert rewards.REWARDS == (*before, "test_only") == tuple(rewards.REGISTRY)
+    finally:
+        rewards.unregister("test_only")
+    assert rewards.REWARDS == before == tuple(rewards.REGISTRY)
+    rewards.unregister("test_only")
+    assert rewards.REWARDS == before
+
+
 # ----------------------------------------------------------------------------- the scenario distributions
 def test_sampled_scenarios_cover_the_papers_ranges_and_nothing_else():
     """2,000 draws from a fixed generator: every field inside its documented range and reaching both ends of it

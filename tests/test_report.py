@@ -272,6 +272,23 @@ def test_seed_spread_and_share_against_a_baseline_of_any_name():
     assert spread["spread"]["pedestrian_severe_injury"]["mean"] == pytest.approx(0.15)
 
 
+def test_seed_spread_measures_against_braking_by_default():
+    """published.bank_figures calls seed_spread without a baseline: each seed's share is then against "braking".
+    Braking 0.4 on both scenarios, the planner 0: seed 0 halves the risk (share 50 %), seed 1 quarters it (75 %)."""
+    rows = []
+    for sid in range(2):
+        rows.append(make_row("braking", sid, "pedestrian", 0.5, 10, pedestrian_collision=1, pedestrian_injury=0.4))
+        rows.append(make_row("oracle", sid, "pedestrian", 0.5, 10))
+    for seed, hits in ((0, (0.2, 0.2)), (1, (0.2, 0.0))):
+        rows += [
+            make_row("agent", sid, "pedestrian", 0.5, 10, policy_seed=seed, pedestrian_injury=injury)
+            for sid, injury in enumerate(hits)
+        ]
+    spread = report.seed_spread(rows, "agent")
+    assert spread == report.seed_spread(rows, "agent", "braking")
+    assert [spread["by_seed"][s]["achievable_share"] for s in ("0", "1")] == [pytest.approx(50.0), pytest.approx(75.0)]
+
+
 # ----------------------------------------------------------------------------- tables
 def test_tables_values_layout_and_references():
     md = report.tables_markdown(bank())
@@ -826,6 +843,45 @@ def test_wilson_intervals_and_paired_permutation_p_by_hand():
     p = paired_permutation_p(x, y)
     assert p == paired_permutation_p(x, y, flips=10_000, seed=0) and 0.0 < p < 1.0
     assert p != paired_permutation_p(x, y, flips=10_001) and p != paired_permutation_p(x, y, seed=1)
+
+
+def test_paired_permutation_p_enumerates_every_flip_once_the_flips_reach_2_to_the_pairs():
+    """Exact as soon as ``flips`` reaches 2^pairs, at exactly 2^pairs too and past scipy's default of 9,999
+    resamples. The 6 pairs above with 64 flips: 8/64, as with 10,000. 14 pairs, 13 differences of +1 and one of -1
+    (mean 12/14), with 2^14 flips: a pattern reaches a mean >= 12/14 when it flips nothing, only the -1, or the -1
+    and one +1: 15 of 16,384, so p = 2 x 15 / 16,384. Random flips would give 2 (k + 1) / (flips + 1) instead."""
+    from worldmodel.stats import paired_permutation_p
+
+    a, b = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], [0.5, 2.5, 2.0, 3.0, 4.5, 5.0]
+    assert paired_permutation_p(a, b, flips=64) == pytest.approx(8 / 64, rel=1e-9)
+    d = np.array([1.0] * 13 + [-1.0])
+    assert paired_permutation_p(d, np.zeros(14), flips=2**14) == pytest.approx(30 / 2**14, rel=1e-9)
+
+
+def test_the_sign_flip_p_of_no_mean_difference_is_1_and_its_ties_are_scipys():
+    """Random flips (fewer than 2^pairs). Ten pairs differing by +1 and -1 in turn: mean difference 0, and a flip's
+    mean is <= 0 (and >= 0) with probability (1 + 252/1024) / 2 = 0.62, so p = 2 x 0.62 is capped at 1. One pair
+    differing by 1e-3 and 19 by 1e-12: every flip but the one that keeps all signs falls short of the observed mean
+    by 1e-13 or more, far beyond the tie tolerance (100 eps x the mean, about 1e-18), and 1,000 draws of 2^20
+    patterns miss that one, so p = 2 / 1,001. Differences in tenths: flips that cancel in decimal leave means a
+    rounding error from the observed one, which scipy counts as ties, and so must the sign-flip p."""
+    from scipy.stats import permutation_test
+
+    from worldmodel.stats import paired_permutation_p
+
+    assert paired_permutation_p([1.0, -1.0] * 5, np.zeros(10), flips=1000) == 1.0
+    assert paired_permutation_p([1e-3] + [1e-12] * 19, np.zeros(20), flips=1000) == pytest.approx(2 / 1001)
+    d = np.random.default_rng(0).integers(-3, 4, 30) / 10
+    expected = permutation_test(
+        (d,),
+        lambda x, axis: np.mean(x, axis=axis),
+        permutation_type="samples",
+        n_resamples=1000,
+        alternative="two-sided",
+        vectorized=True,
+        rng=np.random.default_rng(0),
+    ).pvalue
+    assert paired_permutation_p(d, np.zeros(30), flips=1000) == float(expected)
 
 
 def test_rank_agreement_counts_the_pairs_a_scorer_orders_as_the_exact_costs_do_by_hand():

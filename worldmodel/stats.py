@@ -55,7 +55,7 @@ def _sign_flip_p(d: np.ndarray, flips: int, seed: int) -> float:
     scipy flips pair i by shuffling [d_i, -d_i] with ``Generator.permuted``: one 32-bit draw per pair, taken low
     half then high half of each 64-bit output, and d_i keeps its sign where the draw's lowest bit is 1. The null
     means match scipy's to the last bits of their sum's order, which its tolerance (100 eps x the observed mean)
-    absorbs; tests/test_stats.py holds the p-values equal."""
+    absorbs; tests/test_report.py holds the p-values equal."""
     n = len(d)
     raw = np.random.default_rng(seed).bit_generator.random_raw((flips * n + 1) // 2)
     keep = np.empty(2 * len(raw), bool)  # each draw's lowest bit: the low half's bit 0, then the high half's
