@@ -41,6 +41,7 @@ DT = 1.0 / 15.0
 MAX_SPEED_OBS = 40.0
 HORIZON_AFTER_TTC_S = 3.0  # the env's defaults for an episode's length (``horizon_steps``)
 MAX_EPISODE_S = 15.0
+APART_MARGIN_M = 0.01  # metres: see _prepare_static
 
 
 def horizon_steps(
@@ -273,6 +274,9 @@ class UrbanCollisionEnv(gym.Env):
         # the narrow phase reads them one number at a time: Python floats, not numpy scalars, whose arithmetic gives
         # the same doubles several times slower
         self._rect_rows, self._circle_rows = rects.tolist(), circles.tolist()
+        # squared centre distance beyond which a body's bounding circle and the ego's cannot meet, with a margin of
+        # APART_MARGIN_M so that rounding can never skip a contact the exact test would find
+        self._rect_apart = ((self._rect_radius + self._car_radius + APART_MARGIN_M) ** 2).tolist()
 
     def step(self, action):
         if self.scenario is None:
@@ -366,6 +370,9 @@ class UrbanCollisionEnv(gym.Env):
                     crashed = True
             for i in rect_idx:
                 cx, cy, hx, hy, cls = self._rect_rows[i]
+                apart = self._rect_apart[i]
+                if (cx - ego.x) ** 2 + (cy - ego.y) ** 2 > apart:
+                    continue  # the two footprints' bounding circles are apart: the exact test would say no
                 if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, 1.0, 0.0, hx, hy):
                     point = geometry.closest_point(ego.x, ego.y, cx, cy, 1.0, 0.0, hx, hy)
                     hits.append(crashes.static_crash(self, int(i), int(cls), t0 + tau, point))
