@@ -98,3 +98,47 @@ def test_every_recorded_config_hash_is_unchanged(scale):
     changed = sorted(k for k in pinned if now.get(k) != pinned[k])
     assert not changed, f"these stages would re-run for every user: {changed}"
     assert set(now) == set(pinned)
+
+
+@pytest.mark.parametrize(
+    "folders",
+    [
+        ["paths.data_root=/tmp/a/data", "paths.runs_root=/tmp/a/runs", "paths.ledger=/tmp/a/ledger.csv"],
+        ["paths.data_root=/tmp/b/data", "paths.runs_root=relative/runs"],  # a relative folder: Hydra's own parse
+        ["paths.data_root=/tmp/c", "paths.data_root=/tmp/d"],  # given twice: the last, as Hydra says
+        ["paths.runs_root=${paths.data_root}/runs"],  # an interpolation stays one
+        ["paths.ledger='/tmp/e/ledger.csv'"],  # quoted: Hydra's grammar takes the quotes off
+    ],
+)
+def test_compose_gives_what_hydra_composes_and_a_config_of_its_own(folders):
+    """``compose`` composes once per stage and overrides less their plain folders, then sets the folders on a copy:
+    the config is Hydra's own, key for key and node type for node type, and changing it changes no later one."""
+    from worldmodel.config.entry import _hydra_compose
+
+    overrides = [*folders, "experiment=t", "scale=smoke", "agent=chooser", "reward=r2"]
+    for _ in range(2):  # composed, then from what compose keeps
+        cfg = compose("train_agent", overrides)
+        hydra = _hydra_compose("train_agent", overrides)
+        assert OmegaConf.to_yaml(cfg) == OmegaConf.to_yaml(hydra)
+        assert OmegaConf.to_container(cfg, resolve=True) == OmegaConf.to_container(hydra, resolve=True)
+        assert OmegaConf.get_type(cfg.agent) is OmegaConf.get_type(hydra.agent) and OmegaConf.is_struct(cfg)
+        cfg.agent.total_steps = 7
+    assert compose("train_agent", overrides).agent.total_steps != 7
+
+
+def test_compose_sees_a_preset_registered_after_it_composed_and_its_removal():
+    """What compose keeps is keyed by what a composition reads besides its arguments, Hydra's ConfigStore among it."""
+    from hydra.core.config_store import ConfigStore
+    from hydra.errors import ConfigCompositionException
+
+    overrides = ["experiment=t", "scale=smoke"]
+    before = compose("train_agent", overrides)
+    preset = {"agent": {"variant": "registered_here", "total_steps": 11}}
+    ConfigStore.instance().store(group="agent", name="registered_here", node=preset, package="_global_")
+    try:
+        assert compose("train_agent", [*overrides, "agent=registered_here"]).agent.total_steps == 11
+    finally:
+        ConfigStore.instance().repo["agent"].pop("registered_here.yaml")
+    with pytest.raises(ConfigCompositionException):
+        compose("train_agent", [*overrides, "agent=registered_here"])
+    assert OmegaConf.to_yaml(compose("train_agent", overrides)) == OmegaConf.to_yaml(before)
