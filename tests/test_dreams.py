@@ -19,7 +19,9 @@ def bank(smoke_builds):
     from worldmodel.config import compose
 
     root = smoke_builds("rnn")
-    cfg = compose("train_rnn", [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t"])
+    cfg = compose(
+        "train_rnn", [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke"]
+    )
     env = make_env(cfg, camera=True)
     try:
         first = dreams.branch_bank(env, points=3, horizon=6, warmup=4, seed=5)
@@ -73,7 +75,9 @@ def test_an_untrained_residual_lstm_dreams_decoded_persistence(smoke_builds):
     from worldmodel.config import compose
 
     root = smoke_builds("rnn")
-    cfg = compose("train_rnn", [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t"])
+    cfg = compose(
+        "train_rnn", [f"paths.data_root={root}/data", f"paths.runs_root={root}/runs", "experiment=t", "scale=smoke"]
+    )
     vae, _ = loading.load_vae(cfg)
     rnn = loading.build_rnn(cfg.vae, cfg.rnn).eval()
     with torch.no_grad():

@@ -25,10 +25,10 @@ torch.set_num_threads(1)
 TOL = {"rtol": 1e-5, "atol": 2e-6}
 
 
-def make_models(seed: int, head: str = "mdn", residual: bool = True, use_speed: bool = False):
+def make_models(seed: int, head: str = "mdn", residual: bool = True, use_speed: bool = False, hidden: int = 512):
     torch.manual_seed(seed)
     vae = SegVAE(num_classes=13, latent_dim=128)
-    rnn = WorldRNN(latent_dim=128, action_dim=2, hidden=512, head=head, gaussians=5, residual=residual)
+    rnn = WorldRNN(latent_dim=128, action_dim=2, hidden=hidden, head=head, gaussians=5, residual=residual)
     actor = Actor(256 + int(use_speed), 2)
     # Actor's final layer starts near zero (Lillicrap); spread it so actions span tanh's sensitive range and
     # an error upstream moves them measurably.
@@ -212,7 +212,7 @@ def test_same_results_after_loading_checkpoints_the_way_the_agent_does(stage_cfg
     from worldmodel.common import atomic_torch_save
 
     cfg = stage_cfg("train_agent")
-    vae, rnn, actor = make_models(3, str(cfg.rnn.head), bool(cfg.rnn.residual))
+    vae, rnn, actor = make_models(3, str(cfg.rnn.head), bool(cfg.rnn.residual), hidden=int(cfg.rnn.hidden))
     atomic_torch_save({"model": vae.state_dict(), "latent_dim": vae.latent_dim}, artifacts.vae_dir(cfg) / "best.pt")
     atomic_torch_save(
         {
