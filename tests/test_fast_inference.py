@@ -25,9 +25,11 @@ torch.set_num_threads(1)
 TOL = {"rtol": 1e-5, "atol": 2e-6}
 
 
-def make_models(seed: int, head: str = "mdn", residual: bool = True, use_speed: bool = False, hidden: int = 512):
+def make_models(
+    seed: int, head: str = "mdn", residual: bool = True, use_speed: bool = False, hidden: int = 512, channels: int = 32
+):
     torch.manual_seed(seed)
-    vae = SegVAE(num_classes=13, latent_dim=128)
+    vae = SegVAE(num_classes=13, latent_dim=128, channels=channels)
     rnn = WorldRNN(latent_dim=128, action_dim=2, hidden=hidden, head=head, gaussians=5, residual=residual)
     actor = Actor(256 + int(use_speed), 2)
     # Actor's final layer starts near zero (Lillicrap); spread it so actions span tanh's sensitive range and
@@ -212,8 +214,11 @@ def test_same_results_after_loading_checkpoints_the_way_the_agent_does(stage_cfg
     from worldmodel.common import atomic_torch_save
 
     cfg = stage_cfg("train_agent")
-    vae, rnn, actor = make_models(3, str(cfg.rnn.head), bool(cfg.rnn.residual), hidden=int(cfg.rnn.hidden))
-    atomic_torch_save({"model": vae.state_dict(), "latent_dim": vae.latent_dim}, artifacts.vae_dir(cfg) / "best.pt")
+    vae, rnn, actor = make_models(
+        3, str(cfg.rnn.head), bool(cfg.rnn.residual), hidden=int(cfg.rnn.hidden), channels=int(cfg.vae.channels)
+    )
+    state = {"model": vae.state_dict(), "latent_dim": vae.latent_dim, "channels": vae.channels}
+    atomic_torch_save(state, artifacts.vae_dir(cfg) / "best.pt")
     atomic_torch_save(
         {
             "model": rnn.state_dict(),

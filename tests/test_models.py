@@ -63,6 +63,22 @@ def test_vae_shapes_and_dtypes():
     assert torch.equal(rec, logits.argmax(1))
 
 
+def test_vae_channels_scale_every_layer_and_keep_the_frame_sizes():
+    """channels=c: the encoder's c, 2c, 4c, 8c channels and 32c features, the decoder back; the same 64x64 maps in
+    and out, and World Models' sizes at 32."""
+    seg = torch.randint(0, 13, (2, 64, 64), dtype=torch.uint8)
+    for c in (8, 32):
+        vae = SegVAE(latent_dim=16, channels=c)
+        convs = [vae.enc1, vae.enc2, vae.enc3, vae.enc4]
+        assert [m.out_channels for m in convs] == [c, 2 * c, 4 * c, 8 * c] and vae.fc_mu.in_features == 32 * c
+        assert [m.out_channels for m in (vae.dec1, vae.dec2, vae.dec3)] == [4 * c, 2 * c, c]
+        logits, mu, _ = vae(seg, sample=False)
+        assert logits.shape == (2, 13, 64, 64) and mu.shape == (2, 16)
+    assert SegVAE().fc_dec.out_features == 1024 and SegVAE().dec1.out_channels == 128
+    with pytest.raises(ValueError, match="channels"):
+        SegVAE(channels=0)
+
+
 def test_vae_one_hot_input_and_bad_ids():
     vae = SegVAE(num_classes=13, latent_dim=8)
     seg = torch.randint(0, 13, (2, 64, 64))

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from envs import CLASS_NAMES
-from worldmodel import loading, train_vae
+from worldmodel import artifacts, loading, train_vae
 from worldmodel.common import StageError
 
 
@@ -68,6 +68,10 @@ def test_latent_size_mismatch_with_checkpoint_is_named(stage_cfg, rollouts):
         train_vae.run(stage_cfg("train_vae", "vae.batch_size=8", "vae.latent_dim=64", "resume=true"))
     with pytest.raises(StageError, match="vae.latent_dim"):
         loading.load_vae(stage_cfg("train_vae", "vae.latent_dim=32"))
+    # the smoke scale's 8 channels are recorded; a config of World Models' 32 is refused by name
+    assert torch.load(artifacts.vae_dir(stage_cfg("train_vae")) / "last.pt", weights_only=False)["channels"] == 8
+    with pytest.raises(StageError, match=r"vae.channels=8 but the config says vae.channels=32"):
+        loading.load_vae(stage_cfg("train_vae", "vae.channels=32"))
 
 
 @pytest.mark.parametrize(

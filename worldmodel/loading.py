@@ -96,7 +96,7 @@ def build_vae(vae):
     """The VAE that the config section ``vae`` describes, freshly initialised."""
     from .models.vae import SegVAE
 
-    return SegVAE(num_classes=vae.num_classes, latent_dim=vae.latent_dim)
+    return SegVAE(num_classes=vae.num_classes, latent_dim=vae.latent_dim, channels=vae.channels)
 
 
 def build_rnn(vae, rnn):
@@ -114,12 +114,14 @@ def build_rnn(vae, rnn):
 
 
 def check_vae_architecture(state: dict, vae, path: Path) -> None:
-    """Refuse a VAE checkpoint whose latent size differs from the config section ``vae``'s."""
-    if state["latent_dim"] != vae.latent_dim:
-        raise StageError(
-            f"{path} has latent size {state['latent_dim']} but config vae.latent_dim="
-            f"{vae.latent_dim}. Set vae.latent_dim={state['latent_dim']} or retrain the VAE."
-        )
+    """Refuse a VAE checkpoint whose latent size or channels differ from the config section ``vae``'s (a checkpoint
+    that names no channels has World Models' 32)."""
+    for key, have in (("latent_dim", state["latent_dim"]), ("channels", state.get("channels", 32))):
+        if have != vae[key]:
+            raise StageError(
+                f"{path} has vae.{key}={have} but the config says vae.{key}={vae[key]}. Set vae.{key}={have} or "
+                "retrain the VAE."
+            )
 
 
 def check_rnn_architecture(state: dict, vae, rnn, path: Path) -> None:

@@ -122,6 +122,7 @@ def run(cfg) -> dict:
         # what a resume or a loader checks the architecture against, and the loss weights to resume with
         arch = {
             "latent_dim": typed.vae.latent_dim,
+            "channels": typed.vae.channels,
             "num_classes": typed.vae.num_classes,
             "class_weights": weights,
         }

@@ -30,7 +30,7 @@ __all__ = [
 ]
 
 IMAGE_SIZE = 64
-_FLAT = 1024  # 256 channels x 2 x 2 after the fourth stride-2 conv on a 64x64 input
+CHANNELS = 32  # the first conv's channels in World Models' VAE; each later layer's are a multiple of them
 
 
 class SegVAE(nn.Module):
@@ -42,6 +42,9 @@ class SegVAE(nn.Module):
     64->32 (k6), 32->num_classes (k6), all stride 2: 1->5->13->30->64. Output is LOGITS (no softmax) so the
     loss can use the numerically stable fused log-softmax of ``F.cross_entropy``.
 
+    Those are the sizes at ``channels=32``, World Models' own; ``channels=c`` scales every layer by c / 32 (the
+    encoder's c, 2c, 4c, 8c channels, 32c features), as the smoke scale's tests use to keep their checkpoints small.
+
     The one-hot input is built explicitly with ``F.one_hot``. A fused first layer (an embedding-bag lookup
     of conv weights, numerically identical) was measured and dropped: it halves the cost of ``enc1`` alone
     but gave no measurable end-to-end gain on CPU, and its sort-based backward made training slower.
@@ -49,27 +52,31 @@ class SegVAE(nn.Module):
     from these parameters): there, with no backward and no batch to amortise the one-hot, it pays off.
     """
 
-    def __init__(self, num_classes: int = NUM_CLASSES, latent_dim: int = 128):
+    def __init__(self, num_classes: int = NUM_CLASSES, latent_dim: int = 128, channels: int = CHANNELS):
         super().__init__()
         if num_classes < 2:
             raise ValueError(f"num_classes must be >= 2, got {num_classes}")
         if latent_dim < 1:
             raise ValueError(f"latent_dim must be >= 1, got {latent_dim}")
+        if channels < 1:
+            raise ValueError(f"channels must be >= 1, got {channels}")
         self.num_classes = int(num_classes)
         self.latent_dim = int(latent_dim)
+        self.channels = c = int(channels)
+        self.features = 32 * c  # 8c channels x 2 x 2 after the fourth stride-2 conv on a 64x64 input
 
-        self.enc1 = nn.Conv2d(num_classes, 32, 4, stride=2)
-        self.enc2 = nn.Conv2d(32, 64, 4, stride=2)
-        self.enc3 = nn.Conv2d(64, 128, 4, stride=2)
-        self.enc4 = nn.Conv2d(128, 256, 4, stride=2)
-        self.fc_mu = nn.Linear(_FLAT, latent_dim)
-        self.fc_logvar = nn.Linear(_FLAT, latent_dim)
+        self.enc1 = nn.Conv2d(num_classes, c, 4, stride=2)
+        self.enc2 = nn.Conv2d(c, 2 * c, 4, stride=2)
+        self.enc3 = nn.Conv2d(2 * c, 4 * c, 4, stride=2)
+        self.enc4 = nn.Conv2d(4 * c, 8 * c, 4, stride=2)
+        self.fc_mu = nn.Linear(self.features, latent_dim)
+        self.fc_logvar = nn.Linear(self.features, latent_dim)
 
-        self.fc_dec = nn.Linear(latent_dim, _FLAT)
-        self.dec1 = nn.ConvTranspose2d(_FLAT, 128, 5, stride=2)
-        self.dec2 = nn.ConvTranspose2d(128, 64, 5, stride=2)
-        self.dec3 = nn.ConvTranspose2d(64, 32, 6, stride=2)
-        self.dec4 = nn.ConvTranspose2d(32, num_classes, 6, stride=2)
+        self.fc_dec = nn.Linear(latent_dim, self.features)
+        self.dec1 = nn.ConvTranspose2d(self.features, 4 * c, 5, stride=2)
+        self.dec2 = nn.ConvTranspose2d(4 * c, 2 * c, 5, stride=2)
+        self.dec3 = nn.ConvTranspose2d(2 * c, c, 6, stride=2)
+        self.dec4 = nn.ConvTranspose2d(c, num_classes, 6, stride=2)
 
     # ------------------------------------------------------------------ input
     def _check_classes(self, seg: torch.Tensor) -> torch.Tensor:
