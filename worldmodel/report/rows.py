@@ -130,8 +130,9 @@ def grid_of(rows: Sequence[dict]) -> dict[str, list]:
     """The hazards, TTCs and speeds present in ``rows`` (sorted; hazards in pedestrian, car, both order)."""
     return {
         "hazards": _ordered((str(r["hazard"]) for r in rows), HAZARD_ORDER),
-        "ttcs": sorted({_key(r["ttc"]) for r in rows}),
-        "speeds": sorted({_key(r["speed"]) for r in rows}),
+        # each distinct value rounded once: a bank's thousands of rows hold a handful of TTCs and speeds
+        "ttcs": sorted({_key(v) for v in {r["ttc"] for r in rows}}),
+        "speeds": sorted({_key(v) for v in {r["speed"] for r in rows}}),
     }
 
 

@@ -72,8 +72,14 @@ def _metrics(rows: Sequence[dict]) -> dict[str, Any]:
 
 def _group(rows: Sequence[dict], *fields: str) -> dict[tuple, list[dict]]:
     groups: dict[tuple, list[dict]] = {}
+    rounded: dict = {}  # each distinct TTC and speed rounded once: a bank's rows repeat a handful of them
     for r in rows:
-        key = tuple(_key(r[f]) if f in ("ttc", "speed") else str(r[f]) for f in fields)
+        key = tuple(
+            (rounded[r[f]] if r[f] in rounded else rounded.setdefault(r[f], _key(r[f])))
+            if f in ("ttc", "speed")
+            else str(r[f])
+            for f in fields
+        )
         groups.setdefault(key, []).append(r)
     return groups
 
