@@ -26,11 +26,13 @@ SLOWEST_FIRST = (
     "test_resume.py",
     "test_interrupt.py",
     "test_published.py",
-    "test_device.py",
-    "test_train_rnn.py",
-    "test_kim.py",
     "test_chae.py",
+    "test_device.py",
+    "test_launchers.py",
+    "test_safe_loading.py",
     "test_planner.py",
+    "test_camera_views.py",
+    "test_kim.py",
 )
 
 
