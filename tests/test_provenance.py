@@ -101,29 +101,44 @@ def test_every_recorded_config_hash_is_unchanged(scale):
 
 
 @pytest.mark.parametrize(
-    "folders",
+    "changes",
     [
         ["paths.data_root=/tmp/a/data", "paths.runs_root=/tmp/a/runs", "paths.ledger=/tmp/a/ledger.csv"],
-        ["paths.data_root=/tmp/b/data", "paths.runs_root=relative/runs"],  # a relative folder: Hydra's own parse
+        ["paths.data_root=/tmp/b/data", "paths.runs_root=relative/runs", "seed=3", "agent.total_steps=70"],
         ["paths.data_root=/tmp/c", "paths.data_root=/tmp/d"],  # given twice: the last, as Hydra says
         ["paths.runs_root=${paths.data_root}/runs"],  # an interpolation stays one
-        ["paths.ledger='/tmp/e/ledger.csv'"],  # quoted: Hydra's grammar takes the quotes off
+        ["paths.ledger='/tmp/e/ledger.csv'", "banks=[validation,test]"],  # Hydra's grammar: quotes off, a list
+        ["agent.chooser.steers=[1.0]", "agent.chooser.decide_s=0.5", "launcher=local"],  # a key, not hydra/launcher
+        ["reward=r1", "view=cover64", "obs=privileged"],  # choices of config groups, after the preset's own
+        ["+agent.not_a_key=1"],  # an addition: Hydra's composition refuses it, as it would
+        ["agent.not_a_key=1"],  # no such key: Hydra's own error
+        ["~agent.chooser"],  # a deletion
+        ["agent.total_steps=1,2"],  # a sweep, which a composition refuses
+        ["agent.total_steps=[oops"],  # text Hydra's parser refuses
     ],
 )
-def test_compose_gives_what_hydra_composes_and_a_config_of_its_own(folders):
-    """``compose`` composes once per stage and overrides less their plain folders, then sets the folders on a copy:
-    the config is Hydra's own, key for key and node type for node type, and changing it changes no later one."""
+def test_compose_gives_what_hydra_composes_and_a_config_of_its_own(changes):
+    """``compose`` composes once per stage and choice of config groups, then applies the other overrides to a copy
+    with Hydra's own code: the config is Hydra's own, key for key and node type for node type (or Hydra's own
+    error), and changing it changes no later one."""
     from worldmodel.config.entry import _hydra_compose
 
-    overrides = [*folders, "experiment=t", "scale=smoke", "agent=chooser", "reward=r2"]
+    def composed(how):
+        try:
+            return how("train_agent", [*changes, "experiment=t", "scale=smoke", "agent=chooser", "reward=r2"])
+        except Exception as err:  # noqa: BLE001 - the same error is the check
+            return f"{type(err).__name__}: {err}"
+
     for _ in range(2):  # composed, then from what compose keeps
-        cfg = compose("train_agent", overrides)
-        hydra = _hydra_compose("train_agent", overrides)
+        cfg, hydra = composed(compose), composed(_hydra_compose)
+        if isinstance(hydra, str):
+            assert cfg == hydra
+            continue
         assert OmegaConf.to_yaml(cfg) == OmegaConf.to_yaml(hydra)
         assert OmegaConf.to_container(cfg, resolve=True) == OmegaConf.to_container(hydra, resolve=True)
         assert OmegaConf.get_type(cfg.agent) is OmegaConf.get_type(hydra.agent) and OmegaConf.is_struct(cfg)
         cfg.agent.total_steps = 7
-    assert compose("train_agent", overrides).agent.total_steps != 7
+    assert isinstance(hydra, str) or composed(compose).agent.total_steps != 7
 
 
 def test_compose_sees_a_preset_registered_after_it_composed_and_its_removal():

@@ -10,7 +10,6 @@ import json
 import logging
 import math
 import os
-import re
 import sys
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
@@ -211,41 +210,72 @@ def moved_keys(overrides) -> None:
             raise StageError(f"{key} is now {MOVED_KEYS[key]}: write {str(override).replace(key, MOVED_KEYS[key], 1)}")
 
 
-# Folder settings that ``compose`` sets after composing: Hydra's composition (about 80 ms) does not depend on them,
-# and tests compose the same stage under many temporary folders. Only a plain absolute path is set this way; any
-# other value goes through Hydra's own parser.
-FOLDER_KEYS = ("paths.data_root", "paths.runs_root", "paths.ledger")
-_PLAIN_PATH = re.compile(r"/[\w./-]*")
-COMPOSED_KEPT = 256  # composed configs that compose keeps, one per stage and overrides less their folders
+COMPOSED_KEPT = 256  # composed configs that compose keeps, one per stage and choice of config groups
 _composed: OrderedDict[str, object] = OrderedDict()
 
 
 def compose(stage: str, overrides: list[str] | tuple[str, ...] = ()):
     """Compose the real Hydra config of ``stage`` (for tests and notebooks).
 
-    Each call returns a config of its own. Hydra composes once per stage and overrides (less plain folders,
-    ``FOLDER_KEYS``), per state of the files in ``conf/`` and per the names in Hydra's ConfigStore; a later call
-    copies that config and sets its folders, about eight times faster. An edit to ``conf/`` composes afresh."""
+    Each call returns a config of its own. Hydra composes once per stage and choice of config groups (``scale=``,
+    ``agent=``, ...), per state of the files in ``conf/`` and per the names in Hydra's ConfigStore; a later call
+    copies that config and applies its other overrides (``seed=1``, ``agent.total_steps=300``) with Hydra's own
+    code, as Hydra applies them after composing, about eight times faster. An edit to ``conf/`` composes afresh."""
     moved_keys(overrides)
-    overrides = [str(o) for o in overrides]
-    folders = {}
-    for o in overrides:
-        key, _, value = o.partition("=")
-        if key in FOLDER_KEYS and _PLAIN_PATH.fullmatch(value):
-            folders[key] = value
-    if len(folders) != sum(o.partition("=")[0] in FOLDER_KEYS for o in overrides):
-        folders = {}  # a folder given twice, or in another form: Hydra alone says what it means
-    rest = [o for o in overrides if not (folders and o.partition("=")[0] in FOLDER_KEYS)]
-    key = json.dumps([stage, rest, _conf_state()])
+    chosen, values = _split_overrides([str(o) for o in overrides])
+    key = json.dumps([stage, chosen, _conf_state()])
     if key not in _composed:
-        _composed[key] = _hydra_compose(stage, rest)
+        _composed[key] = _hydra_compose(stage, chosen)
         while len(_composed) > COMPOSED_KEPT:
             _composed.popitem(last=False)
     _composed.move_to_end(key)
     cfg = copy.deepcopy(_composed[key])
-    for name, value in folders.items():
-        OmegaConf.update(cfg, name, value, merge=True)  # as Hydra applies a value override
+    if values:
+        from hydra._internal.config_loader_impl import ConfigLoaderImpl
+
+        ConfigLoaderImpl._apply_overrides_to_config(values, cfg)  # Hydra's last step of a composition, as it is
     return cfg
+
+
+def _split_overrides(overrides: list[str]) -> tuple[list[str], list]:
+    """``overrides`` as (what Hydra composes with: choices of config groups and anything unusual, the parsed
+    value changes applied after). Only a plain change of a value outside ``hydra.`` is applied after; a sweep, an
+    addition, a deletion, a package or text Hydra's parser refuses stays with the composition, which says what it
+    means."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides=overrides)
+    except Exception:  # noqa: BLE001 - Hydra's composition raises its own error for it
+        return overrides, []
+    groups = _config_groups()
+    chosen, values = [], []
+    for text, override in zip(overrides, parsed):
+        key = override.key_or_group
+        plain = override.type == OverrideType.CHANGE and override.package is None and not override.is_sweep_override()
+        if plain and key not in groups and key.split(".")[0] != "hydra":
+            values.append(override)
+        else:
+            chosen.append(text)
+    return chosen, values
+
+
+def _config_groups() -> set[str]:
+    """Every config group: the folders under ``conf/`` (``hydra/launcher`` for a nested one) and the groups of
+    Hydra's ConfigStore."""
+    from hydra.core.config_store import ConfigStore
+
+    groups = {os.path.relpath(folder, CONF_DIR) for folder, _, _ in os.walk(CONF_DIR)} - {"."}
+
+    def add(node: dict, prefix: str) -> None:
+        for name, child in node.items():
+            if isinstance(child, dict):
+                groups.add(prefix + name)
+                add(child, prefix + name + "/")
+
+    add(ConfigStore.instance().repo, "")
+    return groups
 
 
 def _conf_state() -> list:
