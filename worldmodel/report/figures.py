@@ -123,7 +123,7 @@ TITLE_IN = 0.62  # a panel's title: up to three lines at 9 pt
 XLABEL_IN = 0.5  # tick labels and the x label under a panel
 YLABEL_IN = 0.65  # the y label and its tick labels, left of a panel
 COLORBAR_IN = 0.45  # a panel's colour bar's tick labels, right of the bar that the panel's own width gives up
-SUPTITLE_IN = 0.35
+SUPTITLE_IN = 0.35  # the figure's title line above them all
 
 
 def _panel_margins(fig, n_rows: int, n_cols: int) -> dict:
