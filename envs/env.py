@@ -277,6 +277,9 @@ class UrbanCollisionEnv(gym.Env):
         # squared centre distance beyond which a body's bounding circle and the ego's cannot meet, with a margin of
         # APART_MARGIN_M so that rounding can never skip a contact the exact test would find
         self._rect_apart = ((self._rect_radius + self._car_radius + APART_MARGIN_M) ** 2).tolist()
+        # centre distance within which a body's bounding circle and the ego's meet (_static_in_reach)
+        self._rect_meet = (self._rect_radius + self._car_radius + APART_MARGIN_M).tolist()
+        self._circle_meet = (self._circle_radius + self._car_radius + APART_MARGIN_M).tolist()
 
     def step(self, action):
         if self.scenario is None:
@@ -330,8 +333,7 @@ class UrbanCollisionEnv(gym.Env):
         car_idx = [i for i in car_idx if act.car_active[i]]
         ped_idx = geometry.near(act.ped_xy, PEDESTRIAN_RADIUS + np.abs(act.ped_vel).sum(1) * dt, lo, hi)
         ped_idx = [i for i in ped_idx if act.ped_active[i]]
-        rect_idx = geometry.near(self._rect_centres, self._rect_radius, lo, hi)
-        circ_idx = geometry.near(self._circle_centres, self._circle_radius, lo, hi)
+        rect_idx, circ_idx = self._static_in_reach(lo, hi, reach)
 
         hits: list[dict] = []
         crashed = False
@@ -375,18 +377,37 @@ class UrbanCollisionEnv(gym.Env):
                     continue  # the two footprints' bounding circles are apart: the exact test would say no
                 if geometry.rect_rect(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, 1.0, 0.0, hx, hy):
                     point = geometry.closest_point(ego.x, ego.y, cx, cy, 1.0, 0.0, hx, hy)
-                    hits.append(crashes.static_crash(self, int(i), int(cls), t0 + tau, point))
+                    hits.append(crashes.static_crash(self, i, int(cls), t0 + tau, point))
                     crashed = True
             for i in circ_idx:
                 cx, cy, r, cls = self._circle_rows[i]
                 if geometry.rect_circle(ego.x, ego.y, c, s, self._hl, self._hw, cx, cy, r):
-                    hits.append(crashes.static_crash(self, int(i), int(cls), t0 + tau, (cx, cy)))
+                    hits.append(crashes.static_crash(self, i, int(cls), t0 + tau, (cx, cy)))
                     crashed = True
             if crashed:
                 done_sub = k
                 break
         act.advance(done_sub * sub_dt)
         return hits, crashed
+
+    def _static_in_reach(self, lo: np.ndarray, hi: np.ndarray, reach: float) -> tuple[list[int], list[int]]:
+        """The static rectangles and circles (indices, ascending) that the ego's footprint can touch in a step:
+        those near the box [lo, hi] whose bounding circle comes within the ego's while the ego's centre moves at
+        most ``reach`` less its radius (the broad phase's 1 m to spare included). The others cannot pass the exact
+        tests, so skipping them changes nothing."""
+        ex, ey, travel = self.ego.x, self.ego.y, reach - self._car_radius
+        rects, circles = self._rect_rows, self._circle_rows
+        rect_idx = [
+            i
+            for i in geometry.near(self._rect_centres, self._rect_radius, lo, hi).tolist()
+            if (rects[i][0] - ex) ** 2 + (rects[i][1] - ey) ** 2 <= (self._rect_meet[i] + travel) ** 2
+        ]
+        circ_idx = [
+            i
+            for i in geometry.near(self._circle_centres, self._circle_radius, lo, hi).tolist()
+            if (circles[i][0] - ex) ** 2 + (circles[i][1] - ey) ** 2 <= (self._circle_meet[i] + travel) ** 2
+        ]
+        return rect_idx, circ_idx
 
     # ------------------------------------------------------------------ planning
     def snapshot(self) -> dict:
