@@ -48,6 +48,12 @@ def paired_permutation_p(a, b, flips: int = 10_000, seed: int = 0) -> float:
     return float(result.pvalue)
 
 
+# null draws computed at a time: an even number, so that every block but the last starts on a whole 64-bit draw; a
+# block of 256 keeps its arrays in the cache (three times faster than all 10,000 at once, the same null means: each
+# is its own row's sum)
+FLIP_BLOCK = 256
+
+
 def _sign_flip_p(d: np.ndarray, flips: int, seed: int) -> float:
     """``scipy.stats.permutation_test``'s two-sided p for the mean of ``d`` under random sign flips (permutation
     type "samples", one sample), from the very draws it makes, without its general indexing (about 20x faster).
@@ -57,10 +63,14 @@ def _sign_flip_p(d: np.ndarray, flips: int, seed: int) -> float:
     means match scipy's to the last bits of their sum's order, which its tolerance (100 eps x the observed mean)
     absorbs; tests/test_report.py holds the p-values equal."""
     n = len(d)
-    raw = np.random.default_rng(seed).bit_generator.random_raw((flips * n + 1) // 2)
-    keep = np.empty(2 * len(raw), bool)  # each draw's lowest bit: the low half's bit 0, then the high half's
-    keep[0::2], keep[1::2] = raw & 1, (raw >> 32) & 1
-    null = np.where(keep[: flips * n].reshape(flips, n), d, -d).mean(axis=1)
+    bits = np.random.default_rng(seed).bit_generator
+    null = np.empty(flips)
+    for start in range(0, flips, FLIP_BLOCK):  # each block takes the next draws of the one stream
+        rows = min(FLIP_BLOCK, flips - start)
+        raw = bits.random_raw((rows * n + 1) // 2)
+        keep = np.empty(2 * len(raw), bool)  # each draw's lowest bit: the low half's bit 0, then the high half's
+        keep[0::2], keep[1::2] = raw & 1, (raw >> 32) & 1
+        null[start : start + rows] = np.where(keep[: rows * n].reshape(rows, n), d, -d).mean(axis=1)
     observed = d.mean()
     gamma = abs(np.finfo(float).eps * 100 * observed)
     less = (np.count_nonzero(null <= observed + gamma) + 1) / (flips + 1)
