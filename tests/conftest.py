@@ -47,7 +47,7 @@ def pytest_collection_finish(session):
     # Every test module is imported by now, and with them torch, Hydra and the project: objects that live until the
     # end. Frozen, Python's full garbage collections no longer walk them. The tests then allocate millions of
     # short-lived containers (configs, rows, checkpoints' dicts); collecting the youngest every 10,000 allocations
-    # instead of every 700, and the oldest ten times less often, took the collector from 17 s of the two workers'
+    # instead of every 700, and the oldest ten times less often, took the collector from 20 s of the two workers'
     # CPU time to 8 s, and the run's peak memory did not rise (benchmarks/RESULTS.md). Garbage is still collected.
     gc.freeze()
     gc.set_threshold(10_000, 10, 100)
