@@ -274,11 +274,11 @@ class UrbanCollisionEnv(gym.Env):
         # the narrow phase reads them one number at a time: Python floats, not numpy scalars, whose arithmetic gives
         # the same doubles several times slower
         self._rect_rows, self._circle_rows = rects.tolist(), circles.tolist()
-        # squared centre distance beyond which a body's bounding circle and the ego's cannot meet, with a margin of
-        # APART_MARGIN_M so that rounding can never skip a contact the exact test would find
-        self._rect_apart = ((self._rect_radius + self._car_radius + APART_MARGIN_M) ** 2).tolist()
-        # centre distance within which a body's bounding circle and the ego's meet (_static_in_reach)
+        # centre distance beyond which a body's bounding circle and the ego's cannot meet, with a margin of
+        # APART_MARGIN_M so that rounding can never skip a contact the exact test would find; a step's filter
+        # (_static_in_reach) reads the distance, each sub-step's test its square
         self._rect_meet = (self._rect_radius + self._car_radius + APART_MARGIN_M).tolist()
+        self._rect_apart = [meet * meet for meet in self._rect_meet]
         self._circle_meet = (self._circle_radius + self._car_radius + APART_MARGIN_M).tolist()
 
     def step(self, action):
